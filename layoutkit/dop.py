@@ -1,0 +1,201 @@
+"""Angle Jacobians, pose covariance H, ADOP/PDOP, measured precision and accuracy (Chen §3, eqs. 13–25).
+
+Perturbation convention (design §2, §5): ``R <- exp([dphi]x) R``, ``t <- t + dt``; the 6-vector is
+``(dphi, dt)``, rotation block first. Per sensor, with ``p = (x, y, z)`` in the station frame:
+``d theta_x / d p = (-z, 0, x) / (x² + z²)``, ``d theta_y / d p = (0, -z, y) / (y² + z²)`` and
+``d p / d(dphi, dt) = [-[p - t]x, I]``. The paper's rotation-vector route (eqs. 8–14 with
+``J_r``, eq. 21) gives the same ADOP/PDOP; ``tests/test_dop.py`` checks it by finite differences.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._validate import as_array, check_finite
+from .geometry import attitude_error, transform_points
+from .lighthouse import Station
+
+__all__ = [
+    "DopResult",
+    "angle_jacobian",
+    "dop_from_jacobian",
+    "pose_dop",
+    "precision",
+    "pose_errors",
+    "rms",
+]
+
+RAD2DEG = 180.0 / np.pi
+# Relative conditioning below which H is reported as singular (degenerate geometry).
+_RCOND = 1e-12
+
+
+@dataclass(frozen=True)
+class DopResult:
+    """ADOP/PDOP of a batch of poses.
+
+    adop : (...,) float, deg of attitude per rad of angle noise (Chen eq. 22); inf where singular.
+    pdop : (...,) float, m of position per rad of angle noise; inf where singular.
+    cov : (..., 6, 6) float, H of eq. (18) in (dphi rad, dt m) per rad², rotation block first.
+    success : (...,) bool; status : (...,) int (0 ok, 1 too few lit sensors, 2 singular geometry).
+    n_visible : (...,) int, angle pairs used.
+    """
+
+    adop: np.ndarray
+    pdop: np.ndarray
+    cov: np.ndarray
+    success: np.ndarray
+    status: np.ndarray
+    n_visible: np.ndarray
+
+    @property
+    def message(self) -> str:
+        s = np.asarray(self.status)
+        if np.all(s == 0):
+            return "ok"
+        return (f"{int(np.sum(s == 1))} pose(s) with fewer than 3 lit sensors, "
+                f"{int(np.sum(s == 2))} with singular geometry")
+
+
+def angle_jacobian(points_lh, lever_world=None, station_rotation=None) -> np.ndarray:
+    """Jacobian of the sweep angles with respect to the body pose perturbation ``(dphi, dt)``.
+
+    points_lh : (..., n, 3) float, m, sensor positions in the station frame.
+    lever_world : (..., n, 3) float, m, ``R_body @ p_body`` in the frame in which the pose is
+        perturbed (the station frame for a single station, i.e. ``points_lh - t``).
+    station_rotation : (3, 3), optional, station-to-world rotation; the pose is then perturbed in
+        the world frame.
+    Returns (..., n, 2, 6) float, rad per (rad, m). Chen eqs. (10)–(14) in left-perturbation form.
+    """
+    p = np.asarray(points_lh, dtype=float)
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    dx = x * x + z * z
+    dy = y * y + z * z
+    zero = np.zeros_like(x)
+    # d theta / d p_station, (..., n, 2, 3)
+    dth = np.stack(
+        [np.stack([-z / dx, zero, x / dx], -1), np.stack([zero, -z / dy, y / dy], -1)], -2
+    )
+    if station_rotation is not None:
+        # d p_station = R_s^T d p_world
+        dth = dth @ np.asarray(station_rotation, float).T
+    if lever_world is None:
+        raise ValueError("angle_jacobian: lever_world (R @ p_body) is required")
+    lever = np.asarray(lever_world, dtype=float)
+    # d p / d dphi = -[l]x with l = R p_body; a row a^T(-[l]x) equals (l x a)^T
+    drot = np.cross(lever[..., None, :], dth)
+    return np.concatenate([drot, dth], -1)
+
+
+def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
+    """ADOP/PDOP from per-sensor angle Jacobians.
+
+    jac : (..., S, n, 2, 6) float — S stations (rotor sweeps), n sensors, [theta_x, theta_y] rows.
+    rho : same-rotor correlation (Chen eq. 19); only angles of the same station and axis correlate.
+    visible : bool broadcastable to (..., S, n), lit sensors; default all.
+    Implements eq. (18) in closed form: with ``A = J^T J`` and ``b_{s,axis} = sum_i v_i j_{s,i,axis}``,
+    ``J^T R J = (1 - rho) A + rho sum b b^T`` and ``H = A^-1 J^T R J A^-1``.
+    """
+    J = np.asarray(jac, dtype=float)
+    if J.ndim < 4 or J.shape[-2:] != (2, 6):
+        raise ValueError(f"jac: expected shape (..., S, n, 2, 6), got {J.shape}")
+    v = np.ones(J.shape[:-2], bool) if visible is None else np.asarray(visible, bool)
+    try:
+        v = np.broadcast_to(v, J.shape[:-2])
+    except ValueError:
+        raise ValueError(f"visible: expected shape {J.shape[:-2]}, got {v.shape}") from None
+    Jv = J * v[..., None, None]
+    # A = sum over stations, sensors, axes of j j^T
+    A = np.einsum("...snai,...snaj->...ij", Jv, Jv)
+    b = Jv.sum(axis=-3)  # (..., S, 2, 6)
+    B = np.einsum("...sai,...saj->...ij", b, b)
+    M = (1.0 - rho) * A + rho * B
+    nvis = v.sum(axis=(-1, -2))
+    eye = np.eye(6)
+    # conditioning relative to the scale of A
+    scale = np.trace(A, axis1=-2, axis2=-1)[..., None, None] / 6.0
+    scale = np.where(scale > 0, scale, 1.0)
+    w = np.linalg.eigvalsh(A / scale)
+    singular = w[..., 0] <= _RCOND * np.maximum(w[..., -1], 1e-300)
+    Asafe = np.where(singular[..., None, None], eye, A)
+    Ainv = np.linalg.inv(Asafe)
+    H = Ainv @ M @ Ainv  # Chen eq. (18)
+    H = 0.5 * (H + np.swapaxes(H, -1, -2))
+    status = np.where(nvis < 3, 1, np.where(singular, 2, 0))
+    ok = status == 0
+    tr_rot = np.trace(H[..., :3, :3], axis1=-2, axis2=-1)
+    tr_t = np.trace(H[..., 3:, 3:], axis1=-2, axis2=-1)
+    adop = np.where(ok, RAD2DEG * np.sqrt(np.maximum(tr_rot, 0)), np.inf)  # eq. (22)
+    pdop = np.where(ok, np.sqrt(np.maximum(tr_t, 0)), np.inf)
+    H = np.where(ok[..., None, None], H, np.nan)
+    return DopResult(adop=adop, pdop=pdop, cov=H, success=ok, status=status, n_visible=nvis)
+
+
+def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
+             stations: "list[Station] | None" = None) -> DopResult:
+    """ADOP/PDOP of a sensor layout at one or many poses (Chen eqs. 18–22).
+
+    points_body : (n, 3) or (..., n, 3) float, m, sensor positions in the body frame.
+    rotation : (..., 3, 3), translation : (..., 3) m — body pose ``p = R p_body + t`` in the frame
+        of the single lighthouse (``stations=None``) or in the world frame of ``stations``.
+    rho : same-rotor correlation (0.8717 measured in the paper).
+    visible : (..., n) bool for one station or (..., S, n) for S stations; default all sensors.
+    Returns a :class:`DopResult` with batch shape ``(...)``; numerical degeneracy is a status.
+    """
+    P = as_array(points_body, "points_body", (..., None, 3))
+    R = as_array(rotation, "rotation", (..., 3, 3))
+    t = as_array(translation, "translation", (..., 3))
+    for a, nm in ((P, "points_body"), (R, "rotation"), (t, "translation")):
+        check_finite(a, nm)
+    if R.shape[:-2] != t.shape[:-1]:
+        raise ValueError(f"rotation {R.shape} and translation {t.shape}: batch shapes differ")
+    lever = np.einsum("...ij,...nj->...ni", R, P)  # R p_body, (..., n, 3)
+    if stations is None:
+        p_lh = lever + t[..., None, :]
+        J = angle_jacobian(p_lh, lever)[..., None, :, :, :]
+        if visible is not None:
+            visible = np.asarray(visible, bool)[..., None, :]
+    else:
+        Js = []
+        for st in stations:
+            pw = lever + t[..., None, :]
+            p_s = (pw - st.translation) @ st.rotation
+            Js.append(angle_jacobian(p_s, lever, st.rotation))
+        J = np.stack(Js, -4)
+    if visible is not None:
+        visible = np.broadcast_to(np.asarray(visible, bool), J.shape[:-2])
+    return dop_from_jacobian(J, rho, visible)
+
+
+def precision(rotations, translations):
+    """Measured precision of a static group (Chen eq. 23).
+
+    rotations : (..., N, 3, 3), translations : (..., N, 3) m.
+    Returns ``(sigma_rot_rad, sigma_trans_m)`` each (...,): RMS rotation-vector norm of
+    ``R_i R_mean^T`` and RMS of ``|t_i - t_mean|``. The mean rotation is the chordal mean
+    (equal to the paper's mean rotation vector to second order for small spreads).
+    """
+    R = as_array(rotations, "rotations", (..., None, 3, 3))
+    t = as_array(translations, "translations", (..., None, 3))
+    # chordal mean: project the arithmetic mean of matrices onto SO(3)
+    from .geometry import nearest_rotation
+
+    Rm = nearest_rotation(R.mean(axis=-3))
+    e_rot = attitude_error(R, Rm[..., None, :, :])
+    tm = t.mean(axis=-2, keepdims=True)
+    e_t = np.linalg.norm(t - tm, axis=-1)
+    return rms(e_rot, axis=-1), rms(e_t, axis=-1)
+
+
+def pose_errors(rotation_est, translation_est, rotation_ref, translation_ref):
+    """Accuracy against a reference (Chen eq. 25), per frame: ``(e_rot_rad, e_trans_m)``."""
+    e_rot = attitude_error(rotation_est, rotation_ref)
+    e_t = np.linalg.norm(np.asarray(translation_est, float) - np.asarray(translation_ref, float), axis=-1)
+    return e_rot, e_t
+
+
+def rms(x, axis=None):
+    """Root mean square along ``axis``."""
+    x = np.asarray(x, dtype=float)
+    return np.sqrt(np.mean(x * x, axis=axis))

@@ -1,0 +1,1 @@
+"""Orchestration with file I/O: what a command does, reusable by studies/."""
