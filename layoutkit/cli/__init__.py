@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import click
 
-from . import camera, core, live, mesh, optimize, render
+from . import camera, core, fake, live, mesh, optimize, render
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -20,6 +20,6 @@ def main():
     """
 
 
-for _mod in (core, mesh, render, optimize, live, camera):
+for _mod in (core, mesh, render, optimize, live, fake, camera):
     for _cmd in _mod.commands:
         main.add_command(_cmd)

@@ -1,0 +1,1 @@
+"""Live mode: sources, protocols, decoding, pipeline, statistics, dashboard, hardware simulator."""
