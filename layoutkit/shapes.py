@@ -9,7 +9,7 @@ import numpy as np
 
 from .layout import Layout
 
-__all__ = ["chen_target"]
+__all__ = ["chen_target", "zhai_target", "cubesat_3u", "docking_target", "assemble_parts"]
 
 
 def chen_target():
@@ -53,3 +53,52 @@ def chen_target():
         "note": "Reconstruction of Chen et al. (2024) Fig. 2b: size from the paper, facet/sensor arrangement plausible, not the authors' drawing.",
     })
     return mesh, layout
+
+
+def assemble_parts(parts: dict):
+    """Concatenate named meshes into one :class:`trimesh.Trimesh`, keeping the part names.
+
+    parts : ``{name: Trimesh}`` in the body frame (m). Returns one mesh whose
+    ``metadata["parts"]`` maps each name to the int array of its face indices
+    (the faces keep the order of ``parts``). Vertices are not merged across parts.
+    """
+    import trimesh
+
+    names = list(parts)
+    mesh = trimesh.util.concatenate([parts[k] for k in names])
+    groups, start = {}, 0
+    for k in names:
+        nf = len(parts[k].faces)
+        groups[k] = np.arange(start, start + nf)
+        start += nf
+    mesh.metadata["parts"] = groups
+    return mesh
+
+
+def _box(extents, center):
+    import trimesh
+
+    return trimesh.creation.box(extents=extents, transform=trimesh.transformations.translation_matrix(center))
+
+
+def zhai_target(cube: float = 3.0, wing_length: float = 10.0, wing_width: float = 3.0,
+                wing_thickness: float = 0.05):
+    """Zhai et al. (2014) ground-test target: a 3 m cube with two 10 m × 3 m solar wings.
+
+    Body frame at the cube centre (metres). The cube spans ``[-1.5, 1.5]^3``; its +x face
+    (``x = cube/2``) is the rectangle the camera observes (Zhai's ``x_t = H/2`` face, corners
+    ``(H/2, ±L/2, ±W/2)``). The wings are thin plates in the y–z plane (normal ±x, thickness
+    ``wing_thickness`` centred on x = 0), attached to the ±y faces and reaching out to
+    ``y = ±(cube/2 + wing_length)``, ``wing_width`` tall in z. Parts: ``bus``, ``wing+y``, ``wing-y``.
+    Returns a :class:`trimesh.Trimesh` with ``metadata["parts"]`` (face indices per part).
+    """
+    h = cube / 2
+    yc = h + wing_length / 2
+    parts = {
+        "bus": _box((cube, cube, cube), (0.0, 0.0, 0.0)),
+        "wing+y": _box((wing_thickness, wing_length, wing_width), (0.0, yc, 0.0)),
+        "wing-y": _box((wing_thickness, wing_length, wing_width), (0.0, -yc, 0.0)),
+    }
+    mesh = assemble_parts(parts)
+    mesh.metadata["name"] = "zhai2014-target"
+    return mesh
