@@ -102,3 +102,88 @@ def zhai_target(cube: float = 3.0, wing_length: float = 10.0, wing_width: float 
     mesh = assemble_parts(parts)
     mesh.metadata["name"] = "zhai2014-target"
     return mesh
+
+
+def cubesat_3u(panel_length: float = 0.30, panel_thickness: float = 0.002):
+    """A 3U CubeSat (10 × 10 × 34 cm bus along z) with four deployed solar panels.
+
+    Body frame at the bus centre (metres); the bus spans ``[-0.05, 0.05]² × [-0.17, 0.17]``.
+    Four 10 cm wide panels of ``panel_length`` are hinged at the +z end and deployed flat in the
+    plane just below the top face (normal ±z), reaching out along +x, -x, +y, -y (a "cross").
+    Parts: ``bus``, ``panel+x``, ``panel-x``, ``panel+y``, ``panel-y``.
+    """
+    a, hz, w = 0.05, 0.17, 0.10
+    zc = hz - panel_thickness / 2
+    rc = a + panel_length / 2
+    parts = {
+        "bus": _box((2 * a, 2 * a, 2 * hz), (0.0, 0.0, 0.0)),
+        "panel+x": _box((panel_length, w, panel_thickness), (rc, 0.0, zc)),
+        "panel-x": _box((panel_length, w, panel_thickness), (-rc, 0.0, zc)),
+        "panel+y": _box((w, panel_length, panel_thickness), (0.0, rc, zc)),
+        "panel-y": _box((w, panel_length, panel_thickness), (0.0, -rc, zc)),
+    }
+    mesh = assemble_parts(parts)
+    mesh.metadata["name"] = "cubesat-3u"
+    return mesh
+
+
+def docking_target(sections: int = 96, dish_rings: int = 26):
+    """A docking target with real self-occlusion; ≥ 10,000 faces at the defaults.
+
+    Body frame at the bus centre (metres). Parts:
+
+    - ``bus``: box 1.2 (x) × 1.2 (y) × 1.6 (z) m;
+    - ``docking_port``: ring (outer radius 0.35 m, inner 0.25 m, 0.15 m tall) on the +z face;
+    - ``dish``: a 1.0 m diameter parabolic shell (focal length 0.4 m, 2 cm thick, revolved with
+      ``sections`` × ``dish_rings`` facets) on a 0.3 m mast, facing +x, centred in front of the +x face;
+    - ``wing+y`` / ``wing-y``: 3.0 × 1.0 m solar panels (normal ±x, 3 cm thick) on 0.5 m yokes
+      off the ±y faces;
+    - ``boom``: a 2.0 m boom (radius 2.5 cm) along -z with a 0.15 m radius sensor sphere at its tip.
+
+    The dish shadows the +x face, the wings shadow the ±y faces at grazing views, the boom and its
+    sphere shadow the -z face: sensors placed anywhere but the docking face see real occlusion.
+    """
+    import trimesh
+
+    hx, hy, hz = 0.6, 0.6, 0.8
+    parts = {"bus": _box((2 * hx, 2 * hy, 2 * hz), (0.0, 0.0, 0.0))}
+
+    ring = trimesh.creation.annulus(r_min=0.25, r_max=0.35, height=0.15, sections=sections)
+    ring.apply_translation((0.0, 0.0, hz + 0.075))
+    parts["docking_port"] = ring
+
+    # Parabolic dish: profile (radius, height) of a closed shell, revolved about the local z axis.
+    R, f, th = 0.5, 0.4, 0.02
+    r = np.linspace(0.0, R, dish_rings)
+    z = r ** 2 / (4 * f)
+    profile = np.vstack([np.column_stack([r, z]), np.column_stack([r[::-1], z[::-1] - th])])
+    dish = trimesh.creation.revolve(profile, sections=sections)
+    if dish.volume < 0:  # the profile's orientation decides the winding; make normals point out
+        dish.invert()
+    mast_len = 0.3
+    mast = trimesh.creation.cylinder(radius=0.03, height=mast_len, sections=32)
+    mast.apply_translation((0.0, 0.0, -mast_len / 2 - th))
+    to_x = trimesh.transformations.rotation_matrix(np.pi / 2, (0.0, 1.0, 0.0))  # local z → body +x
+    dish_all = trimesh.util.concatenate([dish, mast])
+    dish_all.apply_transform(to_x)
+    dish_all.apply_translation((hx + mast_len + th, 0.0, 0.0))
+    parts["dish"] = dish_all
+
+    yoke_len, wl, ww, wt = 0.5, 3.0, 1.0, 0.03
+    for s, name in ((1, "wing+y"), (-1, "wing-y")):
+        yoke = trimesh.creation.cylinder(radius=0.03, height=yoke_len, sections=32)
+        yoke.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1.0, 0.0, 0.0)))
+        yoke.apply_translation((0.0, s * (hy + yoke_len / 2), 0.0))
+        panel = _box((wt, wl, ww), (0.0, s * (hy + yoke_len + wl / 2), 0.0))
+        parts[name] = trimesh.util.concatenate([yoke, panel])
+
+    boom_len = 2.0
+    boom = trimesh.creation.cylinder(radius=0.025, height=boom_len, sections=64)
+    boom.apply_translation((0.0, 0.0, -hz - boom_len / 2))
+    tip = trimesh.creation.icosphere(subdivisions=3, radius=0.15)
+    tip.apply_translation((0.0, 0.0, -hz - boom_len - 0.15))
+    parts["boom"] = trimesh.util.concatenate([boom, tip])
+
+    mesh = assemble_parts(parts)
+    mesh.metadata["name"] = "docking-target"
+    return mesh
