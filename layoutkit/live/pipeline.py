@@ -1,0 +1,392 @@
+"""Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
+
+Data flow (design §3–§5, issue #5 part 4)::
+
+    SweepMeasurement ─▶ SweepPairer ─▶ AngleFrame ─▶ FrameBatcher ─▶ solve_chunk ─▶ PoseChunk
+     (one rotor sweep)  (X then Y of     (t, station,   (≤ chunk_frames or       (PnP + DOP,
+                         one station)     angles (n,2))  ≤ chunk_seconds)          arrays over F)
+
+Everything downstream of the pairer works on chunks of ``F`` frames with arrays ``(F, ...)`` so
+that a live run keeps latency low (small chunks, ``chunk_seconds``) and a replay is fast (large
+chunks, ``chunk_frames``); no stage keeps more than one chunk in memory.
+
+Frame time. A frame's ``t`` is the sync time of its X sweep (axis 0), in the decoder's time base
+(seconds since the capture started, device clock) — the definition of the simulator's TRUTH.csv
+(``docs/live-io.md``). Poses are in the station frame of a single station or, when the set-up
+gives station poses, in the common world frame (design §2).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._validate import as_array
+from ..geometry import matrix_to_rotvec
+from ..lighthouse import LH1_ROTOR_RPM, LH2_TILT_RAD, Station
+from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
+from .frames import SweepMeasurement
+
+__all__ = [
+    "STATUS_OK",
+    "STATUS_TOO_FEW_LIT",
+    "STATUS_SOLVER_FAILED",
+    "STATUS_HIGH_RESIDUAL",
+    "STATUS_NAMES",
+    "PipelineConfig",
+    "AngleFrame",
+    "SweepPairer",
+    "FrameBatcher",
+    "PoseChunk",
+    "lh2_to_lh1_angles",
+    "solve_chunk",
+    "PosePipeline",
+]
+
+# Pose status codes (per frame). Only STATUS_OK poses are "good"; the others are counted as bad.
+STATUS_OK = 0
+STATUS_TOO_FEW_LIT = 1
+STATUS_SOLVER_FAILED = 2
+STATUS_HIGH_RESIDUAL = 3
+STATUS_NAMES = {
+    STATUS_OK: "ok",
+    STATUS_TOO_FEW_LIT: "too_few_lit",
+    STATUS_SOLVER_FAILED: "solver_failed",
+    STATUS_HIGH_RESIDUAL: "high_residual",
+}
+
+LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of the pose pipeline.
+
+    n_sensors : sensors in the layout (length of ``SweepMeasurement.angles``).
+    min_lit : fewest sensors lit on both axes for a pose (PnP needs 4).
+    chunk_frames, chunk_seconds : a chunk is solved when it holds ``chunk_frames`` frames or spans
+        ``chunk_seconds`` of frame time, whichever comes first (live: small; replay: large).
+    rotor_rpm : LH1 rotor speed; an X sweep pairs with the next Y sweep of the same station
+        within one rotor period (60 / rotor_rpm s; LH2: one revolution at >= 48 Hz).
+    sigma_theta : rad, angle noise for predictions (Chen eq. 24); rho : same-rotor correlation (eq. 19).
+    max_residual_sigma : a solved pose whose RMS angle residual exceeds this many sigma_theta is
+        reported with STATUS_HIGH_RESIDUAL (never as good).
+    """
+
+    n_sensors: int
+    min_lit: int = 4
+    chunk_frames: int = 256
+    chunk_seconds: float = 0.05
+    rotor_rpm: float = LH1_ROTOR_RPM
+    sigma_theta: float = SIGMA_THETA_PAPER
+    rho: float = RHO_PAPER
+    max_residual_sigma: float = 8.0
+
+    def __post_init__(self):
+        if self.n_sensors < 1:
+            raise ValueError(f"n_sensors: expected >= 1, got {self.n_sensors}")
+        if self.min_lit < 3:
+            raise ValueError(f"min_lit: expected >= 3, got {self.min_lit}")
+        if self.chunk_frames < 1:
+            raise ValueError(f"chunk_frames: expected >= 1, got {self.chunk_frames}")
+
+
+@dataclass(frozen=True)
+class AngleFrame:
+    """One pose frame: both sweep angles of every sensor from one station.
+
+    t : s, sync time of the X sweep; station : index; angles : (n, 2) rad [theta_x, theta_y],
+    NaN where a sensor was not hit on that axis; seq : X sweep's sequence number or None.
+    """
+
+    t: float
+    station: int
+    angles: np.ndarray
+    seq: int | None = None
+
+
+def lh2_to_lh1_angles(plane_angles) -> np.ndarray:
+    """LH2 light-plane angles ``(..., 2)`` rad → LH1-equivalent ``[theta_x, theta_y]`` ``(..., 2)``.
+
+    Inverts :func:`layoutkit.lighthouse.lh2_sweep_angles` (planes tilted ``-tilt`` and ``+tilt``):
+    with ``base = (a0 + a1) / 2`` and ``s = sin((a1 - a0) / 2) / tan(tilt)`` the ray direction in
+    the package's station frame is ``(sin base, s, cos base)``, whose LH1 angles are
+    ``theta_x = atan2(cos base, sin base)``, ``theta_y = atan2(cos base, s)`` (Chen eq. 2).
+    """
+    a = np.asarray(plane_angles, dtype=float)
+    base = 0.5 * (a[..., 0] + a[..., 1])
+    s = np.sin(0.5 * (a[..., 1] - a[..., 0])) / np.tan(LH2_TILT_RAD)
+    c = np.cos(base)
+    return np.stack([np.arctan2(c, np.sin(base)), np.arctan2(c, s)], -1)
+
+
+class SweepPairer:
+    """Pairs the X (axis 0) and following Y (axis 1) sweep of each station into an :class:`AngleFrame`.
+
+    A Y sweep pairs with the pending X sweep of its station when it arrives within one rotor
+    period after it.
+    Everything else — an X sweep replaced by a newer X, a Y with no pending X, a pair too far
+    apart — is dropped and counted in ``unpaired``. State: one pending sweep per station.
+    """
+
+    def __init__(self, n_sensors: int, rotor_rpm: float = LH1_ROTOR_RPM):
+        self.n_sensors = int(n_sensors)
+        self.max_gap = {"lh1": 60.0 / rotor_rpm, "lh2": 1.0 / LH2_ROTOR_HZ_MIN}
+        self._pending: dict[int, SweepMeasurement] = {}
+        self.paired = 0
+        self.unpaired = 0
+        self.wrong_size = 0
+
+    def push(self, m: SweepMeasurement) -> AngleFrame | None:
+        """Add one sweep; return the completed frame or None."""
+        ang = np.asarray(m.angles, dtype=float)
+        if ang.shape != (self.n_sensors,):
+            self.wrong_size += 1
+            return None
+        if m.axis == 0:
+            if m.station in self._pending:
+                self.unpaired += 1
+            self._pending[m.station] = m
+            return None
+        x = self._pending.pop(m.station, None)
+        if x is None:
+            self.unpaired += 1
+            return None
+        gap = m.t - x.t
+        if not (0.0 <= gap <= self.max_gap.get(m.kind, self.max_gap["lh1"])) or m.kind != x.kind:
+            self.unpaired += 2  # both sweeps are lost
+            return None
+        angles = np.stack([np.asarray(x.angles, float), ang], -1)
+        if m.kind == "lh2":
+            angles = lh2_to_lh1_angles(angles)
+        self.paired += 1
+        return AngleFrame(t=float(x.t), station=int(m.station), angles=angles, seq=x.seq)
+
+    def flush(self) -> None:
+        """End of stream: a still pending X sweep is unpaired."""
+        self.unpaired += len(self._pending)
+        self._pending.clear()
+
+
+class FrameBatcher:
+    """Collects :class:`AngleFrame` into chunks of at most ``chunk_frames`` frames spanning at most
+    ``chunk_seconds`` of frame time. ``push`` returns a finished chunk (list of frames) or None."""
+
+    def __init__(self, chunk_frames: int = 256, chunk_seconds: float = 0.05):
+        self.chunk_frames = int(chunk_frames)
+        self.chunk_seconds = float(chunk_seconds)
+        self._frames: list[AngleFrame] = []
+
+    def push(self, frame: AngleFrame) -> list[AngleFrame] | None:
+        self._frames.append(frame)
+        if (len(self._frames) >= self.chunk_frames
+                or frame.t - self._frames[0].t >= self.chunk_seconds):
+            return self.flush()
+        return None
+
+    def flush(self) -> list[AngleFrame] | None:
+        if not self._frames:
+            return None
+        out, self._frames = self._frames, []
+        return out
+
+
+@dataclass(frozen=True)
+class PoseChunk:
+    """Poses of ``F`` consecutive frames (arrays over frames).
+
+    t : (F,) s (frame time, X sweep sync); station : (F,) int; n_lit : (F,) int;
+    rotation : (F, 3, 3), translation : (F, 3) m — body pose ``p = R p_body + t`` in the station
+        (or world) frame, NaN where no pose; rotvec : (F, 3) rad;
+    status : (F,) int (STATUS_*); residual_rms : (F,) rad (RMS angle residual of the PnP fit);
+    adop : (F,) deg/rad, pdop : (F,) m/rad — Chen eq. (22) at the solved pose with its lit set
+        and ``rho`` (inf where no pose); lit : (F, n) bool.
+    """
+
+    t: np.ndarray
+    station: np.ndarray
+    n_lit: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    rotvec: np.ndarray
+    status: np.ndarray
+    residual_rms: np.ndarray
+    adop: np.ndarray
+    pdop: np.ndarray
+    lit: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def good(self) -> np.ndarray:
+        """(F,) bool, frames with a trusted pose."""
+        return self.status == STATUS_OK
+
+    def records(self):
+        """Yield one plain dict per frame with a pose (the ``--json-lines`` contract)."""
+        for i in range(len(self)):
+            if self.status[i] in (STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED):
+                continue
+            yield {
+                "t": float(self.t[i]),
+                "rotvec": [float(v) for v in self.rotvec[i]],
+                "translation": [float(v) for v in self.translation[i]],
+                "n_lit": int(self.n_lit[i]),
+                "status": STATUS_NAMES[int(self.status[i])],
+                "adop": _finite_or_none(self.adop[i]),
+                "pdop": _finite_or_none(self.pdop[i]),
+                "residual_rms": _finite_or_none(self.residual_rms[i]),
+                "station": int(self.station[i]),
+            }
+
+
+def _finite_or_none(x):
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _solver():
+    from ..pnp import solve_pnp  # the core solver (layoutkit/pnp.py)
+
+    return solve_pnp
+
+
+def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
+                initial: dict | None = None, stations: "list[Station] | None" = None) -> PoseChunk:
+    """Solve the poses of a chunk of frames (batched PnP, then batched DOP).
+
+    points_body : (n, 3) m, sensor positions (body frame).
+    frames : F frames; their stations may differ — each station's frames are solved in its own
+        frame with ``layoutkit.pnp.solve_pnp``, started from ``initial[station] = (R, t)`` when given
+        (the previous pose), and mapped to the world frame when ``stations`` are given.
+    initial : dict station -> (R (3, 3), t (3,)); updated in place with the last good pose.
+    Returns a :class:`PoseChunk`; failures are statuses, never exceptions.
+    """
+    from ..dop import pose_dop
+
+    P = as_array(points_body, "points_body", (None, 3))
+    n = P.shape[0]
+    F = len(frames)
+    t = np.fromiter((f.t for f in frames), float, F)
+    st = np.fromiter((f.station for f in frames), int, F)
+    ang = np.stack([f.angles for f in frames]) if F else np.zeros((0, n, 2))
+    lit = np.all(np.isfinite(ang), axis=-1)
+    n_lit = lit.sum(-1)
+    R = np.full((F, 3, 3), np.nan)
+    tr = np.full((F, 3), np.nan)
+    res = np.full(F, np.nan)
+    status = np.full(F, STATUS_TOO_FEW_LIT, int)
+    adop = np.full(F, np.inf)
+    pdop = np.full(F, np.inf)
+    enough = n_lit >= config.min_lit
+    solve_pnp = _solver()
+    initial = {} if initial is None else initial
+    for s in np.unique(st[enough]):
+        idx = np.flatnonzero(enough & (st == s))
+        a = np.where(lit[idx, :, None], ang[idx], np.pi / 2)  # placeholders never enter the fit
+        init = initial.get(int(s))
+        kw = {}
+        if init is not None:
+            kw["initial"] = (np.broadcast_to(init[0], (len(idx), 3, 3)),
+                             np.broadcast_to(init[1], (len(idx), 3)))
+        sol = solve_pnp(P, a, lit[idx], **kw)
+        ok = np.asarray(sol.success, bool)
+        Rs, ts = np.asarray(sol.rotation, float), np.asarray(sol.translation, float)
+        rr = np.asarray(sol.residual_rms, float)
+        d = pose_dop(P, np.where(ok[:, None, None], Rs, np.eye(3)), np.where(ok[:, None], ts, [0, 0, 1.0]),
+                     rho=config.rho, visible=lit[idx])
+        stat = np.where(~ok, STATUS_SOLVER_FAILED,
+                        np.where(rr > config.max_residual_sigma * config.sigma_theta,
+                                 STATUS_HIGH_RESIDUAL, STATUS_OK))
+        if stations is not None:
+            S = stations[int(s)]
+            Rs = np.einsum("ij,fjk->fik", S.rotation, Rs)
+            ts = ts @ S.rotation.T + S.translation
+        R[idx], tr[idx], res[idx], status[idx] = Rs, ts, rr, stat
+        adop[idx] = np.where(ok, d.adop, np.inf)
+        pdop[idx] = np.where(ok, d.pdop, np.inf)
+        good = np.flatnonzero(stat == STATUS_OK)
+        if good.size:
+            j = idx[good[-1]]
+            Rl, tl = R[j], tr[j]
+            if stations is not None:  # keep the start in the station's own frame
+                Rl, tl = S.rotation.T @ Rl, S.rotation.T @ (tl - S.translation)
+            initial[int(s)] = (Rl.copy(), tl.copy())
+    has = np.isfinite(R[:, 0, 0])
+    rv = np.full((F, 3), np.nan)
+    if has.any():
+        rv[has] = matrix_to_rotvec(R[has])
+    return PoseChunk(t=t, station=st, n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
+                     status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit)
+
+
+@dataclass
+class PipelineCounters:
+    """Running counters of the pipeline (frames, not sweeps)."""
+
+    frames: int = 0
+    good: int = 0
+    bad: int = 0
+    too_few_lit: int = 0
+    unpaired_sweeps: int = 0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class PosePipeline:
+    """Stateful glue: sweeps in, :class:`PoseChunk` out (one pending chunk, one pose per station).
+
+    Usage::
+
+        pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=12))
+        for chunk in pipe.feed(decoder.feed(data)): ...
+        for chunk in pipe.flush(): ...
+    """
+
+    points_body: np.ndarray
+    config: PipelineConfig
+    stations: "list[Station] | None" = None
+    counters: PipelineCounters = field(default_factory=PipelineCounters)
+
+    def __post_init__(self):
+        self.points_body = as_array(self.points_body, "points_body", (None, 3))
+        if self.points_body.shape[0] != self.config.n_sensors:
+            raise ValueError(f"points_body: expected shape ({self.config.n_sensors}, 3), "
+                             f"got {self.points_body.shape}")
+        self.pairer = SweepPairer(self.config.n_sensors, self.config.rotor_rpm)
+        self.batcher = FrameBatcher(self.config.chunk_frames, self.config.chunk_seconds)
+        self.previous: dict = {}
+
+    def feed(self, sweeps) -> list[PoseChunk]:
+        """Add decoded sweeps; return the chunks completed by them (possibly none)."""
+        out = []
+        for m in sweeps:
+            fr = self.pairer.push(m)
+            if fr is None:
+                continue
+            batch = self.batcher.push(fr)
+            if batch is not None:
+                out.append(self._solve(batch))
+        self.counters.unpaired_sweeps = self.pairer.unpaired
+        return out
+
+    def flush(self, end_of_stream: bool = False) -> list[PoseChunk]:
+        """Solve the pending frames now (live: on a timer; end of stream: ``end_of_stream=True``)."""
+        if end_of_stream:
+            self.pairer.flush()
+            self.counters.unpaired_sweeps = self.pairer.unpaired
+        batch = self.batcher.flush()
+        return [] if batch is None else [self._solve(batch)]
+
+    def _solve(self, frames) -> PoseChunk:
+        ch = solve_chunk(self.points_body, frames, self.config, self.previous, self.stations)
+        c = self.counters
+        c.frames += len(ch)
+        g = int(np.sum(ch.good))
+        c.good += g
+        c.bad += len(ch) - g
+        c.too_few_lit += int(np.sum(ch.status == STATUS_TOO_FEW_LIT))
+        return ch
