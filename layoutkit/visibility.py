@@ -1,0 +1,197 @@
+"""Which sensors each station sees: field of view, acceptance cone, range and self-occlusion.
+
+A sensor at body position ``p`` with outward unit normal ``m`` is *visible* from a station at a
+body pose ``(R, t)`` in the station frame (``p_lh = R p + t``) iff
+
+1. ``p_lh`` is in the station's field of view: both sweep angles within ``fov/2`` of 90° and
+   ``z > 0`` (:func:`layoutkit.lighthouse.in_field_of_view`);
+2. the angle between ``m`` and the direction from the sensor to the station is at most the
+   sensor acceptance half-angle (default 60°);
+3. ``|p_lh| <= max_range`` (if given);
+4. the open segment from the sensor to the station crosses no triangle of the mesh.
+
+The occlusion test (4) runs in the **body frame**: the station position in the body frame is
+``s = -R^T t``; a ray starts at the sensor pushed off the surface along its normal by
+``surface_offset`` (default ``1e-5 × mesh.scale``, 0.1 mm on an 8 m model) and points at ``s``;
+the sensor is occluded iff the ray's first hit is closer than the station. The first hit comes from
+a ray engine (:data:`RAY_ENGINES`): ``"embree"`` (embreex through trimesh, 3–5 M rays/s) or
+``"triangle"`` (trimesh's pure-numpy engine, ~10³ rays/s, for cross-checks). Only pairs that pass
+the cheap tests 1–3 are sent to the ray engine, in chunks of bounded size.
+
+Grazing tolerance: embree intersects in float32 (trimesh rescales the model first), so a ray that
+passes within ~1e-6 × mesh scale of a triangle edge, or runs nearly parallel to a face, may be
+classified either way; the hit distance itself is recomputed in float64 from the hit triangle's
+plane. ``benchmarks/bench_visibility.py`` measures agreement with a brute-force float64
+segment–triangle test outside a 10 µm edge band (docs/meshes.md).
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from ._validate import as_array, check_finite
+from .lighthouse import in_field_of_view
+
+__all__ = ["RAY_ENGINES", "RayEngine", "ray_engine", "visible_sensors", "envelope_visibility",
+           "first_hit_distance", "DEFAULT_CHUNK"]
+
+#: Pose × sensor pairs processed per chunk (bounds memory to a few tens of MB).
+DEFAULT_CHUNK = 1 << 17
+
+
+class RayEngine(Protocol):
+    """What the occlusion test needs from a trimesh ray intersector."""
+
+    def intersects_id(self, ray_origins, ray_directions, multiple_hits=True, max_hits=100,
+                      return_locations=False): ...
+
+
+def _embree(mesh):
+    from trimesh.ray import ray_pyembree  # ImportError when embreex is missing
+
+    ray = getattr(mesh, "ray", None)
+    if isinstance(ray, ray_pyembree.RayMeshIntersector):
+        return ray  # trimesh builds it at load time and caches its scene
+    return ray_pyembree.RayMeshIntersector(mesh)
+
+
+def _triangle(mesh):
+    from trimesh.ray import ray_triangle
+
+    return ray_triangle.RayMeshIntersector(mesh)
+
+
+#: name → factory ``mesh -> RayEngine``.
+RAY_ENGINES = {"embree": _embree, "triangle": _triangle}
+
+
+def ray_engine(mesh, name: str = "embree") -> RayEngine:
+    """The ray intersector ``name`` (a key of :data:`RAY_ENGINES`) for ``mesh``.
+
+    Raises ``ValueError`` for an unknown name and for ``"embree"`` without embreex installed.
+    """
+    if name not in RAY_ENGINES:
+        raise ValueError(f"ray engine: expected one of {sorted(RAY_ENGINES)}, got {name!r}")
+    try:
+        return RAY_ENGINES[name](mesh)
+    except ImportError:
+        raise ValueError("ray engine 'embree' needs the embreex package (pip install embreex); "
+                         "engine='triangle' works without it but is ~10^4 times slower") from None
+
+
+def first_hit_distance(mesh, origins, directions, engine: RayEngine) -> np.ndarray:
+    """Distance (m) along unit ``directions (m, 3)`` from ``origins (m, 3)`` to the first triangle hit.
+
+    ``inf`` where the ray hits nothing. The hit triangle comes from ``engine``; the distance is
+    recomputed in float64 from that triangle's plane (the centroid's distance for a ray that runs
+    parallel to the plane).
+    """
+    o = np.asarray(origins, float)
+    d = np.asarray(directions, float)
+    out = np.full(len(o), np.inf)
+    if len(o) == 0:
+        return out
+    tri, ray = engine.intersects_id(o, d, multiple_hits=False, return_locations=False)[:2]
+    tri = np.asarray(tri, dtype=np.int64)
+    ray = np.asarray(ray, dtype=np.int64)
+    if len(tri) == 0:
+        return out
+    nf = mesh.face_normals[tri]
+    v0 = mesh.triangles[tri, 0]
+    den = np.einsum("ij,ij->i", d[ray], nf)
+    num = np.einsum("ij,ij->i", v0 - o[ray], nf)
+    par = np.abs(den) < 1e-9
+    t = np.where(par, np.einsum("ij,ij->i", mesh.triangles_center[tri] - o[ray], d[ray]),
+                 num / np.where(par, 1.0, den))
+    out[ray] = np.minimum(out[ray], t)
+    return out
+
+
+def visible_sensors(mesh, positions, normals, rotation, translation, *, sensor_half_angle_deg=60.0,
+                    fov_deg=120.0, max_range=None, occlusion=True, engine="embree",
+                    surface_offset=None, chunk=DEFAULT_CHUNK) -> np.ndarray:
+    """Visibility of ``n`` sensors at ``P`` poses from one station at the origin.
+
+    mesh : trimesh.Trimesh, body frame, m (the occluder).
+    positions, normals : (n, 3) sensor positions (m) and outward normals, body frame.
+    rotation : (P, 3, 3) or (3, 3); translation : (P, 3) or (3,) — body pose in the station
+        frame, ``p_lh = R p_body + t``.
+    sensor_half_angle_deg : acceptance cone half-angle of a photodiode (deg).
+    fov_deg : station field of view (both sweep angles within fov/2 of 90°).
+    max_range : optional maximum sensor–station distance (m).
+    occlusion : run the mesh occlusion test (False: only tests 1–3).
+    engine : ray engine name (:data:`RAY_ENGINES`) or an intersector object.
+    surface_offset : push-off of ray origins along the normal (m); default ``1e-5 * mesh.scale``.
+    chunk : pose × sensor pairs per batch (memory bound).
+
+    Returns (P, n) bool (``(n,)`` for a single pose given as (3, 3), (3,)).
+    """
+    P_ = as_array(positions, "positions", (None, 3))
+    N_ = as_array(normals, "normals", (P_.shape[0], 3))
+    R = as_array(rotation, "rotation", (..., 3, 3))
+    t = as_array(translation, "translation", (..., 3))
+    for a, name in ((P_, "positions"), (N_, "normals"), (R, "rotation"), (t, "translation")):
+        check_finite(a, name)
+    single = R.ndim == 2
+    R = R.reshape(-1, 3, 3)
+    t = t.reshape(-1, 3)
+    if len(R) != len(t):
+        raise ValueError(f"rotation and translation: expected the same number of poses, got {len(R)} and {len(t)}")
+    nrm = np.linalg.norm(N_, axis=1)
+    if np.any(nrm < 1e-12):
+        raise ValueError("normals: zero-length normal(s)")
+    N_ = N_ / nrm[:, None]
+    n = len(P_)
+    cos_half = np.cos(np.deg2rad(sensor_half_angle_deg))
+    eng = (ray_engine(mesh, engine) if isinstance(engine, str) else engine) if occlusion else None
+    if surface_offset is None:
+        surface_offset = 1e-5 * float(mesh.scale)
+
+    out = np.zeros((len(R), n), dtype=bool)
+    step = max(1, int(chunk) // max(n, 1))
+    for a in range(0, len(R), step):
+        Rc, tc = R[a:a + step], t[a:a + step]
+        p_lh = np.einsum("pij,nj->pni", Rc, P_) + tc[:, None, :]
+        ok = in_field_of_view(p_lh, fov_deg)
+        if max_range is not None:
+            ok &= np.linalg.norm(p_lh, axis=-1) <= max_range
+        s_body = -np.einsum("pji,pj->pi", Rc, tc)  # station in the body frame: -R^T t
+        to_st = s_body[:, None, :] - P_[None]  # (p, n, 3)
+        ok &= np.einsum("pni,ni->pn", to_st, N_) >= cos_half * np.linalg.norm(to_st, axis=-1)
+        if occlusion:
+            ip, isn = np.nonzero(ok)
+            if len(ip):
+                o = P_[isn] + surface_offset * N_[isn]
+                d = s_body[ip] - o
+                L = np.linalg.norm(d, axis=1)
+                d /= L[:, None]
+                hit = first_hit_distance(mesh, o, d, eng)
+                ok[ip, isn] = hit >= L
+        out[a:a + step] = ok
+    return out[0] if single else out
+
+
+def envelope_visibility(mesh, positions, normals, rotations, translations, stations, **kw) -> np.ndarray:
+    """Visibility ``(P, S, n)`` bool of ``n`` sensors at ``P`` body poses from ``S`` stations.
+
+    rotations (P, 3, 3), translations (P, 3): body pose in the WORLD frame
+    (``p_world = R p_body + t``). stations : sequence of :class:`layoutkit.lighthouse.Station`
+    (station pose in the world frame). Each station's poses are moved into its frame
+    (:meth:`Station.world_to_station`) and passed to :func:`visible_sensors` with the station's
+    ``fov_deg``; other keywords (``sensor_half_angle_deg``, ``max_range``, ``engine`` ...) pass through.
+    """
+    R = as_array(rotations, "rotations", (None, 3, 3))
+    t = as_array(translations, "translations", (R.shape[0], 3))
+    if not stations:
+        raise ValueError("stations: need at least one station")
+    kw = dict(kw)
+    if "fov_deg" in kw:
+        raise ValueError("envelope_visibility: the field of view comes from each Station.fov_deg, not a keyword")
+    if kw.get("occlusion", True) and isinstance(kw.get("engine", "embree"), str):
+        kw["engine"] = ray_engine(mesh, kw.get("engine", "embree"))  # build the scene once
+    out = []
+    for st in stations:
+        Rs, ts = st.world_to_station(R, t)
+        out.append(visible_sensors(mesh, positions, normals, Rs, ts, fov_deg=st.fov_deg, **kw))
+    return np.stack(out, axis=1)
