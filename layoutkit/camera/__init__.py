@@ -1,0 +1,39 @@
+"""Monocular camera room: rectangle-face attitude (Zhai et al. 2014), corner detection,
+synthetic pinhole renders and camera input for the live mode (design §7, §8).
+
+``rectangle_attitude`` and ``euler_zyx`` are the public entry points (re-exported by
+``layoutkit``); OpenCV and pyvista are imported only inside the functions that need them.
+"""
+from .rectangle import (
+    BOX_FACES,
+    RECTANGLE_SOLVERS,
+    RectangleSolution,
+    box_attitude,
+    euler_zyx,
+    euler_zyx_to_matrix,
+    frame_rotation,
+    label_symmetries,
+    order_corners,
+    rectangle_attitude,
+    rectangle_corners,
+    resolve_labelling,
+    solve_rectangle,
+    zhai_depth_ratios,
+)
+
+__all__ = [
+    "BOX_FACES",
+    "RECTANGLE_SOLVERS",
+    "RectangleSolution",
+    "box_attitude",
+    "euler_zyx",
+    "euler_zyx_to_matrix",
+    "frame_rotation",
+    "label_symmetries",
+    "order_corners",
+    "rectangle_attitude",
+    "rectangle_corners",
+    "resolve_labelling",
+    "solve_rectangle",
+    "zhai_depth_ratios",
+]
