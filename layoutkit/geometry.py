@@ -62,8 +62,11 @@ def attitude_error(rotation_est, rotation_ref) -> np.ndarray:
     Re = as_array(rotation_est, "rotation_est", (..., 3, 3))
     Rr = as_array(rotation_ref, "rotation_ref", (..., 3, 3))
     D = Re @ np.swapaxes(Rr, -1, -2)
-    # angle from trace is ill-conditioned near 0: use the rotation vector instead
-    return np.linalg.norm(matrix_to_rotvec(D), axis=-1)
+    # atan2(|sin|, cos) is accurate at small and large angles (arccos of the trace is not)
+    # and, unlike scipy's from_matrix, never raises on a matrix that is not a rotation.
+    s = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1)
+    c = 0.5 * (np.trace(D, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(np.linalg.norm(s, axis=-1), c)
 
 
 def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:

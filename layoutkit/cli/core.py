@@ -1,6 +1,203 @@
-"""CLI commands (core)."""
+"""CLI commands of the core: dop, simulate, solve, study, demo."""
 from __future__ import annotations
 
-import click  # noqa: F401
+import click
 
-commands: list = []
+from ._common import echo_json, fail
+
+ARCSEC = 3.141592653589793 / 180.0 / 3600.0
+
+
+def _layout(path):
+    from ..layout import load_layout
+
+    try:
+        return load_layout(path)
+    except ValueError as exc:
+        fail(str(exc))
+
+
+def _noise_options(f):
+    f = click.option("--rho", type=click.FloatRange(0.0, 1.0), default=0.8717, show_default=True,
+                     help="Same-rotor correlation of angle noise (Chen eq. 19).")(f)
+    f = click.option("--sigma-arcsec", type=click.FloatRange(min=0.0), default=8.2795, show_default=True,
+                     help="Angle noise 1-sigma in arcsec (paper: 4.014e-5 rad).")(f)
+    return f
+
+
+@click.command("dop")
+@click.option("--layout", "layout_path", required=True, type=click.Path(dir_okay=False), help="Layout JSON.")
+@click.option("--rotvec-deg", nargs=3, type=float, default=(0.0, 0.0, 0.0), show_default=True,
+              help="Body attitude in the lighthouse frame, rotation vector in degrees.")
+@click.option("--translation-m", nargs=3, type=float, default=(0.0, 0.0, 2.0), show_default=True,
+              help="Body position in the lighthouse frame, metres (z = boresight).")
+@click.option("--lit", default="facing", show_default=True,
+              help="Sensors used: 'all', 'facing' (normal within --half-angle-deg of the station, in view), or comma-separated ids.")
+@click.option("--half-angle-deg", type=float, default=60.0, show_default=True, help="Sensor acceptance half-angle.")
+@_noise_options
+@click.option("--json", "json_out", is_flag=True, help="Print JSON.")
+def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, sigma_arcsec, json_out):
+    """ADOP/PDOP of a layout at one pose and the predicted precision (Chen eqs 18–24)."""
+    import numpy as np
+
+    from ..dop import pose_dop
+    from ..geometry import rotvec_to_matrix
+    from ..simulate import facing_mask
+
+    lay = _layout(layout_path)
+    R = rotvec_to_matrix(np.radians(rotvec_deg))
+    t = np.asarray(translation_m, float)
+    if lit == "all":
+        v = np.ones(lay.n, bool)
+    elif lit == "facing":
+        v = facing_mask(lay.positions, lay.normals, R[None], t[None], half_angle_deg=half_angle_deg)[0]
+    else:
+        want = [s.strip() for s in lit.split(",") if s.strip()]
+        unknown = [s for s in want if s not in lay.ids]
+        if unknown:
+            fail(f"--lit: unknown sensor ids {unknown}; the layout has {list(lay.ids)}")
+        v = np.isin(lay.ids, want)
+    r = pose_dop(lay.positions, R, t, rho=rho, visible=v)
+    sigma = sigma_arcsec * ARCSEC
+    out = {"lit": [i for i, b in zip(lay.ids, v) if b], "n_lit": int(v.sum()), "rho": rho,
+           "status": int(r.status), "message": r.message,
+           "adop_deg_per_rad": float(r.adop), "pdop_m_per_rad": float(r.pdop),
+           "predicted_sigma_rot_deg": float(r.adop * sigma), "predicted_sigma_trans_mm": float(r.pdop * sigma * 1e3)}
+    if json_out:
+        echo_json(out)
+        return
+    if not r.success:
+        click.echo(f"DOP undefined: {r.message} ({out['n_lit']} lit: {', '.join(out['lit'])})")
+        raise SystemExit(1)
+    click.echo(f"lit sensors ({out['n_lit']}): {', '.join(out['lit'])}")
+    click.echo(f"ADOP = {out['adop_deg_per_rad']:.2f} deg/rad   PDOP = {out['pdop_m_per_rad']:.3f} m/rad   (rho = {rho})")
+    click.echo(f"predicted precision at sigma = {sigma_arcsec}\": {out['predicted_sigma_rot_deg']:.4f} deg, "
+               f"{out['predicted_sigma_trans_mm']:.3f} mm")
+
+
+@click.command("simulate")
+@click.option("--layout", "layout_path", required=True, type=click.Path(dir_okay=False), help="Layout JSON.")
+@click.option("--frames", type=click.IntRange(min=1), default=1000, show_default=True, help="Number of frames.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Frame file to write (.csv or .npz).")
+@_noise_options
+@click.option("--no-quantize", is_flag=True, help="Skip the 50 MHz counter quantisation.")
+@click.option("--json", "json_out", is_flag=True, help="Print a JSON summary.")
+def simulate_cmd(layout_path, frames, seed, out, rho, sigma_arcsec, no_quantize, json_out):
+    """Simulate noisy sweep-angle frames at random static poses in front of one station.
+
+    Poses: the paper's 3 m × 3 m area in front of the station, uniform attitudes, ≥ 4 sensors lit.
+    The file holds the true poses too, so `layoutkit solve` can report errors.
+    """
+    import numpy as np
+
+    from ..workflows.frames import simulate_frames, write_frames
+
+    lay = _layout(layout_path)
+    fr = simulate_frames(lay, frames, seed=seed, sigma=sigma_arcsec * ARCSEC, rho=rho, quantize=not no_quantize)
+    write_frames(fr, out)
+    lit = np.all(np.isfinite(fr.angles), -1).sum(1)
+    summary = {"out": out, "frames": frames, "mean_lit": float(lit.mean()), "min_lit": int(lit.min())}
+    echo_json(summary) if json_out else click.echo(f"wrote {frames} frames to {out} (lit sensors: mean {lit.mean():.1f}, min {lit.min()})")
+
+
+@click.command("solve")
+@click.argument("frames_path", type=click.Path(dir_okay=False))
+@click.option("--layout", "layout_path", required=True, type=click.Path(dir_okay=False), help="Layout JSON.")
+@click.option("--out", type=click.Path(dir_okay=False), help="Write poses CSV t,rx,ry,rz,tx,ty,tz,status.")
+@_noise_options
+@click.option("--json", "json_out", is_flag=True, help="Print a JSON summary.")
+def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
+    """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present."""
+    import numpy as np
+
+    from ..workflows.frames import read_frames, solve_frames
+
+    lay = _layout(layout_path)
+    try:
+        fr = read_frames(frames_path, lay)
+    except (ValueError, OSError) as exc:
+        fail(str(exc))
+    res = solve_frames(fr, lay, sigma=sigma_arcsec * ARCSEC, rho=rho)
+    if out:
+        arr = np.column_stack([res["t"], res["rotvec"], res["translation"], res["status"]])
+        np.savetxt(out, arr, delimiter=",", header="t,rx,ry,rz,tx,ty,tz,status", comments="", fmt="%.10g")
+    summary = {k: v for k, v in res.items() if k not in ("t", "rotvec", "translation", "success", "status")}
+    if json_out:
+        echo_json(summary)
+        return
+    click.echo(f"solved {summary['solved']} / {summary['frames']} frames; statuses {summary['status_counts']}")
+    if "rms_rot_deg" in summary:
+        click.echo(f"RMS error vs truth: {summary['rms_rot_deg']:.4f} deg, {summary['rms_trans_m'] * 1e3:.3f} mm"
+                   + (f"  (DOP prediction {summary['predicted_rms_rot_deg']:.4f} deg, "
+                      f"{summary['predicted_rms_trans_m'] * 1e3:.3f} mm)" if "predicted_rms_rot_deg" in summary else ""))
+
+
+@click.group("study")
+def study_group():
+    """Reproducible studies that regenerate the papers' tables and figures."""
+
+
+@study_group.command("chen2024")
+@click.option("--groups", type=click.IntRange(min=1), default=50, show_default=True, help="Static groups (paper: 50).")
+@click.option("--frames", type=click.IntRange(min=2), default=3600, show_default=True, help="Frames per group (paper: 3600).")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--dynamic-seconds", type=float, default=60.0, show_default=True, help="Length of each dynamic run.")
+@click.option("--sensor-error-mm", type=float, default=1.0, show_default=True,
+              help="Systematic sensor-coordinate error for the second dynamic run (0: skip it).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="out/chen2024", show_default=True,
+              help="Folder for the figure, table and full JSON.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write the groups JSON here ('-' = stdout).")
+def study_chen(groups, frames, seed, dynamic_seconds, sensor_error_mm, out_dir, json_path):
+    """Chen et al. (2024) static precision (Fig. 5) and dynamic accuracy (Table 2) in simulation."""
+    from rich.progress import Progress
+
+    from ..workflows.chen import StudyConfig, run_chen2024, write_outputs
+
+    cfg = StudyConfig(groups=groups, frames=frames, seed=seed, dynamic_seconds=dynamic_seconds,
+                      sensor_error_mm=sensor_error_mm)
+    with Progress(transient=True) as prog:
+        task = prog.add_task("static groups", total=groups)
+        res = run_chen2024(cfg, progress=lambda k: prog.advance(task, k))
+    paths = write_outputs(res, out_dir)
+    if json_path:
+        echo_json({"summary": res["summary"], "groups": res["groups"],
+                   "dynamic": [{k: v for k, v in d.items() if not isinstance(v, list)} for d in res["dynamic"]]},
+                  json_path)
+    if json_path != "-":
+        s = res["summary"]
+        click.echo(f"{s['groups']} groups × {s['frames_per_group']} frames: simulated/predicted median ratio "
+                   f"{s['median_ratio_rot']:.3f} (attitude), {s['median_ratio_trans']:.3f} (position); "
+                   f"gross failures {s['gross_failures']} / {s['total_frames']}")
+        for d in res["dynamic"]:
+            click.echo(f"dynamic (sensor error {d['sensor_error_mm']} mm): RMS {d['rms_rot_deg']:.3f} deg, "
+                       f"{d['rms_trans_m'] * 1e3:.2f} mm; max {d['max_rot_deg']:.3f} deg, {d['max_trans_m'] * 1e3:.2f} mm")
+        click.echo(f"wrote {paths['fig5']}, {paths['fig7']}, {paths['table']}")
+
+
+@click.command("demo")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="out/demo", show_default=True)
+def demo_cmd(out_dir):
+    """The main job on a bundled model: optimise a 12-sensor layout on the Chen target, then a
+    reduced Chen precision study of the paper-like layout."""
+    from pathlib import Path
+
+    out = Path(out_dir)
+    try:
+        from ..workflows.optimize import run_demo
+    except ImportError:  # the optimiser is not installed in this build
+        run_demo = None
+    if run_demo is not None:
+        click.echo("== layoutkit optimize on the Chen target (bundled model) ==")
+        run_demo(out / "optimize", quick=True)
+    from ..workflows.chen import StudyConfig, run_chen2024, write_outputs
+
+    click.echo("== reduced Chen (2024) precision study ==")
+    res = run_chen2024(StudyConfig(groups=10, frames=600, dynamic_seconds=20))
+    paths = write_outputs(res, out / "chen2024")
+    s = res["summary"]
+    click.echo(f"simulated/predicted precision, median over groups: {s['median_ratio_rot']:.3f} (attitude), "
+               f"{s['median_ratio_trans']:.3f} (position); figure {paths['fig5']}")
+
+
+commands = [dop_cmd, simulate_cmd, solve_cmd, study_group, demo_cmd]

@@ -1,0 +1,74 @@
+"""Simulated lighthouse measurements of a layout: lit sets and noisy, quantised sweep angles.
+
+Pure numpy; the measurement chain of design §3: true angles (Chen eq. 2) + correlated noise
+(eq. 19) + counter quantisation. Occlusion by a mesh is the visibility room's job
+(:mod:`layoutkit.visibility`); :func:`facing_mask` is the exact lit test for convex targets.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import as_array
+from .geometry import transform_points
+from .lighthouse import DEFAULT_CLOCK_HZ, LH1_ROTOR_RPM, in_field_of_view, quantize_angles, sweep_angles
+from .noise import sample_angle_noise
+
+__all__ = ["facing_mask", "simulate_angles", "poses_in_front"]
+
+
+def facing_mask(positions, normals, rotation, translation, *, half_angle_deg: float = 60.0,
+                fov_deg: float = 120.0) -> np.ndarray:
+    """Sensors facing a station at the origin and in its field of view, ``(P, n)`` bool.
+
+    positions, normals : (n, 3) body frame; rotation (P, 3, 3), translation (P, 3): body pose in
+    the station frame. A sensor is lit when the angle between its normal and the direction to
+    the station is ≤ ``half_angle_deg`` and both sweep angles are within ``fov_deg / 2`` of 90°.
+    No occlusion test: exact for convex targets.
+    """
+    P = as_array(positions, "positions", (None, 3))
+    N = as_array(normals, "normals", (P.shape[0], 3))
+    R = as_array(rotation, "rotation", (..., 3, 3))
+    t = as_array(translation, "translation", (..., 3))
+    p_lh = transform_points(R, t, P)
+    n_lh = np.einsum("...ij,nj->...ni", R, N)
+    to_station = -p_lh / np.linalg.norm(p_lh, axis=-1, keepdims=True)
+    cos = np.sum(n_lh * to_station, -1)
+    return (cos >= np.cos(np.deg2rad(half_angle_deg))) & in_field_of_view(p_lh, fov_deg)
+
+
+def simulate_angles(points_body, rotation, translation, *, sigma: float, rho: float,
+                    rng: np.random.Generator, quantize: bool = True,
+                    rotor_rpm: float = LH1_ROTOR_RPM, clock_hz: float = DEFAULT_CLOCK_HZ) -> np.ndarray:
+    """Noisy measured sweep angles ``(F, n, 2)`` rad for body poses ``(F, 3, 3), (F, 3)``.
+
+    points_body : (n, 3) m. Noise: sigma (rad), same-rotor correlation rho (Chen eq. 19),
+    then rounding to the counter tick when ``quantize``.
+    """
+    R = as_array(rotation, "rotation", (None, 3, 3))
+    t = as_array(translation, "translation", (R.shape[0], 3))
+    P = as_array(points_body, "points_body", (None, 3))
+    ang = sweep_angles(transform_points(R, t, P))
+    ang = ang + sample_angle_noise(ang.shape[:-1], sigma, rho, rng)
+    if quantize:
+        ang = quantize_angles(ang, rotor_rpm, clock_hz)
+    return ang
+
+
+def poses_in_front(count: int, rng: np.random.Generator, *, x_range=(-1.5, 1.5), z_range=(0.5, 3.5),
+                   height: float = 0.3, fov_deg: float = 120.0, margin_deg: float = 5.0):
+    """Positions on a horizontal 3 m × 3 m area in front of a station and uniform attitudes.
+
+    The station looks horizontally (z boresight, y down); the area is the plane y = ``height``
+    (m below the rotor), x in ``x_range``, z in ``z_range`` — the paper's marble table (Chen §4.2).
+    Positions outside the field of view (less ``margin_deg``) are redrawn.
+    Returns rotation (count, 3, 3), translation (count, 3).
+    """
+    from .geometry import random_rotations
+
+    out = np.empty((0, 3))
+    while len(out) < count:
+        m = 2 * (count - len(out)) + 8
+        t = np.column_stack([rng.uniform(*x_range, m), np.full(m, height), rng.uniform(*z_range, m)])
+        ok = in_field_of_view(t[:, None, :], fov_deg - 2 * margin_deg)[:, 0]
+        out = np.vstack([out, t[ok]])
+    return random_rotations(count, rng), out[:count]

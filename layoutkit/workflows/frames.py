@@ -1,0 +1,138 @@
+"""Frame files: simulated sweep-angle frames written and read for ``layoutkit simulate`` /
+``layoutkit solve``.
+
+Format (documented in docs/frames.md): CSV with header
+``t,th_x_<id>,th_y_<id>,...`` (rad, empty/NaN = not lit) and optional truth columns
+``true_rx,true_ry,true_rz,true_tx,true_ty,true_tz`` (rotation vector rad, m); or ``.npz`` with
+arrays ``t (F,)``, ``angles (F, n, 2)``, ``ids (n,)`` and optional ``truth_rotvec``, ``truth_translation``.
+"""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import matrix_to_rotvec, rotvec_to_matrix
+from ..layout import Layout
+
+__all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames"]
+
+_TRUTH = ["true_rx", "true_ry", "true_rz", "true_tx", "true_ty", "true_tz"]
+
+
+@dataclass(frozen=True)
+class Frames:
+    """t (F,) s; angles (F, n, 2) rad (NaN = not lit); ids; optional truth rotation (F,3,3), translation (F,3)."""
+
+    t: np.ndarray
+    angles: np.ndarray
+    ids: tuple
+    truth_rotation: np.ndarray | None = None
+    truth_translation: np.ndarray | None = None
+
+
+def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho: float,
+                    half_angle_deg: float = 60.0, min_lit: int = 4, rate_hz: float = 60.0,
+                    quantize: bool = True) -> Frames:
+    """Static random poses on the paper's area in front of the station, ≥ ``min_lit`` lit."""
+    from ..simulate import facing_mask, poses_in_front, simulate_angles
+
+    rng = np.random.default_rng(seed)
+    Rs, ts, vs = [], [], []
+    n_have = 0
+    while n_have < frames:
+        R, t = poses_in_front(max(64, 2 * frames), rng)
+        v = facing_mask(layout.positions, layout.normals, R, t, half_angle_deg=half_angle_deg)
+        k = v.sum(1) >= min_lit
+        Rs.append(R[k]); ts.append(t[k]); vs.append(v[k])
+        n_have += int(k.sum())
+    R = np.concatenate(Rs)[:frames]
+    t = np.concatenate(ts)[:frames]
+    v = np.concatenate(vs)[:frames]
+    ang = simulate_angles(layout.positions, R, t, sigma=sigma, rho=rho, rng=rng, quantize=quantize)
+    ang[~v] = np.nan
+    return Frames(np.arange(frames) / rate_hz, ang, layout.ids, R, t)
+
+
+def write_frames(fr: Frames, path) -> None:
+    path = Path(path)
+    if path.suffix == ".npz":
+        extra = {}
+        if fr.truth_rotation is not None:
+            extra = {"truth_rotvec": matrix_to_rotvec(fr.truth_rotation), "truth_translation": fr.truth_translation}
+        np.savez_compressed(path, t=fr.t, angles=fr.angles, ids=np.asarray(fr.ids), **extra)
+        return
+    header = ["t"] + [f"th_{ax}_{i}" for i in fr.ids for ax in ("x", "y")]
+    rows = np.column_stack([fr.t, fr.angles.reshape(len(fr.t), -1)])
+    if fr.truth_rotation is not None:
+        header += _TRUTH
+        rows = np.column_stack([rows, matrix_to_rotvec(fr.truth_rotation), fr.truth_translation])
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for r in rows:
+            w.writerow(["" if not np.isfinite(x) else repr(float(x)) for x in r])
+
+
+def read_frames(path, layout: Layout) -> Frames:
+    """Read a frame file; the sensor ids must match the layout's (ValueError otherwise)."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: no such frame file")
+    if path.suffix == ".npz":
+        d = np.load(path, allow_pickle=False)
+        ids = tuple(str(i) for i in d["ids"])
+        ang = np.asarray(d["angles"], float)
+        R = rotvec_to_matrix(d["truth_rotvec"]) if "truth_rotvec" in d else None
+        T = np.asarray(d["truth_translation"]) if "truth_translation" in d else None
+        t = np.asarray(d["t"], float)
+    else:
+        with open(path, newline="") as fh:
+            rd = csv.reader(fh)
+            header = next(rd, None)
+            if not header or header[0] != "t":
+                raise ValueError(f"{path}: expected a CSV header starting with 't'")
+            rows = [[float(x) if x.strip() else np.nan for x in r] for r in rd if r]
+        data = np.asarray(rows, float).reshape(-1, len(header))
+        cols = {h: k for k, h in enumerate(header)}
+        ids = tuple(h[5:] for h in header if h.startswith("th_x_"))
+        ang = np.stack([np.column_stack([data[:, cols[f"th_x_{i}"]], data[:, cols[f"th_y_{i}"]]]) for i in ids], 1)
+        t = data[:, 0]
+        R = T = None
+        if all(h in cols for h in _TRUTH):
+            tr = data[:, [cols[h] for h in _TRUTH]]
+            R, T = rotvec_to_matrix(tr[:, :3]), tr[:, 3:]
+    missing = [i for i in ids if i not in layout.ids]
+    if missing:
+        raise ValueError(f"{path}: sensor ids {missing[:5]} are not in the layout")
+    order = [ids.index(i) if i in ids else -1 for i in layout.ids]
+    full = np.full((ang.shape[0], layout.n, 2), np.nan)
+    for j, k in enumerate(order):
+        if k >= 0:
+            full[:, j] = ang[:, k]
+    return Frames(t, full, layout.ids, R, T)
+
+
+def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0) -> dict:
+    """Solve every frame; summary with statuses, and errors against truth when the file has it."""
+    from ..dop import pose_dop, pose_errors, rms
+    from ..pnp import solve_pnp
+
+    vis = np.all(np.isfinite(fr.angles), -1)
+    sol = solve_pnp(layout.positions, fr.angles, vis)
+    out = {"frames": int(len(fr.t)), "solved": int(np.sum(sol.success)),
+           "status_counts": {int(k): int(v) for k, v in zip(*np.unique(sol.status, return_counts=True))},
+           "t": fr.t, "rotvec": matrix_to_rotvec(sol.rotation), "translation": sol.translation,
+           "success": sol.success, "status": sol.status}
+    if fr.truth_rotation is not None:
+        ok = np.asarray(sol.success)
+        e_r, e_t = pose_errors(sol.rotation[ok], sol.translation[ok], fr.truth_rotation[ok], fr.truth_translation[ok])
+        out.update(rms_rot_deg=float(np.degrees(rms(e_r))), rms_trans_m=float(rms(e_t)),
+                   max_rot_deg=float(np.degrees(e_r.max())) if ok.any() else None)
+        if sigma is not None:
+            d = pose_dop(layout.positions, fr.truth_rotation[ok], fr.truth_translation[ok], rho=rho, visible=vis[ok])
+            out.update(predicted_rms_rot_deg=float(np.sqrt(np.mean(d.adop**2)) * sigma),
+                       predicted_rms_trans_m=float(np.sqrt(np.mean(d.pdop**2)) * sigma))
+    return out
