@@ -41,6 +41,8 @@ class DecodeStats:
     dropped: int = 0
     resyncs: int = 0
     skipped_bytes: int = 0
+    resets: int = 0  # device restarts seen (sequence restarted)
+    errors: int = 0  # internal decoder errors caught by the never-raise guard (should stay 0)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)

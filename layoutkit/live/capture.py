@@ -1,0 +1,224 @@
+"""Capture files: raw received bytes, a timing index and a sidecar JSON (docs/live-io.md).
+
+A capture ``run.lkcap`` is three files:
+
+- ``run.lkcap``        the raw bytes exactly as received, appended *before* any decoding;
+- ``run.lkcap.idx``    one 16-byte record per received chunk: ``<Q d`` = (byte offset of the
+  chunk's first byte, host arrival time in seconds since the capture's start);
+- ``run.lkcap.json``   the sidecar: layout, station set-up, port settings, protocol (+ options),
+  start time (UTC ISO 8601), and at close the byte count and end time.
+"""
+from __future__ import annotations
+
+import json
+import os
+import struct
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "CaptureWriter",
+    "CaptureReader",
+    "sidecar_path",
+    "index_path",
+    "read_sidecar",
+    "station_to_dict",
+    "station_from_dict",
+]
+
+_IDX = struct.Struct("<Qd")
+FORMAT = "layoutkit-capture"
+FORMAT_VERSION = 1
+
+
+def sidecar_path(path) -> Path:
+    """``<capture>.json``."""
+    return Path(str(path) + ".json")
+
+
+def index_path(path) -> Path:
+    """``<capture>.idx``."""
+    return Path(str(path) + ".idx")
+
+
+def station_to_dict(station) -> dict:
+    """A :class:`layoutkit.lighthouse.Station` as plain JSON (rotation 3×3, translation m)."""
+    return {"id": station.id, "kind": station.kind, "rotation": np.asarray(station.rotation).tolist(),
+            "translation": np.asarray(station.translation).tolist(), "rotor_rpm": station.rotor_rpm,
+            "clock_hz": station.clock_hz, "fov_deg": station.fov_deg}
+
+
+def station_from_dict(d: dict):
+    """Inverse of :func:`station_to_dict`."""
+    from ..lighthouse import Station
+
+    keys = ("id", "kind", "rotation", "translation", "rotor_rpm", "clock_hz", "fov_deg")
+    return Station(**{k: d[k] for k in keys if k in d})
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, np.generic):
+        return o.item()
+    return o
+
+
+class CaptureWriter:
+    """Append-only raw capture with a timing index and a sidecar JSON.
+
+    path : capture file (created/truncated). sidecar : dict written to ``<path>.json`` at once
+    (``start_time_utc``, ``format`` are added). flush_interval : s between flushes to the OS.
+    ``write(data, t=None)`` appends bytes; ``t`` is the arrival time in s since the start
+    (default: host monotonic clock since the writer opened).
+    """
+
+    def __init__(self, path, sidecar: dict | None = None, *, flush_interval: float = 0.25):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._raw = open(self.path, "wb")
+        self._idx = open(index_path(self.path), "wb")
+        self._t0 = time.monotonic()
+        self._last_flush = self._t0
+        self.flush_interval = float(flush_interval)
+        self.bytes_written = 0
+        self.sidecar = dict(_jsonable(sidecar or {}))
+        self.sidecar.setdefault("format", FORMAT)
+        self.sidecar.setdefault("format_version", FORMAT_VERSION)
+        self.sidecar.setdefault("start_time_utc", datetime.now(timezone.utc).isoformat())
+        self._write_sidecar()
+        self.closed = False
+
+    def _write_sidecar(self) -> None:
+        tmp = sidecar_path(self.path).with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.sidecar, indent=2) + "\n")
+        os.replace(tmp, sidecar_path(self.path))
+
+    def write(self, data: bytes, t: float | None = None) -> None:
+        """Append ``data`` (before decoding) with its arrival time ``t`` (s since start)."""
+        if not data:
+            return
+        now = time.monotonic()
+        t = now - self._t0 if t is None else float(t)
+        self._idx.write(_IDX.pack(self.bytes_written, t))
+        self._raw.write(data)
+        self.bytes_written += len(data)
+        if now - self._last_flush >= self.flush_interval:
+            self.flush()
+            self._last_flush = now
+
+    def flush(self) -> None:
+        self._raw.flush()
+        self._idx.flush()
+
+    def close(self, **extra) -> None:
+        """Flush, close, and record ``bytes``, ``end_time_utc`` (and ``extra``) in the sidecar."""
+        if self.closed:
+            return
+        self.flush()
+        self._raw.close()
+        self._idx.close()
+        self.sidecar.update(_jsonable(extra))
+        self.sidecar["bytes"] = self.bytes_written
+        self.sidecar["end_time_utc"] = datetime.now(timezone.utc).isoformat()
+        self._write_sidecar()
+        self.closed = True
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_sidecar(path) -> dict:
+    """The sidecar dict of a capture (``{}`` when there is none); ValueError on bad JSON."""
+    p = sidecar_path(path)
+    if not p.exists():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{p}: not valid JSON ({exc})") from None
+
+
+class CaptureReader:
+    """Replay a capture's bytes; a source with ``read(max_bytes)`` and ``close()``.
+
+    realtime : if True, bytes are released no earlier than their recorded arrival time
+        (scaled by ``speed``); otherwise as fast as asked. ``read`` returns ``b""`` at the end.
+    ``chunks()`` iterates the recorded (arrival time, bytes) chunks.
+    """
+
+    def __init__(self, path, *, realtime: bool = False, speed: float = 1.0):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ValueError(f"{self.path}: no such capture file")
+        self.sidecar = read_sidecar(self.path)
+        self._fh = open(self.path, "rb")
+        self.size = self.path.stat().st_size
+        self.realtime = bool(realtime)
+        self.speed = float(speed)
+        self._index = self._load_index()
+        self._t_start = None
+
+    def _load_index(self) -> np.ndarray:
+        p = index_path(self.path)
+        if not p.exists():
+            return np.zeros((0, 2))
+        raw = p.read_bytes()
+        raw = raw[: len(raw) - len(raw) % _IDX.size]
+        rec = np.frombuffer(raw, dtype=[("off", "<u8"), ("t", "<f8")])
+        return np.stack([rec["off"].astype(float), rec["t"]], -1) if rec.size else np.zeros((0, 2))
+
+    @property
+    def index(self) -> np.ndarray:
+        """(C, 2) float: byte offset and arrival time (s) of each recorded chunk."""
+        return self._index
+
+    @property
+    def eof(self) -> bool:
+        return self._fh.tell() >= self.size
+
+    def read(self, max_bytes: int = 65536) -> bytes:
+        pos = self._fh.tell()
+        n = max(1, int(max_bytes))
+        if self.realtime and len(self._index):
+            if self._t_start is None:
+                self._t_start = time.monotonic() - self._index[0, 1] / self.speed
+            # bytes whose arrival time has passed
+            now = (time.monotonic() - self._t_start) * self.speed
+            k = np.searchsorted(self._index[:, 1], now, side="right")
+            limit = int(self._index[k, 0]) if k < len(self._index) else self.size
+            if limit <= pos:
+                wait = self._index[k, 1] - now if k < len(self._index) else 0.0
+                time.sleep(min(max(wait / self.speed, 0.0), 0.1))
+                return b""
+            n = min(n, limit - pos)
+        return self._fh.read(n)
+
+    def chunks(self):
+        """Yield ``(t_arrival_s, bytes)`` per recorded chunk (one chunk of everything without index)."""
+        with open(self.path, "rb") as fh:
+            if not len(self._index):
+                yield 0.0, fh.read()
+                return
+            offs = list(self._index[:, 0].astype(np.int64)) + [self.size]
+            for k in range(len(self._index)):
+                yield float(self._index[k, 1]), fh.read(int(offs[k + 1] - offs[k]))
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
