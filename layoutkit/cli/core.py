@@ -143,7 +143,7 @@ def study_group():
 @click.option("--frames", type=click.IntRange(min=2), default=3600, show_default=True, help="Frames per group (paper: 3600).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--dynamic-seconds", type=float, default=60.0, show_default=True, help="Length of each dynamic run.")
-@click.option("--sensor-error-mm", type=float, default=1.0, show_default=True,
+@click.option("--sensor-error-mm", type=float, default=0.5, show_default=True,
               help="Systematic sensor-coordinate error for the second dynamic run (0: skip it).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="out/chen2024", show_default=True,
               help="Folder for the figure, table and full JSON.")

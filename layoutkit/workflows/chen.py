@@ -35,7 +35,7 @@ class StudyConfig:
     half_angle_deg: float = 60.0
     dynamic_seconds: float = 60.0
     frame_rate_hz: float = 60.0
-    sensor_error_mm: float = 1.0
+    sensor_error_mm: float = 0.5
 
 
 def _target():
@@ -114,10 +114,12 @@ def dynamic_run(cfg: StudyConfig, layout=None, sensor_error_mm: float = 0.0) -> 
     tt = np.arange(n_f) / cfg.frame_rate_hz
     w = 2 * np.pi / max(cfg.dynamic_seconds, 1e-9)
     trans = np.column_stack([1.0 * np.sin(w * tt), 0.3 + 0.05 * np.sin(3 * w * tt), 2.0 + 0.8 * np.cos(w * tt)])
-    rv = np.column_stack([-1.2 + 0.4 * np.sin(2 * w * tt), 0.6 * np.sin(w * tt), 0.3 * np.cos(w * tt)])
+    rv = np.column_stack([2.6 + 0.3 * np.sin(2 * w * tt), 0.5 * np.sin(w * tt), 0.3 * np.cos(w * tt)])
     R = rotvec_to_matrix(rv)
     lit = facing_mask(P, N, R, trans, half_angle_deg=cfg.half_angle_deg)
     keep = lit.sum(1) >= cfg.min_lit
+    if not keep.any():
+        raise ValueError("dynamic_run: no frame of the trajectory has enough lit sensors")
     ang = simulate_angles(P, R, trans, sigma=cfg.sigma, rho=cfg.rho, rng=rng, quantize=cfg.quantize)
     P_model = P + rng.normal(scale=sensor_error_mm * 1e-3, size=P.shape)
     sol = solve_pnp(P_model, ang[keep], lit[keep])
