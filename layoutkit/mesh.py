@@ -94,8 +94,8 @@ def load_mesh(path, units: str = "m"):
         warnings.warn(f"{path}: largest extent is {extent * 1000:.4g} mm with units={units!r}; "
                       f"if the file is in metres pass units='m'", MeshWarning, stacklevel=2)
     if not mesh.is_watertight:
-        open_edges = _open_edge_count(mesh)
-        warnings.warn(f"{path}: mesh is not watertight ({open_edges} open edge(s)); "
+        warnings.warn(f"{path}: mesh is not watertight ({_open_edge_count(mesh)} open edge(s), "
+                      f"{_nonmanifold_edge_count(mesh)} edge(s) shared by more than two faces); "
                       f"outward normals and occlusion treat it as a bare surface", MeshWarning, stacklevel=2)
     mesh.metadata["source"] = str(path)
     mesh.metadata["units_in_file"] = units
@@ -185,3 +185,12 @@ def _open_edge_count(mesh) -> int:
     if len(edges) == 0:
         return 0
     return int(len(trimesh.grouping.group_rows(edges, require_count=1)))
+
+
+def _nonmanifold_edge_count(mesh) -> int:
+    """Edges used by more than two faces."""
+    edges = mesh.edges_sorted
+    if len(edges) == 0:
+        return 0
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int(np.count_nonzero(counts > 2))

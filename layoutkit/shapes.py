@@ -109,12 +109,13 @@ def cubesat_3u(panel_length: float = 0.30, panel_thickness: float = 0.002):
 
     Body frame at the bus centre (metres); the bus spans ``[-0.05, 0.05]² × [-0.17, 0.17]``.
     Four 10 cm wide panels of ``panel_length`` are hinged at the +z end and deployed flat in the
-    plane just below the top face (normal ±z), reaching out along +x, -x, +y, -y (a "cross").
+    plane just below the top face (normal ±z), reaching out along +x, -x, +y, -y (a "cross"),
+    1 mm clear of the bus (so that every part stays a closed 2-manifold).
     Parts: ``bus``, ``panel+x``, ``panel-x``, ``panel+y``, ``panel-y``.
     """
-    a, hz, w = 0.05, 0.17, 0.10
+    a, hz, w, gap = 0.05, 0.17, 0.10, 0.001
     zc = hz - panel_thickness / 2
-    rc = a + panel_length / 2
+    rc = a + gap + panel_length / 2
     parts = {
         "bus": _box((2 * a, 2 * a, 2 * hz), (0.0, 0.0, 0.0)),
         "panel+x": _box((panel_length, w, panel_thickness), (rc, 0.0, zc)),
