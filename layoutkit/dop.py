@@ -69,23 +69,29 @@ def angle_jacobian(points_lh, lever_world=None, station_rotation=None) -> np.nda
     Returns (..., n, 2, 6) float, rad per (rad, m). Chen eqs. (10)–(14) in left-perturbation form.
     """
     p = np.asarray(points_lh, dtype=float)
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    dx = x * x + z * z
-    dy = y * y + z * z
-    zero = np.zeros_like(x)
-    # d theta / d p_station, (..., n, 2, 3)
-    dth = np.stack(
-        [np.stack([-z / dx, zero, x / dx], -1), np.stack([zero, -z / dy, y / dy], -1)], -2
-    )
-    if station_rotation is not None:
-        # d p_station = R_s^T d p_world
-        dth = dth @ np.asarray(station_rotation, float).T
     if lever_world is None:
         raise ValueError("angle_jacobian: lever_world (R @ p_body) is required")
     lever = np.asarray(lever_world, dtype=float)
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    dx = 1.0 / (x * x + z * z)
+    dy = 1.0 / (y * y + z * z)
+    # d theta / d p_station, rows (..., n, 2, 3): x row (-z, 0, x)/dx, y row (0, -z, y)/dy
+    dth = np.zeros(p.shape[:-1] + (2, 3))
+    dth[..., 0, 0] = -z * dx
+    dth[..., 0, 2] = x * dx
+    dth[..., 1, 1] = -z * dy
+    dth[..., 1, 2] = y * dy
+    if station_rotation is not None:
+        dth = dth @ np.asarray(station_rotation, float).T  # d p_station = R_s^T d p_world
+    out = np.empty(p.shape[:-1] + (2, 6))
     # d p / d dphi = -[l]x with l = R p_body; a row a^T(-[l]x) equals (l x a)^T
-    drot = np.cross(lever[..., None, :], dth)
-    return np.concatenate([drot, dth], -1)
+    lx, ly, lz = lever[..., None, 0], lever[..., None, 1], lever[..., None, 2]
+    ax, ay, az = dth[..., 0], dth[..., 1], dth[..., 2]
+    out[..., 0] = ly * az - lz * ay
+    out[..., 1] = lz * ax - lx * az
+    out[..., 2] = lx * ay - ly * ax
+    out[..., 3:] = dth
+    return out
 
 
 def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
@@ -105,20 +111,14 @@ def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
         v = np.broadcast_to(v, J.shape[:-2])
     except ValueError:
         raise ValueError(f"visible: expected shape {J.shape[:-2]}, got {v.shape}") from None
-    Jv = J * v[..., None, None]
-    # A = sum over stations, sensors, axes of j j^T
-    A = np.einsum("...snai,...snaj->...ij", Jv, Jv)
-    b = Jv.sum(axis=-3)  # (..., S, 2, 6)
-    B = np.einsum("...sai,...saj->...ij", b, b)
-    M = (1.0 - rho) * A + rho * B
+    Jm = J * v[..., None, None]
+    Jv = Jm.reshape(J.shape[:-4] + (-1, 6))
+    A = np.swapaxes(Jv, -1, -2) @ Jv  # sum over stations, sensors, axes of j j^T
+    b = Jm.sum(axis=-3).reshape(J.shape[:-4] + (-1, 6))  # (..., 2S, 6): per station and axis
+    M = (1.0 - rho) * A + rho * (np.swapaxes(b, -1, -2) @ b)
     nvis = v.sum(axis=(-1, -2))
-    eye = np.eye(6)
-    # conditioning relative to the scale of A
-    scale = np.trace(A, axis1=-2, axis2=-1)[..., None, None] / 6.0
-    scale = np.where(scale > 0, scale, 1.0)
-    w = np.linalg.eigvalsh(A / scale)
-    singular = w[..., 0] <= _RCOND * np.maximum(w[..., -1], 1e-300)
-    Asafe = np.where(singular[..., None, None], eye, A)
+    singular = _singular(A)
+    Asafe = np.where(singular[..., None, None], np.eye(6), A)
     Ainv = np.linalg.inv(Asafe)
     H = Ainv @ M @ Ainv  # Chen eq. (18)
     H = 0.5 * (H + np.swapaxes(H, -1, -2))
@@ -130,6 +130,27 @@ def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
     pdop = np.where(ok, np.sqrt(np.maximum(tr_t, 0)), np.inf)
     H = np.where(ok[..., None, None], H, np.nan)
     return DopResult(adop=adop, pdop=pdop, cov=H, success=ok, status=status, n_visible=nvis)
+
+
+def _singular(A: np.ndarray) -> np.ndarray:
+    """True where the 6×6 normal matrices ``A (..., 6, 6)`` are singular to working precision.
+
+    Relative smallest eigenvalue below ``_RCOND``. A batched Cholesky screens the common
+    well-conditioned case; only matrices it cannot vouch for go to ``eigvalsh``.
+    """
+    scale = np.trace(A, axis1=-2, axis2=-1)[..., None, None] / 6.0
+    An = A / np.where(scale > 0, scale, 1.0)
+    risky = np.ones(A.shape[:-2], bool)
+    try:
+        d = np.diagonal(np.linalg.cholesky(An), axis1=-2, axis2=-1) ** 2
+        risky = d.min(-1) < 1e-6 * d.max(-1)
+    except np.linalg.LinAlgError:
+        pass
+    singular = np.zeros(A.shape[:-2], bool)
+    if np.any(risky):
+        w = np.linalg.eigvalsh(An[risky])
+        singular[risky] = w[..., 0] <= _RCOND * np.maximum(w[..., -1], 1e-300)
+    return singular
 
 
 def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
@@ -150,7 +171,7 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
         check_finite(a, nm)
     if R.shape[:-2] != t.shape[:-1]:
         raise ValueError(f"rotation {R.shape} and translation {t.shape}: batch shapes differ")
-    lever = np.einsum("...ij,...nj->...ni", R, P)  # R p_body, (..., n, 3)
+    lever = P @ np.swapaxes(R, -1, -2)  # R p_body, (..., n, 3)
     if stations is None:
         p_lh = lever + t[..., None, :]
         J = angle_jacobian(p_lh, lever)[..., None, :, :, :]
