@@ -1,0 +1,237 @@
+"""``optimize_layout``: choose k photodiode sites with a certified lower bound (design §6)."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._validate import as_array, check_finite
+from ..dop import angle_jacobian
+from .coverage import analyse_coverage
+from .methods import METHODS, Context
+from .objectives import parse_objective
+from .problem import build_problem, exact_dop, feasible_counts
+from .relaxation import _fallback_bound
+
+__all__ = ["OptimizeResult", "optimize_layout", "optimize_stations", "candidate_jacobians",
+           "sweep_k", "spacing_conflicts"]
+
+
+@dataclass(frozen=True)
+class OptimizeResult:
+    """Result of :func:`optimize_layout`.
+
+    selected : (k,) int, sorted candidate indices (empty if nothing feasible was found).
+    value : objective of ``selected`` with the exact metric (Chen eq. 18 with rho, lit sensors only,
+        all stations); deg/rad for ADOP objectives, m/rad for PDOP, inf if none.
+    bound : certified lower bound on the optimum of the same objective over all feasible selections.
+    gap : value / bound - 1 (0 for a proven optimum). certified_by : "relaxation", "trace" or
+        "exhaustive" (how the bound was obtained).
+    success : a feasible layout was found; status : "optimal" (proven), "ok", "infeasible",
+        "uncoverable", "no_feasible_found"; message : plain-language summary.
+    adop, pdop : (P,) exact per-pose ADOP (deg/rad) and PDOP (m/rad); n_lit : (P,) lit counts.
+    min_k : smallest k keeping m lit everywhere (set when infeasible); uncoverable : (U,) poses with
+        fewer than m lit candidates at all. timings : seconds per stage. method, objective : names.
+    """
+
+    selected: np.ndarray
+    value: float
+    bound: float
+    gap: float
+    success: bool
+    status: str
+    message: str
+    adop: np.ndarray
+    pdop: np.ndarray
+    n_lit: np.ndarray
+    method: str
+    objective: str
+    certified_by: str = ""
+    min_k: "int | None" = None
+    uncoverable: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    timings: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def stats(self) -> dict:
+        """Per-pose DOP statistics (median, mean, p95, max) over the poses with enough lit sensors."""
+        ok = np.isfinite(self.adop)
+        out = {}
+        for nm, a in (("adop_deg_per_rad", self.adop), ("pdop_m_per_rad", self.pdop)):
+            x = a[ok]
+            out[nm] = ({"median": float(np.median(x)), "mean": float(np.mean(x)),
+                        "p95": float(np.percentile(x, 95)), "max": float(np.max(x))} if len(x) else {})
+        out["poses"] = int(len(self.adop))
+        out["poses_covered"] = int(ok.sum())
+        return out
+
+
+def candidate_jacobians(positions, rotations, translations, stations=None):
+    """Per-candidate angle Jacobians ``(P, S, N, 2, 6)`` (Chen eqs. 10–14).
+
+    positions : (N, 3) body frame, m; rotations (P, 3, 3), translations (P, 3): body pose in the
+    frame of the single station (``stations=None``) or in the world frame of ``stations``
+    (:class:`layoutkit.lighthouse.Station` list). points_lh = R p + t, lever = R p.
+    """
+    p = np.asarray(positions, float)
+    R = np.asarray(rotations, float)
+    t = np.asarray(translations, float)
+    lever = np.einsum("pij,nj->pni", R, p)
+    pw = lever + t[:, None, :]
+    if stations is None:
+        return angle_jacobian(pw, lever)[:, None]
+    out = []
+    for st in stations:
+        ps = (pw - st.translation) @ st.rotation
+        out.append(angle_jacobian(ps, lever, st.rotation))
+    return np.stack(out, axis=1)
+
+
+def spacing_conflicts(positions, min_spacing):
+    """(N, N) bool: pairs of distinct candidates closer than ``min_spacing`` (m); None if 0."""
+    if not min_spacing or min_spacing <= 0:
+        return None
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(positions, float)
+    pairs = cKDTree(p).query_pairs(float(min_spacing), output_type="ndarray")
+    C = np.zeros((len(p), len(p)), bool)
+    if len(pairs):
+        C[pairs[:, 0], pairs[:, 1]] = True
+        C[pairs[:, 1], pairs[:, 0]] = True
+    return C
+
+
+def optimize_layout(positions, normals, visible, rotations, translations, k, *,
+                    objective="worst-adop", rho=0.0, min_visible=4, method="pipeline", rng=None,
+                    fixed=(), min_spacing=0.0, coverage_fraction=1.0, weights=None,
+                    time_limit=None, progress=None) -> OptimizeResult:
+    """Choose ``k`` of N candidate sites minimising an envelope DOP objective (design §6).
+
+    positions : (N, 3) float, m, candidate sites in the body frame; normals : (N, 3) outward normals
+        (carried for the caller; visibility already encodes the acceptance cone).
+    visible : (P, N) bool, candidate lit at pose p (FOV, cone, occlusion).
+    rotations : (P, 3, 3), translations : (P, 3) m — body pose in the frame of one lighthouse station
+        at the origin (``p_lh = R p + t``).
+    k : sensors to place. objective : see :func:`layoutkit.optimize.parse_objective`
+        ("worst-adop", "mean-pdop", "p95-adop", "worst-weighted" with ``weights=(a, b)``).
+    rho : same-rotor angle correlation (Chen eq. 19; 0.8717 measured).
+    min_visible : m, lit sensors needed at every pose (or every pose but ``1 - coverage_fraction``).
+    method : one of :data:`layoutkit.optimize.METHODS`. rng : ``np.random.Generator`` or seed.
+    fixed : candidate indices placed in advance. min_spacing : m, minimum distance between sensors.
+    time_limit : s, wall budget for the search (the relaxation is not interrupted).
+    progress : callable ``(stage: str, fraction: float | None, best: float | None)``.
+    Returns an :class:`OptimizeResult`; infeasible requests are a status with an explanation.
+    """
+    pos = as_array(positions, "positions", (None, 3))
+    check_finite(pos, "positions")
+    N = pos.shape[0]
+    as_array(normals, "normals", (N, 3))
+    R = as_array(rotations, "rotations", (None, 3, 3))
+    P = R.shape[0]
+    t = as_array(translations, "translations", (P, 3))
+    check_finite(R, "rotations")
+    check_finite(t, "translations")
+    vis = np.asarray(visible)
+    if vis.shape != (P, N):
+        raise ValueError(f"visible: expected shape ({P}, {N}), got {vis.shape}")
+    jac = candidate_jacobians(pos, R, t)
+    return optimize_stations(jac, vis.astype(bool)[:, None, :], k, objective=objective, rho=rho,
+                             min_visible=min_visible, method=method, rng=rng, fixed=fixed,
+                             conflict=spacing_conflicts(pos, min_spacing),
+                             coverage_fraction=coverage_fraction, weights=weights,
+                             time_limit=time_limit, progress=progress)
+
+
+def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_visible=4,
+                      method="pipeline", rng=None, fixed=(), conflict=None, coverage_fraction=1.0,
+                      weights=None, time_limit=None, progress=None, ctx_options=None) -> OptimizeResult:
+    """Multi-station core of :func:`optimize_layout`.
+
+    jac : (P, S, N, 2, 6) per-candidate angle Jacobians; visible : (P, S, N) bool.
+    A sensor counts as lit at a pose if any station sees it. Other arguments as in optimize_layout;
+    conflict : (N, N) bool spacing conflicts or None.
+    """
+    t0 = time.perf_counter()
+    jac = as_array(jac, "jac", (None, None, None, 2, 6))
+    P, S, N = jac.shape[:3]
+    visible = np.asarray(visible, bool)
+    if visible.shape != (P, S, N):
+        raise ValueError(f"visible: expected shape ({P}, {S}, {N}), got {visible.shape}")
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
+    obj = parse_objective(objective, weights)
+    k = int(k)
+    if not 1 <= k <= N:
+        raise ValueError(f"k: expected 1 <= k <= {N} (number of candidates), got {k}")
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"rho: expected 0 <= rho < 1, got {rho}")
+    if not 0.0 < coverage_fraction <= 1.0:
+        raise ValueError(f"coverage_fraction: expected 0 < f <= 1, got {coverage_fraction}")
+    fixed = np.unique(np.asarray(fixed, int).ravel()).astype(int)
+    if len(fixed) and (fixed.min() < 0 or fixed.max() >= N):
+        raise ValueError(f"fixed: indices must be in [0, {N - 1}], got {fixed.tolist()}")
+    if len(fixed) > k:
+        raise ValueError(f"fixed: {len(fixed)} fixed sensors exceed k = {k}")
+    n_cover = int(math.ceil(coverage_fraction * P - 1e-9))
+    rng = np.random.default_rng(rng)
+    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover)
+    empty = np.zeros(0, int)
+    nan_p = np.full(P, np.inf)
+
+    def fail(status, msg, cov=None):
+        return OptimizeResult(empty, np.inf, np.nan, np.nan, False, status, msg, nan_p, nan_p,
+                              np.zeros(P, int), method, obj.name,
+                              min_k=None if cov is None else cov.min_k,
+                              uncoverable=empty if cov is None else cov.uncoverable,
+                              timings={"total_s": time.perf_counter() - t0})
+
+    if len(fixed) and conflict is not None and conflict[np.ix_(fixed, fixed)].any():
+        return fail("infeasible", "two fixed sensors are closer than the minimum spacing")
+    # cheap necessary check first; the exact analysis only when something is wrong
+    counts = problem.lit.sum(axis=1)
+    if (counts < problem.m).sum() > P - n_cover:
+        cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
+        return fail(cov.status, cov.message, cov)
+    deadline = math.inf if time_limit is None else time.perf_counter() + float(time_limit)
+    ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
+    t1 = time.perf_counter()
+    out = METHODS[method](problem, ctx)
+    t2 = time.perf_counter()
+    if out.selected is None:
+        cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
+        if not cov.feasible:
+            return fail(cov.status, cov.message, cov)
+        return fail("no_feasible_found", f"method {method!r} found no feasible layout although one "
+                    f"exists (smallest k = {cov.min_k}); try method 'pipeline'", cov)
+    sel = np.sort(np.asarray(out.selected, int))
+    d = exact_dop(problem, sel)
+    adop = np.asarray(d.adop, float)
+    pdop = np.asarray(d.pdop, float)
+    n_lit = problem.lit[:, sel].sum(axis=1)
+    mask = n_lit >= problem.m
+    value = float(obj.aggregate_values(obj.from_dop(adop, pdop), mask))
+    if out.exact_optimum:
+        bound, how = value, "exhaustive"
+    elif out.relaxation is not None:
+        bound, how = out.relaxation.bound, out.relaxation.certified_by
+    else:
+        bound, how = _fallback_bound(problem), "trace"
+    gap = value / bound - 1.0 if bound > 0 and np.isfinite(bound) else np.inf
+    status = "optimal" if out.exact_optimum else "ok"
+    msg = (f"{method}: {obj.name} = {value:.6g} ({'deg/rad' if obj.metric == 'adop' else 'm/rad' if obj.metric == 'pdop' else 'weighted'}), "
+           f"certified bound {bound:.6g} ({how}), gap {100 * gap:.2f}%")
+    if ctx.notes:
+        msg += "; " + "; ".join(ctx.notes)
+    timings = {"total_s": time.perf_counter() - t0, "method_s": t2 - t1}
+    if out.relaxation is not None:
+        timings["relaxation_s"] = out.relaxation.time_s
+    return OptimizeResult(sel, value, float(bound), float(gap), True, status, msg, adop, pdop, n_lit,
+                          method, obj.name, how, None, empty, timings, dict(out.info))
+
+
+def sweep_k(positions, normals, visible, rotations, translations, ks, **kwargs):
+    """Best layout for each k in ``ks``: a list of :class:`OptimizeResult` (DOP against sensor count)."""
+    return [optimize_layout(positions, normals, visible, rotations, translations, int(k), **kwargs)
+            for k in ks]

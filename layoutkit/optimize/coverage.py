@@ -1,0 +1,138 @@
+"""Coverage (at least m lit sensors per pose): feasibility analysis and the smallest k.
+
+The smallest k is a set-multicover integer program, solved exactly with
+``scipy.optimize.milp`` (HiGHS):
+
+    minimise sum_i z_i  s.t.  sum_i v_ip z_i >= m y_p,  sum_p y_p >= n_cover,
+    z_i + z_j <= 1 for pairs closer than the spacing,  z_fixed = 1,  z, y binary
+
+(``y`` only when a fraction of poses may stay uncovered; otherwise ``y = 1``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["CoverageReport", "analyse_coverage", "minimum_k"]
+
+
+@dataclass(frozen=True)
+class CoverageReport:
+    """Result of :func:`analyse_coverage`.
+
+    feasible : whether k sensors can keep m lit at the required poses; min_k : smallest k that can
+    (None if no k can); uncoverable : (U,) pose indices with fewer than m lit candidates at all;
+    status : "ok" | "infeasible" | "uncoverable"; message : plain-language explanation.
+    """
+
+    feasible: bool
+    min_k: "int | None"
+    uncoverable: np.ndarray
+    status: str
+    message: str
+
+
+def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0):
+    """Smallest number of sensors keeping ``m`` lit at ``n_cover`` poses (exact MILP).
+
+    lit : (P, N) bool; m : int; n_cover : poses that must be covered (default all P);
+    fixed : indices forced in; conflict : (N, N) bool pairs that cannot both be chosen.
+    Returns ``(k_min, selection)`` or ``(None, None)`` if no selection works.
+    """
+    from scipy.optimize import Bounds, LinearConstraint, milp
+    from scipy.sparse import csr_matrix, hstack, vstack, identity, coo_matrix
+
+    lit = np.asarray(lit, bool)
+    P, N = lit.shape
+    n_cover = P if n_cover is None else int(n_cover)
+    full = n_cover >= P
+    V = csr_matrix(lit.astype(float))
+    rows, lo, hi = [], [], []
+    if full:
+        nvar = N
+        c = np.ones(N)
+        rows.append(V)
+        lo.append(np.full(P, float(m)))
+        hi.append(np.full(P, np.inf))
+    else:
+        nvar = N + P
+        c = np.r_[np.ones(N), np.zeros(P)]
+        rows.append(hstack([V, -m * identity(P)]))
+        lo.append(np.zeros(P))
+        hi.append(np.full(P, np.inf))
+        rows.append(csr_matrix(np.r_[np.zeros(N), np.ones(P)][None]))
+        lo.append([float(n_cover)])
+        hi.append([np.inf])
+    if conflict is not None:
+        i, j = np.nonzero(np.triu(np.asarray(conflict, bool), 1))
+        if len(i):
+            r = np.repeat(np.arange(len(i)), 2)
+            C = coo_matrix((np.ones(2 * len(i)), (r, np.c_[i, j].ravel())), shape=(len(i), nvar))
+            rows.append(C.tocsr())
+            lo.append(np.full(len(i), -np.inf))
+            hi.append(np.ones(len(i)))
+    lb = np.zeros(nvar)
+    ub = np.ones(nvar)
+    lb[np.asarray(fixed, int)] = 1.0
+    cons = LinearConstraint(vstack(rows).tocsr(), np.concatenate(lo), np.concatenate(hi))
+    res = milp(c, constraints=cons, integrality=np.ones(nvar), bounds=Bounds(lb, ub),
+               options={"time_limit": float(time_limit)})
+    if res.x is None or res.status not in (0, 1):
+        return None, None
+    z = np.rint(res.x[:N]).astype(bool)
+    return int(z.sum()), np.flatnonzero(z)
+
+
+def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None) -> CoverageReport:
+    """Can ``k`` sensors keep ``m`` lit at the required poses? Explain if not.
+
+    lit : (P, N) bool. Poses with fewer than m lit candidates in total are ``uncoverable``; the
+    smallest workable k comes from :func:`minimum_k`.
+    """
+    lit = np.asarray(lit, bool)
+    P, N = lit.shape
+    n_cover = P if n_cover is None else int(n_cover)
+    counts = lit.sum(axis=1)
+    unc = np.flatnonzero(counts < m)
+    if len(unc) > P - n_cover:
+        show = ", ".join(f"{p} ({counts[p]} lit)" for p in unc[:20]) + (" ..." if len(unc) > 20 else "")
+        return CoverageReport(False, None, unc, "uncoverable",
+                              f"{len(unc)} pose(s) have fewer than {m} lit candidate sites at all, so no "
+                              f"layout covers them: poses {show}. Add candidate sites that these poses "
+                              f"see, lower --min-visible, or drop these poses from the envelope.")
+    kmin, _ = minimum_k(lit, m, n_cover, fixed, conflict)
+    if kmin is None:
+        return CoverageReport(False, None, unc, "infeasible",
+                              f"no selection keeps {m} sensors lit at {n_cover} of {P} poses with the "
+                              f"fixed sensors and spacing given")
+    if kmin <= k:
+        return CoverageReport(True, kmin, unc, "ok", f"coverage feasible (smallest k = {kmin})")
+    # which poses cannot be covered with k sensors: the best k-cover leaves them short
+    short = _poses_short_with_k(lit, k, m, fixed)
+    show = ", ".join(str(p) for p in short[:20]) + (" ..." if len(short) > 20 else "")
+    return CoverageReport(False, kmin, unc, "infeasible",
+                          f"{k} sensors cannot keep {m} lit at every required pose: the smallest k "
+                          f"that works is {kmin}. Poses left with fewer than {m} lit by the best "
+                          f"{k}-sensor cover: {show} ({len(short)} pose(s)).")
+
+
+def _poses_short_with_k(lit, k, m, fixed):
+    """Poses left short by a k-sensor cover maximising the number of covered poses (MILP)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+    from scipy.sparse import csr_matrix, hstack, identity, vstack
+
+    P, N = lit.shape
+    V = csr_matrix(lit.astype(float))
+    A = vstack([hstack([V, -m * identity(P)]), csr_matrix(np.r_[np.ones(N), np.zeros(P)][None])])
+    lo = np.r_[np.zeros(P), k]
+    hi = np.r_[np.full(P, np.inf), k]
+    lb = np.zeros(N + P)
+    lb[np.asarray(fixed, int)] = 1
+    c = np.r_[np.zeros(N), -np.ones(P)]
+    res = milp(c, constraints=LinearConstraint(A.tocsr(), lo, hi), integrality=np.ones(N + P),
+               bounds=Bounds(lb, np.ones(N + P)), options={"time_limit": 20.0})
+    if res.x is None:
+        return np.arange(P)
+    z = np.rint(res.x[:N]).astype(bool)
+    return np.flatnonzero(lit[:, z].sum(axis=1) < m)
