@@ -205,7 +205,7 @@ def resolve_labelling(rotation, reference, n_fold: int = 4) -> np.ndarray:
     Ref = as_array(reference, "reference", (..., 3, 3))
     S = label_symmetries(n_fold)
     cand = R[..., None, :, :] @ S  # (..., k, 3, 3)
-    score = np.einsum("...kij,...ij->...k", cand, Ref[..., None, :, :])  # trace(C^T Ref)
+    score = np.einsum("...kij,...ij->...k", cand, Ref)  # trace(C^T Ref)
     k = np.argmax(score, axis=-1)
     return np.take_along_axis(cand, k[..., None, None, None], axis=-3)[..., 0, :, :]
 
@@ -305,6 +305,9 @@ def _solve_homography(corners_uv, focal_length) -> RectangleSolution:
     return _finish(R, ok, c, f)
 
 
+_NUDGE = np.array([[1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [-1.0, -1.0]])
+
+
 def _solve_ippe(corners_uv, focal_length, aspect_ratio: float = 1.0, reference=None) -> RectangleSolution:
     """OpenCV IPPE (``SOLVEPNP_IPPE``) on a rectangle of known aspect ratio ``L / W``.
 
@@ -320,25 +323,35 @@ def _solve_ippe(corners_uv, focal_length, aspect_ratio: float = 1.0, reference=N
     if not np.isfinite(rho) or rho <= 0:
         raise ValueError(f"aspect_ratio: expected a positive number L/W, got {aspect_ratio!r}")
     obj = np.array([[0.0, -rho / 2, -0.5], [0.0, rho / 2, -0.5], [0.0, -rho / 2, 0.5], [0.0, rho / 2, 0.5]])
-    # plane coordinates (y, z, 0) -> target frame (0, y, z): p_t = A p_plane
-    A = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    obj_plane = obj @ A  # rows A^T p_t
+    # plane frame = the camera frame of a face-on view (x right, y down, z into the target):
+    # p_plane = B p_t with B = PAPER_FROM_CV^T, so typical solutions are far from a 180° rotation
+    # (OpenCV's rvec round trip is ill-conditioned there and IPPE then returns a wrong pose).
+    A = PAPER_FROM_CV  # p_t = A p_plane
+    obj_plane = obj @ A  # rows A^T p_t = (y, -z, -x)
     flat = c.reshape(-1, 4, 2)
     refs = None if reference is None else np.broadcast_to(
         as_array(reference, "reference", (..., 3, 3)), c.shape[:-2] + (3, 3)).reshape(-1, 3, 3)
     R = np.full((len(flat), 3, 3), np.nan)
     R_alt = np.full((len(flat), 3, 3), np.nan)
     ok = np.zeros(len(flat), bool)
-    K = np.eye(3)
+    # image units, not normalised coordinates: IPPE returns NaN on tiny normalised coordinates
+    K = np.diag([f, f, 1.0])
     for i, q in enumerate(flat):
-        img = np.stack([q[:, 0] / f, -q[:, 1] / f], -1)  # OpenCV normalised image coordinates
-        try:
-            n, rvecs, _, _ = cv2.solvePnPGeneric(obj_plane, img, K, None, flags=cv2.SOLVEPNP_IPPE)
-        except cv2.error:
+        img = np.stack([q[:, 0], -q[:, 1]], -1)  # OpenCV image coordinates about the principal point
+        sols = []
+        # IPPE returns NaN on some exactly symmetric inputs (noise-free renders of a face seen
+        # square-on in one axis); a deterministic nudge of the corners (1e-6, then 1e-4 px) avoids the branch.
+        for nudge in (0.0, 1e-6, 1e-4):
+            try:
+                n, rvecs, _, _ = cv2.solvePnPGeneric(obj_plane, img + nudge * _NUDGE, K, None,
+                                                     flags=cv2.SOLVEPNP_IPPE)
+            except cv2.error:
+                n, rvecs = 0, ()
+            sols = [PAPER_FROM_CV @ cv2.Rodrigues(rv)[0] @ A.T for rv in rvecs[:n] if np.all(np.isfinite(rv))]
+            if sols:
+                break
+        if not sols:
             continue
-        if n < 1:
-            continue
-        sols = [PAPER_FROM_CV @ cv2.Rodrigues(rv)[0] @ A.T for rv in rvecs]
         if refs is not None and len(sols) > 1:
             sols.sort(key=lambda Rs: -np.trace(Rs.T @ refs[i]))
         R[i] = sols[0]
