@@ -34,7 +34,7 @@ from ._validate import as_array, check_finite
 from .lighthouse import in_field_of_view
 
 __all__ = ["RAY_ENGINES", "RayEngine", "ray_engine", "visible_sensors", "envelope_visibility",
-           "first_hit_distance", "DEFAULT_CHUNK"]
+           "first_hit_distance", "segment_occlusion_reference", "DEFAULT_CHUNK"]
 
 #: Pose × sensor pairs processed per chunk (bounds memory to a few tens of MB).
 DEFAULT_CHUNK = 1 << 17
@@ -195,3 +195,64 @@ def envelope_visibility(mesh, positions, normals, rotations, translations, stati
         Rs, ts = st.world_to_station(R, t)
         out.append(visible_sensors(mesh, positions, normals, Rs, ts, fov_deg=st.fov_deg, **kw))
     return np.stack(out, axis=1)
+
+
+def segment_occlusion_reference(triangles, origins, targets, *, tol=1e-5, chunk_elements=1 << 21):
+    """Brute-force reference for the occlusion test: every segment against ALL triangles, float64 numpy.
+
+    triangles : (T, 3, 3) m; origins, targets : (m, 3) m (segment ends). No ray engine, no
+    acceleration structure: for each segment and triangle the crossing of the triangle's plane
+    ``t = (v0 - o)·n / (d·n)`` and the signed in-plane distances of the crossing point to the three
+    edge lines (positive inside; edge-function form of the Möller–Trumbore barycentric test, in
+    metres), all as dense (segments × triangles) matrix products.
+
+    A triangle *robustly* blocks a segment when the crossing lies more than ``tol`` (m) inside every
+    edge and more than ``tol`` from both ends; it *nearly* blocks it when the crossing lies less than
+    ``tol`` outside the triangle and within ``tol`` of the segment. The in-plane tolerance is divided
+    by the cosine between segment and face normal (a grazing ray turns a tiny plane error into a
+    large shift). Returns ``(occluded, ambiguous)`` (m,) bool: occluded = some triangle robustly
+    blocks; ambiguous = not occluded but some triangle nearly blocks, or the segment runs parallel
+    to a face within ``tol`` of its plane — such pairs are excluded when comparing engines.
+    """
+    tri = as_array(triangles, "triangles", (None, 3, 3))
+    o = as_array(origins, "origins", (None, 3))
+    s = as_array(targets, "targets", (o.shape[0], 3))
+    v0 = tri[:, 0]
+    cr = np.cross(tri[:, 1] - v0, tri[:, 2] - v0)
+    area2 = np.linalg.norm(cr, axis=1)
+    good = area2 > 0
+    n = cr / np.where(good, area2, 1.0)[:, None]  # (T, 3) unit normals
+    n0 = np.einsum("tk,tk->t", n, v0)
+    # inward unit normals of the edge lines in the face plane, and offsets: dist_i(x) = x.W_i + c_i
+    W, C = [], []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        e = tri[:, b] - tri[:, a]
+        w = np.cross(n, e)
+        w /= np.maximum(np.linalg.norm(w, axis=1), 1e-300)[:, None]
+        W.append(w)
+        C.append(-np.einsum("tk,tk->t", w, tri[:, a]))
+    seg = s - o
+    L = np.linalg.norm(seg, axis=1)
+    d = seg / L[:, None]
+    occ = np.zeros(len(o), bool)
+    amb = np.zeros(len(o), bool)
+    step = max(1, int(chunk_elements) // max(len(tri), 1))
+    for a in range(0, len(o), step):
+        oc, dc, Lc = o[a:a + step], d[a:a + step], L[a:a + step, None]
+        den = dc @ n.T  # (m, T)  d.n
+        dist0 = n0[None] - oc @ n.T  # signed distance of the plane from o along n
+        cos = np.abs(den)
+        par = cos < 1e-9
+        t = dist0 / np.where(par, 1.0, den)
+        margin = None
+        for w, c in zip(W, C):
+            m_i = (oc @ w.T + c[None]) + t * (dc @ w.T)
+            margin = m_i if margin is None else np.minimum(margin, m_i)
+        tol_plane = tol / np.maximum(cos, 1e-6)
+        ok = ~par & good[None]
+        robust = ok & (margin > tol_plane) & (t > tol) & (t < Lc - tol)
+        near = ok & (margin > -tol_plane) & (t > -tol) & (t < Lc + tol)
+        near |= par & good[None] & (np.abs(dist0) < tol)
+        occ[a:a + step] = robust.any(1)
+        amb[a:a + step] = near.any(1) & ~occ[a:a + step]
+    return occ, amb
