@@ -1,6 +1,176 @@
-"""CLI commands (live)."""
+"""CLI commands (live): ``layoutkit live`` (serial port → poses, dashboard, record) and
+``layoutkit replay`` (capture file → poses, as fast as possible)."""
 from __future__ import annotations
 
-import click  # noqa: F401
+import sys
 
-commands: list = []
+import click
+
+ARCSEC = 3.141592653589793 / 180.0 / 3600.0
+
+_common_options = [
+    click.option("--layout", "layout_path", type=click.Path(dir_okay=False), default=None,
+                 help="Layout JSON (sensor positions, m, body frame)."),
+    click.option("--protocol", default=None, help="Frame protocol (default: the capture's sidecar, else 'layoutkit')."),
+    click.option("--json-lines", is_flag=True,
+                 help="Print one JSON object per solved frame (t, rotvec, translation, n_lit, status, adop, pdop, "
+                      "residual_rms) instead of the dashboard/summary."),
+    click.option("--truth", type=click.Path(exists=True, dir_okay=False), default=None,
+                 help="Simulator TRUTH.csv (t,rx,ry,rz,tx,ty,tz; station frame): direct eq. (25) errors."),
+    click.option("--reference", type=click.Path(exists=True, dir_okay=False), default=None,
+                 help="Motion-capture CSV (t + rx,ry,rz | qx,qy,qz,qw | r11..r33 + tx,ty,tz | x,y,z); clock offset "
+                      "and frames estimated from the data."),
+    click.option("--reference-units", type=click.Choice(["m", "cm", "mm"]), default="m", show_default=True,
+                 help="Position units of --reference."),
+    click.option("--camera", type=click.Path(exists=True, dir_okay=False), default=None,
+                 help="Camera attitude CSV (t + r11..r33 or rx,ry,rz): second, attitude-only reference."),
+    click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
+                 help="Write report.json, poses.csv and PNG plots into this directory."),
+    click.option("--rho", type=float, default=None, help="Same-rotor angle correlation for predictions [default: 0.8717]."),
+    click.option("--sigma-arcsec", type=float, default=None,
+                 help="Angle noise sigma_theta in arcsec for predictions [default: paper, 4.014e-5 rad = 8.28\"]."),
+    click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON."),
+]
+
+
+def _add(options):
+    def deco(f):
+        for o in reversed(options):
+            f = o(f)
+        return f
+    return deco
+
+
+def _options(rho, sigma_arcsec, live: bool):
+    from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
+    from ..workflows.live import LiveOptions
+
+    if sigma_arcsec is not None and not sigma_arcsec > 0:
+        from ._common import fail
+
+        fail(f"--sigma-arcsec: expected a positive value, got {sigma_arcsec}")
+    if rho is not None and not 0 <= rho < 1:
+        from ._common import fail
+
+        fail(f"--rho: expected a value in [0, 1), got {rho}")
+    kw = dict(sigma_theta=SIGMA_THETA_PAPER if sigma_arcsec is None else sigma_arcsec * ARCSEC,
+              rho=RHO_PAPER if rho is None else rho)
+    if live:
+        kw.update(chunk_frames=256, chunk_seconds=0.05)
+    return LiveOptions(**kw)
+
+
+def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
+    from ..live.report import jsonable
+
+    if as_json:
+        import json
+
+        s = {k: v for k, v in summary.items()}
+        click.echo(json.dumps(jsonable(s), indent=2), err=err)
+        return
+    d = summary.get("decode") or {}
+    lines = [
+        f"frames {summary['frames']}  good {summary['good']}  bad {summary['bad']}  "
+        f"too few lit {summary['too_few_lit']}  unpaired sweeps {summary['unpaired_sweeps']}",
+        f"decoder: good {d.get('good', 0)}  bad {d.get('bad', 0)}  dropped {d.get('dropped', 0)}  "
+        f"resyncs {d.get('resyncs', 0)}  skipped bytes {d.get('skipped_bytes', 0)}",
+        f"stream {summary['stream_time_s']:.2f} s in {summary['wall_s']:.2f} s wall"
+        + (f"  ({summary['speed_x_realtime']:.0f}x real time, {summary['frames_per_s']:.0f} frames/s)"
+           if summary.get("speed_x_realtime") else ""),
+    ]
+    g = summary.get("static_groups") or []
+    if g:
+        lines.append(f"static groups: {len(g)}")
+    for name in ("truth",):
+        e = summary.get(name)
+        if e:
+            lines.append(f"error vs {name}: RMS {e['rms_rot_deg']:.4f} deg / {e['rms_trans_m'] * 1e3:.3f} mm "
+                         f"(predicted {e['predicted_rot_deg']:.4f} deg / {e['predicted_trans_m'] * 1e3:.3f} mm, "
+                         f"ratio {e['ratio_rot']:.3f} / {e['ratio_trans']:.3f}); max {e['max_rot_deg']:.3f} deg / "
+                         f"{e['max_trans_m'] * 1e3:.2f} mm over {e['n']} frames")
+    for name in ("reference", "camera"):
+        r = summary.get(name)
+        if r:
+            e = r.get("errors")
+            a = r.get("alignment") or {}
+            if e:
+                lines.append(f"error vs {name}: RMS {e['rms_rot_deg']:.4f} deg / {e['rms_trans_m'] * 1e3:.3f} mm, "
+                             f"max {e['max_rot_deg']:.3f} deg / {e['max_trans_m'] * 1e3:.2f} mm "
+                             f"(clock offset {a.get('tau_s', float('nan')):.4f} s)")
+            else:
+                lines.append(f"{name}: {r.get('message')}")
+    rep = summary.get("report")
+    if rep:
+        lines.append(f"report: {rep.get('json')}")
+    for ln in lines:
+        click.echo(ln, err=err)
+
+
+@click.command("replay")
+@click.argument("capture", type=click.Path(dir_okay=False))
+@_add(_common_options)
+def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, camera, report_dir,
+               rho, sigma_arcsec, as_json):
+    """Decode and solve a recorded CAPTURE as fast as possible.
+
+    Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
+    present. Poses are body poses in the station frame (m, rad); t is the device time base of
+    the simulator's TRUTH.csv.
+    """
+    from ..workflows.live import replay_capture
+    from ._common import fail
+
+    opts = _options(rho, sigma_arcsec, live=False)
+    try:
+        summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
+                                 reference=reference, reference_units=reference_units, camera=camera,
+                                 json_out=sys.stdout if json_lines else None, report_dir=report_dir)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        fail(str(exc))
+    _print_summary(summary, as_json, err=json_lines)
+
+
+@click.command("live")
+@click.option("--port", required=True, help="Serial port: device or pty path, or a pyserial URL (socket://, loop://).")
+@click.option("--record", type=click.Path(dir_okay=False), default=None,
+              help="Capture file: raw bytes are appended before decoding (+ .idx, .json sidecar).")
+@click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall clock) [default: Ctrl-C].")
+@click.option("--idle-timeout", type=float, default=None,
+              help="Stop when no byte arrived for this many seconds after the first byte.")
+@click.option("--baudrate", type=int, default=None, help="Baud rate [default: 921600].")
+@click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
+@_add(_common_options)
+def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines, truth,
+             reference, reference_units, camera, report_dir, rho, sigma_arcsec, as_json):
+    """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
+
+    Ctrl-C ends the run cleanly: everything received is in the capture, pending frames are
+    solved, and the report is written.
+    """
+    from ..workflows.live import run_live
+    from ._common import fail
+
+    if layout_path is None:
+        fail("--layout is required for live runs")
+    if duration is not None and not duration > 0:
+        fail(f"--duration: expected a positive number of seconds, got {duration}")
+    opts = _options(rho, sigma_arcsec, live=True)
+    kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
+              reference=reference, reference_units=reference_units, camera=camera,
+              json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
+              idle_timeout=idle_timeout)
+    try:
+        if json_lines or no_dashboard or not sys.stderr.isatty():
+            summary = run_live(port, layout_path, **kw)
+        else:
+            from ..live.dashboard import Dashboard
+
+            with Dashboard() as dash:
+                summary = run_live(port, layout_path, on_update=dash.update, **kw)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        fail(str(exc))
+    _print_summary(summary, as_json, err=json_lines)
+
+
+commands: list = [live_cmd, replay_cmd]

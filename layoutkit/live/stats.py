@@ -161,15 +161,18 @@ class StaticGroupTracker:
 
     Good poses are cut into consecutive windows of ``window`` frames. A window is static when its
     own spread (eq. 23 over the window) is at most ``factor`` times the predicted precision
-    (ADOP·σθ, PDOP·σθ averaged over the window), or below ``rot_tol_rad`` / ``trans_tol_m`` when
-    these absolute tolerances are given. Consecutive static windows whose mean stays within the
-    same tolerance of the group's first window form one group; a moving window or a jump closes
+    (ADOP·σθ, PDOP·σθ averaged over the window) and the means of its two halves differ by at most
+    ``factor`` times their expected difference under noise alone (``2·σ/sqrt(window)``), which
+    catches slow drifts that hide in the spread; with absolute tolerances ``rot_tol_rad`` /
+    ``trans_tol_m`` both tests use them instead. Consecutive static windows whose mean stays within the
+    same tolerance (scaled by ``sqrt(1/window + 1/n_group)``, the noise of the two means) of the
+    group's mean form one group; a moving window or a jump closes
     the group. Groups shorter than ``min_frames`` are discarded.
 
     sigma_theta : rad, angle noise used for the predictions.
     """
 
-    def __init__(self, sigma_theta: float = SIGMA_THETA_PAPER, window: int = 60, factor: float = 3.0,
+    def __init__(self, sigma_theta: float = SIGMA_THETA_PAPER, window: int = 120, factor: float = 3.0,
                  rot_tol_rad: float | None = None, trans_tol_m: float | None = None,
                  min_frames: int | None = None, max_groups: int = 100000):
         if window < 3:
@@ -221,7 +224,14 @@ class StaticGroupTracker:
     def _close_window(self) -> None:
         s_rot, s_t = precision(self._R, self._tr)  # eq. (23) over the window
         tol_r, tol_t = self._tolerances()
-        static = bool(np.isfinite(tol_r) and s_rot <= tol_r and s_t <= tol_t)
+        # drift: the means of the two half windows differ by ~2·sigma/sqrt(W) when static
+        h = self.window // 2
+        Ra, Rb = nearest_rotation(self._R[:h].mean(0)), nearest_rotation(self._R[h:].mean(0))
+        drift_r = float(np.linalg.norm(matrix_to_rotvec(Ra @ Rb.T)))
+        drift_t = float(np.linalg.norm(self._tr[:h].mean(0) - self._tr[h:].mean(0)))
+        k = 2.0 / np.sqrt(self.window) if self.rot_tol is None else 1.0
+        static = bool(np.isfinite(tol_r) and s_rot <= tol_r and s_t <= tol_t
+                      and drift_r <= k * tol_r and drift_t <= k * tol_t)
         if not static:
             self.windows_moving += 1
             self._end_group()
@@ -231,9 +241,11 @@ class StaticGroupTracker:
         tw = self._tr.mean(0)
         g = self._group
         if g is not None:
-            jump_r = np.linalg.norm(matrix_to_rotvec(Rw @ g.R0.T))
+            # the window mean must agree with the group mean to within the noise of both means
+            jump_r = np.linalg.norm(matrix_to_rotvec(Rw @ g.mean_rotation().T))
             jump_t = np.linalg.norm(tw - g.t_mean)
-            if jump_r > self._tol[0] or jump_t > self._tol[1]:
+            kk = np.sqrt(1.0 / self.window + 1.0 / g.n) if self.rot_tol is None else 1.0
+            if jump_r > kk * self._tol[0] or jump_t > kk * self._tol[1]:
                 self._end_group()
                 g = None
         if g is None:

@@ -1,0 +1,149 @@
+"""Validation report of a live or replayed run: ``report.json`` and PNG plots (matplotlib, Agg).
+
+- ``precision.png`` — Chen Fig. 5 style: measured precision (eq. 23) of every static group beside
+  the prediction ADOP·σθ / PDOP·σθ (eq. 24), attitude (deg) and position (mm).
+- ``errors.png`` — Chen Fig. 7 style: attitude (deg) and position (mm) error against the truth /
+  reference (eq. 25) over time, with the predicted RMS level.
+- ``dop.png`` — ADOP, PDOP and lit sensors over time.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["jsonable", "write_report"]
+
+DEG = 180.0 / np.pi
+
+
+def jsonable(o):
+    """Recursively convert numpy values to plain JSON types; inf/NaN → None."""
+    if isinstance(o, dict):
+        return {str(k): jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return jsonable(o.tolist())
+    if isinstance(o, (float, np.floating)):
+        v = float(o)
+        return v if np.isfinite(v) else None
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    return o
+
+
+def _plot_precision(groups: list, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = np.arange(1, len(groups) + 1)
+    mr = np.array([g["sigma_rot_deg"] for g in groups])
+    pr = np.array([g["predicted_rot_deg"] for g in groups])
+    mt = np.array([g["sigma_trans_m"] for g in groups]) * 1e3
+    pt = np.array([g["predicted_trans_m"] for g in groups]) * 1e3
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    for a, m, p, lab in ((ax[0], mr, pr, "attitude precision (deg)"), (ax[1], mt, pt, "position precision (mm)")):
+        a.plot(k, m, "o-", ms=4, label="measured (eq. 23)")
+        a.plot(k, p, "s--", ms=4, label="predicted DOP·σθ (eq. 24)")
+        a.set_xlabel("static group")
+        a.set_ylabel(lab)
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.suptitle("Precision per static group: measured vs predicted (Chen Fig. 5 style)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _plot_errors(series: dict, summaries: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
+    for name, s in series.items():
+        if s is None or len(s) == 0:
+            continue
+        s = np.asarray(s)
+        ax[0].plot(s[:, 0], s[:, 1] * DEG, lw=0.6, label=f"{name}")
+        ax[1].plot(s[:, 0], s[:, 2] * 1e3, lw=0.6, label=f"{name}")
+        e = summaries.get(name) or {}
+        if e.get("predicted_rot_deg"):
+            ax[0].axhline(e["predicted_rot_deg"], ls="--", lw=1, color="k", label=f"{name}: predicted RMS")
+            ax[0].axhline(e["rms_rot_deg"], ls=":", lw=1, color="r", label=f"{name}: measured RMS")
+        if e.get("predicted_trans_m") and not e.get("attitude_only"):
+            ax[1].axhline(e["predicted_trans_m"] * 1e3, ls="--", lw=1, color="k", label=f"{name}: predicted RMS")
+            ax[1].axhline(e["rms_trans_m"] * 1e3, ls=":", lw=1, color="r", label=f"{name}: measured RMS")
+    ax[0].set_ylabel("attitude error (deg)")
+    ax[1].set_ylabel("position error (mm)")
+    ax[1].set_xlabel("t (s)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7, loc="upper right")
+    fig.suptitle("Pose error against the reference over time (Chen eq. 25, Fig. 7 style)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _plot_dop(dop: np.ndarray, sigma_theta: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(3, 1, figsize=(10, 6), sharex=True)
+    ax[0].plot(dop[:, 0], dop[:, 1] * sigma_theta, lw=0.6)
+    ax[0].set_ylabel("ADOP·σθ (deg)")
+    ax[1].plot(dop[:, 0], dop[:, 2] * sigma_theta * 1e3, lw=0.6)
+    ax[1].set_ylabel("PDOP·σθ (mm)")
+    ax[2].plot(dop[:, 0], dop[:, 3], lw=0.6)
+    ax[2].set_ylabel("lit sensors")
+    ax[2].set_xlabel("t (s)")
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_report(directory, summary: dict, *, error_series: dict | None = None, dop_series=None) -> dict:
+    """Write ``report.json`` and the plots into ``directory``; returns the written paths.
+
+    summary : run summary (from :mod:`layoutkit.workflows.live`); error_series : name →
+    (m, 3) array of ``(t s, e_rot rad, e_trans m)``; dop_series : (m, 4) ``(t, adop, pdop, n_lit)``.
+    """
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    paths = {"json": str(d / "report.json")}
+    groups = summary.get("static_groups") or []
+    if groups:
+        _plot_precision(groups, d / "precision.png")
+        paths["precision_png"] = str(d / "precision.png")
+    series = {k: v for k, v in (error_series or {}).items() if v is not None and len(v)}
+    if series:
+        sums = {"truth": summary.get("truth")}
+        for k in ("reference", "camera"):
+            r = summary.get(k) or {}
+            if r.get("errors"):
+                sums[k] = dict(r["errors"], attitude_only=r.get("attitude_only", False))
+        _plot_errors(series, sums, d / "errors.png")
+        paths["errors_png"] = str(d / "errors.png")
+    if dop_series is not None and len(dop_series):
+        _plot_dop(np.asarray(dop_series), summary.get("sigma_theta_rad", 4.014e-5), d / "dop.png")
+        paths["dop_png"] = str(d / "dop.png")
+    poses = d / "poses.csv"
+    if poses.exists():
+        paths["poses_csv"] = str(poses)
+    out = dict(summary, report=paths)
+    (d / "report.json").write_text(json.dumps(jsonable(out), indent=2) + "\n")
+    return paths
