@@ -321,14 +321,17 @@ def read_truth(path) -> Trajectory:
 
 
 def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, on_ready=None,
-                  drain_timeout: float = 5.0, speed: float = 1.0, sidecar: dict | None = None) -> dict:
+                  drain_timeout: float = 5.0, speed: float = 1.0, sidecar: dict | None = None,
+                  wait_reader: float | None = None) -> dict:
     """Emit ``chunks`` ``[(t_emit, bytes), ...]`` into a capture file or a pseudo-terminal.
 
     out : capture path → written with :class:`CaptureWriter` (index times = t_emit, sidecar
     ``sidecar``), as fast as possible unless ``realtime``. Without ``out``: opens a pty (raw mode),
-    calls ``on_ready(slave_path)`` (and makes symlink ``link`` → slave path), then writes each
-    chunk at its time (``realtime`` default True; late chunks are sent at once, so nothing is
-    dropped when the reader is slow), waits until the reader drained the pty, and closes.
+    calls ``on_ready(slave_path)`` (and makes symlink ``link`` → slave path), waits until a reader
+    opens the port (at most ``wait_reader`` s; None = forever; opening a serial port flushes its
+    input, so nothing is sent before), then writes each chunk at its time (``realtime`` default
+    True; late chunks are sent at once, so nothing is dropped when the reader is slow), waits
+    until the reader drained the pty, and closes it (the reader then sees the device vanish).
     Returns a summary dict (bytes, chunks, wall time, path).
     """
     import time
@@ -349,12 +352,14 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
         return {"path": str(out), "bytes": total, "chunks": len(chunks), "wall_s": time.monotonic() - t_wall0}
 
     import os
+    import select
     import tty
 
     realtime = True if realtime is None else bool(realtime)
     master, slave = os.openpty()
     tty.setraw(slave)
     path = os.ttyname(slave)
+    os.close(slave)  # so that POLLHUP on the master tells whether a reader has the port open
     if link is not None:
         link = Path(link)
         tmp = link.with_name(link.name + ".tmp")
@@ -363,20 +368,35 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
         os.replace(tmp, link)
     if on_ready is not None:
         on_ready(path)
+    poll = select.poll()
+    poll.register(master, select.POLLHUP)
+
+    def reader_present(timeout_ms=0):
+        return not any(ev & select.POLLHUP for _, ev in poll.poll(timeout_ms))
+
     try:
+        t_wait = time.monotonic()
+        while not reader_present(50):  # a reader opening the port flushes its input: wait for it
+            if wait_reader is not None and time.monotonic() - t_wait > wait_reader:
+                raise TimeoutError(f"no reader opened {path} within {wait_reader} s")
+        time.sleep(0.2)  # let the reader finish configuring (pyserial flushes the input at open)
+        os.set_blocking(master, False)
         t_wall0 = time.monotonic()
         for t_emit, data in chunks:
             if realtime:
                 _sleep_until(t_wall0 + (t_emit - t0) / speed)
             view = memoryview(data)
             while view:
-                k = os.write(master, view)
+                try:
+                    k = os.write(master, view)
+                except BlockingIOError:  # reader slow or away: the pty buffer is full, wait
+                    time.sleep(0.005)
+                    continue
                 view = view[k:]
             total += len(data)
-        _drain(slave, drain_timeout)
+        _drain(path, drain_timeout)
     finally:
         os.close(master)
-        os.close(slave)
     return {"path": path, "bytes": total, "chunks": len(chunks), "wall_s": time.monotonic() - t_wall0}
 
 
@@ -388,19 +408,26 @@ def _sleep_until(t_wall: float) -> None:
         time.sleep(dt)
 
 
-def _drain(fd: int, timeout: float) -> None:
-    """Wait until the pty's input queue (bytes not yet read by the other side) is empty."""
+def _drain(path: str, timeout: float) -> None:
+    """Wait until the pty's input queue (bytes not yet read by the reader) is empty."""
     import fcntl
+    import os
     import struct
     import termios
     import time
 
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError:
+        return
+    try:
+        end = time.monotonic() + timeout
+        quiet = 0
+        while time.monotonic() < end and quiet < 3:  # bytes reach the slave asynchronously
+            time.sleep(0.05)
             waiting = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
-        except OSError:
-            return
-        if waiting == 0:
-            return
-        time.sleep(0.02)
+            quiet = quiet + 1 if waiting == 0 else 0
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
