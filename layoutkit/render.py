@@ -37,6 +37,7 @@ __all__ = [
     "render_layout_views",
     "render_station_view",
     "render_tracking_map",
+    "station_view_camera",
     "station_view_pixels",
 ]
 
@@ -178,7 +179,8 @@ def _sensor_glyphs(positions, normals, radius, arrow_length):
 
     cloud = pv.PolyData(np.asarray(positions, float))
     cloud["normals"] = np.asarray(normals, float)
-    spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=24, phi_resolution=24),
+    res = 24 if len(cloud.points) <= 200 else 10
+    spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=res, phi_resolution=res),
                           scale=False, orient=False, factor=radius)
     arrows = cloud.glyph(geom=pv.Arrow(start=(0, 0, 0), direction=(1, 0, 0), tip_length=0.25,
                                        tip_radius=0.07, shaft_radius=0.025),
@@ -209,7 +211,8 @@ def _check_sensors(positions, normals):
 def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidates=None,
                         views=("iso", "front", "top", "side"), size=(1600, 1200), out_dir,
                         prefix: str = "layout", ids=None, title: "str | None" = None,
-                        labels: bool = True) -> "list[Path]":
+                        labels: bool = True, arrows: bool = True, sensor_radius: "float | None" = None,
+                        what: str = "sensors") -> "list[Path]":
     """Pictures of a mesh with its candidate sites and a sensor layout from standard views.
 
     mesh : ``trimesh.Trimesh``, m, body frame. positions, normals : (n, 3), m / unit, body frame.
@@ -218,6 +221,8 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
     candidates : (N, 3) candidate site positions, m, drawn as small grey points (optional).
     views : names from :data:`VIEWS`. size : (width, height) pixels.
     out_dir : folder; files are ``{prefix}_{view}.png``. ids : n sensor labels (optional).
+    arrows : draw the normals. sensor_radius : m (default 1.4 % of the mesh diagonal).
+    what : noun for the points in the caption (``"sensors"``, ``"candidate sites"``).
     Returns the written paths in ``views`` order.
     """
     P, N = _check_sensors(positions, normals)
@@ -244,29 +249,29 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
     if candidates is not None and len(candidates):
         pl.add_mesh(pv.PolyData(candidates), color=CANDIDATE_COLOR, point_size=max(3, h // 300),
                     render_points_as_spheres=True)
+    radius = 0.014 * diag if sensor_radius is None else float(sensor_radius)
     if P.shape[0]:
-        spheres, arrows = _sensor_glyphs(P, N, 0.014 * diag, 0.09 * diag)
-        pl.add_mesh(arrows, color="#303030", smooth_shading=True)
+        spheres, arrow_glyphs = _sensor_glyphs(P, N, radius, 0.09 * diag)
+        if arrows:
+            pl.add_mesh(arrow_glyphs, color="#303030", smooth_shading=True)
         if lit_fraction is None:
             pl.add_mesh(spheres, color="#ff7f0e", smooth_shading=True)
         else:
             # the sphere glyph copies point data from its source point; colour by % lit
             cloud = pv.PolyData(P)
             cloud["lit"] = 100.0 * lit_fraction
-            spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=24, phi_resolution=24),
-                                  scale=False, orient=False, factor=0.014 * diag)
-            pl.add_mesh(spheres, scalars="lit", cmap="viridis", clim=(0.0, 100.0), smooth_shading=True,
+            res = 24 if P.shape[0] <= 200 else 10
+            spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=res, phi_resolution=res),
+                                  scale=False, orient=False, factor=radius)
+            top = 100.0 if lit_fraction.max() > 0.6 else max(10.0, 10.0 * np.ceil(10.0 * lit_fraction.max()))
+            pl.add_mesh(spheres, scalars="lit", cmap="viridis", clim=(0.0, top), smooth_shading=True,
                         show_scalar_bar=False)
-            pl.add_scalar_bar("sensor lit in % of envelope", vertical=True, position_x=0.86, position_y=0.2,
-                              width=0.05, height=0.6, n_labels=6, fmt="%.0f", color="black",
+            pl.add_scalar_bar("lit in % of envelope", vertical=True, position_x=0.86, position_y=0.2,
+                              width=0.05, height=0.6, n_labels=int(top // 10) + 1 if top <= 50 else 6, fmt="%.0f", color="black",
                               title_font_size=max(12, h // 55), label_font_size=max(11, h // 60))
-        if labels and ids is not None:
-            pl.add_point_labels(P + N * 0.03 * diag, [str(i) for i in ids], font_size=max(10, h // 75),
-                                text_color="black", shape_color="white", shape_opacity=0.6,
-                                show_points=False, always_visible=False, margin=2)
     pl.add_axes(line_width=3, labels_off=False, color="black")
     head = title or "layout"
-    n_txt = f"{P.shape[0]} sensors" + (f", {len(candidates)} candidate sites" if candidates is not None else "")
+    n_txt = f"{P.shape[0]} {what}" + (f", {len(candidates)} candidate sites" if candidates is not None else "")
     pl.add_text(f"{head}\n{n_txt}", position="upper_left", font_size=max(10, h // 80), color="black")
 
     center = 0.5 * (np.asarray(mesh.bounds[0], float) + np.asarray(mesh.bounds[1], float))
@@ -282,32 +287,65 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
         pl.camera.up = up
         pl.reset_camera(render=False)
         pl.camera.zoom(1.15)
+        if labels and ids is not None and P.shape[0]:
+            # label the sensors whose normal faces this camera (labels are drawn on top of everything)
+            face = N @ d > 0.2
+            if face.any():
+                pl.add_point_labels(P[face] + N[face] * 0.035 * diag, [str(i) for i, f in zip(ids, face) if f],
+                                    font_size=max(10, h // 75), text_color="black", shape_color="white",
+                                    shape_opacity=0.7, show_points=False, always_visible=True, margin=2,
+                                    name="labels")
+            else:
+                pl.remove_actor("labels")
         paths.append(_shoot(pl, out_dir / f"{prefix}_{v}.png"))
     pl.close()
     return paths
 
 
-def station_view_pixels(points_body, rotation, translation, *, fov_deg: float, size):
-    """Pixel coordinates ``(…, 2)`` [u right, v down, from the top-left corner] of body points in a
-    station view (the pinhole model of :func:`render_station_view`), and depth ``z`` (…,), m."""
+def station_view_pixels(points_body, rotation, translation, *, fov_deg: float, size, principal_point=None):
+    """Image coordinates of body points in a station view (the pinhole model of :func:`render_station_view`).
+
+    points_body : (..., 3) m, body frame. rotation (3, 3), translation (3,) m: body pose in the
+    station frame. fov_deg : vertical view angle. size : (W, H) px. principal_point : (cx, cy) px,
+    default the window centre (W/2, H/2).
+    Returns ``uv (..., 2)`` — u to the right, v down, in pixels from the top-left corner of the
+    image (pixel column i, row j covers [i, i+1) × [j, j+1)) — and the depth ``z (...,)`` m:
+    ``u = cx + f x/z``, ``v = cy + f y/z`` with ``(x, y, z) = R p + t``, ``f = (H/2) / tan(fov/2)``.
+    """
     w, h = _check_size(size)
     R = as_array(rotation, "rotation", (3, 3))
     t = as_array(translation, "translation", (3,))
     q = as_array(points_body, "points_body", (..., 3)) @ R.T + t
     f = 0.5 * h / np.tan(np.deg2rad(fov_deg) / 2.0)
-    uv = np.stack([0.5 * w + f * q[..., 0] / q[..., 2], 0.5 * h + f * q[..., 1] / q[..., 2]], -1)
+    cx, cy = (0.5 * w, 0.5 * h) if principal_point is None else (float(principal_point[0]), float(principal_point[1]))
+    uv = np.stack([cx + f * q[..., 0] / q[..., 2], cy + f * q[..., 1] / q[..., 2]], -1)
     return uv, q[..., 2]
 
 
-def _auto_view_angle(mesh, rotation, translation, size, margin=1.3) -> float:
-    """Smallest vertical view angle (deg) centred on the boresight that shows the whole mesh."""
+def station_view_camera(mesh, rotation, translation, size, fov_deg: "float | None" = None, margin: float = 1.25):
+    """Pinhole intrinsics of a station view: ``(fov_deg, (cx, cy) px)``.
+
+    With ``fov_deg`` given the principal point is the window centre. With ``None`` the view is a
+    crop of the station image that frames the mesh: the vertical view angle fits the projected
+    mesh (times ``margin``) and the principal point moves so that the mesh is centred — the
+    camera stays at the station origin looking along +z, so pixels still follow
+    :func:`station_view_pixels` exactly.
+    """
     w, h = _check_size(size)
-    q = np.asarray(mesh.vertices, float) @ np.asarray(rotation).T + np.asarray(translation)
-    z = np.maximum(q[:, 2], 1e-9)
-    tx = np.max(np.abs(q[:, 0] / z)) * h / w
-    ty = np.max(np.abs(q[:, 1] / z))
-    half = np.arctan(margin * max(tx, ty, 1e-6))
-    return float(np.clip(np.rad2deg(2 * half), 0.5, 170.0))
+    if fov_deg is not None:
+        if not 0 < fov_deg < 180:
+            raise ValueError(f"fov_deg: expected a view angle in (0, 180) degrees, got {fov_deg}")
+        return float(fov_deg), (0.5 * w, 0.5 * h)
+    q = np.asarray(mesh.vertices, float) @ np.asarray(rotation, float).T + np.asarray(translation, float)
+    q = q[q[:, 2] > 1e-9]
+    if q.shape[0] == 0:
+        raise ValueError("station view: the mesh is entirely behind the station")
+    xn, yn = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
+    cxn, cyn = 0.5 * (xn.max() + xn.min()), 0.5 * (yn.max() + yn.min())
+    half = margin * max(0.5 * (xn.max() - xn.min()) * h / w, 0.5 * (yn.max() - yn.min()), 1e-6)
+    fov = float(np.clip(np.rad2deg(2 * np.arctan(half)), 0.05, 170.0))
+    f = 0.5 * h / np.tan(np.deg2rad(fov) / 2)
+    return fov, (0.5 * w - f * cxn, 0.5 * h - f * cyn)
 
 
 def render_station_view(mesh, positions, normals, rotation, translation, lit, *, fov_deg: "float | None" = 120.0,
@@ -319,9 +357,10 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     rotation (3, 3), translation (3,) m : body pose in the station frame (``p_lh = R p + t``).
     lit : (n,) bool, sensors the station sees at this pose (e.g. from ``visible_sensors``).
     fov_deg : vertical view angle of the pinhole camera at the station origin along +z (the
-        lighthouse field of view is 120° × 120°); ``None`` picks the smallest angle that shows the
-        whole target, still centred on the boresight. The pixel of a body point is given by
-        :func:`station_view_pixels`. out : PNG path. Returns ``Path(out)``.
+        lighthouse field of view is 120° × 120°), principal point at the window centre; ``None``
+        frames the target by a crop of the station image (:func:`station_view_camera`). The
+        pixel of a body point is :func:`station_view_pixels` with those intrinsics.
+    out : PNG path. anti_aliasing : off for exact masks. Returns ``Path(out)``.
     """
     P, N = _check_sensors(positions, normals)
     R = as_array(rotation, "rotation", (3, 3))
@@ -331,10 +370,7 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     lit = np.asarray(lit, bool)
     if lit.shape != (P.shape[0],):
         raise ValueError(f"lit: expected shape ({P.shape[0]},), got {lit.shape}")
-    if fov_deg is None:
-        fov_deg = _auto_view_angle(mesh, R, t, size)
-    if not 0 < fov_deg < 180:
-        raise ValueError(f"fov_deg: expected a view angle in (0, 180) degrees, got {fov_deg}")
+    fov_deg, (cx, cy) = station_view_camera(mesh, R, t, size, fov_deg)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
 
@@ -350,6 +386,8 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     pl.camera.focal_point = C + R[2]
     pl.camera.up = -R[1]
     pl.camera.view_angle = float(fov_deg)
+    # principal point (cx, cy) px: VTK shifts the image by -window_center * (W/2, -H/2) (NDC y up)
+    pl.camera.SetWindowCenter(2.0 * (0.5 * w - cx) / w, -2.0 * (0.5 * h - cy) / h)
     # sensor sphere radius: ≥ 0.4 % of the image height at the target's depth, ≥ 1 % of the mesh
     depth = float(np.median((P @ R.T + t)[:, 2])) if P.shape[0] else float(np.linalg.norm(t))
     px_angle = np.deg2rad(fov_deg) / h
@@ -362,11 +400,17 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     if ids is not None:
         if len(ids) != P.shape[0]:
             raise ValueError(f"ids: expected {P.shape[0]} labels, got {len(ids)}")
-        pl.add_point_labels(P, [str(i) for i in ids], font_size=max(10, h // 70), text_color="black",
-                            shape_color="white", shape_opacity=0.6, show_points=False, margin=2)
+        q = P @ R.T + t
+        face = np.sum((N @ R.T) * -q, axis=1) > 0.2 * np.linalg.norm(q, axis=1)  # normal towards the station
+        if face.any():
+            off = P[face] + N[face] * 2.5 * radius
+            pl.add_point_labels(off, [str(i) for i, f in zip(ids, face) if f], font_size=max(10, h // 70),
+                                text_color="black", shape_color="white", shape_opacity=0.7, show_points=False,
+                                always_visible=True, margin=2)
     dist = float(np.linalg.norm(t))
     head = title or "view from the lighthouse"
-    pl.add_text(f"{head}\nrange {dist:.2f} m, view angle {fov_deg:.1f} deg\n"
+    crop = "" if abs(cx - 0.5 * w) < 1e-6 and abs(cy - 0.5 * h) < 1e-6 else " (crop of the station image)"
+    pl.add_text(f"{head}\nrange {dist:.2f} m, vertical view angle {fov_deg:.2f} deg{crop}\n"
                 f"lit {int(lit.sum())}/{lit.size} sensors (green lit, red not lit)",
                 position="upper_left", font_size=max(10, h // 80), color="black")
     pl.renderer.ResetCameraClippingRange()

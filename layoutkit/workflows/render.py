@@ -1,0 +1,180 @@
+"""Render orchestration with files: what ``layoutkit render`` does, reusable by ``studies/``.
+
+Loads a mesh (+ layout, candidates, envelope), computes what the pictures are coloured by
+(per-sensor lit fraction over the envelope, the tracking-quality map, visibility at one station
+pose) and writes PNGs through :mod:`layoutkit.render`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["RenderOptions", "parse_pose", "lit_fraction", "render_design"]
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Options of :func:`render_design` (CLI edge units in the names).
+
+    size : (width, height) px. views : standard view names (``layoutkit.render.VIEWS``).
+    quality_map : also compute and draw the tracking-quality map (needs a layout).
+    map_kinds : ``("mollweide",)``, ``("sphere",)`` or both. distance_m : station range for the map.
+    rho : same-rotor angle correlation (Chen eq. 19; paper 0.8717). grid_deg : map cell size, deg.
+    roll_samples : station rolls per direction. station_view_pose : None, 6 numbers
+    ``(rx, ry, rz) deg rotation vector + (tx, ty, tz) m`` (body pose in the station frame) or
+    ``"envelope:K"`` (pose K of the envelope, in the frame of its reference station).
+    view_angle_deg : station-view vertical view angle (None: fit the target).
+    sensor_half_angle_deg : photodiode acceptance half-angle. sigma_theta : rad, for map labels.
+    """
+
+    size: tuple = (1600, 1200)
+    views: tuple = ("iso", "front", "top", "side")
+    quality_map: bool = False
+    map_kinds: tuple = ("mollweide",)
+    distance_m: float = 2.0
+    rho: float = 0.0
+    grid_deg: float = 4.0
+    roll_samples: int = 6
+    station_view_pose: object = None
+    view_angle_deg: "float | None" = None
+    sensor_half_angle_deg: float = 60.0
+    sigma_theta: "float | None" = None
+
+
+def parse_pose(spec: str):
+    """``"rx,ry,rz,tx,ty,tz"`` (deg, m) or ``"envelope:K"`` → 6 floats or ``("envelope", K)``."""
+    spec = str(spec).strip()
+    if spec.startswith("envelope:"):
+        try:
+            return ("envelope", int(spec.split(":", 1)[1]))
+        except ValueError:
+            raise ValueError(f"station view pose: expected 'envelope:K' with an integer K, got {spec!r}") from None
+    try:
+        vals = tuple(float(x) for x in spec.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != 6 or not np.all(np.isfinite(vals)):
+        raise ValueError(f"station view pose: expected 'rx,ry,rz,tx,ty,tz' (rotation vector deg, "
+                         f"translation m) or 'envelope:K', got {spec!r}")
+    return vals
+
+
+def lit_fraction(visible) -> np.ndarray:
+    """Fraction of the envelope poses in which each sensor is lit by at least one station.
+
+    visible : (P, S, n) bool (``envelope_visibility``) → (n,) float in [0, 1].
+    """
+    v = np.asarray(visible, bool)
+    if v.ndim != 3:
+        raise ValueError(f"visible: expected shape (P, S, n), got {v.shape}")
+    if v.shape[0] == 0:
+        return np.zeros(v.shape[-1])
+    return v.any(axis=1).mean(axis=0)
+
+
+def _station_pose(inp, spec):
+    """Body pose (R, t) in the station frame from a parsed pose spec."""
+    from ..geometry import rotvec_to_matrix
+
+    if isinstance(spec, tuple) and len(spec) == 2 and spec[0] == "envelope":
+        if inp.envelope is None:
+            raise ValueError("station view pose 'envelope:K' needs --envelope")
+        k = spec[1]
+        P = inp.rotations.shape[0]
+        if not 0 <= k < P:
+            raise ValueError(f"station view pose: envelope has {P} poses, got index {k}")
+        st = inp.stations[inp.envelope.reference_station]
+        R, t = st.world_to_station(inp.rotations[k], inp.translations[k])
+        return np.asarray(R, float), np.asarray(t, float)
+    v = np.asarray(spec, float)
+    return rotvec_to_matrix(np.deg2rad(v[:3])), v[3:]
+
+
+def render_design(mesh_path, *, out_dir, units: str = "m", layout_path=None, candidates_path=None,
+                  envelope_path=None, options: RenderOptions = RenderOptions()) -> dict:
+    """Write the design pictures of a mesh (and layout, candidates, envelope) to ``out_dir``.
+
+    Files (``stem`` = mesh file stem): ``{stem}_{view}.png`` (mesh, candidates, layout coloured by
+    lit fraction when an envelope is given); ``{stem}_coverage_{view}.png`` (candidates coloured by
+    lit fraction, when candidates and an envelope are given without a layout);
+    ``{stem}_quality_map.png`` / ``{stem}_quality_sphere.png`` (tracking-quality map);
+    ``{stem}_station_view.png``.
+    Returns ``{"paths": [...], "warnings": [...], "lit_fraction": {...}, "quality_map": {...}, ...}``.
+    Raises ``ValueError`` for bad inputs and ``RenderingUnavailable`` without an OpenGL back end.
+    """
+    from .. import render
+    from ..layout import load_layout
+    from .design import load_design_inputs
+
+    inp = load_design_inputs(mesh_path, units, envelope_path, layout_path)
+    cand = load_layout(candidates_path) if candidates_path is not None else None
+    out_dir = Path(out_dir)
+    stem = Path(mesh_path).stem
+    lay = inp.layout
+    result: dict = {"mesh": str(mesh_path), "out": str(out_dir), "paths": [], "warnings": list(inp.warnings)}
+    kw = dict(sensor_half_angle_deg=options.sensor_half_angle_deg)
+
+    if lay is not None:
+        frac = lit_fraction(inp.visibility(lay, **kw)) if inp.envelope is not None else None
+        if frac is not None:
+            result["lit_fraction"] = dict(zip(lay.ids, frac.tolist()))
+        name = lay.metadata.get("name") or Path(layout_path).stem
+        result["paths"] += render.render_layout_views(
+            inp.mesh, lay.positions, lay.normals, frac, candidates=None if cand is None else cand.positions,
+            views=options.views, size=options.size, out_dir=out_dir, prefix=stem, ids=lay.ids,
+            title=f"{stem}: layout {name}" + (" (colour: envelope coverage)" if frac is not None else ""))
+    elif cand is not None and inp.envelope is not None:
+        frac = lit_fraction(inp.visibility(cand, **kw))
+        result["candidate_coverage"] = {"min": float(frac.min()), "median": float(np.median(frac)),
+                                        "max": float(frac.max()), "never_lit": int(np.sum(frac == 0))}
+        result["paths"] += render.render_layout_views(
+            inp.mesh, cand.positions, cand.normals, frac, views=options.views, size=options.size,
+            out_dir=out_dir, prefix=f"{stem}_coverage", arrows=False, labels=False, what="candidate sites",
+            sensor_radius=0.3 * float(cand.metadata.get("spacing_m", 0.02 * _diag(inp.mesh))),
+            title=f"{stem}: candidate-site coverage over envelope '{inp.envelope.name or Path(envelope_path).stem}'")
+    else:
+        result["paths"] += render.render_layout_views(
+            inp.mesh, np.zeros((0, 3)), np.zeros((0, 3)), None,
+            candidates=None if cand is None else cand.positions, views=options.views, size=options.size,
+            out_dir=out_dir, prefix=stem, title=stem, what="sensors")
+
+    if options.quality_map:
+        if lay is None:
+            raise ValueError("--quality-map needs a layout (--layout)")
+        from ..quality import tracking_quality_map
+
+        n_lat = max(1, int(round(180.0 / options.grid_deg)))
+        q = tracking_quality_map(inp.mesh, lay.positions, lay.normals, distance=options.distance_m, rho=options.rho,
+                                 grid=(n_lat, 2 * n_lat), roll_samples=options.roll_samples, **kw)
+        result["quality_map"] = q.summary()
+        for kind in options.map_kinds:
+            fname = "quality_map" if kind == "mollweide" else "quality_sphere"
+            result["paths"].append(render.render_tracking_map(
+                q, out=out_dir / f"{stem}_{fname}.png", kind=kind, size=options.size, sigma_theta=options.sigma_theta,
+                title=f"{stem}: tracking quality over all viewing directions"))
+
+    if options.station_view_pose is not None:
+        if lay is None:
+            raise ValueError("--station-view-pose needs a layout (--layout)")
+        from ..visibility import visible_sensors
+
+        spec = options.station_view_pose
+        if isinstance(spec, str):
+            spec = parse_pose(spec)
+        R, t = _station_pose(inp, spec)
+        fov = inp.stations[inp.envelope.reference_station].fov_deg if inp.envelope is not None else 120.0
+        lit = visible_sensors(inp.mesh, lay.positions, lay.normals, R[None], t[None], fov_deg=fov, **kw)[0]
+        result["station_view"] = {"lit": int(lit.sum()), "n": int(lit.size), "range_m": float(np.linalg.norm(t))}
+        result["paths"].append(render.render_station_view(
+            inp.mesh, lay.positions, lay.normals, R, t, lit, fov_deg=options.view_angle_deg, size=options.size,
+            out=out_dir / f"{stem}_station_view.png", ids=lay.ids, title=f"{stem}: view from the lighthouse"))
+
+    result["paths"] = [str(p) for p in result["paths"]]
+    return result
+
+
+def _diag(mesh) -> float:
+    b = np.asarray(mesh.bounds, float)
+    return float(np.linalg.norm(b[1] - b[0]))
