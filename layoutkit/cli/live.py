@@ -56,7 +56,7 @@ def _options(rho, sigma_arcsec, live: bool):
     kw = dict(sigma_theta=SIGMA_THETA_PAPER if sigma_arcsec is None else sigma_arcsec * ARCSEC,
               rho=RHO_PAPER if rho is None else rho)
     if live:
-        kw.update(chunk_frames=256, chunk_seconds=0.05)
+        kw.update(chunk_frames=1024)  # live: one chunk per port read (see workflows.live.run_live)
     return LiveOptions(**kw)
 
 

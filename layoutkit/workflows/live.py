@@ -424,7 +424,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOpt
     from ..live.capture import CaptureWriter, station_to_dict
     from ..live.sources import DEFAULT_BAUDRATE, ReconnectingSerial
 
-    options = options or LiveOptions(chunk_frames=256, chunk_seconds=0.05)
+    options = options or LiveOptions(chunk_frames=1024)
     lay = _layout_from(layout, {})
     baudrate = baudrate or DEFAULT_BAUDRATE
     src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
@@ -448,11 +448,10 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOpt
                     if writer is not None:
                         writer.write(data)  # raw bytes are kept before any decoding
                     s.feed_bytes(data)
+                    s.flush_pending()  # one chunk per read: low latency, large chunks after a backlog
                     last_byte = now
-                else:
-                    s.flush_pending()
-                    if idle_timeout is not None and last_byte is not None and now - last_byte > idle_timeout:
-                        break
+                elif idle_timeout is not None and last_byte is not None and now - last_byte > idle_timeout:
+                    break
                 if on_update is not None and now - last_update >= update_interval:
                     on_update(s.snapshot(src.state))
                     last_update = now
