@@ -149,16 +149,20 @@ def visible_sensors(mesh, positions, normals, rotation, translation, *, sensor_h
         surface_offset = 1e-5 * float(mesh.scale)
 
     out = np.zeros((len(R), n), dtype=bool)
+    pn = np.einsum("ij,ij->i", P_, N_)  # p . m per sensor
+    pp = np.einsum("ij,ij->i", P_, P_)
     step = max(1, int(chunk) // max(n, 1))
     for a in range(0, len(R), step):
         Rc, tc = R[a:a + step], t[a:a + step]
-        p_lh = np.einsum("pij,nj->pni", Rc, P_) + tc[:, None, :]
-        ok = in_field_of_view(p_lh, fov_deg)
-        if max_range is not None:
-            ok &= np.linalg.norm(p_lh, axis=-1) <= max_range
+        ok = _in_fov(P_ @ np.swapaxes(Rc, 1, 2) + tc[:, None, :], fov_deg)  # p_lh = R p + t
         s_body = -np.einsum("pji,pj->pi", Rc, tc)  # station in the body frame: -R^T t
-        to_st = s_body[:, None, :] - P_[None]  # (p, n, 3)
-        ok &= np.einsum("pni,ni->pn", to_st, N_) >= cos_half * np.linalg.norm(to_st, axis=-1)
+        # sensor -> station vector s - p, without materialising it: dot with m, squared length
+        dot = s_body @ N_.T - pn[None]
+        dist2 = np.maximum(np.einsum("pi,pi->p", s_body, s_body)[:, None] - 2.0 * (s_body @ P_.T) + pp[None], 0.0)
+        ok &= (dot >= 0) & (dot * dot >= cos_half * cos_half * dist2) if cos_half >= 0 else (
+            (dot >= 0) | (dot * dot <= cos_half * cos_half * dist2))
+        if max_range is not None:
+            ok &= dist2 <= max_range * max_range
         if occlusion:
             ip, isn = np.nonzero(ok)
             if len(ip):
@@ -170,6 +174,18 @@ def visible_sensors(mesh, positions, normals, rotation, translation, *, sensor_h
                 ok[ip, isn] = hit >= L
         out[a:a + step] = ok
     return out[0] if single else out
+
+
+def _in_fov(points_lh: np.ndarray, fov_deg: float) -> np.ndarray:
+    """Same test as :func:`layoutkit.lighthouse.in_field_of_view` without arctan:
+    ``|theta - 90°| <= fov/2`` for both sweep angles and z > 0  ⇔  ``|x|, |y| <= z tan(fov/2)``, z > 0
+    (for fov < 180°; cot theta = x/z, Chen eq. 2)."""
+    half = np.deg2rad(fov_deg) / 2.0
+    if half >= np.pi / 2:
+        return in_field_of_view(points_lh, fov_deg)
+    x, y, z = points_lh[..., 0], points_lh[..., 1], points_lh[..., 2]
+    lim = z * (np.tan(half) + 1e-12)
+    return (z > 0) & (np.abs(x) <= lim) & (np.abs(y) <= lim)
 
 
 def envelope_visibility(mesh, positions, normals, rotations, translations, stations, **kw) -> np.ndarray:
