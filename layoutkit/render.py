@@ -482,13 +482,12 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
     axes_marks = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
     for k, (name, val, unit, cmap_name) in enumerate(_map_panels(q)):
         ax = fig.add_subplot(2, 2, k + 1, projection="mollweide")
-        cmap = matplotlib.colormaps[cmap_name].copy()
-        cmap.set_bad("#d0d0d0")
+        cmap = matplotlib.colormaps[cmap_name].with_extremes(bad="#d0d0d0")
         masked = np.ma.masked_invalid(np.where(np.isfinite(val), val, np.nan))
         if "lit" in name:
             top = int(max(np.nanmax(val), 4))
             bounds = np.arange(-0.5, top + 1.5)
-            cmap = matplotlib.colormaps[cmap_name].resampled(top + 1)
+            cmap = matplotlib.colormaps[cmap_name].resampled(top + 1).with_extremes(bad="#d0d0d0")
             norm = BoundaryNorm(bounds, cmap.N)
         else:
             norm = _finite_norm(val)
