@@ -117,7 +117,8 @@ class Envelope:
             raise ValueError(f"attitude.half_angle_deg: expected [0, 180], got {self.attitude_half_angle_deg}")
         if self.attitude == "trajectory" and not self.trajectory:
             raise ValueError("attitude.file: a 'trajectory' attitude needs a CSV file")
-        if int(self.count) != self.count or self.count < 0 or (self.count == 0 and self.attitude != "trajectory"):
+        if (isinstance(self.count, bool) or not isinstance(self.count, (int, np.integer)) or self.count < 0
+                or (self.count == 0 and self.attitude != "trajectory")):
             raise ValueError(f"count: expected a positive integer, got {self.count!r}")
         stations = tuple(self.stations)
         if not stations or not all(isinstance(s, Station) for s in stations):
@@ -127,6 +128,8 @@ class Envelope:
             raise ValueError(f"station: ids must be unique, got {ids}")
         if not (0 <= int(self.reference_station) < len(stations)):
             raise ValueError(f"reference_station: expected an index in [0, {len(stations)}), got {self.reference_station}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
+            raise ValueError(f"seed: expected an integer, got {self.seed!r}")
         object.__setattr__(self, "range_m", r)
         object.__setattr__(self, "nominal_rotvec_deg", nom)
         object.__setattr__(self, "stations", stations)
