@@ -155,3 +155,25 @@ def test_mesh_hash_identifies_geometry(tmp_path):
     d = describe_mesh(a)
     json.dumps(d)  # JSON-able for mesh-info --json
     assert d["faces"] == 36 and d["watertight"] and d["parts"] == {"bus": 12, "wing+y": 12, "wing-y": 12}
+
+
+def test_cli_mesh_info(tmp_path):
+    """mesh-info reports the size the file really has, and bad files exit 2 with the loader's message."""
+    from click.testing import CliRunner
+
+    from layoutkit.cli import main
+
+    box = trimesh.creation.box((340.0, 100.0, 100.0))
+    p = tmp_path / "cubesat_mm.stl"
+    box.export(p)
+    r = CliRunner().invoke(main, ["mesh-info", str(p), "--units", "mm", "--json"])
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    np.testing.assert_allclose(sorted(info["extents_m"]), [0.1, 0.1, 0.34])
+    assert info["faces"] == 12 and info["watertight"] and info["warnings"] == []
+    r = CliRunner().invoke(main, ["mesh-info", str(p)])
+    assert r.exit_code == 0 and "largest extent is 340 m with units='m'" in r.output
+    empty = tmp_path / "e.stl"
+    empty.write_bytes(b"")
+    r = CliRunner().invoke(main, ["mesh-info", str(empty)])
+    assert r.exit_code == 2 and r.output.strip() == f"error: {empty}: empty file"

@@ -149,3 +149,33 @@ def test_single_pose_and_bad_shapes():
     with pytest.raises(ValueError) as e:
         visible_sensors(mesh, P, N, R, np.array([0, 0, 2.0]), engine="optix")
     assert str(e.value) == "ray engine: expected one of ['embree', 'triangle'], got 'optix'"
+
+
+def test_cli_visibility_report_matches_direct_computation(tmp_path):
+    """The command's per-sensor fractions and lit counts equal envelope_visibility on the same inputs."""
+    import json
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from layoutkit.cli import main
+    from layoutkit.envelope import load_envelope
+    from layoutkit.layout import load_layout
+    from layoutkit.mesh import load_mesh
+
+    models = Path(__file__).resolve().parent.parent / "models"
+    args = [str(models / "chen_target.stl"), "--layout", str(models / "chen_target.layout.json"),
+            "--envelope", str(models / "chen_envelope.toml")]
+    out = tmp_path / "v.json"
+    r = CliRunner().invoke(main, ["visibility", *args, "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    rep = json.loads(out.read_text())
+    env, lay = load_envelope(models / "chen_envelope.toml"), load_layout(models / "chen_target.layout.json")
+    R, t = env.poses()
+    v = envelope_visibility(load_mesh(models / "chen_target.stl"), lay.positions, lay.normals, R, t, env.stations)
+    np.testing.assert_allclose([s["A"] for s in rep["sensor_lit_fraction"]], v[:, 0].mean(0))
+    assert rep["lit_count_min"] == v[:, 0].sum(-1).min()
+    assert rep["poses_below_min_lit"] == int((v[:, 0].sum(-1) < 4).sum())
+    assert "poses with < 4 lit" in r.output
+    r = CliRunner().invoke(main, ["visibility", *args[:3], "--envelope", str(tmp_path / "none.toml")])
+    assert r.exit_code == 2 and f"error: {tmp_path / 'none.toml'}: no such envelope file" in r.output
