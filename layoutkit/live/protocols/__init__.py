@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 from ..frames import DecodeStats, SweepMeasurement
+from .bitcraze import BitcrazeLh1Decoder, BitcrazeLh2Decoder
 from .layoutkit import LayoutkitDecoder
 
 __all__ = ["Decoder", "PROTOCOLS", "DEFAULT_PROTOCOL", "get_protocol"]
@@ -26,7 +27,11 @@ class Decoder(Protocol):
     def flush(self) -> list[SweepMeasurement]: ...
 
 
-PROTOCOLS: dict[str, type] = {"layoutkit": LayoutkitDecoder}
+PROTOCOLS: dict[str, type] = {
+    "layoutkit": LayoutkitDecoder,
+    "bitcraze-lh1": BitcrazeLh1Decoder,
+    "bitcraze-lh2": BitcrazeLh2Decoder,
+}
 DEFAULT_PROTOCOL = "layoutkit"
 
 

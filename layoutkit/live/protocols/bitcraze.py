@@ -1,0 +1,632 @@
+"""Bitcraze Lighthouse deck UART stream (LH1 and LH2) and Crazyflie system-configuration files.
+
+Wire format (public: bitcraze/lighthouse-fpga readme; crazyflie-firmware ``lighthouse_core.c``):
+230400 baud, 12-byte little-endian frames, one light pulse per frame::
+
+    byte 0      bits 0-1 sensor id, bit 2 slow (OOTX) bit, bits 3-6 channel, bit 7 = 1: no channel
+    bytes 1-2   pulse width, 24 MHz ticks
+    bytes 3-5   sync offset, 6 MHz ticks, 17 bits (0 = none); upper 7 bits 0 (padding)
+    bytes 6-8   beam word, 17 bits; upper 7 bits 0 (padding)
+    bytes 9-11  timestamp, 24 MHz ticks, 24 bits (wraps every 0.699 s)
+
+A sync frame of 12 × 0xFF is sent twice a second. A frame is valid iff
+``((b[5] | b[8]) & 0xFE) == 0`` or it is a sync frame; otherwise the receiver waits for the next
+sync frame (run of twelve 0xFF bytes) and aligns on its end.
+
+Pulse processing follows the firmware (``pulse_processor_v1.c``, ``pulse_processor_v2.c``):
+
+- **LH1**: sync pulses (1000 < width < 3250 ticks) carry ``code = (width - 1375) // 250``
+  (bit 0 axis, bit 1 OOTX data, bit 2 skip); sync pulses of all sensors within 10 ticks are one
+  sync event; a sync event 7500-12500 ticks after the previous one is station 1's (A/B mode),
+  otherwise station 0's. Sweep pulses (width < 512) after the active (non-skip) sync give
+  ``angle = (delta - P/4) * 2 pi / P`` with ``delta`` ticks after that sync and ``P`` the measured
+  time between two syncs of the same station and axis (accepted in 395000-405000 ticks).
+- **LH2**: pulses within 10000 ticks form a block (one light plane crossing all sensors);
+  ``timestamp0 = timestamp - 4 * offset`` is the rotor's zero; two blocks of one channel whose
+  timestamp0 agree within 100 ticks are the two planes of one rotation:
+  ``a0 = 4 offset0 * 2 pi / P - pi + pi/3``, ``a1 = 4 offset1 * 2 pi / P - pi - pi/3`` with
+  ``P`` the channel's cycle period (24 MHz).
+
+Calibration (``lighthouse_calibration.c``) is the firmware's model, inverted by fixed-point
+iteration from the raw angles (we iterate to 1e-10 rad; the firmware stops after a change below
+5e-4 rad or 5 steps). Applied: LH1 phase, tilt, curve, gibmag, gibphase; LH2 phase, tilt, gibmag,
+gibphase. Not applied (the firmware doesn't either): ogeemag, ogeephase, LH2 curve.
+
+Output angles in layoutkit's conventions (lighthouse frame z = boresight): the Bitcraze
+station frame has x forward, so ``x_bc = z, y_bc = x, z_bc = y`` (as in
+:func:`layoutkit.lighthouse.lh2_sweep_angles`). LH1: the firmware's ideal angles are
+``atan2(y_bc, x_bc)`` and ``atan2(z_bc, x_bc)``; layoutkit's ``theta = pi/2 - firmware angle``.
+LH2: the firmware's angles are already the ``lh2_sweep_angles`` light-plane angles
+(plane 0: t = -30°, plane 1: t = +30°). ``SweepMeasurement.t`` is the sync (LH1) or rotor-zero
+(LH2) time in s, deck clock unwrapped; ``station`` is the LH1 station (0/1) or LH2 channel (0-15).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..frames import DecodeStats, SweepMeasurement
+
+__all__ = [
+    "DECK_CLOCK_HZ",
+    "FRAME_SIZE",
+    "SYNC_FRAME",
+    "LH2_CYCLE_PERIODS",
+    "DeckPulse",
+    "SweepCalibration",
+    "StationCalibration",
+    "SystemConfig",
+    "encode_pulse",
+    "parse_frame",
+    "lh1_deck_stream",
+    "lh2_deck_stream",
+    "lh1_model",
+    "lh2_model",
+    "calibrate_lh1",
+    "calibrate_lh2",
+    "load_system_config",
+    "BitcrazeDecoder",
+    "BitcrazeLh1Decoder",
+    "BitcrazeLh2Decoder",
+]
+
+DECK_CLOCK_HZ = 24e6
+FRAME_SIZE = 12
+SYNC_FRAME = b"\xff" * FRAME_SIZE
+_TS_MOD = 1 << 24
+# LH2 cycle periods per channel, firmware CYCLE_PERIODS (48 MHz values / 2 → 24 MHz ticks)
+LH2_CYCLE_PERIODS = tuple(p // 2 for p in (959000, 957000, 953000, 949000, 947000, 943000, 941000, 939000,
+                                           937000, 929000, 919000, 911000, 907000, 901000, 893000, 887000))
+# LH1 constants (24 MHz ticks), pulse_processor_v1.c
+LH1_FRAME_LENGTH = 200000
+LH1_SWEEP_MAX_WIDTH = 512
+LH1_SYNC_MIN_WIDTH, LH1_SYNC_MAX_WIDTH = 1000, 3250
+LH1_SYNC_BASE_WIDTH, LH1_SYNC_DIVIDER = 1375, 250
+LH1_SYNC_SEPARATION = 10000
+LH1_SYNC_MIN_SEP, LH1_SYNC_MAX_SEP = 7500, 12500
+LH1_SENSOR_DISPERSION = 10
+LH1_FRAME_WIDTH_MIN, LH1_FRAME_WIDTH_MAX = 395000, 405000
+# LH2 constants
+LH2_MAX_TICKS_SENSOR_TO_SENSOR = 10000
+LH2_MAX_TICKS_BETWEEN_BLOCKS = 100
+MAX_DECK_SENSORS = 4
+
+
+# --------------------------------------------------------------------------------------- frames
+@dataclass(frozen=True)
+class DeckPulse:
+    """One deck frame. timestamp, width in 24 MHz ticks; offset in 6 MHz ticks (0 = none);
+    channel None when the FPGA found no polynomial."""
+
+    sensor: int
+    timestamp: int
+    width: int
+    offset: int = 0
+    beam_word: int = 0
+    channel: int | None = None
+    slow_bit: int = 0
+
+
+def encode_pulse(p: DeckPulse) -> bytes:
+    """One 12-byte deck frame from a pulse (the public frame layout above)."""
+    b0 = (p.sensor & 0x03) | ((p.slow_bit & 1) << 2)
+    b0 |= 0x80 if p.channel is None else ((p.channel & 0x0F) << 3)
+    return (bytes([b0]) + (p.width & 0xFFFF).to_bytes(2, "little") + (p.offset & 0x1FFFF).to_bytes(3, "little")
+            + (p.beam_word & 0x1FFFF).to_bytes(3, "little") + (p.timestamp % _TS_MOD).to_bytes(3, "little"))
+
+
+def parse_frame(b: bytes) -> DeckPulse | None:
+    """A 12-byte frame → :class:`DeckPulse`; None for a sync frame; ValueError when invalid."""
+    if b == SYNC_FRAME:
+        return None
+    if len(b) != FRAME_SIZE or ((b[5] | b[8]) & 0xFE) != 0:
+        raise ValueError("deck frame: padding bits set (not synchronised)")
+    channel = None if b[0] & 0x80 else (b[0] >> 3) & 0x0F
+    return DeckPulse(sensor=b[0] & 0x03, timestamp=int.from_bytes(b[9:12], "little"),
+                     width=int.from_bytes(b[1:3], "little"), offset=int.from_bytes(b[3:6], "little"),
+                     beam_word=int.from_bytes(b[6:9], "little"), channel=channel, slow_bit=(b[0] >> 2) & 1)
+
+
+# --------------------------------------------------------------------------------- calibration
+@dataclass(frozen=True)
+class SweepCalibration:
+    """Factory calibration of one sweep / light plane (radians; Crazyflie file keys)."""
+
+    phase: float = 0.0
+    tilt: float = 0.0
+    curve: float = 0.0
+    gibmag: float = 0.0
+    gibphase: float = 0.0
+    ogeemag: float = 0.0
+    ogeephase: float = 0.0
+
+
+@dataclass(frozen=True)
+class StationCalibration:
+    sweeps: tuple = (SweepCalibration(), SweepCalibration())
+    uid: int = 0
+
+
+@dataclass(frozen=True)
+class SystemConfig:
+    """A Crazyflie lighthouse system configuration: stations (layoutkit frames) and calibrations.
+
+    stations : dict id → :class:`layoutkit.lighthouse.Station` (station pose in the Crazyflie
+    world frame, station frame in layoutkit's convention z = boresight); calibs : dict id →
+    :class:`StationCalibration`; system_type : 1 (LH1) or 2 (LH2).
+    """
+
+    stations: dict = field(default_factory=dict)
+    calibs: dict = field(default_factory=dict)
+    system_type: int = 2
+
+
+# layoutkit station frame → Bitcraze station frame: x_bc = z, y_bc = x, z_bc = y
+_LK_TO_BC = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def load_system_config(source) -> SystemConfig:
+    """Read a Crazyflie system-configuration YAML (``type: lighthouse_system_configuration``).
+
+    source : path or an already-parsed dict. ``geos: {id: {origin, rotation}}`` → stations with
+    ``rotation = R_bc @ M`` (M maps layoutkit station axes to Bitcraze's), ``translation = origin``;
+    ``calibs: {id: {sweeps: [{phase, tilt, curve, gibmag, gibphase, ogeemag, ogeephase}] * 2, uid}}``.
+    Raises ValueError naming what is wrong.
+    """
+    from ...geometry import nearest_rotation
+    from ...lighthouse import Station
+
+    if isinstance(source, dict):
+        data, name = source, "system config"
+    else:
+        import yaml
+
+        path = Path(source)
+        name = str(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except FileNotFoundError:
+            raise ValueError(f"{path}: no such system configuration file") from None
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(data, dict) or data.get("type") != "lighthouse_system_configuration":
+        raise ValueError(f"{name}: expected 'type: lighthouse_system_configuration'")
+    if str(data.get("version")) != "1":
+        raise ValueError(f"{name}: unsupported version {data.get('version')!r} (expected '1')")
+    system_type = int(data.get("systemType", 2))
+    kind = "lh1" if system_type == 1 else "lh2"
+    stations, calibs = {}, {}
+    try:
+        for sid, geo in (data.get("geos") or {}).items():
+            R = nearest_rotation(np.asarray(geo["rotation"], float))
+            stations[int(sid)] = Station(id=str(sid), rotation=R @ _LK_TO_BC,
+                                         translation=np.asarray(geo["origin"], float), kind=kind,
+                                         rotor_rpm=3600.0 if kind == "lh1" else 3000.0, clock_hz=DECK_CLOCK_HZ)
+        for sid, cal in (data.get("calibs") or {}).items():
+            sw = tuple(SweepCalibration(**{k: float(s.get(k, 0.0)) for k in SweepCalibration.__dataclass_fields__})
+                       for s in cal["sweeps"][:2])
+            if len(sw) != 2:
+                raise ValueError("two sweeps required")
+            calibs[int(sid)] = StationCalibration(sw, int(cal.get("uid", 0)))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: bad geos/calibs entry ({exc})") from None
+    return SystemConfig(stations, calibs, system_type)
+
+
+def lh1_model(ax_ideal, ay_ideal, calib: StationCalibration) -> np.ndarray:
+    """Firmware LH1 distortion: ideal firmware angles (rad) → measured angles ``(..., 2)``.
+
+    Point ``(1, tan ax, tan ay)`` in the Bitcraze station frame; sweep 0 sees ``(x, y, z)``,
+    sweep 1 ``(x, z, -y)``; ``a = atan2(y, x) - (asin(z tan(tilt) / r) + phase
+    - gibmag sin(atan2(y, x) + gibphase) + curve atan2(z, x)^2)``.
+    """
+    ax = np.asarray(ax_ideal, float)
+    ay = np.asarray(ay_ideal, float)
+    x, y, z = np.ones_like(ax), np.tan(ax), np.tan(ay)
+
+    def one(x, y, z, c):
+        a = np.arctan2(y, x)
+        b = np.arctan2(z, x)
+        r = np.hypot(x, y)
+        tilt = np.arcsin(np.clip(z * np.tan(c.tilt) / r, -1, 1))
+        gib = -c.gibmag * np.sin(a + c.gibphase)
+        return a - (tilt + c.phase + gib + c.curve * b * b)
+
+    return np.stack([one(x, y, z, calib.sweeps[0]), one(x, z, -y, calib.sweeps[1])], -1)
+
+
+def lh2_model(a1_ideal, a2_ideal, calib: StationCalibration) -> np.ndarray:
+    """Firmware LH2 distortion: ideal plane angles (rad) → measured ``(..., 2)``.
+
+    Point ``(1, tan((a1 + a2)/2), sin(a2 - a1) / (tan30 (cos a1 + cos a2)))``;
+    ``a = atan2(y, x) + asin(z tan(t - tilt) / r) - (phase - gibmag cos(atan2(y, x) + gibphase))``,
+    t = -30° (plane 0), +30° (plane 1).
+    """
+    a1 = np.asarray(a1_ideal, float)
+    a2 = np.asarray(a2_ideal, float)
+    t30 = math.pi / 6
+    x = np.ones_like(a1)
+    y = np.tan((a1 + a2) / 2)
+    z = np.sin(a2 - a1) / (math.tan(t30) * (np.cos(a2) + np.cos(a1)))
+
+    def one(t, c):
+        a = np.arctan2(y, x)
+        r = np.hypot(x, y)
+        base = a + np.arcsin(np.clip(z * np.tan(t - c.tilt) / r, -1, 1))
+        return base - (c.phase - c.gibmag * np.cos(a + c.gibphase))
+
+    return np.stack([one(-t30, calib.sweeps[0]), one(t30, calib.sweeps[1])], -1)
+
+
+def _invert(model, raw, calib, tol=1e-10, max_iter=50):
+    raw = np.asarray(raw, float)
+    est = raw.copy()
+    for _ in range(max_iter):
+        d = raw - model(est[..., 0], est[..., 1], calib)
+        est = est + d
+        if not np.any(np.abs(d) > tol):
+            break
+    return est
+
+
+def calibrate_lh1(raw, calib: StationCalibration) -> np.ndarray:
+    """Measured LH1 firmware angles ``(..., 2)`` → ideal angles (inverse of :func:`lh1_model`)."""
+    return _invert(lh1_model, raw, calib)
+
+
+def calibrate_lh2(raw, calib: StationCalibration) -> np.ndarray:
+    """Measured LH2 plane angles ``(..., 2)`` → ideal angles (inverse of :func:`lh2_model`)."""
+    return _invert(lh2_model, raw, calib)
+
+
+# ----------------------------------------------------------------------- reference encoders
+def lh1_deck_stream(theta, *, stations: int = 1, t0_ticks: int = 1000, sync_every_frames: int = 60,
+                    jitter=None, calib: dict | None = None) -> tuple[bytes, np.ndarray, list]:
+    """Build an LH1 deck byte stream from layoutkit sweep angles, per the public frame spec.
+
+    theta : (F, n) rad (NaN = not hit), n <= 4: the angle of frame f's active sweep; frame f
+    (200000 ticks from ``t0_ticks + 200000 f``) is swept by station ``(f // 2) % stations`` along
+    axis ``f % 2``. Each frame carries sync pulses of every station (station 1's 10000 ticks
+    later) with width ``1500 + 250 * code`` (code bit 0 axis, bit 2 skip for the idle one),
+    then each hit sensor's sweep pulse at ``delta = (a / 2 pi + 1/4) * 400000`` ticks after the
+    active sync, ``a = pi/2 - theta`` the firmware angle (``calib``: {station: StationCalibration}
+    → distorted with :func:`lh1_model`, needs X and Y of a sensor in consecutive frames).
+    A sync frame (12 × 0xFF) every ``sync_every_frames`` frames and first. ``jitter``: a
+    Generator adding 0-3 ticks of sensor-to-sensor skew to the sync pulses.
+    Returns (bytes, sync times of every frame (F,) in ticks unwrapped, list of DeckPulse).
+    """
+    theta = np.asarray(theta, float)
+    F, n = theta.shape
+    if n > MAX_DECK_SENSORS:
+        raise ValueError(f"theta: the deck has at most {MAX_DECK_SENSORS} sensors, got {n}")
+    fw = np.pi / 2 - theta
+    if calib:
+        fw = fw.copy()
+        for f in range(0, F - 1, 2):
+            s = (f // 2) % stations
+            if s in calib:
+                pair = lh1_model(fw[f], fw[f + 1], calib[s])
+                fw[f], fw[f + 1] = pair[..., 0], pair[..., 1]
+    out, pulses = [SYNC_FRAME], []
+    sync_ts = np.zeros(F, np.int64)
+    for f in range(F):
+        if f and f % sync_every_frames == 0:
+            out.append(SYNC_FRAME)
+        start = t0_ticks + LH1_FRAME_LENGTH * f
+        axis = f % 2
+        active = (f // 2) % stations
+        frame_pulses = []
+        for s in range(stations):
+            ts = start + s * LH1_SYNC_SEPARATION
+            code = axis | (0 if s == active else 4)
+            for i in range(n):
+                dj = 0 if jitter is None else int(jitter.integers(0, 4))  # sensor-to-sensor skew
+                frame_pulses.append(DeckPulse(i, ts + dj, 1500 + 250 * code))
+            if s == active:
+                sync_ts[f] = ts
+        for i in range(n):
+            if np.isfinite(fw[f, i]):
+                delta = int(round((fw[f, i] / (2 * np.pi) + 0.25) * 2 * LH1_FRAME_LENGTH))
+                frame_pulses.append(DeckPulse(i, int(sync_ts[f]) + delta, 200))
+        frame_pulses.sort(key=lambda p: p.timestamp)
+        pulses += frame_pulses
+        out += [encode_pulse(p) for p in frame_pulses]
+    return b"".join(out), sync_ts, pulses
+
+
+def lh2_deck_stream(alpha, *, channel: int = 0, t0_ticks: int = 1000, sync_every: int = 50,
+                    calib: StationCalibration | None = None, drop_channel_every: int = 0):
+    """Build an LH2 deck byte stream from light-plane angles, per the public frame spec.
+
+    alpha : (R, n, 2) rad (NaN = not hit): rotation r of the channel's rotor starts at
+    ``t0_ticks + r P`` (P = ``LH2_CYCLE_PERIODS[channel]``); plane 0 hits at offset
+    ``(a0 + pi - pi/3) P / 2 pi``, plane 1 at ``(a1 + pi + pi/3) P / 2 pi`` (24 MHz ticks), sent as
+    6 MHz offsets (``round(offset / 4)``) with ``timestamp = start + 4 * offset6``.
+    ``calib`` distorts the angles first (:func:`lh2_model`). ``drop_channel_every`` k > 0 marks
+    every k-th pulse "no channel found". Returns (bytes, rotation starts (R,) ticks, pulses).
+    """
+    alpha = np.asarray(alpha, float)
+    R, n, _ = alpha.shape
+    if n > MAX_DECK_SENSORS:
+        raise ValueError(f"alpha: the deck has at most {MAX_DECK_SENSORS} sensors, got {n}")
+    if calib is not None:
+        alpha = lh2_model(alpha[..., 0], alpha[..., 1], calib)
+    P = LH2_CYCLE_PERIODS[channel]
+    out, pulses = [SYNC_FRAME], []
+    starts = t0_ticks + P * np.arange(R, dtype=np.int64)
+    k = 0
+    for r in range(R):
+        if r and r % sync_every == 0:
+            out.append(SYNC_FRAME)
+        rot = []
+        for plane, shift in ((0, -np.pi / 3), (1, np.pi / 3)):
+            for i in range(n):
+                a = alpha[r, i, plane]
+                if not np.isfinite(a):
+                    continue
+                off6 = int(round((a + np.pi + shift) * P / (2 * np.pi) / 4))
+                k += 1
+                ch = None if drop_channel_every and k % drop_channel_every == 0 else channel
+                rot.append(DeckPulse(i, int(starts[r]) + 4 * off6, 150, off6, (k * 7919) & 0x1FFFF, ch, 0))
+        rot.sort(key=lambda p: p.timestamp)
+        pulses += rot
+        out += [encode_pulse(p) for p in rot]
+    return b"".join(out), starts, pulses
+
+
+# ------------------------------------------------------------------------------------ decoder
+class BitcrazeDecoder:
+    """Incremental decoder of the Lighthouse deck UART stream; never raises on any bytes.
+
+    mode : "lh1" or "lh2". n_sensors : 1-4 (angles of sensors 0..n-1). system_config : path,
+    dict or :class:`SystemConfig`; its calibrations are applied (``calibrate=True``).
+    stats: good = sweeps emitted, bad = invalid frames (padding set), resyncs, skipped bytes,
+    dropped = sweeps discarded by the pulse processor (incomplete/ambiguous).
+    ``pulses`` counts valid pulse frames.
+    """
+
+    name = "bitcraze"
+
+    def __init__(self, n_sensors: int | None = 4, *, mode: str = "lh2", system_config=None,
+                 calibrate: bool = True):
+        if mode not in ("lh1", "lh2"):
+            raise ValueError(f"mode: expected 'lh1' or 'lh2', got {mode!r}")
+        n = 4 if n_sensors is None else int(n_sensors)
+        if not 1 <= n <= MAX_DECK_SENSORS:
+            raise ValueError(f"n_sensors: the Lighthouse deck has 1-{MAX_DECK_SENSORS} sensors, got {n_sensors}")
+        self.mode = mode
+        self.n = n
+        cfg = system_config
+        if cfg is not None and not isinstance(cfg, SystemConfig):
+            cfg = load_system_config(cfg)
+        self.config = cfg
+        self.calibs = dict(cfg.calibs) if (cfg is not None and calibrate) else {}
+        self.stats = DecodeStats()
+        self.pulses = 0
+        self._buf = b""
+        self._synced = False
+        self._ff_run = 0
+        self._last_ts = None
+        self._abs = 0
+        # LH1 state
+        self._sync_abs = None  # last sync event (abs ticks)
+        self._last_sync_by = {}  # (station, axis) → abs ticks
+        self._active = None  # (station, axis, sync_abs, period)
+        self._hits: dict = {}
+        self._held = {}  # station → held X sweep (for calibration pairing)
+        # LH2 state
+        self._block = None
+        self._prev_block = {}
+
+    # -- bytes → frames ------------------------------------------------------------------------
+    def feed(self, data) -> list[SweepMeasurement]:
+        try:
+            data = bytes(data)
+        except Exception:  # noqa: BLE001
+            return []
+        self.stats.bytes_in += len(data)
+        out: list = []
+        try:
+            self._frames(self._buf + data, out)
+        except Exception:  # noqa: BLE001 - last line of defence; fuzzing shows it is never reached
+            self.stats.errors += 1
+            self._buf = b""
+            self._synced = False
+        return out
+
+    def flush(self) -> list[SweepMeasurement]:
+        out: list = []
+        try:
+            if self.mode == "lh1":
+                self._finish_lh1_sweep(out)
+            else:
+                self._close_block(out)
+        except Exception:  # noqa: BLE001
+            self.stats.errors += 1
+        if self._buf:
+            self.stats.skipped_bytes += len(self._buf)
+            self._buf = b""
+        return out
+
+    def _frames(self, buf: bytes, out: list) -> None:
+        pos, L = 0, len(buf)
+        while True:
+            if not self._synced:
+                # look for twelve 0xFF in a row; align on the end of the run
+                while pos < L:
+                    if buf[pos] == 0xFF:
+                        self._ff_run += 1
+                    else:
+                        if self._ff_run >= FRAME_SIZE:
+                            self._synced = True
+                            self._ff_run = 0
+                            break
+                        self._ff_run = 0
+                    self.stats.skipped_bytes += 1
+                    pos += 1
+                if not self._synced:
+                    break
+                # the run's 12 last bytes were the sync frame (counted as skipped above)
+            if L - pos < FRAME_SIZE:
+                break
+            fr = buf[pos:pos + FRAME_SIZE]
+            if fr == SYNC_FRAME:
+                pos += FRAME_SIZE
+                continue
+            if (fr[5] | fr[8]) & 0xFE:
+                self.stats.bad += 1
+                self.stats.resyncs += 1
+                self._synced = False
+                self._ff_run = 0
+                continue  # rescan from this frame's first byte
+            pos += FRAME_SIZE
+            self.pulses += 1
+            self._pulse(fr, out)
+        self._buf = buf[pos:]
+
+    def _unwrap(self, ts: int) -> int:
+        if self._last_ts is None:
+            self._abs = ts
+        else:
+            d = (ts - self._last_ts) % _TS_MOD
+            if d >= _TS_MOD // 2:
+                d -= _TS_MOD  # slightly out of order (the FPGA may swap close pulses)
+            self._abs += d
+        self._last_ts = ts
+        return self._abs
+
+    def _pulse(self, fr: bytes, out: list) -> None:
+        sensor = fr[0] & 0x03
+        ts = self._unwrap(int.from_bytes(fr[9:12], "little"))
+        width = int.from_bytes(fr[1:3], "little")
+        if self.mode == "lh1":
+            self._lh1(sensor, ts, width, out)
+        else:
+            channel = None if fr[0] & 0x80 else (fr[0] >> 3) & 0x0F
+            offset = int.from_bytes(fr[3:6], "little") * 4
+            self._lh2(sensor, ts, offset, channel, out)
+
+    # -- LH1 -----------------------------------------------------------------------------------
+    def _lh1(self, sensor: int, ts: int, width: int, out: list) -> None:
+        if LH1_SYNC_MIN_WIDTH < width < LH1_SYNC_MAX_WIDTH:
+            if self._sync_abs is not None and abs(ts - self._sync_abs) <= LH1_SENSOR_DISPERSION:
+                return  # the same sync seen by another sensor
+            since = None if self._sync_abs is None else ts - self._sync_abs
+            station = 1 if since is not None and LH1_SYNC_MIN_SEP < since < LH1_SYNC_MAX_SEP else 0
+            self._sync_abs = ts
+            code = int((width - LH1_SYNC_BASE_WIDTH) / LH1_SYNC_DIVIDER)  # C truncation
+            axis = code & 1
+            skip = bool(code & 4)  # the other station sweeps this frame
+            if self._hits or not skip:  # a skipping sync right after the active one ends nothing
+                self._finish_lh1_sweep(out)
+            prev = self._last_sync_by.get((station, axis))
+            self._last_sync_by[(station, axis)] = ts
+            if skip:
+                return
+            period = None if prev is None else ts - prev
+            self._active = (station, axis, ts, period)
+            self._hits = {}
+        elif width < LH1_SWEEP_MAX_WIDTH and self._active is not None:
+            if sensor < self.n:
+                self._hits[sensor] = None if sensor in self._hits else ts  # two hits → error
+
+    def _finish_lh1_sweep(self, out: list) -> None:
+        if self._active is None:
+            return
+        station, axis, sync, period = self._active
+        self._active = None
+        hits, self._hits = self._hits, {}
+        if period is None or not LH1_FRAME_WIDTH_MIN <= period <= LH1_FRAME_WIDTH_MAX:
+            self.stats.dropped += 1
+            return
+        a = np.full(self.n, np.nan)
+        for s, ts in hits.items():
+            if ts is not None and 0 <= ts - sync < LH1_FRAME_LENGTH:
+                a[s] = (ts - sync - period / 4.0) * 2 * np.pi / period
+        t = sync / DECK_CLOCK_HZ
+        cal = self.calibs.get(station)
+        if cal is None:
+            self._emit(out, t, station, axis, np.pi / 2 - a, "lh1")
+            return
+        if axis == 0:
+            if station in self._held:
+                self.stats.dropped += 1  # an X sweep without its Y
+            self._held[station] = (t, a)
+            return
+        if station not in self._held:
+            self.stats.dropped += 1
+            return
+        tx, ax = self._held.pop(station)
+        ideal = calibrate_lh1(np.stack([ax, a], -1), cal)  # NaN where either axis is missing
+        self._emit(out, tx, station, 0, np.pi / 2 - ideal[:, 0], "lh1")
+        self._emit(out, t, station, 1, np.pi / 2 - ideal[:, 1], "lh1")
+
+    def _emit(self, out, t, station, axis, angles, kind):
+        self.stats.good += 1
+        out.append(SweepMeasurement(float(t), int(station), int(axis), np.asarray(angles, float), None, kind))
+
+    # -- LH2 -----------------------------------------------------------------------------------
+    def _lh2(self, sensor: int, ts: int, offset: int, channel, out: list) -> None:
+        b = self._block
+        if b is not None and abs(ts - b["last"]) > LH2_MAX_TICKS_SENSOR_TO_SENSOR:
+            self._close_block(out)
+            b = None
+        if b is None:
+            b = self._block = {"last": ts, "channels": set(), "offsets": {}, "t0": None}
+        b["last"] = ts
+        if channel is not None:
+            b["channels"].add(channel)
+        if offset and sensor < self.n and sensor not in b["offsets"]:
+            b["offsets"][sensor] = offset
+            if b["t0"] is None:
+                b["t0"] = ts - offset
+
+    def _close_block(self, out: list) -> None:
+        b, self._block = self._block, None
+        if b is None:
+            return
+        if len(b["channels"]) != 1 or b["t0"] is None:
+            self.stats.dropped += 1  # no or several channels, or no offset: the firmware discards it
+            return
+        ch = next(iter(b["channels"]))
+        prev = self._prev_block.get(ch)
+        if prev is not None and abs(b["t0"] - prev["t0"]) <= LH2_MAX_TICKS_BETWEEN_BLOCKS:
+            del self._prev_block[ch]
+            P = LH2_CYCLE_PERIODS[ch]
+            raw = np.full((self.n, 2), np.nan)
+            for s, off in prev["offsets"].items():
+                raw[s, 0] = off * 2 * np.pi / P - np.pi + np.pi / 3
+            for s, off in b["offsets"].items():
+                raw[s, 1] = off * 2 * np.pi / P - np.pi - np.pi / 3
+            cal = self.calibs.get(ch)
+            ang = calibrate_lh2(raw, cal) if cal is not None else raw
+            t = prev["t0"] / DECK_CLOCK_HZ
+            self._emit(out, t, ch, 0, ang[:, 0], "lh2")
+            self._emit(out, t, ch, 1, ang[:, 1], "lh2")
+        else:
+            if prev is not None:
+                self.stats.dropped += 1  # an unpaired first plane
+            self._prev_block[ch] = b
+
+
+class BitcrazeLh1Decoder(BitcrazeDecoder):
+    """:class:`BitcrazeDecoder` in LH1 mode (registry name ``bitcraze-lh1``)."""
+
+    name = "bitcraze-lh1"
+
+    def __init__(self, n_sensors: int | None = 4, **options):
+        options.setdefault("mode", "lh1")
+        super().__init__(n_sensors, **options)
+
+
+class BitcrazeLh2Decoder(BitcrazeDecoder):
+    """:class:`BitcrazeDecoder` in LH2 mode (registry name ``bitcraze-lh2``)."""
+
+    name = "bitcraze-lh2"
+
+    def __init__(self, n_sensors: int | None = 4, **options):
+        options.setdefault("mode", "lh2")
+        super().__init__(n_sensors, **options)
