@@ -308,11 +308,16 @@ def _solve_homography(corners_uv, focal_length) -> RectangleSolution:
 _NUDGE = np.array([[1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [-1.0, -1.0]])
 
 
-def _solve_ippe(corners_uv, focal_length, aspect_ratio: float = 1.0, reference=None) -> RectangleSolution:
+def _solve_ippe(corners_uv, focal_length, aspect_ratio: float = 1.0, reference=None,
+                ambiguity_ratio: float = 2.0) -> RectangleSolution:
     """OpenCV IPPE (``SOLVEPNP_IPPE``) on a rectangle of known aspect ratio ``L / W``.
 
-    Returns IPPE's best solution by reprojection error (or, with ``reference (..., 3, 3)``, the
-    one of the two nearest the reference) and the other one as ``alternative``.
+    IPPE gives two poses (the plane's normal reflected about the line of sight). The one with the
+    lower reprojection error is returned, except with a ``reference (..., 3, 3)`` (the previous or
+    predicted attitude) when the two errors are within ``ambiguity_ratio`` of each other (the data
+    cannot decide, e.g. near face-on): then the one nearer the reference (up to the corner-labelling
+    symmetry) is taken. The other is ``alternative``; ``extra["reprojection_px"] (..., 2)`` holds the
+    RMS reprojection errors (image units) of the returned and the alternative pose.
     """
     import cv2
 
@@ -334,6 +339,8 @@ def _solve_ippe(corners_uv, focal_length, aspect_ratio: float = 1.0, reference=N
     R = np.full((len(flat), 3, 3), np.nan)
     R_alt = np.full((len(flat), 3, 3), np.nan)
     ok = np.zeros(len(flat), bool)
+    rep = np.full((len(flat), 2), np.nan)
+    S = label_symmetries(4 if np.isclose(rho, 1.0) else 2)
     # image units, not normalised coordinates: IPPE returns NaN on tiny normalised coordinates
     K = np.diag([f, f, 1.0])
     for i, q in enumerate(flat):
@@ -343,24 +350,28 @@ def _solve_ippe(corners_uv, focal_length, aspect_ratio: float = 1.0, reference=N
         # square-on in one axis); a deterministic nudge of the corners (1e-6, then 1e-4 px) avoids the branch.
         for nudge in (0.0, 1e-6, 1e-4):
             try:
-                n, rvecs, _, _ = cv2.solvePnPGeneric(obj_plane, img + nudge * _NUDGE, K, None,
-                                                     flags=cv2.SOLVEPNP_IPPE)
+                n, rvecs, _, errs = cv2.solvePnPGeneric(obj_plane, img + nudge * _NUDGE, K, None,
+                                                        flags=cv2.SOLVEPNP_IPPE)
             except cv2.error:
-                n, rvecs = 0, ()
-            sols = [PAPER_FROM_CV @ cv2.Rodrigues(rv)[0] @ A.T for rv in rvecs[:n] if np.all(np.isfinite(rv))]
+                n, rvecs, errs = 0, (), None
+            sols = [(float(errs[j, 0]), PAPER_FROM_CV @ cv2.Rodrigues(rv)[0] @ A.T)
+                    for j, rv in enumerate(rvecs[:n]) if np.all(np.isfinite(rv))]
             if sols:
                 break
         if not sols:
             continue
-        if refs is not None and len(sols) > 1:
-            sols.sort(key=lambda Rs: -np.trace(Rs.T @ refs[i]))
-        R[i] = sols[0]
+        sols.sort(key=lambda es: es[0])
+        if refs is not None and len(sols) > 1 and sols[1][0] <= ambiguity_ratio * sols[0][0]:
+            sols.sort(key=lambda es: -np.max(np.einsum("kij,ij->k", es[1] @ S, refs[i])))
+        R[i] = sols[0][1]
+        rep[i, 0] = sols[0][0]
         if len(sols) > 1:
-            R_alt[i] = sols[1]
+            R_alt[i] = sols[1][1]
+            rep[i, 1] = sols[1][0]
         ok[i] = True
     shape = c.shape[:-2]
     R, R_alt, ok = R.reshape(shape + (3, 3)), R_alt.reshape(shape + (3, 3)), ok.reshape(shape)
-    return _finish(R, ok, c, f, alternative=R_alt)
+    return _finish(R, ok, c, f, alternative=R_alt, extra={"reprojection_px": rep.reshape(shape + (2,))})
 
 
 #: Registry of rectangle solvers: name → callable(corners_uv, focal_length, **options).

@@ -1,6 +1,51 @@
-"""CLI commands (camera)."""
+"""CLI commands (camera): rectangle-face attitude from images, videos or corner tables."""
 from __future__ import annotations
 
-import click  # noqa: F401
+import click
 
-commands: list = []
+from ._common import echo_json, fail
+
+SOLVER_CHOICES = ["zhai", "homography", "ippe"]  # keys of layoutkit.camera.RECTANGLE_SOLVERS (checked in tests)
+
+
+@click.command("camera-attitude")
+@click.argument("input", metavar="INPUT")
+@click.option("--focal-length-px", "focal_length_px", type=float, required=True, help="Focal length (pixels).")
+@click.option("--principal-point-px", "principal_point", type=(float, float), default=None,
+              help="Principal point cx cy (pixels); default the image centre (images) or 0 0 (CSV).")
+@click.option("--method", type=click.Choice(SOLVER_CHOICES), default="zhai", show_default=True,
+              help="Rectangle solver (zhai and homography are size-free; ippe needs --aspect-ratio).")
+@click.option("--aspect-ratio", type=float, default=None, help="Face L/W for --method ippe (default 1).")
+@click.option("--fps", type=float, default=None, help="Frame rate for an image folder (timestamps).")
+@click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
+@click.option("--threshold", type=float, default=None, help="Grey level of the face (default: Otsu).")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+def camera_attitude(input, focal_length_px, principal_point, method, aspect_ratio, fps, max_frames, threshold,
+                    as_json):
+    """Attitude of a rectangular face (Zhai et al. 2014) from INPUT.
+
+    INPUT: an image, a folder of images, a video file, a capture device index (0, 1, ...) or a
+    corners CSV (t,u1,v1,...,u4,v4 in paper (u, v) pixels, v up; or t,x1,y1,...,x4,y4 pixels).
+    Prints Euler angles Z→Y→X (deg) of R_ct in the paper's camera convention per frame.
+    """
+    if focal_length_px <= 0:
+        fail(f"--focal-length-px must be positive, got {focal_length_px}")
+    from ..workflows.camera import camera_attitude as run
+
+    try:
+        out = run(input, focal_length_px, principal_point=principal_point, method=method,
+                  aspect_ratio=aspect_ratio, fps=fps, max_frames=max_frames, threshold=threshold)
+    except ValueError as e:
+        fail(str(e))
+    if as_json:
+        echo_json(out)
+        return
+    click.echo(f"{out['source']}: {out['n_solved']}/{out['n_frames']} frames solved ({method})")
+    click.echo(f"{'t_s':>10} {'status':>16} {'theta1_deg':>11} {'theta2_deg':>11} {'theta3_deg':>11}")
+    for fr in out["frames"]:
+        th = fr["euler_zyx_deg"]
+        vals = " ".join(f"{v:11.4f}" for v in th) if th is not None else " ".join(["        nan"] * 3)
+        click.echo(f"{fr['t_s']:10.3f} {fr['status']:>16} {vals}")
+
+
+commands = [camera_attitude]

@@ -1,0 +1,57 @@
+"""Temporal filtering of attitude streams on SO(3) (Zhai et al. suggest filtering their output).
+
+A causal constant-rate alpha–beta filter in the tangent space: predict with the current rate,
+correct with the rotation-vector innovation. Left perturbations as in :mod:`layoutkit.geometry`
+(``R = exp([phi]x) R_ref``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .._validate import as_array
+from ..geometry import matrix_to_rotvec, rotvec_to_matrix
+
+__all__ = ["alpha_beta_so3"]
+
+
+def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gate_rad: float | None = None,
+                   valid=None) -> tuple[np.ndarray, np.ndarray]:
+    """Causal alpha–beta filter of a rotation stream.
+
+    Parameters
+    ----------
+    times : (T,) s, increasing. rotations : (T, 3, 3) measured rotations (NaN allowed where invalid).
+    alpha, beta : position and rate gains in (0, 1] (alpha=1, beta=0: no filtering).
+    gate_rad : innovations larger than this (rad) are treated as outliers and skipped (prediction
+        only); None = no gate.
+    valid : (T,) bool, measurements to use (default: finite rotations).
+
+    Returns
+    -------
+    (R_filtered (T, 3, 3), rate (T, 3) rad/s) — the filtered attitude and the estimated angular
+    rate (left / space-frame rotation vector rate). Before the first valid measurement the output is NaN.
+    """
+    t = as_array(times, "times", (None,))
+    R = as_array(rotations, "rotations", (None, 3, 3))
+    if len(t) != len(R):
+        raise ValueError(f"times: expected {len(R)} values (one per rotation), got {len(t)}")
+    ok = np.all(np.isfinite(R), axis=(1, 2)) if valid is None else np.asarray(valid, bool) & np.all(np.isfinite(R), axis=(1, 2))
+    out = np.full_like(R, np.nan)
+    rate = np.full((len(t), 3), np.nan)
+    est, w, t_prev = None, np.zeros(3), None
+    for k in range(len(t)):
+        if est is not None:
+            dt = t[k] - t_prev
+            est = rotvec_to_matrix(w * dt) @ est  # predict
+            t_prev = t[k]
+            if ok[k]:
+                r = matrix_to_rotvec(R[k] @ est.T)  # innovation
+                if gate_rad is None or np.linalg.norm(r) <= gate_rad:
+                    est = rotvec_to_matrix(alpha * r) @ est
+                    if dt > 0:
+                        w = w + beta * r / dt
+        elif ok[k]:
+            est, t_prev = R[k].copy(), t[k]
+        if est is not None:
+            out[k], rate[k] = est, w
+    return out, rate
