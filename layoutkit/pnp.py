@@ -2,33 +2,38 @@
 
 Given the body coordinates of n sensors and their LH1 sweep angles in F frames, find per frame
 the pose ``p_lh = R p_body + t`` that minimises the sum of squared **angle** residuals
-``theta_meas - theta_pred`` over the lit sensors (maximum likelihood for the noise of Chen §3.3).
+``theta_meas - theta_pred`` over the lit sensors — the maximum-likelihood estimate for the
+independent-noise model of Chen §3.3.
 
-Method (all vectorised over frames, processed in bounded chunks):
+Method (vectorised over frames; frames are processed in bounded chunks):
 
 1. Sweep angles are a pinhole camera: normalised image coordinates ``(x/z, y/z) = cot(theta)``
    (Chen eq. 2).
-2. Start, non-coplanar lit sets: scaled-orthographic linear solve with perspective correction
-   (POSIT, DeMenthon & Davis 1995), a few fixed-point iterations.
-3. Start, coplanar / near-coplanar lit sets (or a poor first solution): the two weak-perspective
-   poses of the dominant plane (the planar two-fold ambiguity, as in IPPE, Collins & Bartoli 2014),
-   each corrected for perspective; both are refined and the one with the lower residual and all
-   lit sensors in front of the station wins.
-4. Refinement: Levenberg–Marquardt on the angle residuals with the analytic Jacobian of
-   :func:`layoutkit.dop.angle_jacobian` (left perturbation ``R <- exp([dphi]x) R``,
-   ``t <- t + dt``; Chen eqs. 6–12), batched 6 × 6 normal equations.
+2. Start for non-coplanar lit sets: the bearings are rotated into a virtual camera whose
+   boresight is the mean bearing of the lit sensors, where the target is near the axis and
+   scaled orthography is an excellent model; then the scaled-orthographic linear solve with
+   perspective correction (POSIT, DeMenthon & Davis 1995), two fixed-point iterations.
+3. Start for coplanar or near-coplanar lit sets (``sqrt(lambda_min / lambda_max)`` of the centred
+   lit body points below :data:`PLANARITY_THRESHOLD`), and for frames whose first solution is
+   poor: the homography of the dominant plane and the two poses of the planar two-fold
+   ambiguity from its Jacobian in closed form (IPPE, Collins & Bartoli 2014). Every candidate is
+   refined; the lowest residual with all lit sensors in front of the station wins.
+4. Refinement: Levenberg–Marquardt on the angle residuals (Chen eqs. 6–12) with the analytic
+   Jacobian of :func:`layoutkit.dop.angle_jacobian` written out per component (left
+   perturbation ``R <- exp([dphi]x) R``, ``t <- t + dt``), batched 6 × 6 normal equations
+   solved by an unrolled Cholesky factorisation. Converged when the step lowers the cost by less
+   than ``1e-6`` of itself (typically two iterations from the POSIT start).
 
-Status codes (``PnPResult.status``): see :data:`STATUS_NAMES`.
+Status codes (``PnPResult.status``) are listed in :data:`STATUS_NAMES`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from ._validate import as_array
-from .dop import angle_jacobian
 
 __all__ = [
     "PnPResult",
@@ -45,7 +50,7 @@ __all__ = [
 ]
 
 STATUS_OK = 0
-STATUS_TOO_FEW = 1          # fewer than 4 lit sensors with finite angles
+STATUS_TOO_FEW = 1          # fewer than 4 lit sensors with finite angles in (0, pi)
 STATUS_DEGENERATE = 2       # lit sensors (nearly) collinear, or singular normal equations
 STATUS_NOT_CONVERGED = 3    # refinement hit max_iterations without meeting the tolerance
 STATUS_BEHIND = 4           # best pose puts a lit sensor at z <= 0 (behind the station)
@@ -57,24 +62,31 @@ STATUS_NAMES = {
     STATUS_BEHIND: "behind the station (a lit sensor at z <= 0)",
 }
 
-DEFAULT_CHUNK = 32768
-# Lit sets whose centred body points have sqrt(lambda_min / lambda_max) below this get the two
-# planar candidates in addition to the POSIT start.
+DEFAULT_CHUNK = 4096
+#: Lit sets with sqrt(lambda_min / lambda_max) of their centred body points below this get the two
+#: planar (IPPE) candidates in addition to the POSIT start.
 PLANARITY_THRESHOLD = 0.2
-# A refined solution whose angle-residual RMS exceeds this (rad) is retried from the planar
-# candidates (a wrong basin has residuals far above lighthouse noise, ~4e-5 rad).
+#: Below this planarity the lit set counts as exactly coplanar (no POSIT start).
+COPLANAR_THRESHOLD = 1e-5
+#: Lit sets with sqrt(lambda_mid / lambda_max) below this are collinear (degenerate).
+COLLINEAR_THRESHOLD = 1e-5
+#: A refined solution whose angle-residual RMS exceeds this (rad) is retried from the planar
+#: candidates (a wrong basin has residuals far above lighthouse noise, ~4e-5 rad).
 RETRY_RESIDUAL = 1e-3
+_RTOL = 1e-6     # converged when the step lowers the cost by less than this fraction of it
+_ATOL = 1e-26    # ... or by less than this (rad², per angle) — the noise-free floor
 
 
 @dataclass(frozen=True)
 class PnPResult:
     """Poses of F frames.
 
-    rotation : (F, 3, 3), translation : (F, 3) m — ``p_lh = R p_body + t`` (NaN where no pose).
+    rotation : (F, 3, 3), translation : (F, 3) m — ``p_lh = R p_body + t``; NaN where no pose
+        was computed (too few sensors, degenerate).
     success : (F,) bool, ``status == STATUS_OK``.
     status : (F,) int, codes in :data:`STATUS_NAMES`.
-    residual_rms : (F,) rad, RMS angle residual over the lit sensors' 2 n angles.
-    iterations : (F,) int, refinement iterations of the returned solution.
+    residual_rms : (F,) rad, RMS angle residual over the 2 n_lit angles of the returned pose.
+    iterations : (F,) int, Levenberg–Marquardt iterations of the returned solution.
     """
 
     rotation: np.ndarray
@@ -86,6 +98,7 @@ class PnPResult:
 
     @property
     def message(self) -> str:
+        """One-line summary of the statuses."""
         s = np.asarray(self.status)
         if s.size and np.all(s == STATUS_OK):
             return f"ok ({s.size} frame(s))"
@@ -94,196 +107,440 @@ class PnPResult:
 
 
 class PnPSolver(Protocol):
-    """A batched PnP solver working on one chunk of frames.
+    """A batched PnP solver for one chunk of frames (an entry of :data:`PNP_SOLVERS`).
 
-    points_body (F, n, 3) m, angles (F, n, 2) rad, lit (F, n) bool (already cleaned: only finite
-    angles in (0, pi) and finite points are lit), initial ``(R (F,3,3), t (F,3))`` or None.
-    Returns a :class:`PnPResult` for the F frames.
+    points_body : (n, 3) or (F, n, 3) m; angles : (F, n, 2) rad; lit : (F, n) bool, already
+    cleaned (only finite angles in (0, pi) and finite points are lit); initial : ``(R (F, 3, 3),
+    t (F, 3))`` or None; max_iterations : int. Returns a :class:`PnPResult` for the F frames.
     """
 
     def __call__(self, points_body: np.ndarray, angles: np.ndarray, lit: np.ndarray,
                  initial, max_iterations: int) -> PnPResult: ...
 
 
-# ----------------------------------------------------------------------------------- helpers
+# ------------------------------------------------------------------------------ chunk data
+#
+# Inside a chunk, per-sensor arrays are stored frames-last, (n, F), so that every elementwise
+# operation runs over the long frame axis (numpy's inner loop) and sums over sensors are vector
+# adds; per-frame scalars are (F,) arrays. This layout is 2-3x faster than (F, n) here.
+
+class _Frames:
+    """Per-chunk data: body points Px, Py, Pz ((n, 1) for a shared body, else (n, F)); image
+    coordinates ux, uy = cot(theta) (n, F) (Chen eq. 2), zero where unlit; lit mask w (n, F) float
+    (``all_lit`` skips the masking); number of lit sensors nl (F,)."""
+
+    def __init__(self, P, ang, lit):
+        F, n = lit.shape
+        self.shared = P.ndim == 2
+        if self.shared:
+            self.Px, self.Py, self.Pz = (P[:, k, None].copy() for k in range(3))
+        else:
+            Pt = np.where(lit[..., None], P, 0.0).transpose(2, 1, 0)
+            self.Px, self.Py, self.Pz = (np.ascontiguousarray(Pt[k]) for k in range(3))
+        self.all_lit = bool(lit.all())
+        self.w = np.ascontiguousarray(lit.T, dtype=float)
+        th = np.ascontiguousarray(ang.transpose(2, 1, 0))  # (2, n, F)
+        if self.all_lit:
+            self.ux = 1.0 / np.tan(th[0])
+            self.uy = 1.0 / np.tan(th[1])
+        else:
+            self.ux = np.where(lit.T, 1.0 / np.tan(np.where(lit.T, th[0], 1.0)), 0.0)
+            self.uy = np.where(lit.T, 1.0 / np.tan(np.where(lit.T, th[1], 1.0)), 0.0)
+        self.nl = lit.sum(1).astype(float)
+
+    def take(self, idx):
+        out = object.__new__(_Frames)
+        out.shared = self.shared
+        out.all_lit = self.all_lit
+        for k in ("Px", "Py", "Pz"):
+            v = getattr(self, k)
+            setattr(out, k, v if self.shared else v[:, idx])
+        for k in ("w", "ux", "uy"):
+            setattr(out, k, getattr(self, k)[:, idx])
+        out.nl = self.nl[idx]
+        if not out.all_lit:
+            out.all_lit = bool(out.w.all())
+        return out
+
+    def masked(self, a):
+        return a if self.all_lit else a * self.w
+
+    def points(self):
+        """(F, n, 3) body points, zero where unlit."""
+        P = np.stack([np.broadcast_to(v, self.w.shape) for v in (self.Px, self.Py, self.Pz)], -1)
+        return P.transpose(1, 0, 2) * self.w.T[..., None]
+
+
+def _atan_ratio(num, den):
+    """atan2(num, den) for den > 0 and small |num / den| by a series, else exactly."""
+    q = num / den
+    if np.max(np.abs(q), initial=0.0) < 1e-2 and np.min(den, initial=1.0) > 0:
+        q2 = q * q  # truncation error below |q|^9 / 9 < 1.2e-19
+        return q * (1.0 - q2 * (1.0 / 3.0 - q2 * (0.2 - q2 * (1.0 / 7.0))))
+    return np.arctan2(num, den)
+
+
+def _eval(fr, R, t):
+    """Lever ``l = R p_body``, station-frame points ``p = l + t`` and angle residuals of (R, t).
+
+    The residual ``theta_meas - atan2(z, x)`` is the atan of the tangent of the difference,
+    ``(x - u z) / (z + u x)`` with ``u = cot(theta_meas)`` (no cancellation), zero for unlit
+    sensors. Returns a dict of (n, F) arrays and ``cost`` (F,) = sum of squared residuals.
+    """
+    Px, Py, Pz = fr.Px, fr.Py, fr.Pz
+    r = R.reshape(-1, 9).T.copy()  # contiguous components (strided broadcasts are slow)
+    tt = t.T.copy()
+    lx = r[0] * Px + r[1] * Py + r[2] * Pz
+    ly = r[3] * Px + r[4] * Py + r[5] * Pz
+    lz = r[6] * Px + r[7] * Py + r[8] * Pz
+    x = lx + tt[0]
+    y = ly + tt[1]
+    z = lz + tt[2]
+    if fr.all_lit:
+        rx = _atan_ratio(x - fr.ux * z, z + fr.ux * x)
+        ry = _atan_ratio(y - fr.uy * z, z + fr.uy * y)
+    else:
+        w = fr.w
+        rx = _atan_ratio((x - fr.ux * z) * w, (z + fr.ux * x - 1.0) * w + 1.0)
+        ry = _atan_ratio((y - fr.uy * z) * w, (z + fr.uy * y - 1.0) * w + 1.0)
+    cost = (rx * rx + ry * ry).sum(0)
+    return {"lx": lx, "ly": ly, "lz": lz, "x": x, "y": y, "z": z, "rx": rx, "ry": ry, "cost": cost}
+
+
+def _normal_equations(fr, ev):
+    """Upper triangle of J^T J and J^T r of the angle residuals, as (F,) components.
+
+    Per sensor with p = (x, y, z) in the station frame and lever l = R p_body (Chen eqs. 10–14 in
+    the left-perturbation form of :func:`layoutkit.dop.angle_jacobian`, whose rows these are):
+    ``d theta_x / d p = (-z, 0, x) / (x² + z²)``, ``d theta_y / d p = (0, -z, y) / (y² + z²)``,
+    row = ``[l × d theta/d p, d theta/d p]``. Returns ``(A, g)``: A[i][j] (i <= j) and g[i].
+    """
+    x, y, z, lx, ly, lz = ev["x"], ev["y"], ev["z"], ev["lx"], ev["ly"], ev["lz"]
+    ix = 1.0 / (x * x + z * z)
+    iy = 1.0 / (y * y + z * z)
+    zm = fr.masked(z)
+    a0 = -zm * ix
+    a2 = fr.masked(x) * ix
+    b1 = -zm * iy
+    b2 = fr.masked(y) * iy
+    # theta_x row: [j0, j1, j2, a0, 0, a2]; theta_y row: [k0, k1, k2, 0, b1, b2]
+    j = (ly * a2, lz * a0 - lx * a2, -ly * a0)
+    k = (ly * b2 - lz * b1, -lx * b2, lx * b1)
+    rx, ry = ev["rx"], ev["ry"]
+    jx = (j[0], j[1], j[2], a0, None, a2)
+    jy = (k[0], k[1], k[2], None, b1, b2)
+    A = [[None] * 6 for _ in range(6)]
+    for p in range(6):
+        for q in range(p, 6):
+            s = None
+            if jx[p] is not None and jx[q] is not None:
+                s = jx[p] * jx[q]
+            if jy[p] is not None and jy[q] is not None:
+                s = jy[p] * jy[q] if s is None else s + jy[p] * jy[q]
+            A[p][q] = np.zeros(x.shape[1]) if s is None else s.sum(0)
+    g = []
+    for p in range(6):
+        s = None
+        if jx[p] is not None:
+            s = jx[p] * rx
+        if jy[p] is not None:
+            s = jy[p] * ry if s is None else s + jy[p] * ry
+        g.append(s.sum(0))
+    return A, g
+
+
+def _cholesky_solve(A, g, lam):
+    """Solve ``(A + lam diag(A)) x = g`` per frame; A upper-triangle components (F,), unrolled
+    Cholesky. Returns x (F, 6) and ok (F,) — False where a pivot is not positive (singular)."""
+    scale = np.maximum(np.maximum.reduce([A[i][i] for i in range(6)]), 1e-300)
+    ok = np.ones(scale.shape, bool)
+    L = [[None] * 6 for _ in range(6)]
+    inv = [None] * 6
+    for c in range(6):
+        s = A[c][c] * (1.0 + lam)
+        for k in range(c):
+            s = s - L[c][k] * L[c][k]
+        good = s > 1e-14 * scale
+        ok &= good
+        inv[c] = 1.0 / np.sqrt(np.where(good, s, scale))
+        for i in range(c + 1, 6):
+            s = A[c][i]
+            for k in range(c):
+                s = s - L[i][k] * L[c][k]
+            L[i][c] = s * inv[c]
+    y = [None] * 6
+    for i in range(6):
+        s = g[i]
+        for k in range(i):
+            s = s - L[i][k] * y[k]
+        y[i] = s * inv[i]
+    xs = [None] * 6
+    for i in range(5, -1, -1):
+        s = y[i]
+        for k in range(i + 1, 6):
+            s = s - L[k][i] * xs[k]
+        xs[i] = s * inv[i]
+    return np.stack(xs, -1), ok
+
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
-    """exp([phi]x) for phi (F, 3) → (F, 3, 3), stable for small angles."""
-    th2 = np.einsum("fi,fi->f", phi, phi)
-    th = np.sqrt(th2)
-    small = th < 1e-4
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(ths)) / (ths * ths))
+    """exp([phi]x) for phi (F, 3) rad → (F, 3, 3), series for small angles."""
     x, y, z = phi[:, 0], phi[:, 1], phi[:, 2]
-    K = np.zeros(phi.shape[:1] + (3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -z, y, -x
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = z, -y, x
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    th2 = x * x + y * y + z * z
+    small = th2 < 1e-8
+    th = np.sqrt(np.where(small, 1.0, th2))
+    a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(th) / th)
+    b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(th)) / (th * th))
+    out = np.empty(phi.shape[:1] + (3, 3))
+    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
+    out[:, 0, 0] = 1.0 - b * (y * y + z * z)
+    out[:, 1, 1] = 1.0 - b * (x * x + z * z)
+    out[:, 2, 2] = 1.0 - b * (x * x + y * y)
+    out[:, 0, 1] = bxy - a * z
+    out[:, 1, 0] = bxy + a * z
+    out[:, 0, 2] = bxz + a * y
+    out[:, 2, 0] = bxz - a * y
+    out[:, 1, 2] = byz - a * x
+    out[:, 2, 1] = byz + a * x
+    return out
 
 
-def _orthonormal_pair(a: np.ndarray, b: np.ndarray):
-    """Symmetric orthonormalisation of two 3-vectors per frame (F, 3) → (r1, r2) unit, orthogonal."""
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    m = a + b
-    d = a - b
-    m /= np.linalg.norm(m, axis=-1, keepdims=True)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return (m + d) / np.sqrt(2.0), (m - d) / np.sqrt(2.0)
-
-
-def _residuals(P, ang, w, R, t):
-    """Angle residuals (F, n, 2) weighted by lit mask, points in the station frame and lever."""
-    lever = np.matmul(P, np.swapaxes(R, -1, -2))  # R p_body, (F, n, 3)
-    p = lever + t[:, None, :]
-    pred = np.stack([np.arctan2(p[..., 2], p[..., 0]), np.arctan2(p[..., 2], p[..., 1])], -1)
-    r = (ang - pred) * w[..., None]
-    return r, p, lever
-
-
-def _refine(P, ang, w, R, t, max_iterations):
-    """Batched Levenberg–Marquardt on the angle residuals.
+def _refine(fr, R, t, max_iterations):
+    """Batched Levenberg–Marquardt on the angle residuals from the start (R, t).
 
     Returns R, t, cost (sum of squared residuals), iterations, converged, ok (normal equations
-    solvable), min depth of lit sensors.
+    solvable), depth (smallest z of the lit sensors).
     """
-    F = P.shape[0]
-    R = R.copy()
-    t = t.copy()
-    m = 2.0 * w.sum(1)
-    r, p, lever = _residuals(P, ang, w, R, t)
-    cost = np.einsum("fna,fna->f", r, r)
+    F = R.shape[0]
+    R = np.array(R, float)
+    t = np.array(t, float)
+    ev = _eval(fr, R, t)
+    cost = ev.pop("cost")
     lam = np.full(F, 1e-6)
     iters = np.zeros(F, int)
     conv = np.zeros(F, bool)
     ok = np.ones(F, bool)
-    active = np.arange(F)
-    eye = np.eye(6)
+    act = np.arange(F)
     for _ in range(max_iterations):
-        if active.size == 0:
+        if act.size == 0:
             break
-        a = active
-        J = angle_jacobian(p[a], lever[a]) * w[a][..., None, None]  # (A, n, 2, 6), Chen eqs. 10-14
-        J = J.reshape(a.size, -1, 6)
-        A = np.matmul(np.swapaxes(J, 1, 2), J)
-        g = np.matmul(np.swapaxes(J, 1, 2), r[a].reshape(a.size, -1, 1))[..., 0]
-        diag = np.einsum("fii->fi", A)
-        scale = np.maximum(diag.max(1), 1e-300)
-        M = A + (lam[a][:, None] * np.maximum(diag, 1e-12 * scale[:, None]))[:, :, None] * eye
-        bad = ~np.all(np.isfinite(M), axis=(1, 2))
-        M[bad] = eye
-        try:
-            step = np.linalg.solve(M, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:  # pragma: no cover - singular only with exact zeros
-            step = np.stack([np.linalg.lstsq(Mi, gi, rcond=None)[0] for Mi, gi in zip(M, g)])
-        ok[a[bad]] = False
-        Rn = np.matmul(_rodrigues(step[:, :3]), R[a])
-        tn = t[a] + step[:, 3:]
-        rn, pn, levn = _residuals(P[a], ang[a], w[a], Rn, tn)
-        cn = np.einsum("fna,fna->f", rn, rn)
-        acc = (cn <= cost[a]) & ~bad
-        ia = a[acc]
-        R[ia], t[ia], r[ia], p[ia], lever[ia], cost[ia] = Rn[acc], tn[acc], rn[acc], pn[acc], levn[acc], cn[acc]
-        lam[ia] = np.maximum(lam[ia] * 0.1, 1e-12)
-        lam[a[~acc]] *= 10.0
-        iters[a] += 1
-        # converged: the step changes the cost by a negligible amount (or is itself negligible)
-        dl = np.einsum("fi,fi->f", step, g)
-        small = (np.abs(dl) <= 1e-8 * cost[a] + m[a] * 1e-24) | (
-            (np.linalg.norm(step[:, :3], axis=1) < 1e-13)
-            & (np.linalg.norm(step[:, 3:], axis=1) < 1e-13 * (1.0 + np.linalg.norm(t[a], axis=1))))
-        done = small | bad | (lam[a] > 1e12)
-        conv[a[small]] = True
-        active = a[~done]
-    depth = np.where(w > 0, p[..., 2], np.inf).min(1)
+        whole = act.size == F
+        if whole:
+            sub, evs = fr, ev
+        else:
+            sub, evs = fr.take(act), {k: v[:, act] for k, v in ev.items()}
+        Ra, ta, ca = (R, t, cost) if whole else (R[act], t[act], cost[act])
+        A, g = _normal_equations(sub, evs)
+        step, okc = _cholesky_solve(A, g, lam[act])
+        dl = np.einsum("fi,fi->f", step, np.stack(g, -1))  # 2 x predicted decrease of the cost
+        small = okc & (dl <= _RTOL * ca + _ATOL * sub.nl)
+        Rn = np.matmul(_rodrigues(step[:, :3]), Ra)
+        tn = ta + step[:, 3:]
+        # frames whose step is negligible take it without a new evaluation
+        todo = np.flatnonzero(okc & ~small)
+        if todo.size == act.size:
+            evn = _eval(sub, Rn, tn)
+        else:
+            evn = _eval(sub.take(todo), Rn[todo], tn[todo])
+        cn = evn.pop("cost")
+        better = cn <= ca[todo]
+        acc = np.zeros(act.size, bool)
+        acc[todo] = better
+        if better.all() and todo.size == F:
+            ev, cost = evn, cn
+        else:
+            dst = act[todo[better]]
+            for k_, v in ev.items():
+                v[:, dst] = evn[k_][:, better]
+            cost[dst] = cn[better]
+        cost[act[small]] = np.maximum(ca[small] - dl[small], 0.0)
+        take = acc | small
+        R[act[take]] = Rn[take]
+        t[act[take]] = tn[take]
+        lam[act[acc]] = np.maximum(lam[act[acc]] * 0.1, 1e-12)
+        lam[act[~take & okc]] *= 10.0
+        iters[act] += 1
+        conv[act[small]] = True
+        ok[act[~okc]] = False
+        act = act[~(small | ~okc | (lam[act] > 1e10))]
+    depth = np.where(fr.w > 0, ev["z"], np.inf).min(0)
     return R, t, cost, iters, conv, ok, depth
 
 
-def _centred(P, w):
-    nl = w.sum(1)
-    c = (P * w[..., None]).sum(1) / np.maximum(nl, 1)[:, None]
-    Q = (P - c[:, None, :]) * w[..., None]
-    S = np.matmul(np.swapaxes(Q, 1, 2), Q)
-    return c, Q, S
+# ------------------------------------------------------------------------------ starts
+
+def _sym3_eigvals(S00, S11, S22, S01, S02, S12):
+    """Eigenvalues (ascending) of symmetric 3 × 3 matrices given by (F,) components, closed form."""
+    p1 = S01 * S01 + S02 * S02 + S12 * S12
+    q = (S00 + S11 + S22) / 3.0
+    p2 = (S00 - q) ** 2 + (S11 - q) ** 2 + (S22 - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0)
+    ps = np.where(p > 0, p, 1.0)
+    B00, B11, B22 = (S00 - q) / ps, (S11 - q) / ps, (S22 - q) / ps
+    B01, B02, B12 = S01 / ps, S02 / ps, S12 / ps
+    detB = (B00 * (B11 * B22 - B12 * B12) - B01 * (B01 * B22 - B12 * B02)
+            + B02 * (B01 * B12 - B11 * B02))
+    phi = np.arccos(np.clip(detB / 2.0, -1.0, 1.0)) / 3.0
+    e_hi = q + 2.0 * p * np.cos(phi)
+    e_lo = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    e_mid = 3.0 * q - e_hi - e_lo
+    return e_lo, e_mid, e_hi
 
 
-def _posit(Q, c, u, w, iterations=4):
-    """Scaled-orthographic start with perspective correction (POSIT) for non-coplanar lit sets.
+def _scatter(fr):
+    """Centroid c (F, 3) and scatter (S00, S11, S22, S01, S02, S12) (F,) of the lit body points."""
+    nl = np.maximum(fr.nl, 1.0)
+    F = nl.shape[0]
+    P = (fr.Px, fr.Py, fr.Pz)
+    if fr.shared and fr.all_lit:  # the same set in every frame: compute once
+        Pm = np.concatenate(P, 1)
+        c0 = Pm.mean(0)
+        Q = Pm - c0
+        S0 = Q.T @ Q
+        c = np.broadcast_to(c0, (F, 3)).copy()
+        S = tuple(np.full(F, S0[i, j]) for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)))
+        return c, S
+    w = fr.w
+    c = np.stack([(w * v).sum(0) for v in P], -1) / nl[:, None]
+    M = [(w * P[i] * P[j]).sum(0) for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))]
+    S = tuple(M[k] - nl * c[:, i] * c[:, j]
+              for k, (i, j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))))
+    return c, S
 
-    Q (F, n, 3) centred lit body points (zero where unlit), c (F, 3) their centroid,
-    u (F, n, 2) normalised image coordinates, w (F, n) lit mask. Returns R (F,3,3), t (F,3).
+
+def _normalize(v):
+    return v / np.sqrt((v * v).sum(-1))[..., None]
+
+
+def _orthonormal_pair(a, b):
+    """Symmetric orthonormalisation of two 3-vectors per frame (F, 3) → (r1, r2)."""
+    a = _normalize(a)
+    b = _normalize(b)
+    m = _normalize(a + b)
+    d = _normalize(a - b)
+    return (m + d) * np.sqrt(0.5), (m - d) * np.sqrt(0.5)
+
+
+def _cross(a, b):
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], -1)
+
+
+def _posit(fr, c, S, iterations=2):
+    """Scaled-orthographic start with perspective correction (POSIT) in a virtual camera.
+
+    The bearings are rotated so that the mean lit bearing is the virtual boresight (where the
+    small target is near the axis and weak perspective is accurate), POSIT (DeMenthon & Davis
+    1995) runs there, and the pose is rotated back. Non-coplanar lit sets only.
+    Returns R (F, 3, 3), t (F, 3).
     """
-    F = Q.shape[0]
-    S = np.matmul(np.swapaxes(Q, 1, 2), Q)
-    Sinv = np.linalg.pinv(S)
-    nl = np.maximum(w.sum(1), 1)
-    eps = np.zeros(w.shape)
-    for _ in range(iterations):
-        uu = u * (1.0 + eps)[..., None] * w[..., None]
-        x0 = uu.sum(1) / nl[:, None]  # (F, 2): image of the centroid times depth ratio
-        IJ = np.matmul(Sinv, np.matmul(np.swapaxes(Q, 1, 2), uu))  # (F, 3, 2)
-        I, J = IJ[..., 0], IJ[..., 1]
-        s = 0.5 * (np.linalg.norm(I, axis=1) + np.linalg.norm(J, axis=1))
-        Z = 1.0 / np.maximum(s, 1e-300)
+    ux, uy = fr.ux, fr.uy
+    F = ux.shape[1]
+    inv = fr.masked(1.0 / np.sqrt(ux * ux + uy * uy + 1.0))
+    m = _normalize(np.stack([(ux * inv).sum(0), (uy * inv).sum(0), inv.sum(0)], -1))
+    # Rc: the rotation taking m to e_z, I + [v]x + [v]x² / (1 + c) with v = m × e_z, c = m_z
+    vx, vy, cz = m[:, 1], -m[:, 0], m[:, 2]
+    k = 1.0 / (1.0 + cz)
+    Rc = np.empty((F, 3, 3))
+    Rc[:, 0, 0] = 1.0 - k * vy * vy
+    Rc[:, 0, 1] = k * vx * vy
+    Rc[:, 0, 2] = vy
+    Rc[:, 1, 0] = k * vx * vy
+    Rc[:, 1, 1] = 1.0 - k * vx * vx
+    Rc[:, 1, 2] = -vx
+    Rc[:, 2, 0] = -vy
+    Rc[:, 2, 1] = vx
+    Rc[:, 2, 2] = cz
+    ibz = 1.0 / (Rc[:, 2, 0] * ux + Rc[:, 2, 1] * uy + cz)
+    vxs = fr.masked((Rc[:, 0, 0] * ux + Rc[:, 0, 1] * uy + vy) * ibz)
+    vys = fr.masked((Rc[:, 1, 0] * ux + Rc[:, 1, 1] * uy - vx) * ibz)
+    # inverse of the scatter (adjugate / det)
+    S00, S11, S22, S01, S02, S12 = S
+    C00 = S11 * S22 - S12 * S12
+    C01 = S02 * S12 - S01 * S22
+    C02 = S01 * S12 - S02 * S11
+    C11 = S00 * S22 - S02 * S02
+    C12 = S01 * S02 - S00 * S12
+    C22 = S00 * S11 - S01 * S01
+    idet = 1.0 / (S00 * C00 + S01 * C01 + S02 * C02)
+    Sinv = ((C00 * idet, C01 * idet, C02 * idet), (C01 * idet, C11 * idet, C12 * idet),
+            (C02 * idet, C12 * idet, C22 * idet))
+    nl = np.maximum(fr.nl, 1.0)
+    Qx, Qy, Qz = fr.Px - c[:, 0], fr.Py - c[:, 1], fr.Pz - c[:, 2]
+    if not fr.all_lit:
+        Qx, Qy, Qz = Qx * fr.w, Qy * fr.w, Qz * fr.w
+    ax, ay = vxs, vys
+    for it in range(iterations):
+        if it:  # perspective correction 1 + eps_i = z_i / z_c
+            e = 1.0 + (r3[:, 0] * Qx + r3[:, 1] * Qy + r3[:, 2] * Qz) / Z
+            ax, ay = vxs * e, vys * e
+        # I = S^-1 sum_n Q_n a_n (Q centred, so the image of the centroid drops out)
+        qa = ((Qx * ax).sum(0), (Qy * ax).sum(0), (Qz * ax).sum(0))
+        qb = ((Qx * ay).sum(0), (Qy * ay).sum(0), (Qz * ay).sum(0))
+        I = np.stack([Sinv[i][0] * qa[0] + Sinv[i][1] * qa[1] + Sinv[i][2] * qa[2] for i in range(3)], -1)
+        J = np.stack([Sinv[i][0] * qb[0] + Sinv[i][1] * qb[1] + Sinv[i][2] * qb[2] for i in range(3)], -1)
+        Z = 2.0 / (np.sqrt((I * I).sum(1)) + np.sqrt((J * J).sum(1)))
         r1, r2 = _orthonormal_pair(I, J)
-        r3 = np.cross(r1, r2)
-        eps = np.einsum("fnk,fk->fn", Q, r3) / Z[:, None]
-    R = np.stack([r1, r2, r3], 1)
-    t = np.concatenate([x0 * Z[:, None], Z[:, None]], 1) - np.einsum("fij,fj->fi", R, c)
+        r3 = _cross(r1, r2)
+    Rv = np.stack([r1, r2, r3], 1)
+    x0, y0 = ax.sum(0) / nl, ay.sum(0) / nl
+    tv = np.stack([x0 * Z, y0 * Z, Z], -1) - np.einsum("fij,fj->fi", Rv, c)
+    R = np.matmul(Rc.transpose(0, 2, 1), Rv)
+    t = np.einsum("fji,fj->fi", Rc, tv)
     return R, t
 
 
-def _ippe_pair(Q, c, u, w):
+def _ippe_pair(fr, c):
     """The two poses of the planar ambiguity for the dominant plane of the lit set (IPPE).
 
-    Fits the homography from in-plane coordinates (principal axes of the centred lit body points
-    ``Q``) to the normalised image coordinates ``u``, takes its Jacobian at the lit centroid ``c``
-    and decomposes it in closed form into the two plane poses (Collins & Bartoli 2014, IPPE).
-    Exact for noise-free coplanar points; a start for near-coplanar ones.
+    Fits the homography from in-plane coordinates (principal axes of the centred lit body points)
+    to the normalised image coordinates, takes its Jacobian at the lit centroid ``c`` and
+    decomposes it in closed form into the two plane poses (Collins & Bartoli 2014). Exact for
+    noise-free coplanar points; a start for near-coplanar ones.
     Returns ``[(R_a, t_a), (R_b, t_b)]``, each (F, 3, 3), (F, 3).
     """
-    F = Q.shape[0]
-    S = np.matmul(np.swapaxes(Q, 1, 2), Q)
+    w = fr.w.T  # (F, n)
+    F = w.shape[0]
+    Q = (fr.points() - c[:, None, :]) * w[..., None]
+    S = np.matmul(Q.transpose(0, 2, 1), Q)
     _, V = np.linalg.eigh(S)  # ascending
     e1, e2 = V[..., 2], V[..., 1]
     e0 = np.cross(e1, e2)  # completes a proper body basis
     E = np.stack([e1, e2, e0], -1)
-    nl = np.maximum(w.sum(1), 1)
+    nl = np.maximum(fr.nl, 1.0)
+    u = np.stack([fr.ux.T, fr.uy.T], -1)
     # Hartley normalisation of both point sets
     sa = np.einsum("fnk,fk->fn", Q, e1)
     sb = np.einsum("fnk,fk->fn", Q, e2)
-    m = np.sqrt(((sa * sa + sb * sb) * w).sum(1) / nl)[:, None]
-    m = np.maximum(m, 1e-300)
+    m = np.maximum(np.sqrt(((sa * sa + sb * sb) * w).sum(1) / nl), 1e-300)[:, None]
     sa, sb = sa / m, sb / m
     ubar = (u * w[..., None]).sum(1) / nl[:, None]
     du = (u - ubar[:, None, :]) * w[..., None]
     k = np.maximum(np.sqrt((du * du).sum((1, 2)) / nl), 1e-300)[:, None]
     ux, uy = du[..., 0] / k, du[..., 1] / k
-    # homography with h33 = 1: [h11 h12 h13 h21 h22 h23 h31 h32] (linear least squares)
+    # homography with h33 = 1: [h11 h12 h13 h21 h22 h23 h31 h32], linear least squares
     z = np.zeros_like(sa)
-    one = w
-    rx = np.stack([sa * w, sb * w, one, z, z, z, -ux * sa, -ux * sb], -1)
-    ry = np.stack([z, z, z, sa * w, sb * w, one, -uy * sa, -uy * sb], -1)
+    rx = np.stack([sa, sb, w, z, z, z, -ux * sa, -ux * sb], -1)
+    ry = np.stack([z, z, z, sa, sb, w, -uy * sa, -uy * sb], -1)
     Arows = np.concatenate([rx, ry], 1)  # (F, 2n, 8)
     rhs = np.concatenate([ux, uy], 1)
-    AtA = np.matmul(np.swapaxes(Arows, 1, 2), Arows) + 1e-14 * np.eye(8)
-    h = np.linalg.solve(AtA, np.matmul(np.swapaxes(Arows, 1, 2), rhs[..., None]))[..., 0]
-    vx_, vy_ = h[:, 2], h[:, 5]
-    # Jacobian of the (normalised) homography at the plane origin, then de-normalised
-    j00 = (h[:, 0] - vx_ * h[:, 6]) * k[:, 0] / m[:, 0]
-    j01 = (h[:, 1] - vx_ * h[:, 7]) * k[:, 0] / m[:, 0]
-    j10 = (h[:, 3] - vy_ * h[:, 6]) * k[:, 0] / m[:, 0]
-    j11 = (h[:, 4] - vy_ * h[:, 7]) * k[:, 0] / m[:, 0]
-    p = ubar[:, 0] + k[:, 0] * vx_
-    q = ubar[:, 1] + k[:, 0] * vy_
+    AtA = np.matmul(Arows.transpose(0, 2, 1), Arows) + 1e-14 * np.eye(8)
+    h = np.linalg.solve(AtA, np.matmul(Arows.transpose(0, 2, 1), rhs[..., None]))[..., 0]
+    hx, hy = h[:, 2], h[:, 5]
+    # Jacobian of the homography at the plane origin, de-normalised
+    km = k[:, 0] / m[:, 0]
+    j00 = (h[:, 0] - hx * h[:, 6]) * km
+    j01 = (h[:, 1] - hx * h[:, 7]) * km
+    j10 = (h[:, 3] - hy * h[:, 6]) * km
+    j11 = (h[:, 4] - hy * h[:, 7]) * km
+    p = ubar[:, 0] + k[:, 0] * hx
+    q = ubar[:, 1] + k[:, 0] * hy
     # Rv: rotation taking e_z to the ray (p, q, 1)
     nr = np.sqrt(p * p + q * q + 1.0)
     axis = np.stack([-q, p, np.zeros(F)], -1)
     an = np.linalg.norm(axis, axis=1)
     angle = np.arccos(np.clip(1.0 / nr, -1.0, 1.0))
-    axis = axis / np.where(an > 0, an, 1.0)[:, None]
-    Rv = _rodrigues(axis * angle[:, None])
+    Rv = _rodrigues(axis / np.where(an > 0, an, 1.0)[:, None] * angle[:, None])
     b00 = Rv[:, 0, 0] - p * Rv[:, 2, 0]
     b01 = Rv[:, 0, 1] - p * Rv[:, 2, 1]
     b10 = Rv[:, 1, 0] - q * Rv[:, 2, 0]
@@ -298,42 +555,33 @@ def _ippe_pair(Q, c, u, w):
     r00, r01, r10, r11 = a00 / gamma, a01 / gamma, a10 / gamma, a11 / gamma
     b0 = np.sqrt(np.maximum(1.0 - r00 * r00 - r10 * r10, 0.0))
     b1 = np.sqrt(np.maximum(1.0 - r01 * r01 - r11 * r11, 0.0))
-    b1 = np.where(r00 * r01 + r10 * r11 > 0, -b1, b1)  # columns orthogonal
+    b1 = np.where(r00 * r01 + r10 * r11 > 0, -b1, b1)  # the two columns orthogonal
     tz = 1.0 / gamma
     out = []
     for sgn in (1.0, -1.0):
-        c1 = np.stack([r00, r10, sgn * b0], -1)
-        c2 = np.stack([r01, r11, sgn * b1], -1)
-        c1, c2 = _orthonormal_pair(c1, c2)
+        c1, c2 = _orthonormal_pair(np.stack([r00, r10, sgn * b0], -1), np.stack([r01, r11, sgn * b1], -1))
         Rt = np.stack([c1, c2, np.cross(c1, c2)], -1)
-        R = np.matmul(np.matmul(Rv, Rt), np.swapaxes(E, 1, 2))
+        R = np.matmul(np.matmul(Rv, Rt), E.transpose(0, 2, 1))
         t = np.stack([p * tz, q * tz, tz], -1) - np.einsum("fij,fj->fi", R, c)
         out.append((R, t))
     return out
 
 
-# ----------------------------------------------------------------------------------- solver
+# ------------------------------------------------------------------------------ solver
 
 def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 20) -> PnPResult:
-    """Levenberg–Marquardt PnP on one chunk (see module docstring). Shapes as :class:`PnPSolver`."""
-    P = np.asarray(points_body, float)
-    ang = np.asarray(angles, float)
+    """Levenberg–Marquardt PnP on one chunk (see the module docstring; shapes as :class:`PnPSolver`)."""
     lit = np.asarray(lit, bool)
     F, n = lit.shape
-    w = lit.astype(float)
-    P = np.where(lit[..., None], P, 0.0)
-    ang = np.where(lit[..., None], ang, np.pi / 2)
-    u = np.cos(ang) / np.sin(ang) * w[..., None]  # Chen eq. (2): (x/z, y/z) = cot(theta)
-    nl = lit.sum(1)
-    c, Q, S = _centred(P, w)
-    ev = np.linalg.eigvalsh(S)  # ascending
-    ev = np.maximum(ev, 0.0)
-    big = np.maximum(ev[:, 2], 1e-300)
-    collinear = ev[:, 1] <= 1e-10 * big
-    planarity = np.sqrt(ev[:, 0] / big)
+    fr = _Frames(np.asarray(points_body, float), np.asarray(angles, float), lit)
+    c, S = _scatter(fr)
+    e_lo, e_mid, e_hi = _sym3_eigvals(*S)
+    big = np.maximum(e_hi, 1e-300)
+    collinear = np.maximum(e_mid, 0.0) <= COLLINEAR_THRESHOLD ** 2 * big
+    planarity = np.sqrt(np.maximum(e_lo, 0.0) / big)
 
     status = np.full(F, STATUS_TOO_FEW)
-    valid = nl >= 4
+    valid = fr.nl >= 4
     status[valid & collinear] = STATUS_DEGENERATE
     todo = valid & ~collinear
 
@@ -344,50 +592,51 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
     best_status = np.full(F, STATUS_DEGENERATE)
 
     def consider(idx, R0, t0):
-        R, t, cost, it, conv, ok, depth = _refine(P[idx], ang[idx], w[idx], R0, t0, max_iterations)
+        sub = fr if idx.size == F else fr.take(idx)
+        R, t, cost, it, conv, ok, depth = _refine(sub, R0, t0, max_iterations)
         st = np.where(~ok, STATUS_DEGENERATE, np.where(depth <= 0, STATUS_BEHIND,
                       np.where(conv, STATUS_OK, STATUS_NOT_CONVERGED)))
-        # rank: ok first, then lower cost
-        better = (st == STATUS_OK) & ((best_status[idx] != STATUS_OK) | (cost < best_cost[idx]))
-        better |= (best_status[idx] != STATUS_OK) & (st != STATUS_OK) & (cost < best_cost[idx]) & ok
+        prev_ok = best_status[idx] == STATUS_OK
+        better = np.where(st == STATUS_OK, ~prev_ok | (cost < best_cost[idx]),
+                          ~prev_ok & ok & (cost < best_cost[idx]))
         j = idx[better]
         best_R[j], best_t[j], best_cost[j] = R[better], t[better], cost[better]
         best_it[j], best_status[j] = it[better], st[better]
 
     def poor(idx):
-        rms = np.sqrt(best_cost[idx] / np.maximum(2 * nl[idx], 1))
+        rms = np.sqrt(best_cost[idx] / np.maximum(2 * fr.nl[idx], 1))
         return (best_status[idx] != STATUS_OK) | ~(rms <= RETRY_RESIDUAL)
 
+    cold = todo.copy()
     if initial is not None:
         R0, t0 = initial
         idx = np.flatnonzero(todo & np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1))
         if idx.size:
             consider(idx, R0[idx], t0[idx])
-        cold = todo.copy()
-        cold[idx[~poor(idx)]] = False
-    else:
-        cold = todo
+            cold[idx[~poor(idx)]] = False
 
-    idx = np.flatnonzero(cold & (planarity > 1e-6))
+    idx = np.flatnonzero(cold & (planarity > COPLANAR_THRESHOLD))
     if idx.size:
-        R0, t0 = _posit(Q[idx], c[idx], u[idx], w[idx])
+        sub = fr if idx.size == F else fr.take(idx)
+        R0, t0 = _posit(sub, c[idx], tuple(s[idx] for s in S))
         consider(idx, R0, t0)
     tried = np.flatnonzero(cold)
     need = np.zeros(F, bool)
     need[tried] = (planarity[tried] < PLANARITY_THRESHOLD) | poor(tried)
     idx = np.flatnonzero(need)
     if idx.size:
-        for R0, t0 in _ippe_pair(Q[idx], c[idx], u[idx], w[idx]):
+        for R0, t0 in _ippe_pair(fr.take(idx), c[idx]):
             consider(idx, R0, t0)
 
     status[todo] = best_status[todo]
-    res = np.sqrt(best_cost / np.maximum(2 * nl, 1))
+    res = np.sqrt(best_cost / np.maximum(2 * fr.nl, 1))
     res[~todo] = np.nan
     return PnPResult(rotation=best_R, translation=best_t, success=status == STATUS_OK,
                      status=status, residual_rms=res, iterations=best_it)
 
 
-PNP_SOLVERS: "dict[str, Callable[..., PnPResult]]" = {"lm": solve_pnp_lm}
+#: Registry of batched PnP solvers (the names the CLI offers).
+PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_lm}
 
 
 def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations: int = 20,
@@ -396,10 +645,12 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
 
     points_body : (n, 3) or (F, n, 3) float, m, sensor positions in the body frame.
     angles : (F, n, 2) or (n, 2) float, rad, ``[theta_x, theta_y]`` as from
-        :func:`layoutkit.lighthouse.sweep_angles`. NaN (or outside (0, pi)) means not lit.
-    visible : (F, n) bool, optional; lit sensors (default: all with finite angles).
-    initial : optional ``(rotation (F, 3, 3), translation (F, 3))`` start, e.g. the previous frame
-        when tracking; frames where it does not give a good solution fall back to the cold start.
+        :func:`layoutkit.lighthouse.sweep_angles`. A sensor whose angles are NaN or outside
+        (0, pi) is not lit.
+    visible : (F, n) bool, optional; lit sensors (default: all with valid angles).
+    initial : optional ``(rotation (F, 3, 3), translation (F, 3))`` start, e.g. the previous
+        frame when tracking; frames where it does not give a good solution fall back to the
+        cold start.
     max_iterations : Levenberg–Marquardt iteration cap per start.
     method : key of :data:`PNP_SOLVERS`.
     chunk_size : frames per chunk; memory stays bounded for any F.
@@ -417,10 +668,7 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
         raise ValueError(f"angles: expected shape (F, n, 2) or (n, 2), got {ang.shape}")
     F, n = ang.shape[:2]
     P = as_array(points_body, "points_body", (..., None, 3))
-    if P.ndim == 2:
-        if P.shape[0] != n:
-            raise ValueError(f"points_body: expected shape ({n}, 3) or ({F}, {n}, 3), got {P.shape}")
-    elif P.ndim != 3 or P.shape[:2] != (F, n):
+    if (P.ndim == 2 and P.shape[0] != n) or P.ndim not in (2, 3) or (P.ndim == 3 and P.shape[:2] != (F, n)):
         raise ValueError(f"points_body: expected shape ({n}, 3) or ({F}, {n}, 3), got {P.shape}")
     if visible is None:
         vis = np.ones((F, n), bool)
@@ -430,22 +678,28 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
             raise ValueError(f"visible: expected shape ({F}, {n}), got {vis.shape}")
     R0 = t0 = None
     if initial is not None:
-        R0 = as_array(initial[0], "initial rotation", (..., 3, 3))
-        t0 = as_array(initial[1], "initial translation", (..., 3))
+        R0 = np.asarray(initial[0], float)
+        t0 = np.asarray(initial[1], float)
         if R0.shape != (F, 3, 3) or t0.shape != (F, 3):
-            raise ValueError(f"initial: expected shapes ({F}, 3, 3) and ({F}, 3), got {R0.shape} and {t0.shape}")
+            raise ValueError(f"initial: expected shapes ({F}, 3, 3) and ({F}, 3), "
+                             f"got {R0.shape} and {t0.shape}")
+    if P.ndim == 2 and not np.all(np.isfinite(P)):
+        P = np.broadcast_to(P, (F, n, 3))
     solver = PNP_SOLVERS[method]
+    chunk = max(int(chunk_size), 1)
     parts = []
-    for s in range(0, F, max(int(chunk_size), 1)):
-        e = min(F, s + int(chunk_size))
-        a = ang[s:e]
-        p = np.broadcast_to(P, (e - s, n, 3)) if P.ndim == 2 else P[s:e]
-        lit = (vis[s:e] & np.all(np.isfinite(a), -1) & np.all((a > 0) & (a < np.pi), -1)
-               & np.all(np.isfinite(p), -1))
-        ini = None if R0 is None else (R0[s:e], t0[s:e])
-        parts.append(solver(p, a, lit, ini, max_iterations))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for s in range(0, F, chunk):
+            e = min(F, s + chunk)
+            a = ang[s:e]
+            p = P if P.ndim == 2 else P[s:e]
+            lit = vis[s:e] & np.all(np.isfinite(a) & (a > 0) & (a < np.pi), -1)
+            if P.ndim == 3:
+                lit &= np.all(np.isfinite(p), -1)
+            ini = None if R0 is None else (R0[s:e], t0[s:e])
+            parts.append(solver(p, a, lit, ini, max_iterations))
+    fields = ("rotation", "translation", "success", "status", "residual_rms", "iterations")
     if not parts:
-        z = np.zeros(0)
-        return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), z.astype(bool), z.astype(int), z, z.astype(int))
-    return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in
-                       ("rotation", "translation", "success", "status", "residual_rms", "iterations")))
+        return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, bool),
+                         np.zeros(0, int), np.zeros(0), np.zeros(0, int))
+    return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in fields))

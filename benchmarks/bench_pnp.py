@@ -1,0 +1,275 @@
+"""Benchmark and accuracy study of ``layoutkit.pnp.solve_pnp`` against OpenCV (issue #2, part 8).
+
+What it measures, all on the reconstructed Chen target (12 sensors, 12.5 x 12.5 x 6.25 cm) at
+random poses 1-3 m in front of the station, inside the 120 deg field of view, with the paper's
+angle noise (sigma = 4.014e-5 rad):
+
+1. accuracy: RMS attitude / position error of the batch solver over many frames at rho = 0,
+   divided by the Cramer-Rao bound sqrt(mean(ADOP^2)) sigma, sqrt(mean(PDOP^2)) sigma
+   (``layoutkit.dop.pose_dop`` at the true poses);
+2. robustness: gross failures (attitude error > 1 deg, or a lit sensor behind the station) at
+   n = 12 (rho = 0 and rho = 0.8717), at n = 4 coplanar (the top face turned towards the
+   station) and at n = 5-6 lit sensors (sensors whose normal is within 60 deg of the direction
+   to the station), compared with OpenCV SQPNP (and ITERATIVE) on the same frames;
+3. speed: solves/s of the batch solver and of Python loops over ``cv2.solvePnP`` with
+   SOLVEPNP_SQPNP and SOLVEPNP_ITERATIVE on the same 12-sensor frames, interleaved rounds,
+   median of >= 5, plus peak memory (tracemalloc) of a large batch.
+
+Run ``python benchmarks/bench_pnp.py`` (about 1-2 minutes) or ``--quick`` (a few seconds).
+Writes ``benchmarks/results/pnp.json`` (``pnp_quick.json`` with ``--quick``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+from layoutkit.dop import pose_dop
+from layoutkit.geometry import attitude_error, random_rotations, transform_points
+from layoutkit.lighthouse import in_field_of_view, sweep_angles
+from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
+from layoutkit.pnp import solve_pnp
+from layoutkit.shapes import chen_target
+
+RESULTS = Path(__file__).resolve().parent / "results"
+GROSS_DEG = 1.0
+FACING_DEG = 60.0
+
+
+# ------------------------------------------------------------------------------- frame sets
+
+def sample_positions(F, points_body, rotations, rng, dmin=1.0, dmax=3.0):
+    """Translations (F, 3) m: distance U(dmin, dmax), direction such that every sensor is in the FOV."""
+    t = np.empty((F, 3))
+    todo = np.arange(F)
+    while todo.size:
+        d = rng.uniform(dmin, dmax, todo.size)
+        v = rng.standard_normal((todo.size, 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        cand = v * d[:, None]
+        ok = np.all(in_field_of_view(transform_points(rotations[todo], cand, points_body)), axis=1)
+        t[todo[ok]] = cand[ok]
+        todo = todo[~ok]
+    return t
+
+
+def facing(layout, R, t):
+    """(F, n) bool: sensor normal within FACING_DEG of the direction to the station."""
+    n_lh = np.einsum("fij,nj->fni", R, layout.normals)
+    p = transform_points(R, t, layout.positions)
+    to_station = -p / np.linalg.norm(p, axis=-1, keepdims=True)
+    return np.einsum("fni,fni->fn", n_lh, to_station) >= np.cos(np.deg2rad(FACING_DEG))
+
+
+def frames_all(layout, F, rng):
+    """n = 12: uniform random attitudes, all sensors used."""
+    R = random_rotations(F, rng)
+    t = sample_positions(F, layout.positions, R, rng)
+    return R, t, np.ones((F, len(layout.ids)), bool)
+
+
+def frames_lit(layout, F, rng, want, subset=None):
+    """Frames whose lit set (facing sensors, restricted to ``subset``) has a size in ``want``."""
+    Rs, ts, vs = [], [], []
+    have = 0
+    n = len(layout.ids)
+    allowed = np.zeros(n, bool)
+    allowed[subset if subset is not None else slice(None)] = True
+    while have < F:
+        m = 4 * (F - have) + 64
+        R = random_rotations(m, rng)
+        t = sample_positions(m, layout.positions, R, rng)
+        v = facing(layout, R, t) & allowed
+        k = v.sum(1)
+        ok = np.isin(k, want)
+        Rs.append(R[ok]), ts.append(t[ok]), vs.append(v[ok])
+        have += int(ok.sum())
+    return np.concatenate(Rs)[:F], np.concatenate(ts)[:F], np.concatenate(vs)[:F]
+
+
+def measure(layout, R, t, rho, rng):
+    ang = sweep_angles(transform_points(R, t, layout.positions))
+    return ang + sample_angle_noise(ang.shape[:-1], SIGMA_THETA_PAPER, rho, rng)
+
+
+# ------------------------------------------------------------------------------- solvers
+
+def solve_ours(P, ang, vis):
+    r = solve_pnp(P, ang, vis)
+    return r.rotation, r.translation
+
+
+def solve_cv(P, ang, vis, flag):
+    """Python loop over cv2.solvePnP on normalised coordinates (K = I, no distortion)."""
+    import cv2
+
+    F = ang.shape[0]
+    uv = np.cos(ang) / np.sin(ang)
+    K = np.eye(3)
+    Rs = np.full((F, 3, 3), np.nan)
+    ts = np.full((F, 3), np.nan)
+    allvis = bool(vis.all())
+    Pc = np.ascontiguousarray(P)
+    for f in range(F):
+        if allvis:
+            obj, img = Pc, uv[f]
+        else:
+            obj, img = Pc[vis[f]], uv[f][vis[f]]
+        try:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=flag)
+        except cv2.error:
+            ok = False
+        if ok:
+            Rs[f] = cv2.Rodrigues(rvec)[0]
+            ts[f] = tvec[:, 0]
+    return Rs, ts
+
+
+def gross_failures(P, R_est, t_est, R, vis):
+    """Count frames with attitude error > 1 deg, a lit sensor at z <= 0, or no solution."""
+    bad = ~np.all(np.isfinite(R_est), axis=(1, 2))
+    e = np.full(len(R), np.inf)
+    e[~bad] = attitude_error(R_est[~bad], R[~bad])
+    z = transform_points(np.nan_to_num(R_est), np.nan_to_num(t_est), P)[..., 2]
+    behind = np.any((z <= 0) & vis, axis=1)
+    return int(np.sum(bad | (e > np.deg2rad(GROSS_DEG)) | behind))
+
+
+def crlb_ratio(P, R_est, t_est, R, t):
+    dop = pose_dop(P, R, t, rho=0.0)
+    att = np.sqrt(np.mean(attitude_error(R_est, R) ** 2))
+    pos = np.sqrt(np.mean(np.sum((t_est - t) ** 2, axis=1)))
+    att_b = np.sqrt(np.mean(dop.adop ** 2)) * np.deg2rad(SIGMA_THETA_PAPER)
+    pos_b = np.sqrt(np.mean(dop.pdop ** 2)) * SIGMA_THETA_PAPER
+    return {"rms_attitude_deg": float(np.rad2deg(att)), "crlb_attitude_deg": float(np.rad2deg(att_b)),
+            "attitude_rms_over_crlb": float(att / att_b), "rms_position_m": float(pos),
+            "crlb_position_m": float(pos_b), "position_rms_over_crlb": float(pos / pos_b)}
+
+
+# ------------------------------------------------------------------------------- main
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="short run (a few seconds)")
+    ap.add_argument("--seed", type=int, default=20240501)
+    ap.add_argument("--out", type=Path, default=None, help="JSON output path")
+    args = ap.parse_args(argv)
+    import cv2
+
+    cv2.setNumThreads(1)
+    rng = np.random.default_rng(args.seed)
+    _, layout = chen_target()
+    P = layout.positions
+    q = args.quick
+    n_acc = 20000 if q else 180000        # n = 12 accuracy / failure frames
+    n_small = 2000 if q else 20000        # n = 4 and n = 5-6 frames
+    n_speed = 4000 if q else 20000        # speed frames
+    rounds = 5
+    out = {"quick": q, "seed": args.seed, "sigma_theta_rad": SIGMA_THETA_PAPER,
+           "machine": platform.platform(), "python": sys.version.split()[0],
+           "numpy": np.__version__, "opencv": cv2.__version__}
+    print(f"layoutkit PnP benchmark ({'quick' if q else 'full'}), Chen target n = 12")
+
+    # 1 + 2: accuracy vs CRLB and gross failures at n = 12
+    R, t, vis = frames_all(layout, n_acc, rng)
+    acc = {}
+    for rho in (0.0, RHO_PAPER):
+        ang = measure(layout, R, t, rho, rng)
+        t0 = time.perf_counter()
+        res = solve_pnp(P, ang)
+        dt = time.perf_counter() - t0
+        key = f"rho={rho:g}"
+        acc[key] = {"frames": n_acc, "gross_failures": gross_failures(P, res.rotation, res.translation, R, vis),
+                    "success": int(res.success.sum()), "seconds": dt,
+                    "iterations_hist": np.bincount(res.iterations).tolist()}
+        if rho == 0.0:
+            acc[key].update(crlb_ratio(P, res.rotation, res.translation, R, t))
+        print(f"n=12 {key}: {n_acc} frames, gross failures {acc[key]['gross_failures']}, "
+              f"success {acc[key]['success']}, "
+              + (f"RMS/CRLB attitude {acc[key]['attitude_rms_over_crlb']:.4f}, position "
+                 f"{acc[key]['position_rms_over_crlb']:.4f}" if rho == 0.0 else ""))
+    out["n12"] = acc
+
+    # 3: small lit sets, ours vs SQPNP (and ITERATIVE) on the same frames, paper noise
+    small = {}
+    top = [i for i, s in enumerate(layout.ids) if s.startswith("T")]
+    for name, (want, subset) in {"n4_coplanar_top": ([4], top), "n5_6_facing": ([5, 6], None)}.items():
+        Rs, ts, vs = frames_lit(layout, n_small, rng, want, subset)
+        row = {"frames": n_small}
+        for rho in (0.0, RHO_PAPER):
+            ang = measure(layout, Rs, ts, rho, rng)
+            r = solve_pnp(P, ang, vs)
+            g = {"layoutkit": gross_failures(P, r.rotation, r.translation, Rs, vs)}
+            for cv_name, flag in (("sqpnp", cv2.SOLVEPNP_SQPNP), ("iterative", cv2.SOLVEPNP_ITERATIVE)):
+                Rc, tc = solve_cv(P, ang, vs, flag)
+                g[cv_name] = gross_failures(P, Rc, tc, Rs, vs)
+            row[f"gross_failures_rho={rho:g}"] = g
+            print(f"{name} rho={rho:g}: {n_small} frames, gross failures {g}")
+        small[name] = row
+    out["small_sets"] = small
+
+    # 4: speed, same 12-sensor frames, interleaved rounds
+    R, t, vis = frames_all(layout, n_speed, rng)
+    ang = measure(layout, R, t, 0.0, rng)
+    methods = {
+        "layoutkit": lambda: solve_ours(P, ang, vis),
+        "sqpnp_loop": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_SQPNP),
+        "iterative_loop": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_ITERATIVE),
+    }
+    times = {k: [] for k in methods}
+    last = {}
+    solve_ours(P, ang[:100], vis[:100])  # warm-up
+    for _ in range(rounds):
+        for k, f in methods.items():
+            t0 = time.perf_counter()
+            last[k] = f()
+            times[k].append(time.perf_counter() - t0)
+    speed = {}
+    for k in methods:
+        med = float(np.median(times[k]))
+        Re, te = last[k]
+        speed[k] = {"median_s": med, "solves_per_s": n_speed / med, "round_s": times[k],
+                    "gross_failures": gross_failures(P, Re, te, R, vis),
+                    **crlb_ratio(P, np.nan_to_num(Re), np.nan_to_num(te), R, t)}
+    speed["ratio_vs_sqpnp"] = speed["sqpnp_loop"]["median_s"] / speed["layoutkit"]["median_s"]
+    speed["ratio_vs_iterative"] = speed["iterative_loop"]["median_s"] / speed["layoutkit"]["median_s"]
+    speed["frames"] = n_speed
+    speed["rounds"] = rounds
+    for k in methods:
+        s = speed[k]
+        print(f"speed {k:15s}: {s['solves_per_s']:10.0f} solves/s  RMS/CRLB att {s['attitude_rms_over_crlb']:.3f} "
+              f"pos {s['position_rms_over_crlb']:.3f}  gross {s['gross_failures']}")
+    print(f"ratio vs SQPNP loop {speed['ratio_vs_sqpnp']:.2f}x, vs ITERATIVE loop {speed['ratio_vs_iterative']:.2f}x")
+    out["speed"] = speed
+
+    # peak memory of one large batch (chunked, so flat in F)
+    Fm = 50000 if q else 200000
+    Rm, tm = R[np.arange(Fm) % n_speed], t[np.arange(Fm) % n_speed]
+    angm = measure(layout, Rm, tm, 0.0, rng)
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    solve_pnp(P, angm)
+    peak = tracemalloc.get_traced_memory()[1] - base
+    tracemalloc.stop()
+    out["memory"] = {"frames": Fm, "input_mb": angm.nbytes / 1e6, "peak_tracemalloc_mb": peak / 1e6,
+                     "ru_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3}
+    print(f"peak memory solving {Fm} frames: {peak / 1e6:.1f} MB above the {angm.nbytes / 1e6:.1f} MB input "
+          f"(process max RSS {out['memory']['ru_maxrss_mb']:.0f} MB)")
+
+    path = args.out or RESULTS / ("pnp_quick.json" if q else "pnp.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2))
+    print(f"wrote {os.path.relpath(path)}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
