@@ -206,7 +206,7 @@ class SimulatedSweeps:
 
 
 def simulate_sweeps(layout, *, duration: float, seed: int = 0, motion="tumble", stations=None,
-                    sigma: float = SIGMA_THETA_PAPER, rho: float = RHO_PAPER, quantize: bool = True,
+                    sigma: float = SIGMA_THETA_PAPER, rho: float = RHO_PAPER,
                     clock_hz: float = 50e6, dropout: float = 0.0, frame_loss: float = 0.0,
                     cone_deg: float = 60.0, t_first: float = 0.01) -> SimulatedSweeps:
     """Simulate every sweep of ``duration`` s (see the module docstring for the model).
@@ -214,8 +214,8 @@ def simulate_sweeps(layout, *, duration: float, seed: int = 0, motion="tumble", 
     layout : :class:`layoutkit.layout.Layout`. motion : "tumble", "static", a :class:`Trajectory`
     or a callable ``t (K,) -> (R (K,3,3), t (K,3))`` giving the body pose in the world frame.
     stations : sequence of :class:`Station` (default one LH1 station at the world origin).
-    sigma : rad, rho : same-sweep correlation (Chen eq. 19); quantize : round to counter ticks
-    (if False the ticks keep a fraction and are rounded only at encoding).
+    sigma : rad, rho : same-sweep correlation (Chen eq. 19). The hit counters are whole clock
+    ticks (the quantisation); ``angles_true`` keeps the exact noise-free angles.
     """
     from .protocols.layoutkit import NO_HIT
 
@@ -256,14 +256,12 @@ def simulate_sweeps(layout, *, duration: float, seed: int = 0, motion="tumble", 
     noisy = angles + np.take_along_axis(noise, axis[:, None, None], -1)[..., 0]
     omega = np.array([2 * np.pi * st.rotor_rpm / 60.0 for st in stations])[sid][:, None]
     offset = np.array([np.pi if st.kind == "lh2" else 0.0 for st in stations])[sid][:, None]
-    ticks = (noisy + offset) / omega * clock_hz
-    if quantize:
-        ticks = np.round(ticks)
+    ticks = np.round((noisy + offset) / omega * clock_hz)
     keep = lit & (rng.random((K, n)) >= dropout) & (ticks >= 0) & (ticks < NO_HIT)
     hits = np.where(keep, np.round(ticks), NO_HIT).astype(np.int64)
     emitted = rng.random(K) >= frame_loss
     info = {"slot_s": slot, "sigma": sigma, "rho": rho, "dropout": dropout, "frame_loss": frame_loss,
-            "seed": seed, "quantize": quantize, "cone_deg": cone_deg}
+            "seed": seed, "cone_deg": cone_deg}
     return SimulatedSweeps(t, sid, axis, k & 0xFFFF, matrix_to_rotvec(R), tr, angles_true, hits, sync,
                            emitted, lit, stations, clock_hz, info)
 
