@@ -114,7 +114,7 @@ def visibility_summary(visible: np.ndarray, ids, station_ids, min_lit: int = 4) 
                                 for k, sid in enumerate(ids)],
         "lit_count_min": int(best.min()) if P else 0,
         "lit_count_median": float(np.median(best)) if P else 0.0,
-        "lit_count_histogram": np.bincount(best, minlength=n + 1).tolist(),
+        "lit_count_histogram": np.bincount(best).tolist(),  # index = lit count of the best station
         "poses_below_min_lit": int(np.count_nonzero(best < min_lit)),
         "fraction_below_min_lit": float(np.mean(best < min_lit)) if P else 0.0,
     }
