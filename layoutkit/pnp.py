@@ -575,10 +575,14 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
     F, n = lit.shape
     fr = _Frames(np.asarray(points_body, float), np.asarray(angles, float), lit)
     c, S = _scatter(fr)
-    e_lo, e_mid, e_hi = _sym3_eigvals(*S)
-    big = np.maximum(e_hi, 1e-300)
-    collinear = np.maximum(e_mid, 0.0) <= COLLINEAR_THRESHOLD ** 2 * big
-    planarity = np.sqrt(np.maximum(e_lo, 0.0) / big)
+    e_lo, _, e_hi = _sym3_eigvals(*S)
+    planarity = np.sqrt(np.maximum(e_lo, 0.0) / np.maximum(e_hi, 1e-300))
+    # collinear: lambda_mid / lambda_max ~ (sum of principal 2x2 minors) / trace² (no eigen-solve,
+    # whose double-zero eigenvalue is only accurate to sqrt(eps))
+    S00, S11, S22, S01, S02, S12 = S
+    minors = S00 * S11 - S01 * S01 + S00 * S22 - S02 * S02 + S11 * S22 - S12 * S12
+    trace = S00 + S11 + S22
+    collinear = minors <= COLLINEAR_THRESHOLD ** 2 * trace * trace
 
     status = np.full(F, STATUS_TOO_FEW)
     valid = fr.nl >= 4
