@@ -11,7 +11,7 @@ from layoutkit.mesh import MeshWarning, describe_mesh, load_mesh, mesh_hash, sav
 from layoutkit.shapes import cubesat_3u, zhai_target
 
 
-@pytest.mark.parametrize("fmt", ["stl", "obj", "ply", "off", "glb"])
+@pytest.mark.parametrize("fmt", ["stl", "obj", "ply", "off", "glb", "gltf"])
 def test_every_format_round_trips_bounds_area_and_volume(tmp_path, fmt):
     """Reference: the in-memory builder mesh (area, volume, bounds are format independent)."""
     mesh = cubesat_3u()
