@@ -7,6 +7,7 @@ Mesh: the docking target (12,324 faces: dish, wings, boom in the way); sensors: 
    pairs, so occlusion decides) is compared with a brute-force float64 segment–triangle test over
    all triangles (``segment_occlusion_reference``, no ray engine). Pairs whose segment passes within
    10 µm of a triangle edge or end (the documented grazing band) are counted and excluded.
+   Adversarial set: segments aimed exactly through mesh vertices, same comparison.
 2. Speed: pose–sensor evaluations per second of ``visible_sensors`` with embree over all pairs,
    and — on the first 20 poses in the same interleaved rounds — embree vs trimesh's default
    (pure-numpy "triangle") engine. Median of 5 rounds. Peak Python memory (tracemalloc) and max RSS.
@@ -64,6 +65,23 @@ def main():
     print(f"correctness: {len(ip)} pairs, {int(occ_ref.sum())} occluded, {int(amb.sum())} grazing, "
           f"{int(mism.sum())} mismatches (reference {t_ref:.1f} s)", flush=True)
 
+    # ---- 1b. adversarial: segments aimed exactly through mesh vertices (edge/vertex grazing) -----
+    rng = np.random.default_rng(1)
+    n_adv = 500 if args.quick else 2000
+    si = rng.integers(0, len(P_), n_adv)
+    vi = rng.integers(0, len(mesh.vertices), n_adv)
+    o_adv = P_[si] + off * N_[si]
+    through = mesh.vertices[vi] - o_adv
+    s_adv = o_adv + through * rng.uniform(1.5, 4.0, n_adv)[:, None]  # station beyond the vertex
+    L_adv = np.linalg.norm(s_adv - o_adv, axis=1)
+    d_adv = (s_adv - o_adv) / L_adv[:, None]
+    from layoutkit.visibility import first_hit_distance, ray_engine
+    occ_adv_emb = first_hit_distance(mesh, o_adv, d_adv, ray_engine(mesh)) < L_adv
+    occ_adv_ref, amb_adv = segment_occlusion_reference(mesh.triangles, o_adv, s_adv, tol=TOL)
+    mism_adv = (occ_adv_emb != occ_adv_ref) & ~amb_adv
+    print(f"through-vertex segments: {n_adv}, {int(amb_adv.sum())} in the grazing band, "
+          f"{int(occ_adv_ref.sum())} robustly occluded, {int(mism_adv.sum())} mismatches outside the band", flush=True)
+
     # ---- 2. speed -----------------------------------------------------------------------------
     # subset for the slow default engine: the first poses (same for both engines)
     n_sub_poses = 5 if args.quick else 20
@@ -106,6 +124,11 @@ def main():
             "pairs_compared": int(len(ip)), "poses_used": k, "occluded_reference": int(occ_ref.sum()),
             "occluded_embree": int(occ_emb.sum()), "grazing_excluded": int(amb.sum()), "tolerance_m": TOL,
             "mismatches_outside_tolerance": int(mism.sum()), "reference_seconds": t_ref,
+        },
+        "through_vertex_segments": {
+            "segments": n_adv, "grazing_excluded": int(amb_adv.sum()), "occluded_reference": int(occ_adv_ref.sum()),
+            "mismatches_outside_tolerance": int(mism_adv.sum()),
+            "note": "segments from a sensor through a random mesh vertex to a point beyond it (no cheap tests)",
         },
         "speed": {
             "median_seconds": med, "rounds": times,
