@@ -147,7 +147,14 @@ def sample_candidates(mesh, *, spacing, keepout=(), flat_only=False, normal_filt
     area = float(weight.sum())
     if area <= 0:
         raise ValueError("candidates: no allowed surface (flat_only left no face large enough)")
-    n_dense = int(min(_MAX_DENSE, max(100, np.ceil(OVERSAMPLE * area / spacing ** 2))))
+    n_want = int(max(100, np.ceil(OVERSAMPLE * area / spacing ** 2)))
+    n_dense = min(_MAX_DENSE, n_want)
+    if n_want > _MAX_DENSE:
+        import warnings
+
+        warnings.warn(f"candidates: spacing {spacing:g} m on {area:.4g} m^2 would need {n_want} dense samples; "
+                      f"capped at {_MAX_DENSE}, so the sites may leave gaps wider than the spacing",
+                      RuntimeWarning, stacklevel=2)
     pts, faces = trimesh.sample.sample_surface(mesh, n_dense, face_weight=weight, seed=rng)[:2]
     nor = mesh.face_normals[faces]
 
