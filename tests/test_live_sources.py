@@ -154,3 +154,33 @@ def test_unplug_replug_loses_nothing(tmp_path):
     assert len(out) == len(chunks) and dec.stats.bad == 0
     assert src.state["disconnects"] >= 2 and src.state["connects"] >= 3
     assert events[:3] == ["connected", "disconnected", "connected"]
+
+
+def test_pty_device_unplug_replug_via_link(tmp_path):
+    """The simulated board is unplugged (its pty closes) and plugged in again (a new pty behind the
+    same symlink): ReconnectingSerial on the link reads both sessions completely."""
+    link = tmp_path / "fpga"
+    chunks_a, _ = _stream(duration=0.5, seed=8)
+    chunks_b, _ = _stream(duration=0.5, seed=9)
+
+    def device():
+        run_fake_fpga(chunks_a, link=link, realtime=True, speed=4.0, wait_reader=10)
+        time.sleep(0.3)  # unplugged
+        run_fake_fpga(chunks_b, link=link, realtime=True, speed=4.0, wait_reader=10)
+
+    th = threading.Thread(target=device, daemon=True)
+    th.start()
+    for _ in range(100):
+        if link.exists():
+            break
+        time.sleep(0.02)
+    src = ReconnectingSerial(str(link), timeout=0.05, backoff=0.02, backoff_max=0.1)
+    dec = get_protocol("layoutkit")(n_sensors=12)
+    out = []
+    deadline = time.monotonic() + 20
+    while len(out) < len(chunks_a) + len(chunks_b) and time.monotonic() < deadline:
+        out += dec.feed(src.read(4096))
+    src.close()
+    th.join(10)
+    assert len(out) == len(chunks_a) + len(chunks_b) and dec.stats.bad == 0
+    assert src.state["disconnects"] >= 1 and src.state["connects"] >= 2

@@ -247,8 +247,13 @@ class LayoutkitDecoder:
         for n, ks in by_n.items():
             starts = np.array([found[k][0] for k in ks])
             kinds = np.array([(found[k][1] >> 5) & 1 for k in ks])
-            idx = starts[:, None, None] + HEADER_SIZE + 4 * np.arange(n)[None, :, None] + four
-            hits = np.ascontiguousarray(arr[idx]).view("<u4")[..., 0]
+            size = frame_size(n)
+            if len(ks) == 1 or np.all(np.diff(starts) == size):  # back-to-back frames: a strided view
+                hits = np.ndarray((len(ks), n), "<u4", buffer=buf, offset=int(starts[0]) + HEADER_SIZE,
+                                  strides=(size, 4))
+            else:  # gather the hit counters of scattered frames
+                idx = starts[:, None, None] + HEADER_SIZE + 4 * np.arange(n)[None, :, None] + four
+                hits = np.ascontiguousarray(arr[idx]).view("<u4")[..., 0]
             scale = np.where(kinds == 1, self._scale[1], self._scale[0])[:, None]
             offset = np.where(kinds == 1, -np.pi, 0.0)[:, None]
             a = np.where(hits == NO_HIT, np.nan, hits * scale + offset)
