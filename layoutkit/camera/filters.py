@@ -15,7 +15,7 @@ __all__ = ["alpha_beta_so3"]
 
 
 def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gate_rad: float | None = None,
-                   valid=None) -> tuple[np.ndarray, np.ndarray]:
+                   valid=None, max_rejects: int = 5) -> tuple[np.ndarray, np.ndarray]:
     """Causal alpha–beta filter of a rotation stream.
 
     Parameters
@@ -23,7 +23,8 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
     times : (T,) s, increasing. rotations : (T, 3, 3) measured rotations (NaN allowed where invalid).
     alpha, beta : position and rate gains in (0, 1] (alpha=1, beta=0: no filtering).
     gate_rad : innovations larger than this (rad) are treated as outliers and skipped (prediction
-        only); None = no gate.
+        only); None = no gate. After ``max_rejects`` consecutive rejections the filter restarts at
+        the measurement with zero rate (it had lost track, e.g. after a branch flip).
     valid : (T,) bool, measurements to use (default: finite rotations).
 
     Returns
@@ -38,7 +39,7 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
     ok = np.all(np.isfinite(R), axis=(1, 2)) if valid is None else np.asarray(valid, bool) & np.all(np.isfinite(R), axis=(1, 2))
     out = np.full_like(R, np.nan)
     rate = np.full((len(t), 3), np.nan)
-    est, w, t_prev = None, np.zeros(3), None
+    est, w, t_prev, rejects = None, np.zeros(3), None, 0
     for k in range(len(t)):
         if est is not None:
             dt = t[k] - t_prev
@@ -50,6 +51,11 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
                     est = rotvec_to_matrix(alpha * r) @ est
                     if dt > 0:
                         w = w + beta * r / dt
+                    rejects = 0
+                else:
+                    rejects += 1
+                    if rejects >= max_rejects:
+                        est, w, rejects = R[k].copy(), np.zeros(3), 0
         elif ok[k]:
             est, t_prev = R[k].copy(), t[k]
         if est is not None:

@@ -296,6 +296,16 @@ def align_rotation_streams(t_a, R_a, t_b, R_b, max_dt: float | None = None, body
     Ram = Ra[m]
     inl = np.ones(len(Ram), bool)
     X, Y = eye, eye
+    if body_offset:
+        # start X from the relative motions (hand-eye): log(R_a,i R_a,j^T) = X log(R_b,i R_b,j^T),
+        # Y cancels; Wahba/Kabsch on the rotation-vector pairs
+        from ..geometry import matrix_to_rotvec
+        s = max(1, len(Ram) // 10)
+        if len(Ram) > s:
+            a = matrix_to_rotvec(Ram[s:] @ np.swapaxes(Ram[:-s], 1, 2))
+            b = matrix_to_rotvec(Rbi[s:] @ np.swapaxes(Rbi[:-s], 1, 2))
+            X = nearest_rotation(a.T @ b)
+            Y = _chordal_mean(np.swapaxes(Rbi, 1, 2) @ X.T @ Ram)
     for rnd in range(2):
         for _ in range(iterations if body_offset else 1):
             X = _chordal_mean(Ram[inl] @ Y.T @ np.swapaxes(Rbi[inl], 1, 2))
