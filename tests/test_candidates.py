@@ -109,6 +109,10 @@ def test_cli_candidates_writes_a_layout(tmp_path):
     P = lay.positions
     assert pdist(P).min() >= 0.8
     assert not np.any((np.abs(P[:, :2]) <= 2.0).all(1) & (P[:, 2] >= 1.4))  # the box: cube top (and wing roots)
+    r = CliRunner().invoke(main, ["candidates", str(tmp_path / "z.glb"), "--spacing-mm", "800", "--normal-cone",
+                                  "1,0,0,10", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert np.all(load_layout(out).normals[:, 0] >= np.cos(np.radians(10.0)))
     r = CliRunner().invoke(main, ["candidates", str(tmp_path / "z.glb"), "--spacing-mm", "800", "--keepout-part",
                                   "dish", "--out", str(out)])
     assert r.exit_code == 2

@@ -93,6 +93,16 @@ def test_occlusion_equals_brute_force_on_docking_target(small_docking):
     assert not np.any(vis & ~cheap)  # occlusion only removes
 
 
+def test_chunking_does_not_change_the_answer(small_docking):
+    rng = np.random.default_rng(9)
+    pts, fi = trimesh.sample.sample_surface_even(small_docking, 40, radius=0.3, seed=rng)
+    R, t = _poses_in_front(rng, 30, 4.0, 8.0)
+    a = visible_sensors(small_docking, pts, small_docking.face_normals[fi], R, t)
+    b = visible_sensors(small_docking, pts, small_docking.face_normals[fi], R, t, chunk=7)
+    np.testing.assert_array_equal(a, b)
+    assert a.any() and not a.all()
+
+
 def test_reference_classifies_hand_made_segments():
     """Single triangle z = 0 with vertices (0,0), (1,0), (0,1): through the inside, through a
     vertex (grazing), beside it, stopping short, starting on it."""

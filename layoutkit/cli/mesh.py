@@ -53,13 +53,15 @@ def mesh_info_cmd(mesh, units, json_out):
 @click.option("--keepout-part", multiple=True, metavar="NAME", help="Keep-out named part / face group (repeatable).")
 @click.option("--keepout-cone", multiple=True, metavar="DX,DY,DZ,HALF_DEG",
               help="Exclude sites whose normal is within HALF_DEG of (DX,DY,DZ) (repeatable).")
+@click.option("--normal-cone", default=None, metavar="DX,DY,DZ,HALF_DEG",
+              help="Keep only sites whose normal is within HALF_DEG of (DX,DY,DZ).")
 @click.option("--flat-only", is_flag=True, help="Only faces of large coplanar facets (>= (2 x spacing)^2).")
 @click.option("--max-count", type=click.IntRange(min=1), default=None, help="Keep at most this many (random subset).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--out", required=True, type=click.Path(dir_okay=False), help="Candidates file (layout JSON).")
 @click.option("--json", "json_out", is_flag=True, help="Print a JSON summary.")
-def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_cone, flat_only, max_count, seed,
-                   out, json_out):
+def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_cone, normal_cone, flat_only,
+                   max_count, seed, out, json_out):
     """Evenly spaced candidate photodiode sites with outward normals, saved as a layout file."""
     from ..candidates import parse_keepout
     from ..workflows.design import make_candidates
@@ -67,8 +69,12 @@ def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_c
     try:
         keep = ([parse_keepout("box:" + b) for b in keepout_box] + [parse_keepout("part:" + p) for p in keepout_part]
                 + [parse_keepout("cone:" + c) for c in keepout_cone])
+        nf = None
+        if normal_cone is not None:
+            cone = parse_keepout("cone:" + normal_cone)
+            nf = (cone.direction, cone.half_angle_deg)
         lay, msgs = make_candidates(mesh, spacing=spacing_mm * 1e-3, units=units, keepout=keep, flat_only=flat_only,
-                                    seed=seed, max_count=max_count, out=out)
+                                    normal_filter=nf, seed=seed, max_count=max_count, out=out)
     except ValueError as exc:
         fail(str(exc))
     parts = {}
