@@ -212,7 +212,7 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
                         views=("iso", "front", "top", "side"), size=(1600, 1200), out_dir,
                         prefix: str = "layout", ids=None, title: "str | None" = None,
                         labels: bool = True, arrows: bool = True, sensor_radius: "float | None" = None,
-                        what: str = "sensors") -> "list[Path]":
+                        what: str = "sensors", anti_aliasing: bool = True) -> "list[Path]":
     """Pictures of a mesh with its candidate sites and a sensor layout from standard views.
 
     mesh : ``trimesh.Trimesh``, m, body frame. positions, normals : (n, 3), m / unit, body frame.
@@ -223,6 +223,7 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
     out_dir : folder; files are ``{prefix}_{view}.png``. ids : n sensor labels (optional).
     arrows : draw the normals. sensor_radius : m (default 1.4 % of the mesh diagonal).
     what : noun for the points in the caption (``"sensors"``, ``"candidate sites"``).
+    anti_aliasing : 8× MSAA (about +0.7 s per 1600 × 1200 picture with the software renderer).
     Returns the written paths in ``views`` order.
     """
     P, N = _check_sensors(positions, normals)
@@ -242,7 +243,7 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
 
     import pyvista as pv
 
-    pl = _plotter(size)
+    pl = _plotter(size, anti_aliasing=anti_aliasing)
     w, h = _check_size(size)
     diag = _scale(mesh)
     _add_mesh(pl, mesh)
@@ -271,7 +272,9 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
                               title_font_size=max(12, h // 55), label_font_size=max(11, h // 60))
     pl.add_axes(line_width=3, labels_off=False, color="black")
     head = title or "layout"
-    n_txt = f"{P.shape[0]} {what}" + (f", {len(candidates)} candidate sites" if candidates is not None else "")
+    parts = ([f"{P.shape[0]} {what}"] if P.shape[0] else []) + (
+        [f"{len(candidates)} candidate sites"] if candidates is not None else [])
+    n_txt = ", ".join(parts) or "mesh only"
     pl.add_text(f"{head}\n{n_txt}", position="upper_left", font_size=max(10, h // 80), color="black")
 
     center = 0.5 * (np.asarray(mesh.bounds[0], float) + np.asarray(mesh.bounds[1], float))
