@@ -180,22 +180,21 @@ def _atan_ratio(num, den):
     return np.arctan2(num, den)
 
 
-def _eval(fr, R, t):
+def _eval(fr, r, t):
     """Lever ``l = R p_body``, station-frame points ``p = l + t`` and angle residuals of (R, t).
 
-    The residual ``theta_meas - atan2(z, x)`` is the atan of the tangent of the difference,
+    r : (9, F) row-major rotation components, t : (3, F) m. The residual
+    ``theta_meas - atan2(z, x)`` is the atan of the tangent of the difference,
     ``(x - u z) / (z + u x)`` with ``u = cot(theta_meas)`` (no cancellation), zero for unlit
     sensors. Returns a dict of (n, F) arrays and ``cost`` (F,) = sum of squared residuals.
     """
     Px, Py, Pz = fr.Px, fr.Py, fr.Pz
-    r = R.reshape(-1, 9).T.copy()  # contiguous components (strided broadcasts are slow)
-    tt = t.T.copy()
     lx = r[0] * Px + r[1] * Py + r[2] * Pz
     ly = r[3] * Px + r[4] * Py + r[5] * Pz
     lz = r[6] * Px + r[7] * Py + r[8] * Pz
-    x = lx + tt[0]
-    y = ly + tt[1]
-    z = lz + tt[2]
+    x = lx + t[0]
+    y = ly + t[1]
+    z = lz + t[2]
     if fr.all_lit:
         rx = _atan_ratio(x - fr.ux * z, z + fr.ux * x)
         ry = _atan_ratio(y - fr.uy * z, z + fr.uy * y)
@@ -207,13 +206,14 @@ def _eval(fr, R, t):
     return {"lx": lx, "ly": ly, "lz": lz, "x": x, "y": y, "z": z, "rx": rx, "ry": ry, "cost": cost}
 
 
-def _normal_equations(fr, ev):
-    """Upper triangle of J^T J and J^T r of the angle residuals, as (F,) components.
+def _jacobian(fr, ev):
+    """Rows of the angle Jacobian per sensor as (n, F) components (None for structural zeros).
 
     Per sensor with p = (x, y, z) in the station frame and lever l = R p_body (Chen eqs. 10–14 in
     the left-perturbation form of :func:`layoutkit.dop.angle_jacobian`, whose rows these are):
     ``d theta_x / d p = (-z, 0, x) / (x² + z²)``, ``d theta_y / d p = (0, -z, y) / (y² + z²)``,
-    row = ``[l × d theta/d p, d theta/d p]``. Returns ``(A, g)``: A[i][j] (i <= j) and g[i].
+    row = ``[l × d theta/d p, d theta/d p]``. Unlit sensors get zero rows.
+    Returns ``(jx, jy)``, each a 6-tuple over (dphi, dt).
     """
     x, y, z, lx, ly, lz = ev["x"], ev["y"], ev["z"], ev["lx"], ev["ly"], ev["lz"]
     ix = 1.0 / (x * x + z * z)
@@ -223,12 +223,28 @@ def _normal_equations(fr, ev):
     a2 = fr.masked(x) * ix
     b1 = -zm * iy
     b2 = fr.masked(y) * iy
-    # theta_x row: [j0, j1, j2, a0, 0, a2]; theta_y row: [k0, k1, k2, 0, b1, b2]
-    j = (ly * a2, lz * a0 - lx * a2, -ly * a0)
-    k = (ly * b2 - lz * b1, -lx * b2, lx * b1)
+    jx = (ly * a2, lz * a0 - lx * a2, -ly * a0, a0, None, a2)
+    jy = (ly * b2 - lz * b1, -lx * b2, lx * b1, None, b1, b2)
+    return jx, jy
+
+
+def _gradient(jx, jy, ev):
+    """J^T r, a list of 6 (F,) arrays."""
     rx, ry = ev["rx"], ev["ry"]
-    jx = (j[0], j[1], j[2], a0, None, a2)
-    jy = (k[0], k[1], k[2], None, b1, b2)
+    g = []
+    for p in range(6):
+        if jx[p] is None:
+            g.append((jy[p] * ry).sum(0))
+        elif jy[p] is None:
+            g.append((jx[p] * rx).sum(0))
+        else:
+            g.append((jx[p] * rx + jy[p] * ry).sum(0))
+    return g
+
+
+def _gram(jx, jy):
+    """Upper triangle of J^T J: A[p][q] (p <= q), (F,) arrays."""
+    F = next(v for v in jx if v is not None).shape[1]
     A = [[None] * 6 for _ in range(6)]
     for p in range(6):
         for q in range(p, 6):
@@ -237,21 +253,22 @@ def _normal_equations(fr, ev):
                 s = jx[p] * jx[q]
             if jy[p] is not None and jy[q] is not None:
                 s = jy[p] * jy[q] if s is None else s + jy[p] * jy[q]
-            A[p][q] = np.zeros(x.shape[1]) if s is None else s.sum(0)
-    g = []
-    for p in range(6):
-        s = None
-        if jx[p] is not None:
-            s = jx[p] * rx
-        if jy[p] is not None:
-            s = jy[p] * ry if s is None else s + jy[p] * ry
-        g.append(s.sum(0))
-    return A, g
+            A[p][q] = np.zeros(F) if s is None else s.sum(0)
+    return A
 
 
-def _cholesky_solve(A, g, lam):
-    """Solve ``(A + lam diag(A)) x = g`` per frame; A upper-triangle components (F,), unrolled
-    Cholesky. Returns x (F, 6) and ok (F,) — False where a pivot is not positive (singular)."""
+def _normal_equations(fr, ev):
+    """``(A, g)``: upper triangle of J^T J (A[p][q], p <= q) and J^T r, as (F,) components."""
+    jx, jy = _jacobian(fr, ev)
+    return _gram(jx, jy), _gradient(jx, jy, ev)
+
+
+def _cholesky_factor(A, lam):
+    """Unrolled Cholesky factor of ``A + lam diag(A)`` per frame (A upper-triangle components).
+
+    Returns ``(L, inv, ok)``: L[i][c] (i > c) and inv[c] = 1 / L[c][c], (F,) arrays, and ok (F,)
+    False where a pivot is not positive (singular or rank-deficient normal equations).
+    """
     scale = np.maximum(np.maximum.reduce([A[i][i] for i in range(6)]), 1e-300)
     ok = np.ones(scale.shape, bool)
     L = [[None] * 6 for _ in range(6)]
@@ -268,6 +285,11 @@ def _cholesky_solve(A, g, lam):
             for k in range(c):
                 s = s - L[i][k] * L[c][k]
             L[i][c] = s * inv[c]
+    return L, inv, ok
+
+
+def _cholesky_apply(L, inv, g):
+    """Solve with a factor from :func:`_cholesky_factor`; g a list of 6 (F,) → (6, F)."""
     y = [None] * 6
     for i in range(6):
         s = g[i]
@@ -280,91 +302,164 @@ def _cholesky_solve(A, g, lam):
         for k in range(i + 1, 6):
             s = s - L[k][i] * xs[k]
         xs[i] = s * inv[i]
-    return np.stack(xs, -1), ok
+    return np.stack(xs)
+
+
+def _cholesky_solve(A, g, lam):
+    """Solve ``(A + lam diag(A)) x = g`` per frame → x (F, 6), ok (F,)."""
+    L, inv, ok = _cholesky_factor(A, lam)
+    return _cholesky_apply(L, inv, g).T, ok
+
+
+def _subset_factor(fac, idx):
+    L, inv = fac
+    return ([[None if v is None else v[idx] for v in row] for row in L], [v[idx] for v in inv])
 
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
-    """exp([phi]x) for phi (F, 3) rad → (F, 3, 3), series for small angles."""
-    x, y, z = phi[:, 0], phi[:, 1], phi[:, 2]
+    """exp([phi]x) for phi (F, 3) rad → (F, 3, 3)."""
+    return _exp_components(phi[:, 0], phi[:, 1], phi[:, 2]).T.reshape(-1, 3, 3)
+
+
+def _exp_components(x, y, z) -> np.ndarray:
+    """exp([phi]x) for phi = (x, y, z), each (F,) rad → (9, F) row-major components (Rodrigues,
+    series for small angles)."""
     th2 = x * x + y * y + z * z
     small = th2 < 1e-8
     th = np.sqrt(np.where(small, 1.0, th2))
     a = np.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, np.sin(th) / th)
     b = np.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - np.cos(th)) / (th * th))
-    out = np.empty(phi.shape[:1] + (3, 3))
     bxy, bxz, byz = b * x * y, b * x * z, b * y * z
-    out[:, 0, 0] = 1.0 - b * (y * y + z * z)
-    out[:, 1, 1] = 1.0 - b * (x * x + z * z)
-    out[:, 2, 2] = 1.0 - b * (x * x + y * y)
-    out[:, 0, 1] = bxy - a * z
-    out[:, 1, 0] = bxy + a * z
-    out[:, 0, 2] = bxz + a * y
-    out[:, 2, 0] = bxz - a * y
-    out[:, 1, 2] = byz - a * x
-    out[:, 2, 1] = byz + a * x
+    ax, ay, az = a * x, a * y, a * z
+    return np.stack([1.0 - b * (y * y + z * z), bxy - az, bxz + ay,
+                     bxy + az, 1.0 - b * (x * x + z * z), byz - ax,
+                     bxz - ay, byz + ax, 1.0 - b * (x * x + y * y)])
+
+
+def _compose(E, r):
+    """Row-major components (9, F) of the product E @ R of two (9, F) rotations."""
+    out = np.empty_like(r)
+    for i in range(3):
+        e0, e1, e2 = E[3 * i], E[3 * i + 1], E[3 * i + 2]
+        for j in range(3):
+            out[3 * i + j] = e0 * r[j] + e1 * r[3 + j] + e2 * r[6 + j]
     return out
 
 
 def _refine(fr, R, t, max_iterations):
     """Batched Levenberg–Marquardt on the angle residuals from the start (R, t).
 
-    Returns R, t, cost (sum of squared residuals), iterations, converged, ok (normal equations
-    solvable), depth (smallest z of the lit sensors).
+    Each iteration evaluates the gradient J^T r at the current pose. If the step it gives with the
+    previous iteration's factor of the normal matrix (which moved by ~1e-3 relative since) lowers
+    the cost by less than the tolerance, the frame has converged and takes that step; otherwise
+    the normal matrix is rebuilt and factored. So a frame that converges in two steps costs one
+    full normal-equation build.
+
+    R (F, 3, 3), t (F, 3). Returns R, t, cost (sum of squared residuals), iterations, converged,
+    ok (normal equations solvable), depth (smallest z of the lit sensors).
     """
     F = R.shape[0]
-    R = np.array(R, float)
-    t = np.array(t, float)
-    ev = _eval(fr, R, t)
+    r = np.ascontiguousarray(np.reshape(R, (F, 9)).T, dtype=float)  # (9, F)
+    t = np.ascontiguousarray(np.transpose(t), dtype=float)          # (3, F)
+    ev = _eval(fr, r, t)
     cost = ev.pop("cost")
     lam = np.full(F, 1e-6)
     iters = np.zeros(F, int)
     conv = np.zeros(F, bool)
     ok = np.ones(F, bool)
     act = np.arange(F)
+    fac, fac_act = None, None
     for _ in range(max_iterations):
         if act.size == 0:
             break
         whole = act.size == F
         if whole:
-            sub, evs = fr, ev
+            sub, evs, ra, ta, ca, la = fr, ev, r, t, cost, lam
         else:
             sub, evs = fr.take(act), {k: v[:, act] for k, v in ev.items()}
-        Ra, ta, ca = (R, t, cost) if whole else (R[act], t[act], cost[act])
-        A, g = _normal_equations(sub, evs)
-        step, okc = _cholesky_solve(A, g, lam[act])
-        dl = np.einsum("fi,fi->f", step, np.stack(g, -1))  # 2 x predicted decrease of the cost
-        small = okc & (dl <= _RTOL * ca + _ATOL * sub.nl)
-        Rn = np.matmul(_rodrigues(step[:, :3]), Ra)
-        tn = ta + step[:, 3:]
+            ra, ta, ca, la = r[:, act], t[:, act], cost[act], lam[act]
+        na = act.size
+        tol = _RTOL * ca + _ATOL * sub.nl
+        jx, jy = _jacobian(sub, evs)
+        g = _gradient(jx, jy, evs)
+        G = np.stack(g)
+        okc = np.ones(na, bool)
+        if fac is not None:
+            if fac_act.size != na:
+                fac = _subset_factor(fac, np.searchsorted(fac_act, act))
+            step = _cholesky_apply(*fac, g)
+            dl = (step * G).sum(0)  # 2 x predicted decrease of the cost
+            small = dl <= tol
+        else:
+            small = np.zeros(na, bool)
+        if not small.any():
+            L, inv, okc = _cholesky_factor(_gram(jx, jy), la)
+            step = _cholesky_apply(L, inv, g)
+            dl = (step * G).sum(0)
+            small = okc & (dl <= tol)
+            fac, fac_act = (L, inv), act
+        elif not small.all():
+            fi = np.flatnonzero(~small)
+            jxf = tuple(None if v is None else v[:, fi] for v in jx)
+            jyf = tuple(None if v is None else v[:, fi] for v in jy)
+            L, inv, okf = _cholesky_factor(_gram(jxf, jyf), la[fi])
+            stf = _cholesky_apply(L, inv, [v[fi] for v in g])
+            step[:, fi] = stf
+            dl[fi] = (stf * G[:, fi]).sum(0)
+            small[fi] = okf & (dl[fi] <= tol[fi])
+            okc[fi] = okf
+            fac, fac_act = (L, inv), act[fi]
+        rn = _compose(_exp_components(step[0], step[1], step[2]), ra)
+        tn = ta + step[3:]
         # frames whose step is negligible take it without a new evaluation
-        todo = np.flatnonzero(okc & ~small)
-        if todo.size == act.size:
-            evn = _eval(sub, Rn, tn)
+        todo = okc & ~small
+        if todo.all():
+            evn = _eval(sub, rn, tn)
+            better = evn["cost"] <= ca
+            acc = better
         else:
-            evn = _eval(sub.take(todo), Rn[todo], tn[todo])
-        cn = evn.pop("cost")
-        better = cn <= ca[todo]
-        acc = np.zeros(act.size, bool)
-        acc[todo] = better
-        if better.all() and todo.size == F:
-            ev, cost = evn, cn
-        else:
-            dst = act[todo[better]]
-            for k_, v in ev.items():
-                v[:, dst] = evn[k_][:, better]
-            cost[dst] = cn[better]
-        cost[act[small]] = np.maximum(ca[small] - dl[small], 0.0)
+            ti = np.flatnonzero(todo)
+            evn = _eval(sub.take(ti), rn[:, ti], tn[:, ti])
+            better = evn["cost"] <= ca[ti]
+            acc = np.zeros(na, bool)
+            acc[ti] = better
         take = acc | small
-        R[act[take]] = Rn[take]
-        t[act[take]] = tn[take]
-        lam[act[acc]] = np.maximum(lam[act[acc]] * 0.1, 1e-12)
-        lam[act[~take & okc]] *= 10.0
-        iters[act] += 1
+        cnew = np.where(small, np.maximum(ca - dl, 0.0), ca)
+        if whole and acc.all():
+            cost = evn.pop("cost")
+            ev = evn
+            r, t = rn, tn
+        else:
+            cn = evn.pop("cost")
+            if todo.all():
+                cnew = np.where(acc, cn, cnew)
+                dst, srcsel = act[acc], acc
+            else:
+                cnew[ti[better]] = cn[better]
+                dst, srcsel = act[ti[better]], better
+            if dst.size:
+                for k_, v in ev.items():
+                    v[:, dst] = evn[k_][:, srcsel]
+            if whole:
+                cost = cnew
+                r = np.where(take, rn, r)
+                t = np.where(take, tn, t)
+            else:
+                cost[act] = cnew
+                r[:, act[take]] = rn[:, take]
+                t[:, act[take]] = tn[:, take]
+        lnew = np.where(acc, np.maximum(la * 0.1, 1e-12), np.where(~take & okc, la * 10.0, la))
+        if whole:
+            lam = lnew
+            iters += 1
+        else:
+            lam[act] = lnew
+            iters[act] += 1
         conv[act[small]] = True
         ok[act[~okc]] = False
-        act = act[~(small | ~okc | (lam[act] > 1e10))]
+        act = act[~(small | ~okc | (lnew > 1e10))]
     depth = np.where(fr.w > 0, ev["z"], np.inf).min(0)
-    return R, t, cost, iters, conv, ok, depth
+    return r.T.reshape(F, 3, 3), t.T.copy(), cost, iters, conv, ok, depth
 
 
 # ------------------------------------------------------------------------------ starts
@@ -421,9 +516,11 @@ def _orthonormal_pair(a, b):
     return (m + d) * np.sqrt(0.5), (m - d) * np.sqrt(0.5)
 
 
-def _cross(a, b):
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], -1)
+def _unit3(v):
+    """Normalise a 3-vector given as a (3, F) array (or 3 (F,) arrays) → (3, F), and its norm."""
+    v = np.asarray(v)
+    nrm = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return v / nrm, nrm
 
 
 def _posit(fr, c, S, iterations=2):
@@ -432,28 +529,21 @@ def _posit(fr, c, S, iterations=2):
     The bearings are rotated so that the mean lit bearing is the virtual boresight (where the
     small target is near the axis and weak perspective is accurate), POSIT (DeMenthon & Davis
     1995) runs there, and the pose is rotated back. Non-coplanar lit sets only.
-    Returns R (F, 3, 3), t (F, 3).
+    c (F, 3) lit centroid, S the scatter components. Returns R (F, 3, 3), t (F, 3).
+    Per-frame 3-vectors are handled as (3, F) component arrays.
     """
     ux, uy = fr.ux, fr.uy
     F = ux.shape[1]
     inv = fr.masked(1.0 / np.sqrt(ux * ux + uy * uy + 1.0))
-    m = _normalize(np.stack([(ux * inv).sum(0), (uy * inv).sum(0), inv.sum(0)], -1))
+    m, _ = _unit3([(ux * inv).sum(0), (uy * inv).sum(0), inv.sum(0)])
     # Rc: the rotation taking m to e_z, I + [v]x + [v]x² / (1 + c) with v = m × e_z, c = m_z
-    vx, vy, cz = m[:, 1], -m[:, 0], m[:, 2]
+    vx, vy, cz = m[1], -m[0], m[2]
     k = 1.0 / (1.0 + cz)
-    Rc = np.empty((F, 3, 3))
-    Rc[:, 0, 0] = 1.0 - k * vy * vy
-    Rc[:, 0, 1] = k * vx * vy
-    Rc[:, 0, 2] = vy
-    Rc[:, 1, 0] = k * vx * vy
-    Rc[:, 1, 1] = 1.0 - k * vx * vx
-    Rc[:, 1, 2] = -vx
-    Rc[:, 2, 0] = -vy
-    Rc[:, 2, 1] = vx
-    Rc[:, 2, 2] = cz
-    ibz = 1.0 / (Rc[:, 2, 0] * ux + Rc[:, 2, 1] * uy + cz)
-    vxs = fr.masked((Rc[:, 0, 0] * ux + Rc[:, 0, 1] * uy + vy) * ibz)
-    vys = fr.masked((Rc[:, 1, 0] * ux + Rc[:, 1, 1] * uy - vx) * ibz)
+    kxy = k * vx * vy
+    Rc = np.stack([1.0 - k * vy * vy, kxy, vy, kxy, 1.0 - k * vx * vx, -vx, -vy, vx, cz])  # (9, F)
+    ibz = 1.0 / (Rc[6] * ux + Rc[7] * uy + cz)
+    vxs = fr.masked((Rc[0] * ux + Rc[1] * uy + vy) * ibz)
+    vys = fr.masked((Rc[3] * ux + Rc[4] * uy - vx) * ibz)
     # inverse of the scatter (adjugate / det)
     S00, S11, S22, S01, S02, S12 = S
     C00 = S11 * S22 - S12 * S12
@@ -463,31 +553,41 @@ def _posit(fr, c, S, iterations=2):
     C12 = S01 * S02 - S00 * S12
     C22 = S00 * S11 - S01 * S01
     idet = 1.0 / (S00 * C00 + S01 * C01 + S02 * C02)
-    Sinv = ((C00 * idet, C01 * idet, C02 * idet), (C01 * idet, C11 * idet, C12 * idet),
-            (C02 * idet, C12 * idet, C22 * idet))
+    Si = np.stack([C00, C01, C02, C01, C11, C12, C02, C12, C22]) * idet  # (9, F)
     nl = np.maximum(fr.nl, 1.0)
-    Qx, Qy, Qz = fr.Px - c[:, 0], fr.Py - c[:, 1], fr.Pz - c[:, 2]
+    ct = np.ascontiguousarray(c.T)
+    Qx, Qy, Qz = fr.Px - ct[0], fr.Py - ct[1], fr.Pz - ct[2]
     if not fr.all_lit:
         Qx, Qy, Qz = Qx * fr.w, Qy * fr.w, Qz * fr.w
     ax, ay = vxs, vys
     for it in range(iterations):
         if it:  # perspective correction 1 + eps_i = z_i / z_c
-            e = 1.0 + (r3[:, 0] * Qx + r3[:, 1] * Qy + r3[:, 2] * Qz) / Z
+            e = 1.0 + (r3[0] * iZ) * Qx + (r3[1] * iZ) * Qy + (r3[2] * iZ) * Qz
             ax, ay = vxs * e, vys * e
         # I = S^-1 sum_n Q_n a_n (Q centred, so the image of the centroid drops out)
         qa = ((Qx * ax).sum(0), (Qy * ax).sum(0), (Qz * ax).sum(0))
         qb = ((Qx * ay).sum(0), (Qy * ay).sum(0), (Qz * ay).sum(0))
-        I = np.stack([Sinv[i][0] * qa[0] + Sinv[i][1] * qa[1] + Sinv[i][2] * qa[2] for i in range(3)], -1)
-        J = np.stack([Sinv[i][0] * qb[0] + Sinv[i][1] * qb[1] + Sinv[i][2] * qb[2] for i in range(3)], -1)
-        Z = 2.0 / (np.sqrt((I * I).sum(1)) + np.sqrt((J * J).sum(1)))
-        r1, r2 = _orthonormal_pair(I, J)
-        r3 = _cross(r1, r2)
-    Rv = np.stack([r1, r2, r3], 1)
-    x0, y0 = ax.sum(0) / nl, ay.sum(0) / nl
-    tv = np.stack([x0 * Z, y0 * Z, Z], -1) - np.einsum("fij,fj->fi", Rv, c)
-    R = np.matmul(Rc.transpose(0, 2, 1), Rv)
-    t = np.einsum("fji,fj->fi", Rc, tv)
-    return R, t
+        I = [Si[3 * i] * qa[0] + Si[3 * i + 1] * qa[1] + Si[3 * i + 2] * qa[2] for i in range(3)]
+        J = [Si[3 * i] * qb[0] + Si[3 * i + 1] * qb[1] + Si[3 * i + 2] * qb[2] for i in range(3)]
+        I, nI = _unit3(I)
+        J, nJ = _unit3(J)
+        iZ = 0.5 * (nI + nJ)  # 1 / depth of the centroid
+        # symmetric orthonormalisation of the two rows
+        mm, _ = _unit3(I + J)
+        dd, _ = _unit3(I - J)
+        r1 = (mm + dd) * np.sqrt(0.5)
+        r2 = (mm - dd) * np.sqrt(0.5)
+        r3 = np.stack([r1[1] * r2[2] - r1[2] * r2[1], r1[2] * r2[0] - r1[0] * r2[2],
+                       r1[0] * r2[1] - r1[1] * r2[0]])
+    Z = 1.0 / iZ
+    Rv = np.concatenate([r1, r2, r3])  # (9, F) rows of the virtual-camera rotation
+    tv = [ax.sum(0) / nl * Z, ay.sum(0) / nl * Z, Z]
+    tv = [tv[i] - (Rv[3 * i] * ct[0] + Rv[3 * i + 1] * ct[1] + Rv[3 * i + 2] * ct[2]) for i in range(3)]
+    # back to the station frame: R = Rc^T Rv, t = Rc^T tv
+    RcT = Rc[[0, 3, 6, 1, 4, 7, 2, 5, 8]]
+    R = _compose(RcT, Rv)
+    t = np.stack([RcT[3 * i] * tv[0] + RcT[3 * i + 1] * tv[1] + RcT[3 * i + 2] * tv[2] for i in range(3)], -1)
+    return R.T.reshape(F, 3, 3), t
 
 
 def _ippe_pair(fr, c):
