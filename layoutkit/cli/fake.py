@@ -31,13 +31,16 @@ from ._common import echo_json, fail
 @click.option("--realtime/--no-realtime", default=None,
               help="Emit at real timing (default: on for a pty, off for --out).")
 @click.option("--speed", type=float, default=1.0, show_default=True, help="Real-time speed factor.")
+@click.option("--wait-reader", "wait_reader_s", type=float, default=None,
+              help="With a pty: give up when no reader opened it within this many seconds [default: wait].")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, protocol, motion, dropout,
-              frame_loss, garbage, sigma_rad, rho, realtime, speed, as_json):
+              frame_loss, garbage, sigma_rad, rho, realtime, speed, wait_reader_s, as_json):
     """Hardware simulator: emit an FPGA board's exact bytes for a layout in motion.
 
     Without --out a pseudo-terminal is opened and its device path printed (first line,
-    "device: /dev/pts/N") so that `layoutkit live --port /dev/pts/N` can read it.
+    "device: /dev/pts/N") so that `layoutkit live --port /dev/pts/N` can read it; streaming starts
+    when a reader opens the port. --link keeps a stable path across runs (replug).
     """
     import sys
     from pathlib import Path
@@ -86,7 +89,9 @@ def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, pro
 
     try:
         summary = run_fake_fpga(chunks, out=out, realtime=realtime, link=link, on_ready=ready, speed=speed,
-                                sidecar=sidecar)
+                                sidecar=sidecar, wait_reader=wait_reader_s)
+    except TimeoutError as exc:
+        fail(str(exc))
     except OSError as exc:
         fail(f"cannot emit: {exc}")
     summary.update({"sweeps": int(len(sw.t)), "frames_sent": int(sw.emitted.sum()),
