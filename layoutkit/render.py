@@ -120,7 +120,8 @@ def offscreen_backend() -> str:
     if ctypes.util.find_library("OSMesa"):
         os.environ[_ENV] = _OSMESA
         return _OSMESA
-    raise RenderingUnavailable(f"off-screen rendering is unavailable: no display, no EGL device and no OSMesa; {_INSTALL_HINT}")
+    raise RenderingUnavailable("off-screen rendering is unavailable: no display, no EGL device and no OSMesa; "
+                               + _INSTALL_HINT)
 
 
 def _plotter(size, *, anti_aliasing: bool = True, shape=(1, 1)):
@@ -173,12 +174,15 @@ def _scale(mesh) -> float:
     return float(np.linalg.norm(b[1] - b[0]))
 
 
-def _sensor_glyphs(positions, normals, radius, arrow_length):
-    """Sphere glyphs at the sensors and arrow glyphs along their normals (pyvista PolyData)."""
+def _sensor_glyphs(positions, normals, radius, arrow_length, lit_percent=None):
+    """Sphere glyphs at the sensors (carrying point array ``"lit"`` if given) and arrow glyphs along
+    their normals (pyvista PolyData)."""
     import pyvista as pv
 
     cloud = pv.PolyData(np.asarray(positions, float))
     cloud["normals"] = np.asarray(normals, float)
+    if lit_percent is not None:
+        cloud["lit"] = np.asarray(lit_percent, float)  # glyphs copy the point data of their source point
     res = 24 if len(cloud.points) <= 200 else 10
     spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=res, phi_resolution=res),
                           scale=False, orient=False, factor=radius)
@@ -252,24 +256,21 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
                     render_points_as_spheres=True)
     radius = 0.014 * diag if sensor_radius is None else float(sensor_radius)
     if P.shape[0]:
-        spheres, arrow_glyphs = _sensor_glyphs(P, N, radius, 0.09 * diag)
+        spheres, arrow_glyphs = _sensor_glyphs(P, N, radius, 0.09 * diag,
+                                               None if lit_fraction is None else 100.0 * lit_fraction)
         if arrows:
             pl.add_mesh(arrow_glyphs, color="#303030", smooth_shading=True)
         if lit_fraction is None:
             pl.add_mesh(spheres, color="#ff7f0e", smooth_shading=True)
         else:
-            # the sphere glyph copies point data from its source point; colour by % lit
-            cloud = pv.PolyData(P)
-            cloud["lit"] = 100.0 * lit_fraction
-            res = 24 if P.shape[0] <= 200 else 10
-            spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=res, phi_resolution=res),
-                                  scale=False, orient=False, factor=radius)
+            # colour range: 0–100 %, or 0 to the next 10 % above the maximum when all are rarely lit
             top = 100.0 if lit_fraction.max() > 0.6 else max(10.0, 10.0 * np.ceil(10.0 * lit_fraction.max()))
             pl.add_mesh(spheres, scalars="lit", cmap="viridis", clim=(0.0, top), smooth_shading=True,
                         show_scalar_bar=False)
             pl.add_scalar_bar("lit in % of envelope", vertical=True, position_x=0.86, position_y=0.2,
-                              width=0.05, height=0.6, n_labels=int(top // 10) + 1 if top <= 50 else 6, fmt="%.0f", color="black",
-                              title_font_size=max(12, h // 55), label_font_size=max(11, h // 60))
+                              width=0.05, height=0.6, n_labels=int(top // 10) + 1 if top <= 50 else 6,
+                              fmt="%.0f", color="black", title_font_size=max(12, h // 55),
+                              label_font_size=max(11, h // 60))
     pl.add_axes(line_width=3, labels_off=False, color="black")
     head = title or "layout"
     parts = ([f"{P.shape[0]} {what}"] if P.shape[0] else []) + (
@@ -445,8 +446,8 @@ def render_tracking_map(quality_map, *, out, kind: str = "mollweide", size=(1600
         over roll, fewest lit sensors over roll, median ADOP over roll) against body longitude and
         latitude of the station direction; ``"sphere"`` — three pyvista spheres of directions
         coloured by worst ADOP, worst PDOP and fewest lit sensors.
-    sigma_theta : rad, optional; adds the predicted 1-sigma attitude (arcsec) and position (mm)
-        to the colour-bar labels (Chen eq. 24).
+    sigma_theta : rad, optional; adds the predicted 1-sigma attitude (deg) and position (mm)
+        ranges to the colour-bar labels (Chen eq. 24). title : figure title (Mollweide only).
     Untracked directions (fewer than ``min_lit`` lit or singular) are grey. Returns ``Path(out)``.
     """
     if kind not in ("mollweide", "sphere"):
@@ -469,10 +470,8 @@ def _map_panels(q):
 
 def _tracking_map_mollweide(q, out, size, title, sigma_theta):
     import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib import patheffects
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.colors import BoundaryNorm
     from matplotlib.figure import Figure
 
@@ -481,10 +480,12 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
     fig = Figure(figsize=(w / dpi, h / dpi), dpi=dpi)
     FigureCanvasAgg(fig)
     fig.suptitle(title or "Tracking quality over all viewing directions", fontsize=16, y=0.985)
-    fig.text(0.5, 0.935, (f"station at {q.distance:g} m looking at the target origin; same-sweep correlation rho = {q.rho:g}; "
-                          f"{q.roll.size} station rolls about the line of sight in [0°, 90°)"), ha="center", fontsize=11)
+    fig.text(0.5, 0.935, (f"station at {q.distance:g} m looking at the target origin; same-sweep correlation "
+                          f"rho = {q.rho:g}; {q.roll.size} station rolls about the line of sight in [0°, 90°)"),
+             ha="center", fontsize=11)
     halo = [patheffects.withStroke(linewidth=2.5, foreground="white")]
-    axes_marks = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+    axes_marks = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
+                  "+z": (0, 0, 1), "-z": (0, 0, -1)}
     for k, (name, val, unit, cmap_name) in enumerate(_map_panels(q)):
         ax = fig.add_subplot(2, 2, k + 1, projection="mollweide")
         cmap = matplotlib.colormaps[cmap_name].with_extremes(bad="#d0d0d0")
@@ -534,9 +535,10 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
             ax.annotate(lbl, (lon, lat), xytext=(5, 3), textcoords="offset points", fontsize=10, color="black",
                         fontweight="bold", path_effects=halo)
     frac = q.summary()["tracked_solid_angle_fraction"]
-    fig.text(0.5, 0.01, (f"Station direction in the body frame (longitude atan2(y, x), latitude asin(z)); grey: fewer than "
-                         f"{q.min_lit} sensors lit or singular; blue line: {q.min_lit}-sensor boundary. "
-                         f"Tracked at every roll over {100 * frac:.1f} % of the sphere."), ha="center", fontsize=10)
+    fig.text(0.5, 0.01, (f"Station direction in the body frame (longitude atan2(y, x), latitude asin(z)); "
+                         f"grey: fewer than {q.min_lit} sensors lit or singular; blue line: {q.min_lit}-sensor "
+                         f"boundary. Tracked at every roll over {100 * frac:.1f} % of the sphere."),
+             ha="center", fontsize=10)
     fig.subplots_adjust(left=0.03, right=0.97, top=0.9, bottom=0.06, wspace=0.1, hspace=0.25)
     fig.savefig(out, dpi=dpi)
     return out

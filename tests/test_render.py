@@ -107,7 +107,8 @@ def test_render_bad_input_messages(tmp_path):
     mesh, lay = chen_target()
     with pytest.raises(ValueError) as e:
         render.render_layout_views(mesh, lay.positions, lay.normals, views=("iso", "diagonal"), out_dir=tmp_path)
-    assert str(e.value) == "views: unknown ['diagonal']; choose from ['back', 'bottom', 'front', 'iso', 'iso_back', 'side', 'top']"
+    assert str(e.value) == ("views: unknown ['diagonal']; choose from "
+                            "['back', 'bottom', 'front', 'iso', 'iso_back', 'side', 'top']")
     with pytest.raises(ValueError) as e:
         render.render_layout_views(mesh, lay.positions, lay.normals, np.full(lay.n, 1.5), out_dir=tmp_path)
     assert str(e.value) == "lit_fraction: expected values in [0, 1]"
@@ -172,8 +173,11 @@ def test_cli_render_writes_every_picture(tmp_path):
 
 @pytest.mark.parametrize("args, msg", [
     (["--size", "big"], "error: expected WIDTHxHEIGHT in pixels, e.g. 1600x1200, got 'big'"),
-    (["--views", "iso,diagonal"], "error: unknown view(s) ['diagonal']; choose from iso, iso_back, front, back, side, top, bottom"),
-    (["--station-view-pose", "1,2"], "error: station view pose: expected 'rx,ry,rz,tx,ty,tz' (rotation vector deg, translation m) or 'envelope:K', got '1,2'"),
+    (["--views", "iso,diagonal"],
+     "error: unknown view(s) ['diagonal']; choose from iso, iso_back, front, back, side, top, bottom"),
+    (["--station-view-pose", "1,2"],
+     "error: station view pose: expected 'rx,ry,rz,tx,ty,tz' (rotation vector deg, translation m) "
+     "or 'envelope:K', got '1,2'"),
     (["--quality-map"], "error: --quality-map needs a layout (--layout)"),
 ])
 def test_cli_render_bad_input(tmp_path, args, msg):
