@@ -77,10 +77,14 @@ def cone_visibility(positions, normals, R, t, half_angle_deg=70.0, fov_deg=120.0
     return facing & in_field_of_view(pw, fov_deg)
 
 
-def synthetic_instance(n_candidates, n_poses, rng=None, size=(0.3, 0.3, 0.15), **pose_kw):
-    """A box target instance: dict with positions, normals, visible (P, N), rotations, translations."""
+def synthetic_instance(n_candidates, n_poses, rng=None, size=(0.3, 0.3, 0.15), cone_deg=60.0,
+                       half_angle_deg=60.0, **pose_kw):
+    """A box target instance: dict with positions, normals, visible (P, N), rotations, translations.
+
+    cone_deg : attitude cone of the body +z axis about the line of sight; half_angle_deg : sensor
+    acceptance half-angle (photodiode field of view)."""
     rng = np.random.default_rng(rng)
     pos, nor = box_candidates(n_candidates, size, rng)
-    R, t = envelope_poses(n_poses, rng, **pose_kw)
-    vis = cone_visibility(pos, nor, R, t)
+    R, t = envelope_poses(n_poses, rng, cone_deg=cone_deg, **pose_kw)
+    vis = cone_visibility(pos, nor, R, t, half_angle_deg=half_angle_deg)
     return {"positions": pos, "normals": nor, "visible": vis, "rotations": R, "translations": t}

@@ -127,22 +127,32 @@ def one_swap_values(problem: Problem, st: SearchState, adds, poses, removal=None
     trWAi = np.einsum("kpii,i->kp", Ai, w)
     YWYi = np.einsum("kpic,i,kpic->kp", Yi, w, Yi)
     out = np.empty((k, len(adds), len(poses)))
-    Up = problem.U[poses]  # (Pc, N, C, 6)
-    for s in range(0, len(adds), chunk):
-        a = adds[s:s + chunk]
-        Uj = Up[:, a]  # (Pc, M, C, 6)
-        Q = np.einsum("kpij,pmcj->kmpic", Ai, Uj)  # (k, M, Pc, 6, C)
-        S = eye + np.einsum("pmci,kmpid->kmpcd", Uj, Q)
-        Sinv = np.linalg.inv(S)
-        QW = Q * w[:, None]
-        QtWQ = np.einsum("kmpic,kmpid->kmpcd", QW, Q)
-        trW = trWAi[:, None] - np.einsum("kmpcd,kmpdc->kmp", Sinv, QtWQ)
+    if C == 2:
+        for q, p in enumerate(poses):
+            out[:, :, q] = _one_swap_pose_c2(problem.U[p, adds], Ai[:, q], Yi[:, q], bi[:, q],
+                                             trWAi[:, q], YWYi[:, q], w, rho)
+        UpT = None
+    UpT = None if C == 2 else problem.U[poses].transpose(1, 0, 2, 3)  # (N, Pc, C, 6)
+    Ai_ = Ai[:, None]  # (k, 1, Pc, 6, 6)
+    bT = np.swapaxes(bi, -1, -2)[:, None]  # (k, 1, Pc, 6, C)
+    Yi_ = Yi[:, None]
+    for s in range(0, len(adds) if C != 2 else 0, chunk):
+        Uj = UpT[adds[s:s + chunk]][None]  # (1, M, Pc, C, 6)
+        Q = Ai_ @ np.swapaxes(Uj, -1, -2)  # (k, M, Pc, 6, C) = A_-r^-1 U_j^T
+        S = eye + Uj @ Q  # (k, M, Pc, C, C)
+        if C == 2:  # explicit 2 x 2 inverse
+            det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+            Sinv = np.stack([np.stack([S[..., 1, 1], -S[..., 0, 1]], -1),
+                             np.stack([-S[..., 1, 0], S[..., 0, 0]], -1)], -2) / det[..., None, None]
+        else:
+            Sinv = np.linalg.inv(S)
+        QtWQ = np.swapaxes(Q * w[:, None], -1, -2) @ Q
+        trW = trWAi[:, None] - np.sum(Sinv * QtWQ, axis=(-2, -1))  # both symmetric
         val = (1 - rho) * trW
         if rho != 0:
-            R = Q @ Sinv  # (k, M, Pc, 6, C)
-            Mx = eye - np.einsum("kmpic,kpdi->kmpcd", Q, bi)
-            Yn = Yi[:, None] + R @ Mx
-            val = val + rho * np.einsum("kmpic,i,kmpic->kmp", Yn, w, Yn)
+            Mx = eye - np.swapaxes(Q, -1, -2) @ bT  # I - Q^T b_-r^T
+            Yn = Yi_ + (Q @ Sinv) @ Mx
+            val = val + rho * np.sum(Yn * Yn * w[:, None], axis=(-2, -1))
         out[:, s:s + chunk] = val
     bad = ~ok
     if bad.any():  # direct evaluation where the removal was singular
@@ -153,6 +163,47 @@ def one_swap_values(problem: Problem, st: SearchState, adds, poses, removal=None
             b = st.b[p] - problem.U[p, st.sel[r_]] + problem.U[p, adds]
             out[r_, :, p_] = pose_values_from_info(A, b, rho, w)
     return np.where(np.isfinite(out) & (out >= 0), out, np.inf)
+
+
+def _mm2(a, b):
+    """Batched 2 x 2 matrix product by components (numpy's matmul is slow on tiny stacks)."""
+    return np.stack([
+        np.stack([a[..., 0, 0] * b[..., 0, 0] + a[..., 0, 1] * b[..., 1, 0],
+                  a[..., 0, 0] * b[..., 0, 1] + a[..., 0, 1] * b[..., 1, 1]], -1),
+        np.stack([a[..., 1, 0] * b[..., 0, 0] + a[..., 1, 1] * b[..., 1, 0],
+                  a[..., 1, 0] * b[..., 0, 1] + a[..., 1, 1] * b[..., 1, 1]], -1)], -2)
+
+
+def _one_swap_pose_c2(Up, Ai, Yi, bi, trWAi, YWYi, w, rho):
+    """One pose, one station (rank-2 update): squared values (k, M). BLAS for every 6-d product.
+
+    Up (M, 2, 6) rows of the added candidates; Ai (k, 6, 6) = A_-r^-1; Yi (k, 6, 2) = A_-r^-1 b_-r^T;
+    bi (k, 2, 6); trWAi, YWYi (k,). With V = U_j A_-r^-1 (= Q^T): S = I + V U_j^T,
+    tr(W A'^-1) = tr(W A_-r^-1) - tr(S^-1 V W V^T), u' = Y_-r + Q S^-1 (I - V b_-r^T).
+    """
+    M = Up.shape[0]
+    k = Ai.shape[0]
+    Uf = Up.reshape(M * 2, 6)
+    V = (Uf @ Ai).reshape(k, M, 2, 6)  # GEMM per r
+    VW = V * w
+    S = np.sum(V[:, :, :, None, :] * Up[None, :, None, :, :], axis=-1)
+    S[..., 0, 0] += 1.0
+    S[..., 1, 1] += 1.0
+    det = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+    Sinv = np.stack([np.stack([S[..., 1, 1], -S[..., 0, 1]], -1),
+                     np.stack([-S[..., 1, 0], S[..., 0, 0]], -1)], -2) / det[..., None, None]
+    QtWQ = np.sum(VW[:, :, :, None, :] * V[:, :, None, :, :], axis=-1)
+    val = (1 - rho) * (trWAi[:, None] - np.sum(Sinv * QtWQ, axis=(-2, -1)))
+    if rho != 0:
+        QtbT = (Uf @ Yi).reshape(k, M, 2, 2)  # u_c^T A_-r^-1 b_d
+        QtWY = (VW.reshape(k, M * 2, 6) @ Yi).reshape(k, M, 2, 2)
+        Mx = -QtbT
+        Mx[..., 0, 0] += 1.0
+        Mx[..., 1, 1] += 1.0
+        Z = _mm2(Sinv, Mx)
+        val = val + rho * (YWYi[:, None] + 2 * np.sum(QtWY * Z, axis=(-2, -1))
+                           + np.sum(_mm2(QtWQ, Z) * Z, axis=(-2, -1)))
+    return val
 
 
 def _apply(problem: Problem, sel, remove, add):
