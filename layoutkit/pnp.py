@@ -10,9 +10,10 @@ Method (vectorised over frames; frames are processed in bounded chunks):
 1. Sweep angles are a pinhole camera: normalised image coordinates ``(x/z, y/z) = cot(theta)``
    (Chen eq. 2).
 2. Start for non-coplanar lit sets: the bearings are rotated into a virtual camera whose
-   boresight is the mean bearing of the lit sensors, where the target is near the axis and
-   scaled orthography is an excellent model; then the scaled-orthographic linear solve with
-   perspective correction (POSIT, DeMenthon & Davis 1995), two fixed-point iterations.
+   boresight is the ray through the mean lit image point, where the target is near the axis
+   and scaled orthography is an excellent model; then the scaled-orthographic linear solve with
+   perspective correction (POSIT, DeMenthon & Davis 1995), two fixed-point iterations. (Without
+   the virtual camera, POSIT starts are off by up to 180° for targets near the field edge.)
 3. Start for coplanar or near-coplanar lit sets (``sqrt(lambda_min / lambda_max)`` of the centred
    lit body points below :data:`PLANARITY_THRESHOLD`), and for frames whose first solution is
    poor: the homography of the dominant plane and the two poses of the planar two-fold
@@ -22,7 +23,10 @@ Method (vectorised over frames; frames are processed in bounded chunks):
    Jacobian of :func:`layoutkit.dop.angle_jacobian` written out per component (left
    perturbation ``R <- exp([dphi]x) R``, ``t <- t + dt``), batched 6 × 6 normal equations
    solved by an unrolled Cholesky factorisation. Converged when the step lowers the cost by less
-   than ``1e-6`` of itself (typically two iterations from the POSIT start).
+   than ``1e-6`` of itself (typically two iterations from the POSIT start, the second checked
+   with the first iteration's factor, so one normal-matrix build per frame).
+5. Layout: inside a chunk, per-sensor arrays are frames-last ``(n, F)`` and per-frame 3-vectors
+   and rotations are component arrays, so every numpy operation runs over the long frame axis.
 
 Status codes (``PnPResult.status``) are listed in :data:`STATUS_NAMES`.
 """
@@ -526,16 +530,16 @@ def _unit3(v):
 def _posit(fr, c, S, iterations=2):
     """Scaled-orthographic start with perspective correction (POSIT) in a virtual camera.
 
-    The bearings are rotated so that the mean lit bearing is the virtual boresight (where the
-    small target is near the axis and weak perspective is accurate), POSIT (DeMenthon & Davis
-    1995) runs there, and the pose is rotated back. Non-coplanar lit sets only.
+    The bearings are rotated so that the ray through the mean lit image point is the virtual
+    boresight (where the small target is near the axis and weak perspective is accurate), POSIT
+    (DeMenthon & Davis 1995) runs there, and the pose is rotated back. Non-coplanar lit sets only.
     c (F, 3) lit centroid, S the scatter components. Returns R (F, 3, 3), t (F, 3).
     Per-frame 3-vectors are handled as (3, F) component arrays.
     """
     ux, uy = fr.ux, fr.uy
     F = ux.shape[1]
-    inv = fr.masked(1.0 / np.sqrt(ux * ux + uy * uy + 1.0))
-    m, _ = _unit3([(ux * inv).sum(0), (uy * inv).sum(0), inv.sum(0)])
+    # virtual boresight: the ray through the mean image point of the lit sensors
+    m, _ = _unit3([ux.sum(0), uy.sum(0), fr.nl])
     # Rc: the rotation taking m to e_z, I + [v]x + [v]x² / (1 + c) with v = m × e_z, c = m_z
     vx, vy, cz = m[1], -m[0], m[2]
     k = 1.0 / (1.0 + cz)
