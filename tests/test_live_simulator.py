@@ -146,3 +146,24 @@ def test_fake_fpga_cli_writes_capture_sidecar_truth(tmp_path):
     np.testing.assert_allclose([m.t for m in out], rows[:, 0], atol=1e-9)
     bad = CliRunner().invoke(main, ["fake-fpga", "--layout", LAYOUT, "--out", str(cap), "--dropout", "2"])
     assert bad.exit_code == 2 and "error: --dropout: expected a probability in [0, 1], got 2.0" in bad.output
+
+
+def test_simulator_bitcraze_lh1_stream(layout):
+    """protocol="bitcraze-lh1": the deck stream of a 4-sensor layout decodes (firmware method) to the
+    simulated angles within half a 24 MHz tick, at the truth times; only the first sweep of each
+    axis is lost (no rotor period measured yet). More than 4 sensors: a clear error."""
+    four = layout.subset([0, 1, 2, 3])
+    chunks, sw = simulate_stream(four, duration=3.0, seed=2, protocol="bitcraze-lh1", frame_loss=0.05)
+    dec = get_protocol("bitcraze-lh1")(n_sensors=4)
+    out = [m for _, b in chunks for m in dec.feed(b)] + dec.flush()
+    assert len(out) == len(sw.t) - 2 and dec.stats.bad == 0
+    t = np.array([m.t for m in out])
+    k = np.searchsorted(sw.t, t - 1e-6)
+    np.testing.assert_allclose(t, sw.t[k], atol=1e-8)
+    want = np.where(sw.emitted[:, None], sw.measured_angles(), np.nan)[k]
+    got = np.array([m.angles for m in out])
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got, want, atol=np.pi / 400000 + 1e-12)
+    with pytest.raises(ValueError, match=r"^protocol bitcraze-lh1: the Lighthouse deck has at most 4 sensors, "
+                                         r"the layout has 12$"):
+        simulate_stream(layout, duration=1.0, protocol="bitcraze-lh1")

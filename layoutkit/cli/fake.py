@@ -18,7 +18,7 @@ from ._common import echo_json, fail
               help="Write the true poses (t,rx,ry,rz,tx,ty,tz; s, rad, m; one row per sweep).")
 @click.option("--duration", "duration_s", type=float, default=60.0, show_default=True, help="Simulated seconds.")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--protocol", default="layoutkit", show_default=True, type=click.Choice(["layoutkit"]),
+@click.option("--protocol", default="layoutkit", show_default=True, type=click.Choice(["layoutkit", "bitcraze-lh1"]),
               help="Wire protocol to emit.")
 @click.option("--motion", default="tumble", show_default=True,
               help="tumble, static, or a trajectory CSV (t,rx,ry,rz,tx,ty,tz).")
@@ -74,7 +74,8 @@ def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, pro
     sidecar = {
         "source": "fake-fpga",
         "protocol": protocol,
-        "protocol_options": {"n_sensors": layout.n, "rotor_rpm": sw.stations[0].rotor_rpm, "clock_hz": sw.clock_hz},
+        "protocol_options": ({"n_sensors": layout.n, "rotor_rpm": sw.stations[0].rotor_rpm, "clock_hz": sw.clock_hz}
+                             if protocol == "layoutkit" else {"n_sensors": layout.n}),
         "n_sensors": layout.n,
         "layout": layout.to_dict(),
         "stations": [station_to_dict(s) for s in sw.stations],

@@ -62,6 +62,7 @@ __all__ = [
     "encode_pulse",
     "parse_frame",
     "lh1_deck_stream",
+    "lh1_deck_frames",
     "lh2_deck_stream",
     "lh1_model",
     "lh2_model",
@@ -296,8 +297,18 @@ def lh1_deck_stream(theta, *, stations: int = 1, t0_ticks: int = 1000, sync_ever
     → distorted with :func:`lh1_model`, needs X and Y of a sensor in consecutive frames).
     A sync frame (12 × 0xFF) every ``sync_every_frames`` frames and first. ``jitter``: a
     Generator adding 0-3 ticks of sensor-to-sensor skew to the sync pulses.
-    Returns (bytes, sync times of every frame (F,) in ticks unwrapped, list of DeckPulse).
+    Returns (bytes, sync times of every frame (F,) in ticks unwrapped, list of DeckPulse);
+    :func:`lh1_deck_frames` returns the bytes per frame instead.
     """
+    chunks, sync_ts, pulses = lh1_deck_frames(theta, stations=stations, t0_ticks=t0_ticks,
+                                              sync_every_frames=sync_every_frames, jitter=jitter, calib=calib)
+    return b"".join(chunks), sync_ts, pulses
+
+
+def lh1_deck_frames(theta, *, stations: int = 1, t0_ticks: int = 1000, sync_every_frames: int = 60,
+                    jitter=None, calib: dict | None = None) -> tuple[list, np.ndarray, list]:
+    """:func:`lh1_deck_stream` with the bytes split per frame: chunk f holds frame f's pulses
+    (preceded by a sync frame where one is due; chunk 0 starts with one)."""
     theta = np.asarray(theta, float)
     F, n = theta.shape
     if n > MAX_DECK_SENSORS:
@@ -310,11 +321,10 @@ def lh1_deck_stream(theta, *, stations: int = 1, t0_ticks: int = 1000, sync_ever
             if s in calib:
                 pair = lh1_model(fw[f], fw[f + 1], calib[s])
                 fw[f], fw[f + 1] = pair[..., 0], pair[..., 1]
-    out, pulses = [SYNC_FRAME], []
+    chunks, pulses = [], []
     sync_ts = np.zeros(F, np.int64)
     for f in range(F):
-        if f and f % sync_every_frames == 0:
-            out.append(SYNC_FRAME)
+        out = [SYNC_FRAME] if f % sync_every_frames == 0 else []
         start = t0_ticks + LH1_FRAME_LENGTH * f
         axis = f % 2
         active = (f // 2) % stations
@@ -334,7 +344,8 @@ def lh1_deck_stream(theta, *, stations: int = 1, t0_ticks: int = 1000, sync_ever
         frame_pulses.sort(key=lambda p: p.timestamp)
         pulses += frame_pulses
         out += [encode_pulse(p) for p in frame_pulses]
-    return b"".join(out), sync_ts, pulses
+        chunks.append(b"".join(out))
+    return chunks, sync_ts, pulses
 
 
 def lh2_deck_stream(alpha, *, channel: int = 0, t0_ticks: int = 1000, sync_every: int = 50,
