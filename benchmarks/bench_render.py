@@ -97,6 +97,17 @@ def main():
     R_sv = rotvec_to_matrix([np.pi + 0.35, 0.25, 0.4])
     t_sv = np.array([0.25, -0.15, 1.8])
     lit_sv = visible_sensors(chen["mesh"], chen["layout"].positions, chen["layout"].normals, R_sv, t_sv)
+    # docking target seen from station 0 of its envelope: the pose (of the first 100) where the mesh
+    # shadows the most candidate sites that face the station inside its field of view
+    dock = models["docking_target"]
+    st = dock["envelope"].stations[0]
+    R_w, t_w = dock["envelope"].poses()
+    R_d, t_d = st.world_to_station(R_w[:100], t_w[:100])
+    dl = dock["layout"]
+    v_occ = visible_sensors(dock["mesh"], dl.positions, dl.normals, R_d, t_d, fov_deg=st.fov_deg)
+    v_free = visible_sensors(dock["mesh"], dl.positions, dl.normals, R_d, t_d, fov_deg=st.fov_deg, occlusion=False)
+    k_d = int(np.argmax(v_free.sum(1) - v_occ.sum(1)))
+    R_d, t_d, lit_d, shadow_d = R_d[k_d], t_d[k_d], v_occ[k_d], v_free[k_d] & ~v_occ[k_d]
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_render_"))
     funcs = {}
@@ -125,6 +136,13 @@ def main():
                                    fov_deg=None, size=SIZE, out=tmp / "chen_station_view.png", ids=chen["layout"].ids,
                                    title="chen_target: view from the lighthouse")
     funcs["station_view:chen_target"] = station_view
+
+    def station_view_docking():
+        render.render_station_view(dock["mesh"], dl.positions, dl.normals, R_d, t_d, lit_d, fov_deg=None, size=SIZE,
+                                   out=tmp / "docking_station_view.png", shadowed=shadow_d,
+                                   sensor_radius=0.3 * dock["spacing"], what="candidate sites",
+                                   title=f"docking_target seen from station {st.id} of '{dock['envelope'].name}'")
+    funcs["station_view:docking_target"] = station_view_docking
 
     def quality_map():
         render.render_tracking_map(q, out=tmp / "chen_quality_map.png", size=SIZE, sigma_theta=SIGMA_THETA_PAPER,
@@ -190,6 +208,7 @@ def main():
                   "cubesat_3u_coverage_iso.png": "cubesat_3u_coverage.png",
                   "docking_target_coverage_iso.png": "docking_target_coverage.png",
                   "chen_station_view.png": "chen_station_view.png",
+                  "docking_station_view.png": "docking_station_view.png",
                   "chen_quality_map.png": "chen_quality_map.png",
                   "chen_quality_sphere.png": "chen_quality_sphere.png",
                   "chen_views_top.png": "chen_layout_top.png"}

@@ -61,6 +61,7 @@ _INSTALL_HINT = ("install EGL (Debian/Ubuntu: apt-get install libegl1 libegl-mes
 MESH_COLOR = "#c9ced6"
 LIT_COLOR = "#1fa33a"
 UNLIT_COLOR = "#d62728"
+SHADOW_COLOR = "#ff9f1c"
 CANDIDATE_COLOR = "#6b6b6b"
 
 
@@ -174,18 +175,28 @@ def _scale(mesh) -> float:
     return float(np.linalg.norm(b[1] - b[0]))
 
 
-def _sensor_glyphs(positions, normals, radius, arrow_length, lit_percent=None):
-    """Sphere glyphs at the sensors (carrying point array ``"lit"`` if given) and arrow glyphs along
-    their normals (pyvista PolyData)."""
+def _sphere_glyphs(positions, normals, radius, lit_percent=None):
+    """Spheres of ``radius`` (m) sitting on the surface at the sensors: centre ``p + 0.8 r n`` (so a
+    sensor on one face of a thin panel does not poke through the other face); point array ``"lit"``
+    copied from ``lit_percent`` if given. Returns pyvista PolyData."""
     import pyvista as pv
 
     cloud = pv.PolyData(np.asarray(positions, float))
     cloud["normals"] = np.asarray(normals, float)
     if lit_percent is not None:
         cloud["lit"] = np.asarray(lit_percent, float)  # glyphs copy the point data of their source point
-    res = 24 if len(cloud.points) <= 200 else 10
-    spheres = cloud.glyph(geom=pv.Sphere(radius=1.0, theta_resolution=res, phi_resolution=res),
-                          scale=False, orient=False, factor=radius)
+    res = 24 if len(cloud.points) <= 200 else 12
+    return cloud.glyph(geom=pv.Sphere(radius=1.0, center=(0.8, 0.0, 0.0), theta_resolution=res, phi_resolution=res),
+                       orient="normals", scale=False, factor=radius)
+
+
+def _sensor_glyphs(positions, normals, radius, arrow_length, lit_percent=None):
+    """Sphere glyphs at the sensors (:func:`_sphere_glyphs`) and arrow glyphs along their normals."""
+    import pyvista as pv
+
+    cloud = pv.PolyData(np.asarray(positions, float))
+    cloud["normals"] = np.asarray(normals, float)
+    spheres = _sphere_glyphs(positions, normals, radius, lit_percent)
     arrows = cloud.glyph(geom=pv.Arrow(start=(0, 0, 0), direction=(1, 0, 0), tip_length=0.25,
                                        tip_radius=0.07, shaft_radius=0.025),
                          orient="normals", scale=False, factor=arrow_length)
@@ -354,8 +365,9 @@ def station_view_camera(mesh, rotation, translation, size, fov_deg: "float | Non
 
 def render_station_view(mesh, positions, normals, rotation, translation, lit, *, fov_deg: "float | None" = 120.0,
                         size=(1600, 1200), out, ids=None, title: "str | None" = None,
-                        anti_aliasing: bool = True) -> Path:
-    """The target seen from a lighthouse: lit sensors green, unlit red.
+                        anti_aliasing: bool = True, shadowed=None, sensor_radius: "float | None" = None,
+                        what: str = "sensors") -> Path:
+    """The target seen from a lighthouse: lit sensors green, unlit red (shadowed by the mesh: orange).
 
     mesh : ``trimesh.Trimesh`` (m, body frame); positions, normals : (n, 3) body frame.
     rotation (3, 3), translation (3,) m : body pose in the station frame (``p_lh = R p + t``).
@@ -364,6 +376,9 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
         lighthouse field of view is 120° × 120°), principal point at the window centre; ``None``
         frames the target by a crop of the station image (:func:`station_view_camera`). The
         pixel of a body point is :func:`station_view_pixels` with those intrinsics.
+    shadowed : (n,) bool, optional — unlit sensors that would be lit but for the mesh in the way
+        (e.g. ``visible_sensors(..., occlusion=False) & ~lit``), drawn orange.
+    sensor_radius : m (default: 1 % of the mesh diagonal, at least 5 px). what : caption noun.
     out : PNG path. anti_aliasing : off for exact masks. Returns ``Path(out)``.
     """
     P, N = _check_sensors(positions, normals)
@@ -374,11 +389,13 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     lit = np.asarray(lit, bool)
     if lit.shape != (P.shape[0],):
         raise ValueError(f"lit: expected shape ({P.shape[0]},), got {lit.shape}")
+    shadowed = np.zeros_like(lit) if shadowed is None else np.asarray(shadowed, bool)
+    if shadowed.shape != lit.shape:
+        raise ValueError(f"shadowed: expected shape ({P.shape[0]},), got {shadowed.shape}")
+    shadowed = shadowed & ~lit
     fov_deg, (cx, cy) = station_view_camera(mesh, R, t, size, fov_deg)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-
-    import pyvista as pv
 
     w, h = _check_size(size)
     pl = _plotter(size, anti_aliasing=anti_aliasing)
@@ -392,14 +409,15 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     pl.camera.view_angle = float(fov_deg)
     # principal point (cx, cy) px: VTK shifts the image by -window_center * (W/2, -H/2) (NDC y up)
     pl.camera.SetWindowCenter(2.0 * (0.5 * w - cx) / w, -2.0 * (0.5 * h - cy) / h)
-    # sensor sphere radius: ≥ 0.4 % of the image height at the target's depth, ≥ 1 % of the mesh
-    depth = float(np.median((P @ R.T + t)[:, 2])) if P.shape[0] else float(np.linalg.norm(t))
-    px_angle = np.deg2rad(fov_deg) / h
-    radius = max(0.01 * diag, 5 * px_angle * abs(depth))
-    for mask, color in ((lit, LIT_COLOR), (~lit, UNLIT_COLOR)):
+    if sensor_radius is None:
+        # ≥ 1 % of the mesh diagonal and ≥ 5 px at the sensors' median depth
+        depth = float(np.median((P @ R.T + t)[:, 2])) if P.shape[0] else float(np.linalg.norm(t))
+        radius = max(0.01 * diag, 5 * np.deg2rad(fov_deg) / h * abs(depth))
+    else:
+        radius = float(sensor_radius)
+    for mask, color in ((lit, LIT_COLOR), (shadowed, SHADOW_COLOR), (~lit & ~shadowed, UNLIT_COLOR)):
         if mask.any():
-            sph = pv.PolyData(P[mask]).glyph(geom=pv.Sphere(radius=1.0, theta_resolution=24, phi_resolution=24),
-                                             scale=False, orient=False, factor=radius)
+            sph = _sphere_glyphs(P[mask], N[mask], radius)
             pl.add_mesh(sph, color=color, smooth_shading=True, ambient=0.35)
     if ids is not None:
         if len(ids) != P.shape[0]:
@@ -415,7 +433,9 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
     head = title or "view from the lighthouse"
     crop = "" if abs(cx - 0.5 * w) < 1e-6 and abs(cy - 0.5 * h) < 1e-6 else " (crop of the station image)"
     pl.add_text(f"{head}\nrange {dist:.2f} m, vertical view angle {fov_deg:.2f} deg{crop}\n"
-                f"lit {int(lit.sum())}/{lit.size} sensors (green lit, red not lit)",
+                f"{what}: {int(lit.sum())}/{lit.size} lit (green)"
+                + (f", {int(shadowed.sum())} shadowed by the mesh (orange)" if shadowed.any() else "")
+                + f", {int((~lit & ~shadowed).sum())} not lit (red)",
                 position="upper_left", font_size=max(10, h // 80), color="black")
     pl.renderer.ResetCameraClippingRange()
     _shoot(pl, out)

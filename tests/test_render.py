@@ -89,6 +89,33 @@ def test_station_view_matches_the_pinhole_model(tmp_path, crop):
         assert np.linalg.norm(centroid - uv[k]) < 0.3, (k, centroid, uv[k])
 
 
+def test_station_view_three_colours(tmp_path):
+    """Lit sensors are drawn green, shadowed ones orange, other unlit ones red (colour classes counted
+    in the image; the top-face sensors all face the station at this pose)."""
+    from layoutkit.geometry import rotvec_to_matrix
+
+    mesh, lay = chen_target()
+    R = rotvec_to_matrix([np.pi, 0.0, 0.0])
+    t = np.array([0.0, 0.0, 1.5])
+    top = slice(0, 4)
+    lit = np.array([True, True, False, False])
+    shadowed = np.array([False, False, True, False])
+    out = render.render_station_view(mesh, lay.positions[top], lay.normals[top], R, t, lit, fov_deg=None,
+                                     size=(400, 300), out=tmp_path / "sv.png", shadowed=shadowed)
+    img = _png(out).astype(int)
+    colours = {"green": render.LIT_COLOR, "orange": render.SHADOW_COLOR, "red": render.UNLIT_COLOR}
+    counts = {}
+    for name, hexc in colours.items():
+        ref = np.array([int(hexc[i:i + 2], 16) for i in (1, 3, 5)])
+        counts[name] = int(np.sum(np.linalg.norm(img - ref, axis=-1) < 50))
+    # two green spheres, one orange, one red (areas roughly proportional)
+    assert counts["orange"] > 20 and counts["red"] > 20
+    assert 1.3 < counts["green"] / counts["orange"] < 3.0
+    with pytest.raises(ValueError, match=r"shadowed: expected shape \(4,\), got \(3,\)"):
+        render.render_station_view(mesh, lay.positions[top], lay.normals[top], R, t, lit, out=tmp_path / "x.png",
+                                   shadowed=np.zeros(3, bool))
+
+
 def test_tracking_map_pictures(tmp_path):
     """The Mollweide and sphere maps are W×H PNGs with content."""
     from layoutkit.quality import tracking_quality_map

@@ -166,10 +166,14 @@ def render_design(mesh_path, *, out_dir, units: str = "m", layout_path=None, can
         R, t = _station_pose(inp, spec)
         fov = inp.stations[inp.envelope.reference_station].fov_deg if inp.envelope is not None else 120.0
         lit = visible_sensors(inp.mesh, lay.positions, lay.normals, R[None], t[None], fov_deg=fov, **kw)[0]
-        result["station_view"] = {"lit": int(lit.sum()), "n": int(lit.size), "range_m": float(np.linalg.norm(t))}
+        free = visible_sensors(inp.mesh, lay.positions, lay.normals, R[None], t[None], fov_deg=fov, occlusion=False,
+                               **kw)[0]
+        result["station_view"] = {"lit": int(lit.sum()), "shadowed": int((free & ~lit).sum()), "n": int(lit.size),
+                                  "range_m": float(np.linalg.norm(t))}
         result["paths"].append(render.render_station_view(
             inp.mesh, lay.positions, lay.normals, R, t, lit, fov_deg=options.view_angle_deg, size=options.size,
-            out=out_dir / f"{stem}_station_view.png", ids=lay.ids, title=f"{stem}: view from the lighthouse"))
+            out=out_dir / f"{stem}_station_view.png", ids=lay.ids, title=f"{stem}: view from the lighthouse",
+            shadowed=free & ~lit))
 
     result["paths"] = [str(p) for p in result["paths"]]
     return result
