@@ -106,15 +106,17 @@ def test_counter_wrap_and_lh2_kind():
 
 def test_sequence_gaps_and_device_reset():
     """Frames missing from the stream count as dropped (sequence gaps, also across the u16 wrap);
-    a restart at seq 0 counts as a reset and keeps t monotone."""
+    a repeated frame is reported once; a restart at seq 0 counts as a reset and keeps t monotone."""
     K = 30
     seq = (65530 + np.arange(K)) % 65536
     sync = 1000 + np.arange(K) * 416_667
     frames = encode_sweeps(0, 0, seq, sync, np.zeros((K, 1)))
     keep = [k for k in range(K) if k not in (3, 4, 9, 20)]
     reset = encode_sweeps(0, 0, [0, 1], [500, 500 + 416_667], np.zeros((2, 1)))
-    out, dec = _decode("layoutkit", b"".join([frames[k] for k in keep] + reset), n_sensors=1)
+    repeat = [frames[keep[-1]]]  # the last frame sent twice: reported once
+    out, dec = _decode("layoutkit", b"".join([frames[k] for k in keep] + repeat + reset), n_sensors=1)
     assert dec.stats.dropped == 4 and dec.stats.resets == 1 and dec.stats.good == len(keep) + 2
+    assert dec.stats.bad == 1
     assert np.all(np.diff([m.t for m in out]) > 0)
 
 

@@ -278,6 +278,8 @@ def simulate_stream(layout, *, duration: float, seed: int = 0, protocol: str = "
     10000 ticks = 0.42 ms after the slot start, while its truth row stays at the slot start).
     Other keyword arguments go to :func:`simulate_sweeps`.
     """
+    if not 0 <= garbage <= 1:
+        raise ValueError(f"garbage: expected a probability in [0, 1], got {garbage}")
     sw = simulate_sweeps(layout, duration=duration, seed=seed, **kwargs)
     frames = encode_frames(sw, protocol)
     rng = np.random.default_rng([seed, 1])

@@ -260,6 +260,9 @@ class LayoutkitDecoder:
             for j, k in enumerate(ks):
                 angles[k] = a[j]
         for (start, flags, seq, n, sync), a in zip(found, angles):
+            if seq == self._last_seq and sync == self._last_sync:
+                self.stats.bad += 1  # the same frame twice (a repeated transmission): not new data
+                continue
             t = self._advance(seq, sync)
             self.stats.good += 1
             out.append(SweepMeasurement(t, flags & 0x0F, (flags >> 4) & 1, a, seq, _KINDS[(flags >> 5) & 1]))
