@@ -1,0 +1,241 @@
+"""Optimisation workflow: mesh + candidates + envelope -> optimised layout JSON + report folder.
+
+Used by ``layoutkit optimize``, ``layoutkit demo`` (:func:`run_demo`) and ``studies/``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["prepare_problem", "run_optimize", "write_report", "run_demo", "evaluate_layout"]
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=(), units="m",
+                    sensor_half_angle_deg=60.0, seed=0, max_candidates=None):
+    """Load/sample everything the optimiser needs.
+
+    mesh : path or ``trimesh.Trimesh`` (m); envelope : path or :class:`layoutkit.envelope.Envelope`;
+    candidates : layout JSON path or :class:`Layout` of candidate sites, else ``spacing`` (m) sampling.
+    Returns a dict: mesh, envelope, candidates (Layout), rotations (P,3,3), translations (P,3) (world),
+    stations, visible (P, S, N) bool, jac (P, S, N, 2, 6).
+    """
+    from ..candidates import sample_candidates
+    from ..envelope import Envelope, load_envelope
+    from ..layout import Layout, load_layout
+    from ..mesh import load_mesh
+    from ..optimize import candidate_jacobians
+    from ..visibility import envelope_visibility
+
+    if isinstance(mesh, (str, Path)):
+        mesh = load_mesh(mesh, units)
+    env = envelope if isinstance(envelope, Envelope) else load_envelope(envelope)
+    if candidates is None:
+        if spacing is None:
+            spacing = 0.01 * float(np.max(mesh.extents))  # 1 % of the largest extent
+        cand = sample_candidates(mesh, spacing=spacing, keepout=keepout, rng=seed, max_count=max_candidates)
+    elif isinstance(candidates, Layout):
+        cand = candidates
+    else:
+        cand = load_layout(candidates)
+    R, t = env.poses()
+    vis = envelope_visibility(mesh, cand.positions, cand.normals, R, t, env.stations,
+                              sensor_half_angle_deg=sensor_half_angle_deg)
+    jac = candidate_jacobians(cand.positions, R, t, env.stations)
+    return {"mesh": mesh, "envelope": env, "candidates": cand, "rotations": R, "translations": t,
+            "stations": env.stations, "visible": vis, "jac": jac,
+            "sensor_half_angle_deg": sensor_half_angle_deg}
+
+
+def evaluate_layout(prep, positions, normals, rho, min_visible=4):
+    """Exact per-pose ADOP/PDOP of an arbitrary layout over the envelope of ``prep``.
+
+    Returns dict with adop (P,), pdop (P,), n_lit (P,), and statistics over the covered poses."""
+    from ..dop import dop_from_jacobian
+    from ..optimize import candidate_jacobians
+    from ..visibility import envelope_visibility
+
+    vis = envelope_visibility(prep["mesh"], positions, normals, prep["rotations"], prep["translations"],
+                              prep["stations"], sensor_half_angle_deg=prep["sensor_half_angle_deg"])
+    jac = candidate_jacobians(positions, prep["rotations"], prep["translations"], prep["stations"])
+    d = dop_from_jacobian(jac, rho, vis)
+    n_lit = vis.any(axis=1).sum(axis=1)
+    return {"adop": np.asarray(d.adop), "pdop": np.asarray(d.pdop), "n_lit": n_lit,
+            "stats": dop_stats(d.adop, d.pdop, n_lit, min_visible)}
+
+
+def dop_stats(adop, pdop, n_lit, min_visible=4):
+    ok = (np.asarray(n_lit) >= min_visible) & np.isfinite(adop) & np.isfinite(pdop)
+    out = {"poses": int(len(adop)), "poses_covered": int(ok.sum())}
+    for nm, a in (("adop_deg_per_rad", np.asarray(adop)), ("pdop_m_per_rad", np.asarray(pdop))):
+        x = a[ok]
+        out[nm] = ({"median": float(np.median(x)), "mean": float(np.mean(x)),
+                    "p95": float(np.percentile(x, 95)), "max": float(np.max(x))} if len(x) else {})
+    return out
+
+
+def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-adop", rho=0.8717,
+                 method="pipeline", candidates=None, spacing=None, keepout=(), fixed_ids=(),
+                 min_visible=4, k_range=None, seed=0, units="m", min_spacing=0.0,
+                 coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
+                 max_candidates=None, render=True, echo=print):
+    """Optimise a k-sensor layout on ``mesh`` over ``envelope``; write layout JSON and a report.
+
+    k_range : optional (k_min, k_max) — also the best layout for every k in the range (DOP vs k).
+    fixed_ids : candidate ids placed in advance. Returns a summary dict (JSON-able)."""
+    from ..layout import Layout, save_layout
+    from ..mesh import mesh_hash
+    from ..optimize import optimize_stations, spacing_conflicts
+
+    t0 = time.perf_counter()
+    prep = prepare_problem(mesh, envelope, candidates=candidates, spacing=spacing, keepout=keepout,
+                           units=units, sensor_half_angle_deg=sensor_half_angle_deg, seed=seed,
+                           max_candidates=max_candidates)
+    cand = prep["candidates"]
+    idmap = {c: i for i, c in enumerate(cand.ids)}
+    missing = [f for f in fixed_ids if f not in idmap]
+    if missing:
+        raise ValueError(f"fixed: unknown candidate id(s) {missing}; ids look like {cand.ids[0]!r}")
+    fixed = [idmap[f] for f in fixed_ids]
+    kw = dict(objective=objective, rho=rho, min_visible=min_visible, method=method, fixed=fixed,
+              conflict=spacing_conflicts(cand.positions, min_spacing),
+              coverage_fraction=coverage_fraction, time_limit=time_limit, progress=progress)
+    res = optimize_stations(prep["jac"], prep["visible"], k, rng=seed, **kw)
+    sweep = []
+    if k_range is not None:
+        for kk in range(int(k_range[0]), int(k_range[1]) + 1):
+            r = res if kk == k else optimize_stations(prep["jac"], prep["visible"], kk, rng=seed, **kw)
+            sweep.append({"k": kk, "status": r.status, "value": r.value, "bound": r.bound, "gap": r.gap,
+                          "stats": r.stats() if r.success else None, "selected": r.selected.tolist()})
+    m = prep["mesh"]
+    summary = {
+        "mesh": str(mesh) if isinstance(mesh, (str, Path)) else "(in memory)",
+        "mesh_sha256": mesh_hash(m), "envelope": envelope if isinstance(envelope, (str, Path)) else prep["envelope"].name,
+        "candidates": cand.n, "poses": int(len(prep["rotations"])), "stations": [s.id for s in prep["stations"]],
+        "k": int(k), "objective": res.objective, "rho": rho, "method": method, "min_visible": min_visible,
+        "status": res.status, "success": res.success, "message": res.message,
+        "value": res.value, "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
+        "min_k": res.min_k, "uncoverable_poses": res.uncoverable.tolist(),
+        "timings_s": {**res.timings, "total_s": time.perf_counter() - t0},
+        "selected_ids": [cand.ids[i] for i in res.selected],
+        "stats": res.stats() if res.success else None, "k_sweep": sweep,
+    }
+    if res.success and out is not None:
+        lay = Layout(cand.positions[res.selected], cand.normals[res.selected],
+                     tuple(f"S{i + 1:02d}" for i in range(len(res.selected))),
+                     {"mesh_sha256": summary["mesh_sha256"], "units_source": units, "objective": res.objective,
+                      "rho": rho, "value": res.value, "bound": res.bound, "gap": res.gap,
+                      "certified_by": res.certified_by, "method": method, "min_visible": min_visible,
+                      "candidate_ids": summary["selected_ids"], "dop_stats": summary["stats"],
+                      "envelope": summary["envelope"] if isinstance(summary["envelope"], str) else str(summary["envelope"])},
+                     tuple({"candidate": cand.ids[i]} for i in res.selected))
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        save_layout(lay, out)
+        summary["out"] = str(out)
+    if report is not None:
+        summary["report"] = write_report(report, prep, res, summary, render=render, echo=echo)
+    return summary
+
+
+def write_report(report_dir, prep, res, summary, render=True, echo=print):
+    """Plots (DOP over the envelope, CDF, DOP vs k) and renders (if pyvista works) into a folder."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..cli._common import to_jsonable
+
+    d = Path(report_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    files = []
+    if res.success:
+        t = prep["translations"]
+        ref = prep["stations"][prep["envelope"].reference_station]
+        rng_m = np.linalg.norm(t - ref.translation, axis=1)
+        fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+        for a, y, lab in ((ax[0], res.adop, "ADOP (deg/rad)"), (ax[1], res.pdop, "PDOP (m/rad)")):
+            sc = a.scatter(rng_m, y, c=res.n_lit, s=12, cmap="viridis")
+            a.set_xlabel("range to station (m)")
+            a.set_ylabel(lab)
+            a.set_yscale("log")
+            a.grid(alpha=0.3)
+        fig.colorbar(sc, ax=ax, label="lit sensors")
+        fig.suptitle(f"{res.objective} over the envelope: value {res.value:.4g}, bound {res.bound:.4g}, "
+                     f"gap {100 * res.gap:.1f} %")
+        p = d / "dop_over_envelope.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        files.append(p.name)
+        fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+        for a, y, lab in ((ax[0], res.adop, "ADOP (deg/rad)"), (ax[1], res.pdop, "PDOP (m/rad)")):
+            y = np.sort(y[np.isfinite(y)])
+            a.plot(y, np.arange(1, len(y) + 1) / len(y))
+            a.set_xlabel(lab)
+            a.set_ylabel("fraction of poses")
+            a.grid(alpha=0.3)
+        fig.suptitle("cumulative distribution over the envelope")
+        p = d / "dop_cdf.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        files.append(p.name)
+    sweep = [s for s in summary.get("k_sweep", []) if s["stats"]]
+    if sweep:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ks = [s["k"] for s in sweep]
+        ax.plot(ks, [s["value"] for s in sweep], "o-", label=f"optimised ({summary['objective']})")
+        ax.plot(ks, [s["bound"] for s in sweep], "k--", label="certified lower bound")
+        ax.plot(ks, [s["stats"]["adop_deg_per_rad"]["median"] for s in sweep], "s-", label="median ADOP")
+        ax.set_xlabel("sensors k")
+        ax.set_ylabel("DOP")
+        ax.set_yscale("log")
+        ax.legend()
+        ax.grid(alpha=0.3)
+        p = d / "dop_vs_k.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        files.append(p.name)
+    if render and res.success:
+        try:
+            from ..quality import tracking_quality_map
+            from ..render import render_layout_views, render_tracking_map
+
+            cand = prep["candidates"]
+            pos, nor = cand.positions[res.selected], cand.normals[res.selected]
+            lit_frac = prep["visible"][:, :, res.selected].any(axis=1).mean(axis=0)
+            paths = render_layout_views(prep["mesh"], pos, nor, lit_frac, candidates=cand.positions,
+                                        out_dir=d, prefix="layout")
+            files += [Path(p).name for p in paths]
+            env = prep["envelope"]
+            q = tracking_quality_map(prep["mesh"], pos, nor, distance=float(np.mean(env.range_m)),
+                                     rho=summary["rho"], grid=(30, 60), roll_samples=3)
+            files.append(Path(render_tracking_map(q, out=d / "tracking_map.png")).name)
+        except Exception as exc:  # rendering is optional: plots-only report
+            echo(f"note: renders skipped ({type(exc).__name__}: {exc}); the report has plots only")
+    (d / "summary.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
+    files.append("summary.json")
+    return {"dir": str(d), "files": files}
+
+
+def run_demo(out_dir, quick=True, echo=print, progress=None):
+    """Optimise 12 sensors on the bundled Chen target over ``models/chen_envelope.toml`` (< 2 min).
+
+    Writes ``out_dir/layout.json`` and the report folder ``out_dir/report``; returns the summary."""
+    from ..envelope import load_envelope
+    from ..mesh import load_mesh
+
+    out_dir = Path(out_dir)
+    mesh_path = REPO / "models" / "chen_target.stl"
+    env = load_envelope(REPO / "models" / "chen_envelope.toml")
+    if quick:
+        env = dataclasses.replace(env, count=min(env.count, 100))
+    mesh = load_mesh(mesh_path)
+    return run_optimize(mesh, env, 12, out=out_dir / "layout.json", report=out_dir / "report",
+                        objective="worst-adop", rho=0.8717, spacing=0.008 if quick else 0.005,
+                        seed=0, time_limit=60 if quick else None, progress=progress,
+                        k_range=None, echo=echo)
