@@ -9,7 +9,8 @@ Pipeline of :func:`detect_quadrilateral`:
 3. per side, intensity profiles along the side normal (bilinear samples every 0.25 px over
    ±``profile_half_px``, the 15 % nearest each corner left out); the edge position on each profile
    is the **integral of the normalised step** (Σ (I - I_out)/(I_in - I_out) · Δs), which is exact
-   for pixel-coverage (area-sampled) edges and unaffected by a symmetric blur;
+   for pixel-coverage (area-sampled) edges and unaffected by a symmetric blur; a second pass reads
+   the outside level just beyond the edge and cuts the integral there (``outer_px``);
 4. a robust (Huber) line fit per side (``cv2.fitLine``) and the four corners as intersections of
    adjacent lines; steps 3–4 are repeated once with the refined quadrilateral.
 
@@ -80,7 +81,7 @@ def _line_intersections(points, dirs):
     return out
 
 
-def _refine(img, quad, margin, half, step_px, min_contrast):
+def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
     import cv2
     from scipy.ndimage import map_coordinates
 
@@ -109,6 +110,18 @@ def _refine(img, quad, margin, half, step_px, min_contrast):
         c = np.clip((prof - lout[:, None]) / np.where(good, contrast, 1.0)[:, None], -0.5, 1.5)
         # edge offset = -half + integral of the normalised step (trapezoid rule)
         e = -half + np.trapezoid(c, offs, axis=1)
+        if outer_px is not None:
+            # second pass: outside level taken just outside this edge (e + outer_px) and the
+            # integral cut there, so that another edge further out (a thin sliver of a side face
+            # next to the face) does not bias the estimate
+            for _ in range(2):
+                j = np.clip(np.searchsorted(offs, e + outer_px), 1, len(offs) - 2)
+                lout = np.take_along_axis(prof, np.stack([j - 1, j, j + 1], 1), 1).mean(1)
+                contrast = lin - lout
+                good &= np.abs(contrast) >= min_contrast
+                c = np.clip((prof - lout[:, None]) / np.where(good, contrast, 1.0)[:, None], -0.5, 1.5)
+                c = np.where(offs[None, :] <= offs[j][:, None], c, 0.0)
+                e = -half + np.trapezoid(c, offs, axis=1)
         pts = base + e[:, None] * n
         pts = pts[good & (np.abs(e) < half - 0.5)]
         if len(pts) < 3:
@@ -132,7 +145,7 @@ def _refine(img, quad, margin, half, step_px, min_contrast):
 def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, invert: bool = False,
                          min_area_px: float = 50.0, corner_margin: float = 0.15,
                          profile_half_px: float = 4.0, min_contrast: float = 10.0,
-                         max_shift_px: float | None = None) -> QuadDetection:
+                         max_shift_px: float | None = None, outer_px: float | None = 2.0) -> QuadDetection:
     """Find the largest quadrilateral in ``image`` and its corners to sub-pixel accuracy.
 
     Parameters
@@ -145,6 +158,9 @@ def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, in
     corner_margin : fraction of each side left out at both ends of the line fit.
     profile_half_px : half length of the edge profiles (px); must exceed the blur radius.
     min_contrast : minimum |I_in - I_out| (grey levels) for a profile to count.
+    outer_px : second pass with the outside level read ``outer_px`` beyond the first estimate and
+        the integral cut there (robust to a second edge a few pixels out, e.g. a sliver of a side
+        face); None = single pass over the whole profile.
     max_shift_px : refined corners further than this from the contour corners → "refine_failed"
         (default 3 px + 3 % of the mean side: acute corners of steeply tilted faces are cut off by
         rasterisation and blur, so their contour corners are several pixels short).
@@ -185,7 +201,7 @@ def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, in
     quad = quad0
     rms, nps = float("nan"), (0, 0, 0, 0)
     for _ in range(2):
-        out = _refine(img, quad, corner_margin, profile_half_px, 0.5, min_contrast)
+        out = _refine(img, quad, corner_margin, profile_half_px, 0.5, min_contrast, outer_px)
         if out is None:
             return _fail("refine_failed", "too few edge points on a side", quad0)
         quad, rms, nps = out

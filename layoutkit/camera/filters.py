@@ -20,7 +20,10 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
 
     Parameters
     ----------
-    times : (T,) s, increasing. rotations : (T, 3, 3) measured rotations (NaN allowed where invalid).
+    times : (T,) s, increasing. rotations : (T, 3, 3) measured rotations (NaN allowed where
+        invalid), or (T, K, 3, 3) candidate measurements per frame (e.g. both IPPE branches times
+        the corner-labelling symmetries): the one nearest the prediction is used (the first
+        valid candidate initialises the filter) — temporal continuity inside the filter.
     alpha, beta : position and rate gains in (0, 1] (alpha=1, beta=0: no filtering).
     gate_rad : innovations larger than this (rad) are treated as outliers and skipped (prediction
         only); None = no gate. After ``max_rejects`` consecutive rejections the filter restarts at
@@ -33,11 +36,15 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
     rate (left / space-frame rotation vector rate). Before the first valid measurement the output is NaN.
     """
     t = as_array(times, "times", (None,))
-    R = as_array(rotations, "rotations", (None, 3, 3))
+    R = np.asarray(rotations, dtype=float)
+    if R.ndim == 3:
+        R = R[:, None]
+    R = as_array(R, "rotations", (None, None, 3, 3))
     if len(t) != len(R):
         raise ValueError(f"times: expected {len(R)} values (one per rotation), got {len(t)}")
-    ok = np.all(np.isfinite(R), axis=(1, 2)) if valid is None else np.asarray(valid, bool) & np.all(np.isfinite(R), axis=(1, 2))
-    out = np.full_like(R, np.nan)
+    fin = np.all(np.isfinite(R), axis=(2, 3))  # (T, K)
+    ok = fin.any(1) if valid is None else np.asarray(valid, bool) & fin.any(1)
+    out = np.full((len(t), 3, 3), np.nan)
     rate = np.full((len(t), 3), np.nan)
     est, w, t_prev, rejects = None, np.zeros(3), None, 0
     for k in range(len(t)):
@@ -46,7 +53,10 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
             est = rotvec_to_matrix(w * dt) @ est  # predict
             t_prev = t[k]
             if ok[k]:
-                r = matrix_to_rotvec(R[k] @ est.T)  # innovation
+                cand = R[k][fin[k]]
+                rs = matrix_to_rotvec(cand @ est.T)  # innovations of all candidates
+                j = int(np.argmin(np.linalg.norm(rs, axis=-1)))  # the one nearest the prediction
+                r = rs[j]
                 if gate_rad is None or np.linalg.norm(r) <= gate_rad:
                     est = rotvec_to_matrix(alpha * r) @ est
                     if dt > 0:
@@ -55,9 +65,9 @@ def alpha_beta_so3(times, rotations, alpha: float = 0.2, beta: float = 0.02, gat
                 else:
                     rejects += 1
                     if rejects >= max_rejects:
-                        est, w, rejects = R[k].copy(), np.zeros(3), 0
+                        est, w, rejects = cand[j].copy(), np.zeros(3), 0
         elif ok[k]:
-            est, t_prev = R[k].copy(), t[k]
+            est, t_prev = R[k][fin[k]][0].copy(), t[k]
         if est is not None:
             out[k], rate[k] = est, w
     return out, rate
