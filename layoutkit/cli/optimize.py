@@ -1,6 +1,147 @@
-"""CLI commands (optimize)."""
+"""CLI command ``layoutkit optimize`` (the demo is wired by the core CLI to workflows.optimize.run_demo)."""
 from __future__ import annotations
 
-import click  # noqa: F401
+import click
 
-commands: list = []
+from ._common import echo_json, fail
+
+# Method and objective names are listed here without importing the optimiser (start-up time);
+# tests check that they match layoutkit.optimize.METHODS.
+METHOD_CHOICES = ("exhaustive", "greedy", "pipeline", "random", "relax-round", "topk")
+
+
+def _k_range(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        a, b = (int(x) for x in value.split(":"))
+    except ValueError:
+        raise click.BadParameter(f"expected KMIN:KMAX (e.g. 8:16), got {value!r}") from None
+    if not 1 <= a <= b:
+        raise click.BadParameter(f"expected 1 <= KMIN <= KMAX, got {value!r}")
+    return a, b
+
+
+@click.command("optimize")
+@click.argument("mesh", type=click.Path(dir_okay=False))
+@click.option("--sensors", "-k", "k", type=click.IntRange(min=1), required=True, help="Number of photodiodes.")
+@click.option("--envelope", "envelope_path", required=True, type=click.Path(dir_okay=False),
+              help="Operating envelope TOML (poses x stations).")
+@click.option("--objective", default="worst-adop", show_default=True,
+              help="<worst|mean|pNN>-<adop|pdop|weighted>, e.g. worst-adop, mean-pdop, p95-adop.")
+@click.option("--weights", default=None, metavar="A,B",
+              help="For *-weighted: weights of ADOP^2 (deg^2) and PDOP^2 (m^2).")
+@click.option("--rho", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.8717, show_default=True,
+              help="Same-rotor angle correlation (Chen eq. 19).")
+@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Output layout JSON.")
+@click.option("--report", "report_dir", default=None, type=click.Path(file_okay=False),
+              help="Report folder (plots, renders, summary.json).")
+@click.option("--method", type=click.Choice(METHOD_CHOICES), default="pipeline", show_default=True)
+@click.option("--candidates", "candidates_path", default=None, type=click.Path(dir_okay=False),
+              help="Candidate sites (layout JSON from `layoutkit candidates`).")
+@click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Sample candidate sites this far apart, mm (default 1 %% of the mesh size).")
+@click.option("--keepout-box", multiple=True, metavar="X0,Y0,Z0,X1,Y1,Z1",
+              help="Keep-out box in the body frame, mm (repeatable; with --spacing-mm sampling).")
+@click.option("--fixed", default="", metavar="ID,...", help="Candidate ids placed in advance.")
+@click.option("--min-visible", type=click.IntRange(min=1), default=4, show_default=True,
+              help="Lit sensors needed at every pose.")
+@click.option("--coverage-fraction", type=click.FloatRange(0.0, 1.0, min_open=True), default=1.0,
+              show_default=True, help="Share of poses that must have --min-visible lit.")
+@click.option("--min-spacing-mm", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
+              help="Minimum distance between chosen sensors, mm.")
+@click.option("--half-angle-deg", type=click.FloatRange(0.0, 90.0), default=60.0, show_default=True,
+              help="Photodiode acceptance half-angle.")
+@click.option("--k-range", default=None, callback=_k_range, metavar="KMIN:KMAX",
+              help="Also optimise every k in the range (DOP vs sensor count).")
+@click.option("--time-limit-s", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Wall-time budget per optimisation, s.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="m", show_default=True,
+              help="Length unit of the mesh file.")
+@click.option("--no-render", is_flag=True, help="Plots only, no pyvista renders.")
+@click.option("--json", "json_out", is_flag=True, help="Print the summary as JSON.")
+def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
+                 spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
+                 half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out):
+    """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
+    from ..workflows.optimize import run_optimize
+
+    try:
+        from ..optimize import parse_objective
+
+        w = None
+        if weights:
+            w = tuple(float(x) for x in weights.split(","))
+        parse_objective(objective, w)
+        keep = []
+        if keepout_box:
+            from ..candidates import parse_keepout
+
+            keep = [parse_keepout("box:" + b) for b in keepout_box]
+        fixed_ids = [f.strip() for f in fixed.split(",") if f.strip()]
+        with _progress(json_out) as prog:
+            s = run_optimize(mesh, envelope_path, k, out=out, report=report_dir, objective=objective, rho=rho,
+                             method=method, candidates=candidates_path,
+                             spacing=None if spacing_mm is None else spacing_mm * 1e-3, keepout=keep,
+                             fixed_ids=fixed_ids, min_visible=min_visible, k_range=k_range, seed=seed,
+                             units=units, min_spacing=min_spacing_mm * 1e-3, coverage_fraction=coverage_fraction,
+                             time_limit=time_limit_s, progress=prog, sensor_half_angle_deg=half_angle_deg,
+                             render=not no_render, echo=lambda m: click.echo(m, err=True))
+    except ValueError as exc:
+        fail(str(exc))
+    if json_out:
+        echo_json(s)
+    else:
+        _print_summary(s)
+    if not s["success"]:
+        raise SystemExit(1)
+
+
+def _print_summary(s):
+    if not s["success"]:
+        click.secho(f"{s['status']}: {s['message']}", fg="red", err=True)
+        return
+    st = s["stats"]
+    a, p = st["adop_deg_per_rad"], st["pdop_m_per_rad"]
+    click.echo(f"{s['k']} of {s['candidates']} candidate sites over {s['poses']} poses ({s['method']}, rho {s['rho']})")
+    click.echo(f"  {s['objective']} = {s['value']:.5g}   certified bound {s['bound']:.5g} ({s['certified_by']})"
+               f"   gap {100 * s['gap']:.2f} %")
+    click.echo(f"  ADOP deg/rad  median {a['median']:.5g}  p95 {a['p95']:.5g}  max {a['max']:.5g}")
+    click.echo(f"  PDOP m/rad    median {p['median']:.5g}  p95 {p['p95']:.5g}  max {p['max']:.5g}")
+    for row in s["k_sweep"]:
+        click.echo(f"  k={row['k']:>3}  {row['status']:<10} value {row['value']:.5g}  gap "
+                   f"{100 * row['gap']:.1f} %" if row["stats"] else f"  k={row['k']:>3}  {row['status']}")
+    click.echo(f"  layout -> {s.get('out')}" + (f"   report -> {s['report']['dir']}" if s.get("report") else ""))
+    click.echo(f"  {s['timings_s']['total_s']:.1f} s")
+
+
+class _progress:
+    """Rich progress bar fed by the optimiser's ``progress(stage, fraction, best)`` callback."""
+
+    def __init__(self, quiet):
+        self.quiet = quiet
+
+    def __enter__(self):
+        if self.quiet:
+            return None
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.p = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[best]}"),
+                          TimeElapsedColumn(), transient=True)
+        self.p.__enter__()
+        self.task = self.p.add_task("preparing", total=1.0, best="")
+
+        def cb(stage, fraction=None, best=None):
+            b = "" if best is None or best == float("inf") else f"best {best:.5g}"
+            self.p.update(self.task, description=stage, completed=fraction or 0.0, best=b)
+
+        return cb
+
+    def __exit__(self, *a):
+        if not self.quiet:
+            self.p.__exit__(*a)
+        return False
+
+
+commands: list = [optimize_cmd]

@@ -189,10 +189,9 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
 
     if len(fixed) and conflict is not None and conflict[np.ix_(fixed, fixed)].any():
         return fail("infeasible", "two fixed sensors are closer than the minimum spacing")
-    # cheap necessary check first; the exact analysis only when something is wrong
-    counts = problem.lit.sum(axis=1)
-    if (counts < problem.m).sum() > P - n_cover:
-        cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
+    # coverage first (exact set-multicover MILP, fast): an impossible request is a status
+    cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
+    if not cov.feasible:
         return fail(cov.status, cov.message, cov)
     deadline = math.inf if time_limit is None else time.perf_counter() + float(time_limit)
     ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))

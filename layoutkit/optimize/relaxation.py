@@ -205,8 +205,12 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
     kw = {}
     if time_limit is not None:
         kw["time_limit"] = float(time_limit)
+    import warnings
+
     try:
-        prob.solve(solver=solver, **kw)
+        with warnings.catch_warnings():  # an inaccurate solve is reported through the status
+            warnings.simplefilter("ignore", UserWarning)
+            prob.solve(solver=solver, **kw)
         status = str(prob.status)
     except cp.error.SolverError as exc:  # numerical failure is a status
         status = f"solver_error: {exc}"
