@@ -38,6 +38,7 @@ from typing import Protocol
 import numpy as np
 
 from ._validate import as_array
+from .geometry import nearest_rotation
 
 __all__ = [
     "PnPResult",
@@ -55,13 +56,13 @@ __all__ = [
 
 STATUS_OK = 0
 STATUS_TOO_FEW = 1          # fewer than 4 lit sensors with finite angles in (0, pi)
-STATUS_DEGENERATE = 2       # lit sensors (nearly) collinear, or singular normal equations
+STATUS_DEGENERATE = 2       # lit sensors (nearly) collinear, singular normal equations, or range unobservable
 STATUS_NOT_CONVERGED = 3    # refinement hit max_iterations without meeting the tolerance
 STATUS_BEHIND = 4           # best pose puts a lit sensor at z <= 0 (behind the station)
 STATUS_NAMES = {
     STATUS_OK: "ok",
     STATUS_TOO_FEW: "too few lit sensors (< 4)",
-    STATUS_DEGENERATE: "degenerate geometry (collinear sensors or singular normal equations)",
+    STATUS_DEGENERATE: "degenerate geometry (collinear sensors, singular normal equations or unobservable range)",
     STATUS_NOT_CONVERGED: "not converged",
     STATUS_BEHIND: "behind the station (a lit sensor at z <= 0)",
 }
@@ -74,6 +75,8 @@ PLANARITY_THRESHOLD = 0.2
 COPLANAR_THRESHOLD = 1e-5
 #: Lit sets with sqrt(lambda_mid / lambda_max) below this are collinear (degenerate).
 COLLINEAR_THRESHOLD = 1e-5
+#: Poses farther than this many RMS radii of the lit set are unobservable (STATUS_DEGENERATE).
+MAX_RANGE_RATIO = 1e5
 #: A refined solution whose angle-residual RMS exceeds this (rad) is retried from the planar
 #: candidates (a wrong basin has residuals far above lighthouse noise, ~4e-5 rad).
 RETRY_RESIDUAL = 1e-3
@@ -104,7 +107,9 @@ class PnPResult:
     def message(self) -> str:
         """One-line summary of the statuses."""
         s = np.asarray(self.status)
-        if s.size and np.all(s == STATUS_OK):
+        if s.size == 0:
+            return "no frames"
+        if np.all(s == STATUS_OK):
             return f"ok ({s.size} frame(s))"
         parts = [f"{int(np.sum(s == k))} {name}" for k, name in STATUS_NAMES.items() if np.any(s == k)]
         return f"{s.size} frame(s): " + ", ".join(parts)
@@ -360,7 +365,7 @@ def _refine(fr, R, t, max_iterations):
     full normal-equation build.
 
     R (F, 3, 3), t (F, 3). Returns R, t, cost (sum of squared residuals), iterations, converged,
-    ok (normal equations solvable), depth (smallest z of the lit sensors).
+    ok (normal equations solvable), depth (smallest and largest z of the lit sensors).
     """
     F = R.shape[0]
     r = np.ascontiguousarray(np.reshape(R, (F, 9)).T, dtype=float)  # (9, F)
@@ -462,7 +467,8 @@ def _refine(fr, R, t, max_iterations):
         conv[act[small]] = True
         ok[act[~okc]] = False
         act = act[~(small | ~okc | (lnew > 1e10))]
-    depth = np.where(fr.w > 0, ev["z"], np.inf).min(0)
+    z = ev["z"]
+    depth = (np.where(fr.w > 0, z, np.inf).min(0), np.where(fr.w > 0, z, -np.inf).max(0))
     return r.T.reshape(F, 3, 3), t.T.copy(), cost, iters, conv, ok, depth
 
 
@@ -687,6 +693,7 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
     minors = S00 * S11 - S01 * S01 + S00 * S22 - S02 * S02 + S11 * S22 - S12 * S12
     trace = S00 + S11 + S22
     collinear = minors <= COLLINEAR_THRESHOLD ** 2 * trace * trace
+    size = np.sqrt(np.maximum(trace, 0.0) / np.maximum(fr.nl, 1.0))  # RMS radius of the lit set
 
     status = np.full(F, STATUS_TOO_FEW)
     valid = fr.nl >= 4
@@ -701,8 +708,11 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
 
     def consider(idx, R0, t0):
         sub = fr if idx.size == F else fr.take(idx)
-        R, t, cost, it, conv, ok, depth = _refine(sub, R0, t0, max_iterations)
-        st = np.where(~ok, STATUS_DEGENERATE, np.where(depth <= 0, STATUS_BEHIND,
+        R, t, cost, it, conv, ok, (zmin, zmax) = _refine(sub, R0, t0, max_iterations)
+        # a pose at a range of more than MAX_RANGE_RATIO body sizes is unobservable (e.g. all
+        # lit sensors on one ray: the cost goes to zero as the range goes to infinity)
+        ok = ok & np.isfinite(cost) & (zmax <= MAX_RANGE_RATIO * size[idx])
+        st = np.where(~ok, STATUS_DEGENERATE, np.where(zmin <= 0, STATUS_BEHIND,
                       np.where(conv, STATUS_OK, STATUS_NOT_CONVERGED)))
         prev_ok = best_status[idx] == STATUS_OK
         better = np.where(st == STATUS_OK, ~prev_ok | (cost < best_cost[idx]),
@@ -720,7 +730,11 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
         R0, t0 = initial
         idx = np.flatnonzero(todo & np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1))
         if idx.size:
-            consider(idx, R0[idx], t0[idx])
+            Ri = np.array(R0[idx], float)
+            off = np.abs(np.matmul(Ri, Ri.transpose(0, 2, 1)) - np.eye(3)).max((1, 2)) > 1e-9
+            if off.any():  # not a rotation: start from the nearest one
+                Ri[off] = nearest_rotation(Ri[off])
+            consider(idx, Ri, t0[idx])
             cold[idx[~poor(idx)]] = False
 
     idx = np.flatnonzero(cold & (planarity > COPLANAR_THRESHOLD))

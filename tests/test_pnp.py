@@ -232,7 +232,7 @@ def test_normal_equations_match_dop_angle_jacobian(rng):
     ang = angles_of(P12, R, t) + 1e-3 * rng.standard_normal((30, 12, 2))
     vis = rng.random((30, 12)) < 0.8
     fr = pnp._Frames(P12, ang, vis)
-    ev = pnp._eval(fr, R, t)
+    ev = pnp._eval(fr, R.reshape(30, 9).T.copy(), t.T.copy())
     A, g = pnp._normal_equations(fr, ev)
     p = transform_points(R, t, P12)
     J = (angle_jacobian(p, p - t[:, None, :]) * vis[..., None, None]).reshape(30, 24, 6)
@@ -285,3 +285,16 @@ def test_no_gross_failures_n12_with_paper_noise(rng):
     res = solve_pnp(P12, ang)
     assert res.success.all()
     assert np.rad2deg(attitude_error(res.rotation, R)).max() < 1.0
+
+
+def test_unobservable_range_and_non_rotation_start(rng):
+    """All sensors on one ray (equal angles) has no finite pose → degenerate status; a start that
+    is not a rotation (scaled identity) is projected onto SO(3) and still converges."""
+    res = solve_pnp(P12, np.full((1, 12, 2), 1.5))
+    np.testing.assert_array_equal(res.status, [STATUS_DEGENERATE])
+    R, t = poses(5, P12, rng)
+    ang = angles_of(P12, R, t)
+    res = solve_pnp(P12, ang, initial=(2.0 * R, t))
+    assert res.success.all()
+    assert attitude_error(res.rotation, R).max() < 1e-9
+    assert solve_pnp(P12, np.zeros((0, 12, 2))).message == "no frames"
