@@ -194,7 +194,7 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
             cons.append((M + M.T) / 2 >> 0)
             info, fac = X, 1 - rho
         else:
-            info, fac = Ax, 1.0
+            info, fac = Ax, 1.0 - rho  # H ⪰ (1 - rho) A^-1 (design §6)
         tp = t if obj.aggregate == "worst" else t[q]
         cons.append((fac * c / cbar) * cp.matrix_frac(DE, info) <= tp)
     if obj.aggregate == "worst":
