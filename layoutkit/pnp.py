@@ -183,9 +183,14 @@ class _Frames:
 def _atan_ratio(num, den):
     """atan2(num, den) for den > 0 and small |num / den| by a series, else exactly."""
     q = num / den
-    if np.max(np.abs(q), initial=0.0) < 1e-2 and np.min(den, initial=1.0) > 0:
-        q2 = q * q  # truncation error below |q|^9 / 9 < 1.2e-19
-        return q * (1.0 - q2 * (1.0 / 3.0 - q2 * (0.2 - q2 * (1.0 / 7.0))))
+    qmax = np.max(np.abs(q), initial=0.0)
+    if qmax < 0.05 and np.min(den, initial=1.0) > 0:
+        q2 = q * q
+        if qmax < 1e-2:  # Taylor series; truncation error below |q|^9 / 9 < 1.2e-19
+            return q * (1.0 - q2 * (1.0 / 3.0 - q2 * (0.2 - q2 * (1.0 / 7.0))))
+        # truncation error below |q|^15 / 15 < 2.1e-21
+        return q * (1.0 - q2 * (1.0 / 3.0 - q2 * (0.2 - q2 * (1.0 / 7.0 - q2 * (1.0 / 9.0 - q2 * (
+            1.0 / 11.0 - q2 * (1.0 / 13.0)))))))
     return np.arctan2(num, den)
 
 
