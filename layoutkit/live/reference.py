@@ -162,9 +162,9 @@ def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_off
                          step: float = 0.01, baseline: float = 0.1) -> float:
     """Clock offset ``tau`` (s) with reference time = lighthouse time + tau.
 
-    Normalised cross-correlation of both streams' angular speeds (:func:`angular_speed`) on a
-    common grid of ``step`` s over lags within ``± max_offset``, with a parabolic peak
-    refinement. Returns NaN when the streams do not overlap or hold no rotation.
+    Pearson correlation of both streams' angular speeds (:func:`angular_speed`) on a common
+    grid of ``step`` s for every lag within ``± max_offset`` whose overlap covers at least half
+    of the shorter stream, with a parabolic peak refinement. Returns NaN when the streams do not overlap or hold no rotation.
     """
     from scipy.signal import correlate
 
@@ -183,14 +183,27 @@ def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_off
     a, b = norm(wl), norm(wr)
     if not (np.any(a) and np.any(b)):
         return float("nan")
-    c = correlate(b, a, mode="full", method="fft")  # c[k] ~ sum_i b[i + k - (len(a)-1)] a[i]
-    lags = np.arange(-(len(a) - 1), len(b))
-    # lag L in samples: b[i + L] ~ a[i]  =>  gr[0] + (i + L) step ~ g[0] + i step + tau
+    # Pearson correlation over the overlap for every lag L (b[i + L] ~ a[i]), from FFT cross
+    # sums and cumulative sums; overlaps shorter than half the shorter stream are not considered
+    na, nb = len(a), len(b)
+    lags = np.arange(-(na - 1), nb)
+    sab = correlate(b, a, mode="full", method="fft")
+    i0 = np.maximum(0, -lags)
+    i1 = np.minimum(na, nb - lags)
+    n = (i1 - i0).astype(float)
+    ca = np.concatenate([[0.0], np.cumsum(a)])
+    caa = np.concatenate([[0.0], np.cumsum(a * a)])
+    cb = np.concatenate([[0.0], np.cumsum(b)])
+    cbb = np.concatenate([[0.0], np.cumsum(b * b)])
+    sa, saa = ca[i1] - ca[i0], caa[i1] - caa[i0]
+    sb, sbb = cb[i1 + lags] - cb[i0 + lags], cbb[i1 + lags] - cbb[i0 + lags]
+    nn = np.maximum(n, 1.0)
+    cov = sab - sa * sb / nn
+    var = np.maximum((saa - sa * sa / nn) * (sbb - sb * sb / nn), 1e-300)
+    c = cov / np.sqrt(var)
+    # lag L in samples: gr[0] + (i + L) step ~ g[0] + i step + tau
     tau = gr[0] - g[0] + lags * step
-    # overlap normalisation so short overlaps do not win
-    ov = np.convolve(np.ones(len(b)), np.ones(len(a)), mode="full")
-    c = c / np.maximum(ov, 1.0)
-    c[np.abs(tau) > max_offset] = -np.inf
+    c[(np.abs(tau) > max_offset) | (n < 0.5 * min(na, nb))] = -np.inf
     k = int(np.argmax(c))
     if not np.isfinite(c[k]):
         return float("nan")
@@ -310,8 +323,8 @@ def align_reference(lighthouse: PoseTrack, reference: PoseTrack, *, tau: float |
 
     lighthouse : good poses of the pipeline (a decimated sample suffices); reference : the
     reference stream (translation None for attitude only). ``tau`` known → no time search.
-    The correlation estimate of tau is refined by a bounded 1-D search minimising the rotation
-    residual of :func:`estimate_alignment`.
+    The correlation estimate of tau is refined by a bounded 1-D search (± 0.1 s) minimising the
+    rotation and position residuals of :func:`estimate_alignment`.
     """
     from scipy.optimize import minimize_scalar
 
@@ -341,12 +354,23 @@ def align_reference(lighthouse: PoseTrack, reference: PoseTrack, *, tau: float |
 
     if tau is None:
         step = 0.1  # the correlation peak is good to a few grid steps on noisy poses
+        a0 = fit(tau0, every)
+        r0 = a0.rms_rot_rad if a0.success and a0.rms_rot_rad > 0 else 1.0
+        t0 = a0.rms_trans_m if a0.success and a0.rms_trans_m > 0 else np.nan
+
         def cost(x):
+            # rotation and (when present) position residuals, each relative to its value at the
+            # correlation estimate: positions usually pin the clock offset much more sharply
             a = fit(x, every)
-            return a.rms_rot_rad if a.success else 1e9
+            if not a.success:
+                return 1e9
+            c = (a.rms_rot_rad / r0) ** 2
+            if np.isfinite(t0) and np.isfinite(a.rms_trans_m):
+                c += (a.rms_trans_m / t0) ** 2
+            return c
 
         res = minimize_scalar(cost, bounds=(tau0 - step, tau0 + step), method="bounded",
                               options={"xatol": 1e-4})
-        if res.success and fit(res.x, every).rms_rot_rad <= fit(tau0, every).rms_rot_rad:
+        if res.success and cost(res.x) <= cost(tau0):
             tau0 = float(res.x)
     return fit(tau0)

@@ -327,7 +327,7 @@ def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | N
         for k, v in (("rotor_rpm", s0.rotor_rpm), ("clock_hz", s0.clock_hz)):
             if k in params and k not in kw and s0.kind == "lh1":
                 kw[k] = v
-    kw = {k: v for k, v in kw.items() if k in params}
+    kw = {k: v for k, v in kw.items() if k in params and k != "n_sensors"}
     return cls(n_sensors=n_sensors, **kw)
 
 
