@@ -319,12 +319,6 @@ def _cholesky_apply(L, inv, g):
     return np.stack(xs)
 
 
-def _cholesky_solve(A, g, lam):
-    """Solve ``(A + lam diag(A)) x = g`` per frame → x (F, 6), ok (F,)."""
-    L, inv, ok = _cholesky_factor(A, lam)
-    return _cholesky_apply(L, inv, g).T, ok
-
-
 def _subset_factor(fac, idx):
     L, inv = fac
     return ([[None if v is None else v[idx] for v in row] for row in L], [v[idx] for v in inv])
