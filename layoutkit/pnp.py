@@ -70,7 +70,7 @@ STATUS_NAMES = {
 DEFAULT_CHUNK = 4096
 #: Lit sets with sqrt(lambda_min / lambda_max) of their centred body points below this get the two
 #: planar (IPPE) candidates in addition to the POSIT start.
-PLANARITY_THRESHOLD = 0.2
+PLANARITY_THRESHOLD = 0.1
 #: Below this planarity the lit set counts as exactly coplanar (no POSIT start).
 COPLANAR_THRESHOLD = 1e-5
 #: Lit sets with sqrt(lambda_mid / lambda_max) below this are collinear (degenerate).
