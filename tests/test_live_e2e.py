@@ -192,3 +192,26 @@ def test_bad_input_messages(sim, tmp_path):
     assert r.exit_code == 2 and "error: --sigma-arcsec: expected a positive value, got -1.0" in r.output
     r = CliRunner().invoke(main, ["live", "--port", "loop://", "--duration", "1"])
     assert r.exit_code == 2 and "error: --layout is required for live runs" in r.output
+
+
+def test_dashboard_renders_session_snapshot(sim):
+    """The rich dashboard renders a real session snapshot with the promised fields."""
+    import io
+
+    from rich.console import Console
+
+    from layoutkit.live.capture import read_sidecar
+    from layoutkit.live.dashboard import render_snapshot
+    from layoutkit.workflows.live import session_from_sidecar
+
+    s = session_from_sidecar(sim["layout"], read_sidecar(sim["capture"]), truth=sim["truth"])
+    s.feed_bytes(sim["capture"].read_bytes()[:100000])
+    s.flush_pending()
+    snap = s.snapshot({"connected": False, "connects": 1, "disconnects": 1, "last_error": "unplugged"})
+    buf = io.StringIO()
+    Console(file=buf, width=140).print(render_snapshot(snap))
+    text = buf.getvalue()
+    for key in ("frames/s", "lit sensors", "rotation vector", "translation", "ADOP / PDOP", "error vs truth",
+                "dropped", "disconnected", "unplugged"):
+        assert key in text, key
+    assert snap["good"] == snap["frames"] > 0
