@@ -118,6 +118,8 @@ def relax(problem: Problem, solver: str = "CLARABEL", time_limit=None, use_rho=T
     if problem.objective.aggregate != "worst" or P <= initial_poses:
         r = _relax_poses(problem, np.arange(P), solver, time_limit, use_rho)
         return RelaxResult(r.z, r.bound, r.certified_by, r.status, time.perf_counter() - t0)
+    if problem.n_cover < P:
+        max_rounds = 1  # the relaxation only seeds the rounding here (the bound is the trace bound)
     z0 = np.full(problem.N, problem.k / problem.N)
     v0 = relaxed_pose_values(problem, z0, use_rho)
     active = np.argsort(-v0)[:initial_poses]

@@ -48,6 +48,10 @@ def main():
     res = optimize_stations(prep["jac"], prep["visible"], 12, objective="worst-adop", rho=RHO_PAPER,
                             min_visible=4, rng=0, time_limit=60 if a.quick else 110)
     print(res.message)
+    # second variant: like the paper-like layout, allow 4 % of the poses to have fewer than 4 lit
+    res96 = optimize_stations(prep["jac"], prep["visible"], 12, objective="worst-adop", rho=RHO_PAPER,
+                              min_visible=4, rng=0, coverage_fraction=0.96, time_limit=60 if a.quick else 110)
+    print(res96.message)
     opt_pos, opt_nor = cand.positions[res.selected], cand.normals[res.selected]
     held = prepare_problem(mesh, dataclasses.replace(env, seed=env.seed + 1), candidates=cand)
     out = {"candidates": cand.n, "poses": int(len(prep["rotations"])), "spacing_m": spacing,
@@ -56,7 +60,11 @@ def main():
                          "time_s": res.timings["total_s"], "selected": [cand.ids[i] for i in res.selected]},
            "layouts": {}}
     evals = {}
-    for name, (pos, nor) in {"paper-like": (paper.positions, paper.normals), "optimised": (opt_pos, opt_nor)}.items():
+    layouts = {"paper-like": (paper.positions, paper.normals), "optimised": (opt_pos, opt_nor),
+               "optimised-96%": (cand.positions[res96.selected], cand.normals[res96.selected])}
+    out["optimiser_96"] = {"value": res96.value, "bound": res96.bound, "gap": res96.gap,
+                           "certified_by": res96.certified_by, "time_s": res96.timings["total_s"]}
+    for name, (pos, nor) in layouts.items():
         for env_name, pr in (("design", prep), ("held-out", held)):
             e = evaluate_layout(pr, pos, nor, RHO_PAPER)
             evals[name, env_name] = e
@@ -64,19 +72,23 @@ def main():
     out["optimised_positions_m"] = opt_pos
     out["optimised_normals"] = opt_nor
     out["wall_s"] = time.perf_counter() - t0
-    (HERE / "results.json").write_text(json.dumps(to_jsonable(out), indent=2) + "\n")
 
-    lines = ["| layout | envelope | poses with ≥ 4 lit | ADOP median | ADOP worst | PDOP median | PDOP worst |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| layout | envelope | poses with ≥ 4 lit | ADOP median | ADOP worst | PDOP median | PDOP worst "
+             "| ADOP worst on poses all layouts track |", "|---|---|---|---|---|---|---|---|"]
     for (name, env_name), e in evals.items():
         s = e["stats"]
         ad, pd = s["adop_deg_per_rad"], s["pdop_m_per_rad"]
+        common = np.all([evals[n, env_name]["n_lit"] >= 4 for n in layouts], axis=0)
+        wc = float(np.max(e["adop"][common]))
+        out["layouts"][name][env_name]["adop_worst_common_poses"] = wc
+        out["layouts"][name][env_name]["common_poses"] = int(common.sum())
         lines.append(f"| {name} | {env_name} | {s['poses_covered']}/{s['poses']} | {ad['median']:.0f} | "
-                     f"{ad['max']:.0f} | {pd['median']:.2f} | {pd['max']:.2f} |")
+                     f"{ad['max']:.0f} | {pd['median']:.2f} | {pd['max']:.2f} | {wc:.0f} ({common.sum()} poses) |")
     md = ("ADOP in deg/rad, PDOP in m/rad (multiply by sigma_theta = 4.014e-5 rad for 1-sigma deg / m); "
           "statistics over the poses with at least 4 lit sensors.\n\n" + "\n".join(lines) + "\n\n"
-          f"Optimiser: {res.message}\n")
+          f"Optimiser (all poses): {res.message}\n\nOptimiser (96 % of poses): {res96.message}\n")
     (HERE / "results.md").write_text(md)
+    (HERE / "results.json").write_text(json.dumps(to_jsonable(out), indent=2) + "\n")
     print(md)
 
     import matplotlib
