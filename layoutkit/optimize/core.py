@@ -15,6 +15,10 @@ from .objectives import parse_objective
 from .problem import build_problem, exact_dop, feasible_counts
 from .relaxation import _fallback_bound
 
+# wall-time budget of the default pipeline when the caller gives none (s); small problems stop
+# much earlier (when random kicks stop improving)
+DEFAULT_PIPELINE_TIME_S = 100.0
+
 __all__ = ["OptimizeResult", "optimize_layout", "optimize_stations", "candidate_jacobians",
            "sweep_k", "spacing_conflicts"]
 
@@ -120,7 +124,8 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
     min_visible : m, lit sensors needed at every pose (or every pose but ``1 - coverage_fraction``).
     method : one of :data:`layoutkit.optimize.METHODS`. rng : ``np.random.Generator`` or seed.
     fixed : candidate indices placed in advance. min_spacing : m, minimum distance between sensors.
-    time_limit : s, wall budget for the search (the relaxation is not interrupted).
+    time_limit : s, wall budget of the method (the relaxation itself is not interrupted); None:
+        unlimited, except ``"pipeline"`` which then stops after ``DEFAULT_PIPELINE_TIME_S`` = 100 s.
     progress : callable ``(stage: str, fraction: float | None, best: float | None)``.
     Returns an :class:`OptimizeResult`; infeasible requests are a status with an explanation.
     """
@@ -193,6 +198,8 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
     if not cov.feasible:
         return fail(cov.status, cov.message, cov)
+    if time_limit is None and method == "pipeline":
+        time_limit = DEFAULT_PIPELINE_TIME_S
     deadline = math.inf if time_limit is None else time.perf_counter() + float(time_limit)
     ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
     t1 = time.perf_counter()
