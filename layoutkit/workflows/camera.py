@@ -328,6 +328,12 @@ def _plot_case(case, res, errs, path):
     ax[1].grid(True, which="both", alpha=0.3)
     ax[2].plot(t, np.nanmedian(res["corner_err_px"], axis=1), color="k", lw=0.8, label="median corner error (px)")
     ax[2].plot(t, np.degrees(res["theta"]) / 100, color="purple", lw=0.8, ls="--", label="θ (deg) / 100")
+    near = np.abs(np.degrees(res["theta"])) < 10.0
+    if near.any():
+        for a in ax:
+            a.axvspan(t[near][0], t[near][-1], color="0.5", alpha=0.12, lw=0)
+        ax[1].text(t[near].mean(), ax[1].get_ylim()[1] * 0.5, "|θ| < 10°: tilt sign\nnearly unobservable",
+                   ha="center", va="top", fontsize=8)
     ax[2].set_ylabel("px")
     ax[2].set_xlabel("t (s)")
     ax[2].legend(loc="upper right", fontsize=8)
