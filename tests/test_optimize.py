@@ -201,3 +201,19 @@ def test_bad_inputs_have_clear_messages():
         optimize_layout(**inst, k=20)
     with pytest.raises(ValueError, match=r"fixed: 3 fixed sensors exceed k = 2"):
         optimize_layout(**inst, k=2, fixed=[0, 1, 2])
+
+
+def test_sweep_k_monotone_and_top_level_export():
+    """rho = 0: more sensors never hurt (A grows, A^-1 shrinks), so the exhaustive optimum is
+    non-increasing in k; the top-level `layoutkit.optimize_layout` is the same function and the
+    progress callback sees the stages."""
+    import layoutkit
+    from layoutkit.optimize import sweep_k
+
+    assert layoutkit.optimize_layout is optimize_layout
+    inst = small(0)
+    vals = [r.value for r in sweep_k(**inst, ks=[4, 5, 6, 7], rho=0.0, method="exhaustive")]
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(vals, vals[1:]))
+    stages = []
+    optimize_layout(**inst, k=6, rng=0, progress=lambda s, f=None, b=None: stages.append(s))
+    assert "relaxation (cvxpy/Clarabel)" in stages and "local search" in stages
