@@ -217,3 +217,27 @@ def test_sweep_k_monotone_and_top_level_export():
     stages = []
     optimize_layout(**inst, k=6, rng=0, progress=lambda s, f=None, b=None: stages.append(s))
     assert "relaxation (cvxpy/Clarabel)" in stages and "local search" in stages
+
+
+def test_two_stations_against_exhaustive_and_core():
+    """Two stations: pipeline = exhaustive optimum, bound below it, per-pose ADOP equal to
+    `pose_dop(..., stations=...)` of the core (independent multi-station reference)."""
+    from layoutkit.geometry import look_at_rotation
+    from layoutkit.lighthouse import Station
+    from layoutkit.optimize import optimize_stations
+    from layoutkit.optimize.instances import cone_visibility
+
+    inst = small(0)
+    R, t = inst["rotations"], inst["translations"]
+    pos_b = np.array([1.0, 0.0, 0.0])
+    look = look_at_rotation(np.array([-0.4, 0.0, 2.0]) - pos_b).T  # station B looks at the envelope
+    stations = [Station("A"), Station("B", look, pos_b)]
+    vis = np.stack([cone_visibility(inst["positions"], inst["normals"], *st.world_to_station(R, t))
+                    for st in stations], axis=1)
+    jac = candidate_jacobians(inst["positions"], R, t, stations)
+    ex = optimize_stations(jac, vis, 6, rho=RHO, method="exhaustive")
+    pl = optimize_stations(jac, vis, 6, rho=RHO, rng=0)
+    assert ex.success and pl.value <= ex.value * 1.005 and pl.bound <= ex.value * (1 + 1e-9)
+    d = pose_dop(inst["positions"][pl.selected], R, t, rho=RHO, visible=vis[:, :, pl.selected],
+                 stations=stations)
+    np.testing.assert_allclose(pl.adop, d.adop, rtol=1e-10)
