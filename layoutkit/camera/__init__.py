@@ -20,8 +20,14 @@ from .rectangle import (
     solve_rectangle,
     zhai_depth_ratios,
 )
+from .stream import AttitudeStream, RotationAlignment, align_rotation_streams, attitude_stream, track_corners
 
 __all__ = [
+    "AttitudeStream",
+    "RotationAlignment",
+    "align_rotation_streams",
+    "attitude_stream",
+    "track_corners",
     "BOX_FACES",
     "RECTANGLE_SOLVERS",
     "RectangleSolution",

@@ -13,7 +13,8 @@ from layoutkit.workflows.camera import main
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="reduced run (10 s samples, fewer repeats)")
+    ap.add_argument("--quick", action="store_true",
+                    help="reduced smoke run (5 s samples, fewer repeats; the +filter rows need the full 1 Hz run)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent), help="output folder")
     a = ap.parse_args()
     main(a.out, quick=a.quick)
