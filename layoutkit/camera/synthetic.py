@@ -100,6 +100,9 @@ class SyntheticCamera:
         if not isinstance(mesh, pv.DataSet):
             mesh = pv.wrap(mesh)
         mesh = mesh.copy()
+        from ..render import offscreen_backend
+
+        offscreen_backend()  # pick EGL/OSMesa before the first render window (no display here)
         pl = pv.Plotter(off_screen=True, window_size=(self._cam_hi.width, self._cam_hi.height),
                         lighting="none")
         pl.disable_anti_aliasing()

@@ -175,6 +175,24 @@ def study_chen(groups, frames, seed, dynamic_seconds, sensor_error_mm, out_dir, 
         click.echo(f"wrote {paths['fig5']}, {paths['fig7']}, {paths['table']}")
 
 
+@study_group.command("zhai2014")
+@click.option("--quick", is_flag=True, help="Smoke run: 5 s samples, fewer repeats (well under a minute).")
+@click.option("--seed", type=int, default=2014, show_default=True)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), default="out/zhai2014", show_default=True,
+              help="Folder for the figures, table.md and results.json.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write the summary JSON here ('-' = stdout).")
+def study_zhai(quick, seed, out_dir, json_path):
+    """Zhai et al. (2014) rectangle-face attitude fly-around (both ground-test cases) with renders."""
+    from ..workflows.camera import main as zhai_main
+
+    summary = zhai_main(out_dir, quick=quick, seed=seed,
+                        progress=(lambda *a, **k: None) if json_path == "-" else click.echo)
+    if json_path:
+        echo_json(summary, json_path)
+    if json_path != "-":
+        click.echo(f"wrote figures, table.md and results.json to {out_dir}")
+
+
 @click.command("demo")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="out/demo", show_default=True)
 def demo_cmd(out_dir):
