@@ -241,3 +241,24 @@ def test_two_stations_against_exhaustive_and_core():
     d = pose_dop(inst["positions"][pl.selected], R, t, rho=RHO, visible=vis[:, :, pl.selected],
                  stations=stations)
     np.testing.assert_allclose(pl.adop, d.adop, rtol=1e-10)
+
+
+@pytest.mark.parametrize("rho", [0.0, RHO])
+def test_per_pose_relaxation_bounds_below_per_pose_minimum(rho):
+    """Each per-pose relaxation bound lies between the closed-form trace bound and the smallest
+    d_p over every feasible 6-subset (exhaustive per-pose minimum)."""
+    from layoutkit.optimize.problem import pose_values_from_info, subset_info
+    from layoutkit.optimize.relaxation import pose_relaxation_bounds
+
+    inst = small(4)
+    pr = problem_of(inst, 6, rho, objective="mean-adop")
+    Z = np.array(list(itertools.combinations(range(14), 6)))
+    A, b, n = subset_info(pr, Z)
+    d = np.sqrt(pose_values_from_info(A, b, rho, pr.objective.w))
+    feas = (n >= 4).all(axis=1)
+    dmin = d[feas].min(axis=0)
+    L = pose_relaxation_bounds(pr)
+    T = pose_trace_bounds(pr)
+    assert np.all(L >= T * (1 - 1e-12))
+    assert np.all(L <= dmin * (1 + 1e-9))
+    assert np.mean(L) > 1.5 * np.mean(T)  # the relaxation is the useful one

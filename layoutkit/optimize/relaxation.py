@@ -33,6 +33,8 @@ __all__ = ["RelaxResult", "relax", "pose_trace_bounds"]
 
 # relative safety margin on the solver's optimal value (Clarabel's default gap tolerance is 1e-8)
 _SAFETY = 1e-5
+# per-pose bounds come from a decoupled sum: each pose's share of the solver tolerance is larger
+_POSE_SAFETY = 1e-4
 
 
 @dataclass(frozen=True)
@@ -66,20 +68,121 @@ def pose_trace_bounds(problem: Problem) -> np.ndarray:
     return np.sqrt(np.where(np.isfinite(v), v, np.inf))
 
 
-def _fallback_bound(problem: Problem) -> float:
+def _pose_information(cp, problem: Problem, p, zi, idx, D, use_gls):
+    """Whitened information of pose p as a cvxpy expression: ``(info, fac, constraints)`` with
+    ``trace(W H_p) >= fac * matrix_frac(D E, info)`` at every 0/1 point (module docstring)."""
+    rho = problem.rho
+    C = problem.U.shape[2]
+    Gw = np.einsum("ab,nbc,cd->nad", D, problem.G[p, idx], D).reshape(len(idx), 36).T
+    Ax = cp.reshape(Gw @ zi, (6, 6), order="C")
+    Ax = (Ax + Ax.T) / 2
+    if not use_gls:
+        return Ax, 1.0 - rho, []  # H ⪰ (1 - rho) A^-1 (design §6)
+    n0 = max(problem.m, 1)
+    g = np.sqrt(rho / (1 - rho + rho * n0))
+    Bw = np.einsum("ab,ncb->nca", D, problem.U[p, idx]).reshape(len(idx), C * 6).T
+    Bx = cp.reshape(Bw @ zi, (C, 6), order="C").T * g  # (6, C) = g D [b_1 .. b_C]
+    vis_s = problem.vis[p][:, idx].astype(float)  # (S, n_p)
+    s = (1 - rho + rho * (vis_s @ zi)) / (1 - rho + rho * n0)  # g² s_c / rho, (S,)
+    X = cp.Variable((6, 6), symmetric=True)
+    Sd = cp.diag(cp.hstack([s[int(r)] for r in np.arange(C) // 2]))
+    M = cp.bmat([[Ax - X, Bx], [Bx.T, Sd]])
+    return X, 1 - rho, [(M + M.T) / 2 >> 0]
+
+
+def _whitening(problem: Problem, poses, E):
+    """Per-pose ``D_p = ((k/N) sum_i G_ip)^(-1/2)`` and the scale ``c_p = |D_p E|_F²``."""
+    Gsum = problem.G[poses].sum(axis=1) * (problem.k / problem.N)
+    Ds, cs = [], []
+    for Gp in Gsum:
+        ev, evec = np.linalg.eigh(Gp)
+        ev = np.maximum(ev, max(ev.max(), 1e-300) * 1e-12)
+        D = (evec / np.sqrt(ev)) @ evec.T
+        Ds.append(D)
+        cs.append(float(np.sum((D @ E) ** 2)))  # value at the uniform z = k/N (whitened A = I)
+    return Ds, cs
+
+
+def _weight_matrix(obj):
+    wsel = np.flatnonzero(obj.w > 0)
+    E = np.zeros((6, len(wsel)))
+    E[wsel, np.arange(len(wsel))] = np.sqrt(obj.w[wsel])
+    return E
+
+
+def pose_relaxation_bounds(problem: Problem, poses=None, batch=16, use_rho=True, deadline=None,
+                           solver="CLARABEL") -> np.ndarray:
+    """Per-pose certified lower bounds ``L_p`` on d_p (P,), each from its own relaxation.
+
+    For each pose alone: minimise the relaxed value over its lit candidates with
+    ``0 <= z <= 1``, ``sum z <= k``, ``sum z >= m``, fixed lit sensors = 1 (a relaxation of every
+    feasible layout, so ``d_p >= L_p`` whenever the pose is covered). Poses are solved in decoupled
+    batches; poses not reached before ``deadline`` keep the closed-form trace bound. Each entry is
+    the larger of the two bounds.
+    """
+    import warnings
+
+    import cvxpy as cp
+
     L = pose_trace_bounds(problem)
-    agg = problem.objective.aggregate
+    poses = np.arange(problem.P) if poses is None else np.asarray(poses, int)
+    E = _weight_matrix(problem.objective)
+    use_gls = use_rho and problem.rho > 0
+    fixed = set(problem.fixed.tolist())
+    for s0 in range(0, len(poses), batch):
+        if deadline is not None and time.perf_counter() > deadline:
+            break
+        chunk = [p for p in poses[s0:s0 + batch] if problem.lit[p].sum() >= max(problem.m, 3)]
+        if not chunk:
+            continue
+        Ds, cs = _whitening(problem, chunk, E)
+        t = cp.Variable(len(chunk))
+        cons = []
+        for q, p in enumerate(chunk):
+            idx = np.flatnonzero(problem.lit[p])
+            zp = cp.Variable(len(idx))
+            cons += [zp >= 0, zp <= 1, cp.sum(zp) <= problem.k, cp.sum(zp) >= problem.m]
+            fx = [j for j, i in enumerate(idx) if i in fixed]
+            if fx:
+                cons.append(zp[fx] == 1)
+            info, fac, extra = _pose_information(cp, problem, p, zp, idx, Ds[q], use_gls)
+            cons += extra
+            cons.append(fac * cp.matrix_frac(Ds[q] @ E / np.sqrt(cs[q]), info) <= t[q])
+        prob = cp.Problem(cp.Minimize(cp.sum(t)), cons)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                prob.solve(solver=solver)
+        except cp.error.SolverError:
+            continue
+        if prob.status != "optimal" or t.value is None:
+            continue
+        for q, p in enumerate(chunk):
+            v = float(np.sqrt(max(t.value[q], 0.0) * cs[q] * (1 - _POSE_SAFETY)))
+            L[p] = max(L[p], v)
+    return L
+
+
+def aggregate_pose_bounds(problem: Problem, L) -> float:
+    """Bound on the objective from per-pose bounds ``L (P,)`` (valid with coverage_fraction too).
+
+    The objective is taken over the covered poses C, ``|C| >= n_cover``, and ``d_p >= L_p`` there;
+    the worst, mean and any percentile of the ``j`` smallest L grow with j, so the smallest value
+    over all admissible C comes from the ``n_cover`` smallest L.
+    """
+    L = np.asarray(L, float)
     if problem.n_cover < problem.P:
-        # the worst over >= n_cover poses is at least the n_cover-th smallest L_p
-        Ls = np.sort(L)
-        if agg == "worst":
-            return float(Ls[problem.n_cover - 1])
-        return float(Ls[0])  # a loose but valid bound for mean/percentile over an unknown subset
+        L = np.sort(L)[: problem.n_cover]
+    agg = problem.objective.aggregate
     if agg == "worst":
         return float(L.max())
     if agg == "mean":
         return float(L.mean())
     return float(np.percentile(L, problem.objective.q))
+
+
+def _fallback_bound(problem: Problem) -> float:
+    return aggregate_pose_bounds(problem, pose_trace_bounds(problem))
 
 
 def relaxed_pose_values(problem: Problem, z, use_rho=True) -> np.ndarray:
@@ -103,40 +206,58 @@ def relaxed_pose_values(problem: Problem, z, use_rho=True) -> np.ndarray:
 
 
 def relax(problem: Problem, solver: str = "CLARABEL", time_limit=None, use_rho=True,
-          initial_poses=24, add_poses=16, max_rounds=6) -> RelaxResult:
+          initial_poses=24, add_poses=16, max_rounds=6, pose_bound_budget_s=30.0) -> RelaxResult:
     """Convex relaxation by pose generation; return the fractional z and a certified lower bound.
 
-    The worst case over a subset of poses is a lower bound on the worst case over all poses, so the
-    relaxation starts from the ``initial_poses`` poses that are worst at the uniform z = k/N, adds
-    the ``add_poses`` most violated poses at the relaxed z and re-solves, until no pose exceeds the
-    relaxed optimum (then it equals the full relaxation) or ``max_rounds``. Every round's value is a
-    valid bound. use_rho : bound the rho term through the GLS information (module docstring);
-    False gives the design's ``(1 - rho) A^-1`` relaxation.
+    Worst case with full coverage: the worst case over a subset of poses is a lower bound on the
+    worst case over all poses, so the relaxation starts from the ``initial_poses`` poses that are
+    worst at the uniform z = k/N, adds the ``add_poses`` most violated poses at the relaxed z and
+    re-solves, until no pose exceeds the relaxed optimum (then it equals the full relaxation) or
+    ``max_rounds``. Every round's value is a valid bound.
+    Mean / percentile objectives or ``coverage_fraction < 1``: the joint relaxation (mean of the
+    squared values) only gives z for the rounding; the bound aggregates per-pose relaxation
+    bounds (:func:`pose_relaxation_bounds`, within ``pose_bound_budget_s``) and the closed-form
+    trace bounds (:func:`aggregate_pose_bounds`).
+    use_rho : bound the rho term through the GLS information (module docstring); False gives the
+    design's ``(1 - rho) A^-1`` relaxation.
     """
     t0 = time.perf_counter()
     P = problem.P
-    if problem.objective.aggregate != "worst" or P <= initial_poses:
-        r = _relax_poses(problem, np.arange(P), solver, time_limit, use_rho)
-        return RelaxResult(r.z, r.bound, r.certified_by, r.status, time.perf_counter() - t0)
-    if problem.n_cover < P:
-        max_rounds = 1  # the relaxation only seeds the rounding here (the bound is the trace bound)
-    z0 = np.full(problem.N, problem.k / problem.N)
-    v0 = relaxed_pose_values(problem, z0, use_rho)
-    active = np.argsort(-v0)[:initial_poses]
-    best = None
-    for rnd in range(max_rounds):
-        r = _relax_poses(problem, np.sort(active), solver, time_limit, use_rho)
-        if best is None or (r.certified_by == "relaxation" and r.bound >= best.bound) or best.certified_by != "relaxation":
-            best = r
-        if r.certified_by != "relaxation" and not r.status.startswith("optimal"):
-            break
-        v = np.sqrt(relaxed_pose_values(problem, r.z, use_rho))
-        viol = np.setdiff1d(np.flatnonzero(v > r.bound * (1 + 1e-4)), active)
-        if len(viol) == 0:
-            break
-        active = np.r_[active, viol[np.argsort(-v[viol])][:add_poses]]
-    return RelaxResult(best.z, best.bound, best.certified_by,
-                       f"{best.status} ({len(active)} of {P} poses active)", time.perf_counter() - t0)
+    joint = problem.objective.aggregate == "worst" and problem.n_cover >= P
+    if not joint or P <= initial_poses:
+        act = np.arange(P) if P <= initial_poses or problem.objective.aggregate != "worst" else None
+        if act is None:  # worst case with a coverage fraction: z from the initial poses only
+            z0 = np.full(problem.N, problem.k / problem.N)
+            act = np.sort(np.argsort(-relaxed_pose_values(problem, z0, use_rho))[:initial_poses])
+        best = _relax_poses(problem, act, solver, time_limit, use_rho)
+        n_active = len(act)
+    else:
+        z0 = np.full(problem.N, problem.k / problem.N)
+        v0 = relaxed_pose_values(problem, z0, use_rho)
+        active = np.argsort(-v0)[:initial_poses]
+        best = None
+        for rnd in range(max_rounds):
+            r = _relax_poses(problem, np.sort(active), solver, time_limit, use_rho)
+            if best is None or best.certified_by != "relaxation" or (
+                    r.certified_by == "relaxation" and r.bound >= best.bound):
+                best = r
+            if r.certified_by != "relaxation" and not r.status.startswith("optimal"):
+                break
+            v = np.sqrt(relaxed_pose_values(problem, r.z, use_rho))
+            viol = np.setdiff1d(np.flatnonzero(v > r.bound * (1 + 1e-4)), active)
+            if len(viol) == 0:
+                break
+            active = np.r_[active, viol[np.argsort(-v[viol])][:add_poses]]
+        n_active = len(active)
+    bound, how = best.bound, best.certified_by
+    if not joint:
+        L = pose_relaxation_bounds(problem, use_rho=use_rho, solver=solver,
+                                   deadline=time.perf_counter() + pose_bound_budget_s)
+        b = aggregate_pose_bounds(problem, L)
+        if b > bound:
+            bound, how = b, "per-pose relaxation"
+    return RelaxResult(best.z, bound, how, f"{best.status} ({n_active} of {P} poses active)",
+                       time.perf_counter() - t0)
 
 
 def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, use_rho=True) -> RelaxResult:
@@ -146,11 +267,7 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
     t0 = time.perf_counter()
     P, N, k, rho = problem.P, problem.N, problem.k, problem.rho
     obj = problem.objective
-    wsel = np.flatnonzero(obj.w > 0)
-    E = np.zeros((6, len(wsel)))
-    E[wsel, np.arange(len(wsel))] = np.sqrt(obj.w[wsel])
-    C = problem.U.shape[2]
-    station_of_row = np.arange(C) // 2
+    E = _weight_matrix(obj)
 
     z = cp.Variable(N)
     cons = [z >= 0, z <= 1, cp.sum(z) == k]
@@ -164,14 +281,7 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
             cons.append(z[i] + z[j] <= 1)
     use_gls = use_rho and rho > 0
     t = cp.Variable(len(poses)) if obj.aggregate != "worst" else cp.Variable()
-    Gsum = problem.G.sum(axis=1) * (k / N)
-    Ds, cs = [], []
-    for p in poses:
-        ev, evec = np.linalg.eigh(Gsum[p])
-        ev = np.maximum(ev, max(ev.max(), 1e-300) * 1e-12)
-        D = (evec / np.sqrt(ev)) @ evec.T  # D_p = (k/N sum_i G_ip)^(-1/2)
-        Ds.append(D)
-        cs.append(float(np.sum((D @ E) ** 2)))  # value at the uniform z = k/N (whitened A = I)
+    Ds, cs = _whitening(problem, poses, E)
     cbar = float(np.median(cs))
     for q, p in enumerate(poses):
         idx = np.flatnonzero(problem.lit[p])
@@ -179,24 +289,8 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
             continue
         D, c = Ds[q], cs[q]
         DE = D @ E / np.sqrt(c)
-        Gw = np.einsum("ab,nbc,cd->nad", D, problem.G[p, idx], D).reshape(len(idx), 36).T
-        zi = z[idx]
-        Ax = cp.reshape(Gw @ zi, (6, 6), order="C")
-        Ax = (Ax + Ax.T) / 2
-        if use_gls:
-            n0 = max(problem.m, 1)
-            g = np.sqrt(rho / (1 - rho + rho * n0))
-            Bw = np.einsum("ab,ncb->nca", D, problem.U[p, idx]).reshape(len(idx), C * 6).T
-            Bx = cp.reshape(Bw @ zi, (C, 6), order="C").T * g  # (6, C) = g D [b_1 .. b_C]
-            vis_s = problem.vis[p][:, idx].astype(float)  # (S, n_p)
-            s = (1 - rho + rho * (vis_s @ zi)) / (1 - rho + rho * n0)  # g² s_c / rho, (S,)
-            X = cp.Variable((6, 6), symmetric=True)
-            Sd = cp.diag(cp.hstack([s[int(r)] for r in station_of_row]))
-            M = cp.bmat([[Ax - X, Bx], [Bx.T, Sd]])
-            cons.append((M + M.T) / 2 >> 0)
-            info, fac = X, 1 - rho
-        else:
-            info, fac = Ax, 1.0 - rho  # H ⪰ (1 - rho) A^-1 (design §6)
+        info, fac, extra = _pose_information(cp, problem, p, z[idx], idx, D, use_gls)
+        cons += extra
         tp = t if obj.aggregate == "worst" else t[q]
         cons.append((fac * c / cbar) * cp.matrix_frac(DE, info) <= tp)
     if obj.aggregate == "worst":

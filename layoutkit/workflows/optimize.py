@@ -190,9 +190,16 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
         ks = [s["k"] for s in sweep]
         ax.plot(ks, [s["value"] for s in sweep], "o-", label=f"optimised ({summary['objective']})")
         ax.plot(ks, [s["bound"] for s in sweep], "k--", label="certified lower bound")
-        ax.plot(ks, [s["stats"]["adop_deg_per_rad"]["median"] for s in sweep], "s-", label="median ADOP")
+        if summary["objective"].endswith("adop"):
+            ax.plot(ks, [s["stats"]["adop_deg_per_rad"]["median"] for s in sweep], "s-", label="median ADOP")
         ax.set_xlabel("sensors k")
-        ax.set_ylabel("DOP")
+        ax.set_ylabel("ADOP (deg/rad)" if summary["objective"].endswith("adop") else
+                      "PDOP (m/rad)" if summary["objective"].endswith("pdop") else "weighted DOP")
+        ax.set_xticks(ks)
+        infeasible = [s["k"] for s in summary["k_sweep"] if not s["stats"]]
+        if infeasible:
+            ax.set_title(f"infeasible (too few sensors for {summary['min_visible']} lit): k = "
+                         + ", ".join(map(str, infeasible)), fontsize=9)
         ax.set_yscale("log")
         ax.legend()
         ax.grid(alpha=0.3)
