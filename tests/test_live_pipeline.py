@@ -12,7 +12,7 @@ from layoutkit.dop import pose_dop, pose_errors, rms
 from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.lighthouse import in_field_of_view, lh2_sweep_angles, sweep_angles
 from layoutkit.live.frames import SweepMeasurement
-from layoutkit.live.pipeline import (STATUS_OK, STATUS_TOO_FEW_LIT, PipelineConfig, PosePipeline,
+from layoutkit.live.pipeline import (STATUS_JUMP, STATUS_OK, STATUS_TOO_FEW_LIT, PipelineConfig, PosePipeline,
                                      SweepPairer, lh2_to_lh1_angles)
 from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
 from layoutkit.shapes import chen_target
@@ -144,6 +144,31 @@ def test_too_few_lit_frames_get_status_and_no_record(layout):
     recs = [r for ch in chunks for r in ch.records()]
     assert len(recs) == 10 and all(r["status"] == "ok" for r in recs)
     assert set(recs[0]) >= {"t", "rotvec", "translation", "n_lit", "status", "adop", "pdop", "residual_rms"}
+
+
+def test_continuity_gate_flags_a_consistent_but_wrong_pose(layout):
+    """Frames 100-102 carry the exact angles of a pose 40° away (a self-consistent wrong basin:
+    zero residual): they are reported as STATUS_JUMP, every other frame stays good, and after
+    ``reacquire_s`` without a good pose a new pose is accepted again."""
+    sw, t, R, tr, _ = make_sweeps(layout, 300, None, sigma=0.0)
+    Rw = rotvec_to_matrix([0.0, np.deg2rad(40), 0.0]) @ R[100]
+    wrong = sweep_angles(np.einsum("ij,nj->ni", Rw, layout.positions) + tr[100])
+    for k in (100, 101, 102):
+        for ax in (0, 1):
+            m = sw[2 * k + ax]
+            sw[2 * k + ax] = SweepMeasurement(m.t, 0, ax, wrong[:, ax], m.seq)
+    _, _, c = run(layout, sw, chunk_frames=64)
+    jump = np.flatnonzero(c["status"] == STATUS_JUMP)
+    np.testing.assert_array_equal(jump, [100, 101, 102])
+    assert np.all(c["status"][np.setdiff1d(np.arange(300), jump)] == STATUS_OK)
+    # a jump after a gap longer than reacquire_s is a re-acquisition, not a jump; if that pose is
+    # the wrong one, the right track is taken back after reacquire_frames consistent poses
+    late = [SweepMeasurement(m.t + (1.0 if i >= 200 else 0.0), 0, m.axis, m.angles, m.seq) for i, m in enumerate(sw)]
+    _, _, c2 = run(layout, late, chunk_frames=1)
+    st = c2["status"]
+    assert np.all(st[100:103] == STATUS_OK)  # accepted after the gap (nothing to compare with)
+    np.testing.assert_array_equal(st[103:107], STATUS_JUMP)  # 4 frames back on the right track
+    assert np.all(st[107:] == STATUS_OK) and np.all(st[:100] == STATUS_OK)
 
 
 def test_lh2_plane_angles_convert_to_lh1_angles():

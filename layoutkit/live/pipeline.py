@@ -32,6 +32,7 @@ __all__ = [
     "STATUS_TOO_FEW_LIT",
     "STATUS_SOLVER_FAILED",
     "STATUS_HIGH_RESIDUAL",
+    "STATUS_JUMP",
     "STATUS_NAMES",
     "PipelineConfig",
     "AngleFrame",
@@ -48,11 +49,13 @@ STATUS_OK = 0
 STATUS_TOO_FEW_LIT = 1
 STATUS_SOLVER_FAILED = 2
 STATUS_HIGH_RESIDUAL = 3
+STATUS_JUMP = 4
 STATUS_NAMES = {
     STATUS_OK: "ok",
     STATUS_TOO_FEW_LIT: "too_few_lit",
     STATUS_SOLVER_FAILED: "solver_failed",
     STATUS_HIGH_RESIDUAL: "high_residual",
+    STATUS_JUMP: "jump",
 }
 
 LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
@@ -71,6 +74,12 @@ class PipelineConfig:
     sigma_theta : rad, angle noise for predictions (Chen eq. 24); rho : same-rotor correlation (eq. 19).
     max_residual_sigma : a solved pose whose RMS angle residual exceeds this many sigma_theta is
         reported with STATUS_HIGH_RESIDUAL (never as good).
+    max_rate_deg_s, max_speed_m_s, gate_sigma, reacquire_s : continuity gate. A pose further from
+        the last good pose of its station than ``max_rate · dt + gate_sigma · predicted sigma``
+        (attitude, and likewise position) is reported with STATUS_JUMP: with 4-5 lit sensors a
+        wrong PnP basin can fit the angles as well as the right one. After ``reacquire_s``
+        without a good pose the next pose is accepted as is, and ``reacquire_frames`` consecutive
+        jumped poses that agree with each other become the new track.
     """
 
     n_sensors: int
@@ -81,6 +90,11 @@ class PipelineConfig:
     sigma_theta: float = SIGMA_THETA_PAPER
     rho: float = RHO_PAPER
     max_residual_sigma: float = 8.0
+    max_rate_deg_s: float = 360.0
+    max_speed_m_s: float = 5.0
+    gate_sigma: float = 6.0
+    reacquire_s: float = 0.5
+    reacquire_frames: int = 5
 
     def __post_init__(self):
         if self.n_sensors < 1:
@@ -260,7 +274,8 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
     frames : F frames; their stations may differ — each station's frames are solved in its own
         frame with ``layoutkit.pnp.solve_pnp``, started from ``initial[station] = (R, t)`` when given
         (the previous pose), and mapped to the world frame when ``stations`` are given.
-    initial : dict station -> (R (3, 3), t (3,)); updated in place with the last good pose.
+    initial : dict station -> (R (3, 3), t (3,), time s); updated in place with the last good pose
+        (also the reference of the continuity gate, see :class:`PipelineConfig`).
     Returns a :class:`PoseChunk`; failures are statuses, never exceptions.
     """
     from ..dop import pose_dop
@@ -287,7 +302,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         a = np.where(lit[idx, :, None], ang[idx], np.pi / 2)  # placeholders never enter the fit
         init = initial.get(int(s))
         kw = {}
-        if init is not None:
+        if init is not None and t[idx[0]] - init[2] <= config.reacquire_s:
             kw["initial"] = (np.broadcast_to(init[0], (len(idx), 3, 3)),
                              np.broadcast_to(init[1], (len(idx), 3)))
         sol = solve_pnp(P, a, lit[idx], **kw)
@@ -299,6 +314,9 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         stat = np.where(~ok, STATUS_SOLVER_FAILED,
                         np.where(rr > config.max_residual_sigma * config.sigma_theta,
                                  STATUS_HIGH_RESIDUAL, STATUS_OK))
+        stat, cand = _continuity_gate(t[idx], Rs, ts, stat, d.adop, d.pdop, init, initial.get(("jump", int(s))),
+                                      config)
+        initial[("jump", int(s))] = cand
         if stations is not None:
             S = stations[int(s)]
             Rs = np.einsum("ij,fjk->fik", S.rotation, Rs)
@@ -312,13 +330,62 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
             Rl, tl = R[j], tr[j]
             if stations is not None:  # keep the start in the station's own frame
                 Rl, tl = S.rotation.T @ Rl, S.rotation.T @ (tl - S.translation)
-            initial[int(s)] = (Rl.copy(), tl.copy())
+            initial[int(s)] = (Rl.copy(), tl.copy(), float(t[j]))
     has = np.isfinite(R[:, 0, 0])
     rv = np.full((F, 3), np.nan)
     if has.any():
         rv[has] = matrix_to_rotvec(R[has])
     return PoseChunk(t=t, station=st, n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
                      status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit)
+
+
+def _continuity_gate(t, R, tr, status, adop, pdop, last, cand, config: PipelineConfig):
+    """Mark good poses that jump away from the last good pose (see :class:`PipelineConfig`).
+
+    t (F,) s, R (F, 3, 3), tr (F, 3) m, status (F,), adop/pdop (F,) of one station's frames in
+    time order; last = (R, t, time) of the previous good pose or None; cand = (R, t, time, count)
+    a chain of mutually consistent jumped poses or None — after ``reacquire_frames`` of them the
+    chain is accepted as the new track (so a wrong reference cannot hold the gate shut for long).
+    Returns ``(status, cand)``.
+    """
+    from ..geometry import attitude_error
+
+    good = np.flatnonzero(status == STATUS_OK)
+    if good.size == 0:
+        return status, cand
+    rate = np.deg2rad(config.max_rate_deg_s)
+    k_sig = config.gate_sigma * config.sigma_theta
+
+    def near(k, ref):
+        dt = t[k] - ref[2]
+        a = attitude_error(R[k], ref[0])
+        d = np.linalg.norm(tr[k] - ref[1], axis=-1)
+        return (a <= rate * dt + k_sig * np.deg2rad(adop[k])) & (d <= config.max_speed_m_s * dt + k_sig * pdop[k])
+
+    if cand is None:
+        # fast path: every good pose agrees with the good pose before it -> nothing to gate
+        if last is not None:
+            ref = (np.concatenate([last[0][None], R[good[:-1]]]), np.concatenate([last[1][None], tr[good[:-1]]]),
+                   np.concatenate([[last[2]], t[good[:-1]]]))
+            cur = good
+        else:
+            ref, cur = (R[good[:-1]], tr[good[:-1]], t[good[:-1]]), good[1:]
+        if cur.size == 0 or np.all(near(cur, ref) | (t[cur] - ref[2] > config.reacquire_s)):
+            return status, None
+    status = status.copy()
+    for k in good:  # slow path: sequential against the last accepted pose
+        if last is None or t[k] - last[2] > config.reacquire_s or bool(near(k, last)):
+            last, cand = (R[k], tr[k], t[k]), None
+            continue
+        status[k] = STATUS_JUMP
+        if cand is not None and bool(near(k, cand)):
+            cand = (R[k], tr[k], t[k], cand[3] + 1)
+        else:
+            cand = (R[k], tr[k], t[k], 1)
+        if cand[3] >= config.reacquire_frames:
+            status[k] = STATUS_OK
+            last, cand = (R[k], tr[k], t[k]), None
+    return status, cand
 
 
 @dataclass

@@ -380,7 +380,7 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     time and frame from the data). json_out : stream for ``--json-lines``. report_dir : write
     ``report.json``, plots and ``poses.csv`` there.
     """
-    from ..live.capture import CaptureReader, read_sidecar
+    from ..live.capture import read_sidecar
 
     capture = Path(capture)
     if not capture.is_file():
@@ -394,7 +394,9 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
             poses = Path(tmp) / "poses.csv"
         s = session_from_sidecar(layout, sidecar, protocol=protocol, options=options, truth=truth,
                                  json_out=json_out, poses_path=poses)
-        with CaptureReader(capture) as rd:
+        # the raw bytes in blocks (the timing index is not needed as fast as possible: memory stays
+        # flat whatever the capture's length)
+        with open(capture, "rb") as rd:
             while True:
                 data = rd.read(_READ_BYTES)
                 if not data:
