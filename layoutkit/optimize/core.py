@@ -31,8 +31,8 @@ class OptimizeResult:
     value : objective of ``selected`` with the exact metric (Chen eq. 18 with rho, lit sensors only,
         all stations); deg/rad for ADOP objectives, m/rad for PDOP, inf if none.
     bound : certified lower bound on the optimum of the same objective over all feasible selections.
-    gap : value / bound - 1 (0 for a proven optimum). certified_by : "relaxation", "trace" or
-        "exhaustive" (how the bound was obtained).
+    gap : value / bound - 1 (0 for a proven optimum). certified_by : how the bound was obtained —
+        "relaxation" (joint), "per-pose relaxation", "trace" (closed form) or "exhaustive".
     success : a feasible layout was found; status : "optimal" (proven), "ok", "infeasible",
         "uncoverable", "no_feasible_found"; message : plain-language summary.
     adop, pdop : (P,) exact per-pose ADOP (deg/rad) and PDOP (m/rad); n_lit : (P,) lit counts.

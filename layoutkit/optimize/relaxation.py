@@ -18,7 +18,8 @@ never tighter. As cvxpy constraints, per pose p (whitened with ``D_p = ((k/N) su
 plus the valid cuts ``sum_i lit_ip z_i >= m`` (coverage), ``z_i + z_j <= 1`` (spacing) and
 ``z_fixed = 1``. Worst case: minimise t (epigraph). For mean/percentile objectives the joint
 relaxation of the mean of squared DOP gives the fractional z for rounding, and the bound comes
-from per-pose closed-form bounds (see :func:`pose_trace_bounds`).
+from per-pose bounds (:func:`pose_relaxation_bounds`, :func:`pose_trace_bounds`) aggregated by
+:func:`aggregate_pose_bounds`.
 """
 from __future__ import annotations
 
