@@ -12,7 +12,7 @@ from ..dop import angle_jacobian
 from .coverage import analyse_coverage
 from .methods import METHODS, Context
 from .objectives import parse_objective
-from .problem import build_problem, exact_dop, feasible_counts
+from .problem import build_problem, exact_dop
 from .relaxation import _fallback_bound
 
 # wall-time budget of the default pipeline when the caller gives none (s); small problems stop

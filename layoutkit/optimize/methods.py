@@ -131,15 +131,15 @@ def _roundings(problem: Problem, z, rng, n):
     kk = problem.k - len(problem.fixed)
     out = []
     for _ in range(n):
-        pick = ctx_choice(rng, free, kk, p)
+        pick = _gumbel_topk(rng, free, kk, p)
         s = repair(problem, np.r_[problem.fixed, pick], z)
         if s is not None:
             out.append(s)
     return out
 
 
-def ctx_choice(rng, items, k, p):
-    # Gumbel top-k = sampling without replacement proportional to p
+def _gumbel_topk(rng, items, k, p):
+    """k items sampled without replacement with probability ∝ p (Gumbel top-k trick)."""
     g = np.log(p) - np.log(-np.log(rng.random(len(p))))
     return items[np.argsort(-g)[:k]]
 

@@ -131,7 +131,6 @@ def one_swap_values(problem: Problem, st: SearchState, adds, poses, removal=None
         for q, p in enumerate(poses):
             out[:, :, q] = _one_swap_pose_c2(problem.U[p, adds], Ai[:, q], Yi[:, q], bi[:, q],
                                              trWAi[:, q], YWYi[:, q], w, rho)
-        UpT = None
     UpT = None if C == 2 else problem.U[poses].transpose(1, 0, 2, 3)  # (N, Pc, C, 6)
     Ai_ = Ai[:, None]  # (k, 1, Pc, 6, 6)
     bT = np.swapaxes(bi, -1, -2)[:, None]  # (k, 1, Pc, 6, C)
@@ -215,11 +214,6 @@ def _apply(problem: Problem, sel, remove, add):
     return np.array(sorted(s), int)
 
 
-def _agg_rows(problem: Problem, vals, nmat):
-    """Aggregate squared values (..., P) with lit counts (..., P)."""
-    return aggregate(problem, np.sqrt(vals), nmat)
-
-
 def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline):
     """Best improving 1-swap, or None. Updates ``crit`` (critical pose set) in place."""
     P = problem.P
@@ -235,7 +229,7 @@ def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline):
     if not worst:
         vals = one_swap_values(problem, st, adds, np.arange(P))  # (k, M, P)
         nmat = st.n[None, None] - problem.lit[:, st.sel].T[:, None, :] + problem.lit[:, adds].T[None]
-        agg = _agg_rows(problem, vals, nmat)
+        agg = aggregate(problem, np.sqrt(vals), nmat)
         agg = np.where(feas & feasible_counts(problem, nmat), agg, np.inf)
         r, j = np.unravel_index(np.argmin(agg), agg.shape)
         if agg[r, j] < cur * (1 - _EPS):
@@ -294,14 +288,12 @@ def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline,
         ok[sl] = feasible_counts(problem, n2)
     if problem.conflict is not None:
         cf = problem.conflict
-        keep = np.ones(len(sel), bool)
         for idx in range(len(ri)):
             if not ok[idx]:
                 continue
             rest = sel[(sel != out1[idx]) & (sel != out2[idx])]
             if cf[in1[idx], in2[idx]] or cf[in1[idx], rest].any() or cf[in2[idx], rest].any():
                 ok[idx] = False
-        del keep
     if not ok.any():
         return None
     ids = np.flatnonzero(ok)
@@ -452,8 +444,6 @@ def repair(problem: Problem, sel, score=None, max_iter=None):
         removable = np.array([r for r in range(len(sel)) if sel[r] not in fixed], int)
         notsel = np.ones(problem.N, bool)
         notsel[sel] = False
-        if problem.conflict is not None:
-            pass
         adds = np.flatnonzero(notsel)
         best = None
         for r in removable:
