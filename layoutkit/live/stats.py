@@ -172,7 +172,7 @@ class StaticGroupTracker:
     sigma_theta : rad, angle noise used for the predictions.
     """
 
-    def __init__(self, sigma_theta: float = SIGMA_THETA_PAPER, window: int = 120, factor: float = 3.0,
+    def __init__(self, sigma_theta: float = SIGMA_THETA_PAPER, window: int = 120, factor: float = 4.0,
                  rot_tol_rad: float | None = None, trans_tol_m: float | None = None,
                  min_frames: int | None = None, max_groups: int = 100000):
         if window < 3:

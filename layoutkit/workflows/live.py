@@ -42,7 +42,8 @@ class LiveOptions:
     """Settings shared by replay and live runs.
 
     sigma_theta : rad and rho : noise model for the predictions (Chen eqs. 19, 24; paper values).
-    chunk_frames, chunk_seconds : pipeline chunking (replay: large chunks; live: 50 ms).
+    chunk_frames, chunk_seconds : pipeline chunking (replay: 2048-frame chunks; live runs solve one
+        chunk per port read, at most ``chunk_frames``).
     static_window : frames per static-detection window; static_factor : a window is static when its
         spread is within this factor of the predicted precision.
     min_lit : fewest lit sensors for a pose. series_capacity : points kept for plots.
@@ -53,7 +54,7 @@ class LiveOptions:
     chunk_frames: int = 2048
     chunk_seconds: float = float("inf")
     static_window: int = 120
-    static_factor: float = 3.0
+    static_factor: float = 4.0
     min_lit: int = 4
     series_capacity: int = 20000
 
