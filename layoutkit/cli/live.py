@@ -22,6 +22,9 @@ _common_options = [
                       "and frames estimated from the data."),
     click.option("--reference-units", type=click.Choice(["m", "cm", "mm"]), default="m", show_default=True,
                  help="Position units of --reference."),
+    click.option("--reference-offset", type=float, default=None,
+                 help="Known clock offset of --reference in s (reference time = lighthouse time + offset) "
+                      "[default: estimated from the data]."),
     click.option("--camera", type=click.Path(exists=True, dir_okay=False), default=None,
                  help="Camera attitude CSV (t + r11..r33 or rx,ry,rz): second, attitude-only reference."),
     click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
@@ -98,6 +101,8 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
                 lines.append(f"error vs {name}: RMS {e['rms_rot_deg']:.4f} deg / {e['rms_trans_m'] * 1e3:.3f} mm, "
                              f"max {e['max_rot_deg']:.3f} deg / {e['max_trans_m'] * 1e3:.2f} mm "
                              f"(clock offset {a.get('tau_s', float('nan')):.4f} s)")
+                if a.get("message") not in (None, "ok"):
+                    lines.append(f"  note: {a['message']}")
             else:
                 lines.append(f"{name}: {r.get('message')}")
     rep = summary.get("report")
@@ -110,8 +115,8 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @click.command("replay")
 @click.argument("capture", type=click.Path(dir_okay=False))
 @_add(_common_options)
-def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, camera, report_dir,
-               rho, sigma_arcsec, as_json):
+def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
+               report_dir, rho, sigma_arcsec, as_json):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -124,7 +129,8 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     opts = _options(rho, sigma_arcsec, live=False)
     try:
         summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
-                                 reference=reference, reference_units=reference_units, camera=camera,
+                                 reference=reference, reference_units=reference_units,
+                                 reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir)
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
@@ -142,7 +148,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
 def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines, truth,
-             reference, reference_units, camera, report_dir, rho, sigma_arcsec, as_json):
+             reference, reference_units, reference_offset, camera, report_dir, rho, sigma_arcsec, as_json):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C ends the run cleanly: everything received is in the capture, pending frames are
@@ -157,7 +163,7 @@ def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layou
         fail(f"--duration: expected a positive number of seconds, got {duration}")
     opts = _options(rho, sigma_arcsec, live=True)
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
-              reference=reference, reference_units=reference_units, camera=camera,
+              reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
               idle_timeout=idle_timeout)
     try:

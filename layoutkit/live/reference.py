@@ -22,7 +22,7 @@ needs none of this.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -159,7 +159,7 @@ def angular_speed(track: PoseTrack, times, baseline: float) -> np.ndarray:
 
 
 def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_offset: float = 5.0,
-                         step: float = 0.01, baseline: float = 0.1) -> float:
+                         step: float = 0.01, baseline: float = 0.1, return_peak: bool = False):
     """Clock offset ``tau`` (s) with reference time = lighthouse time + tau.
 
     Pearson correlation of both streams' angular speeds (:func:`angular_speed`) on a common
@@ -173,7 +173,7 @@ def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_off
     gr = np.arange(reference.t[0], reference.t[-1], step)
     wr = angular_speed(reference, gr, baseline)
     if len(g) < 8 or len(gr) < 8:
-        return float("nan")
+        return (float("nan"), float("nan")) if return_peak else float("nan")
 
     def norm(w):
         w = np.where(np.isfinite(w), w, np.nan)
@@ -182,7 +182,7 @@ def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_off
 
     a, b = norm(wl), norm(wr)
     if not (np.any(a) and np.any(b)):
-        return float("nan")
+        return (float("nan"), float("nan")) if return_peak else float("nan")
     # Pearson correlation over the overlap for every lag L (b[i + L] ~ a[i]), from FFT cross
     # sums and cumulative sums; overlaps shorter than half the shorter stream are not considered
     na, nb = len(a), len(b)
@@ -206,12 +206,13 @@ def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_off
     c[(np.abs(tau) > max_offset) | (n < 0.5 * min(na, nb))] = -np.inf
     k = int(np.argmax(c))
     if not np.isfinite(c[k]):
-        return float("nan")
+        return (float("nan"), float("nan")) if return_peak else float("nan")
     if 0 < k < len(c) - 1 and np.all(np.isfinite(c[k - 1:k + 2])):
         den = c[k - 1] - 2 * c[k] + c[k + 1]
         if den < 0:
-            return float(tau[k] + 0.5 * (c[k - 1] - c[k + 1]) / den * step)
-    return float(tau[k])
+            est = float(tau[k] + 0.5 * (c[k - 1] - c[k + 1]) / den * step)
+            return (est, float(c[k])) if return_peak else est
+    return (float(tau[k]), float(c[k])) if return_peak else float(tau[k])
 
 
 @dataclass(frozen=True)
@@ -222,6 +223,8 @@ class Alignment:
     R_x (3, 3), t_x (3,) m : reference world → lighthouse frame; R_y (3, 3), t_y (3,) m : layout
         body → reference marker body (translations None for attitude-only references).
     rms_rot_rad, rms_trans_m : RMS fit residuals over the samples used; n : samples used.
+    tau_correlation : peak angular-speed correlation of the clock-offset estimate (NaN if tau
+        was given); below 0.5 the message warns that tau is weakly determined.
     success, status ("ok", "too_few_samples", "degenerate_rotation"), message.
     """
 
@@ -236,6 +239,7 @@ class Alignment:
     success: bool
     status: str
     message: str
+    tau_correlation: float = float("nan")
 
     def apply(self, track: PoseTrack, times):
         """Reference poses at lighthouse ``times (F,)`` mapped into the lighthouse frame.
@@ -257,6 +261,7 @@ class Alignment:
             "t_y_m": None if self.t_y is None else self.t_y.tolist(),
             "rms_rot_rad": self.rms_rot_rad, "rms_trans_m": self.rms_trans_m, "n": self.n,
             "success": self.success, "status": self.status, "message": self.message,
+            "tau_correlation": self.tau_correlation,
         }
 
 
@@ -329,13 +334,13 @@ def align_reference(lighthouse: PoseTrack, reference: PoseTrack, *, tau: float |
     from scipy.optimize import minimize_scalar
 
     if tau is None:
-        tau0 = estimate_time_offset(lighthouse, reference, max_offset=max_offset)
+        tau0, peak = estimate_time_offset(lighthouse, reference, max_offset=max_offset, return_peak=True)
         if not np.isfinite(tau0):
             eye = np.eye(3)
             return Alignment(np.nan, eye, eye, None, None, np.nan, np.nan, 0, False, "no_time_overlap",
                              "could not estimate the clock offset (no overlap or no rotation)")
     else:
-        tau0 = float(tau)
+        tau0, peak = float(tau), float("nan")
     sel = np.unique(np.linspace(0, len(lighthouse) - 1, min(max_samples, len(lighthouse))).astype(int))
     tl_all = lighthouse.t[sel]
     Rl_all = lighthouse.rotation[sel]
@@ -373,4 +378,9 @@ def align_reference(lighthouse: PoseTrack, reference: PoseTrack, *, tau: float |
                               options={"xatol": 1e-4})
         if res.success and cost(res.x) <= cost(tau0):
             tau0 = float(res.x)
-    return fit(tau0)
+    out = fit(tau0)
+    msg = out.message
+    if out.success and peak < 0.5:
+        msg = (f"clock offset weakly determined (angular-speed correlation {peak:.2f}): the motion has too "
+               "little variation in angular speed; pass the offset if it is known")
+    return replace(out, tau_correlation=peak, message=msg)

@@ -346,18 +346,20 @@ def session_from_sidecar(layout, sidecar: dict, *, protocol: str | None = None, 
 
 
 def _finish_run(session: LiveSession, summary: dict, *, reference=None, reference_units="m", camera=None,
-                report_dir=None, tmpdir=None) -> dict:
+                report_dir=None, reference_offset=None) -> dict:
     from ..live.reference import read_pose_csv
 
     sample = session.pose_track()
     extra_series = {}
-    for key, path, units in (("reference", reference, reference_units), ("camera", camera, "m")):
+    for key, path, units, tau in (("reference", reference, reference_units, reference_offset),
+                                  ("camera", camera, "m", None)):
         if path is None:
             continue
         tr = read_pose_csv(path, units=units)
         if key == "camera":
             tr = type(tr)(tr.t, tr.rotation, None)
-        res = reference_accuracy(session.poses_path, tr, sigma_theta=session.options.sigma_theta, sample=sample)
+        res = reference_accuracy(session.poses_path, tr, sigma_theta=session.options.sigma_theta, sample=sample,
+                                 tau=tau)
         extra_series[key] = res.pop("series", None)
         summary[key] = res
     if session.truth_err is not None:
@@ -371,14 +373,14 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
 
 
 def replay_capture(capture, layout=None, *, protocol: str | None = None, options: LiveOptions | None = None,
-                   truth=None, reference=None, reference_units: str = "m", camera=None, json_out=None,
-                   report_dir=None, on_progress=None) -> dict:
+                   truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
+                   camera=None, json_out=None, report_dir=None, on_progress=None) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
     layout : path or :class:`Layout` (default: from the sidecar). truth : TRUTH.csv (station frame,
     no alignment); reference : motion-capture CSV; camera : camera attitude CSV (both aligned in
-    time and frame from the data). json_out : stream for ``--json-lines``. report_dir : write
+    time and frame from the data; ``reference_offset`` s fixes the clock offset instead). json_out : stream for ``--json-lines``. report_dir : write
     ``report.json``, plots and ``poses.csv`` there.
     """
     from ..live.capture import read_sidecar
@@ -409,12 +411,12 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
         summary["capture"] = str(capture)
         summary["protocol"] = _protocol_from(sidecar, protocol)[0]
         return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
-                           report_dir=report_dir)
+                           report_dir=report_dir, reference_offset=reference_offset)
 
 
 def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOptions | None = None,
              record=None, duration: float | None = None, truth=None, reference=None, reference_units: str = "m",
-             camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
+             reference_offset: float | None = None, camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
              on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
@@ -468,7 +470,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOpt
         summary.update(port=port, protocol=protocol, interrupted=interrupted, source=src.state,
                        capture=None if record is None else str(record))
         out = _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
-                          report_dir=report_dir)
+                          report_dir=report_dir, reference_offset=reference_offset)
         if on_update is not None:
             on_update(s.snapshot(src.state))
         return out
