@@ -302,7 +302,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         a = np.where(lit[idx, :, None], ang[idx], np.pi / 2)  # placeholders never enter the fit
         init = initial.get(int(s))
         kw = {}
-        if init is not None and t[idx[0]] - init[2] <= config.reacquire_s:
+        if init is not None and 0 <= t[idx[0]] - init[2] <= config.reacquire_s:
             kw["initial"] = (np.broadcast_to(init[0], (len(idx), 3, 3)),
                              np.broadcast_to(init[1], (len(idx), 3)))
         sol = solve_pnp(P, a, lit[idx], **kw)
@@ -370,11 +370,14 @@ def _continuity_gate(t, R, tr, status, adop, pdop, last, cand, config: PipelineC
             cur = good
         else:
             ref, cur = (R[good[:-1]], tr[good[:-1]], t[good[:-1]]), good[1:]
-        if cur.size == 0 or np.all(near(cur, ref) | (t[cur] - ref[2] > config.reacquire_s)):
+        gap = t[cur] - ref[2]
+        if cur.size == 0 or np.all(near(cur, ref) | (gap > config.reacquire_s) | (gap < 0)):
             return status, None
     status = status.copy()
     for k in good:  # slow path: sequential against the last accepted pose
-        if last is None or t[k] - last[2] > config.reacquire_s or bool(near(k, last)):
+        gap = t[k] - last[2] if last is not None else 0.0
+        # no reference, a long gap, or time running backwards (device reset): accept and restart
+        if last is None or gap > config.reacquire_s or gap < 0 or bool(near(k, last)):
             last, cand = (R[k], tr[k], t[k]), None
             continue
         status[k] = STATUS_JUMP
