@@ -262,3 +262,11 @@ def test_per_pose_relaxation_bounds_below_per_pose_minimum(rho):
     assert np.all(L >= T * (1 - 1e-12))
     assert np.all(L <= dmin * (1 + 1e-9))
     assert np.mean(L) > 1.5 * np.mean(T)  # the relaxation is the useful one
+
+
+def test_exhaustive_refuses_huge_enumeration_with_reason():
+    """Too many subsets: a status and a message that says why (no hour-long run)."""
+    inst = synthetic_instance(60, 10, rng=1, cone_deg=45, half_angle_deg=70)
+    res = optimize_layout(**inst, k=12, method="exhaustive")
+    assert res.status == "no_feasible_found"
+    assert "exhaustive: 1399358844975 subsets is too many (limit 5,000,000)" in res.message

@@ -209,7 +209,8 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
         cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
         if not cov.feasible:
             return fail(cov.status, cov.message, cov)
-        return fail("no_feasible_found", f"method {method!r} found no feasible layout although one "
+        why = ("; ".join(ctx.notes) + "; ") if ctx.notes else ""
+        return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout although one "
                     f"exists (smallest k = {cov.min_k}); try method 'pipeline'", cov)
     sel = np.sort(np.asarray(out.selected, int))
     d = exact_dop(problem, sel)
