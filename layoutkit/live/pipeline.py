@@ -7,8 +7,9 @@ Data flow (design §3–§5, issue #5 part 4)::
                          one station)     angles (n,2))  ≤ chunk_seconds)          arrays over F)
 
 Everything downstream of the pairer works on chunks of ``F`` frames with arrays ``(F, ...)`` so
-that a live run keeps latency low (small chunks, ``chunk_seconds``) and a replay is fast (large
-chunks, ``chunk_frames``); no stage keeps more than one chunk in memory.
+that a live run keeps latency low (small chunks: ``chunk_seconds`` of frame time, or an explicit
+:meth:`PosePipeline.flush` after every port read as ``layoutkit live`` does) and a replay is fast
+(large chunks, ``chunk_frames``); no stage keeps more than one chunk in memory.
 
 Frame time. A frame's ``t`` is the sync time of its X sweep (axis 0), in the decoder's time base
 (seconds since the capture started, device clock) — the definition of the simulator's TRUTH.csv
