@@ -22,7 +22,7 @@ SOLVER_CHOICES = ["zhai", "homography", "ippe"]  # keys of layoutkit.camera.RECT
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
 def camera_attitude(input, focal_length_px, principal_point, method, aspect_ratio, fps, max_frames, threshold,
                     as_json):
-    """Attitude of a rectangular face (Zhai et al. 2014) from INPUT.
+    """Attitude of a rectangular face from INPUT (Zhai et al, 2014).
 
     INPUT: an image, a folder of images, a video file, a capture device index (0, 1, ...) or a
     corners CSV (t,u1,v1,...,u4,v4 in paper (u, v) pixels, v up; or t,x1,y1,...,x4,y4 pixels).
