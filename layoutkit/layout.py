@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._json import to_jsonable
 from ._validate import as_array, check_finite
 
 __all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout"]
@@ -110,12 +111,5 @@ def load_layout(path) -> Layout:
 
 def save_layout(layout: Layout, path) -> None:
     """Write ``layout`` as JSON (units m)."""
-    Path(path).write_text(json.dumps(layout.to_dict(), indent=2, default=_json_default) + "\n")
+    Path(path).write_text(json.dumps(to_jsonable(layout.to_dict()), indent=2) + "\n")
 
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

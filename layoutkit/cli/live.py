@@ -64,13 +64,13 @@ def _options(rho, sigma_arcsec, live: bool):
 
 
 def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
-    from ..live.report import jsonable
+    from .._json import to_jsonable
 
     if as_json:
         import json
 
         s = {k: v for k, v in summary.items()}
-        click.echo(json.dumps(jsonable(s), indent=2), err=err)
+        click.echo(json.dumps(to_jsonable(s), indent=2), err=err)
         return
     d = summary.get("decode") or {}
     lines = [

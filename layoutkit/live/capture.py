@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._json import to_jsonable
+
 __all__ = [
     "CaptureWriter",
     "CaptureReader",
@@ -59,16 +61,6 @@ def station_from_dict(d: dict):
     return Station(**{k: d[k] for k in keys if k in d})
 
 
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    if isinstance(o, np.generic):
-        return o.item()
-    return o
 
 
 class CaptureWriter:
@@ -89,7 +81,7 @@ class CaptureWriter:
         self._last_flush = self._t0
         self.flush_interval = float(flush_interval)
         self.bytes_written = 0
-        self.sidecar = dict(_jsonable(sidecar or {}))
+        self.sidecar = dict(to_jsonable(sidecar or {}))
         self.sidecar.setdefault("format", FORMAT)
         self.sidecar.setdefault("format_version", FORMAT_VERSION)
         self.sidecar.setdefault("start_time_utc", datetime.now(timezone.utc).isoformat())
@@ -125,7 +117,7 @@ class CaptureWriter:
         self.flush()
         self._raw.close()
         self._idx.close()
-        self.sidecar.update(_jsonable(extra))
+        self.sidecar.update(to_jsonable(extra))
         self.sidecar["bytes"] = self.bytes_written
         self.sidecar["end_time_utc"] = datetime.now(timezone.utc).isoformat()
         self._write_sidecar()

@@ -13,29 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["jsonable", "write_report"]
+from .._json import to_jsonable
+
+__all__ = ["write_report"]
 
 DEG = 180.0 / np.pi
 
 
-def jsonable(o):
-    """Recursively convert numpy values to plain JSON types; inf/NaN → None."""
-    if isinstance(o, dict):
-        return {str(k): jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return jsonable(o.tolist())
-    if isinstance(o, (float, np.floating)):
-        v = float(o)
-        return v if np.isfinite(v) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, Path):
-        return str(o)
-    return o
 
 
 def _plot_precision(groups: list, path: Path) -> None:
@@ -145,5 +129,5 @@ def write_report(directory, summary: dict, *, error_series: dict | None = None, 
     if poses.exists():
         paths["poses_csv"] = str(poses)
     out = dict(summary, report=paths)
-    (d / "report.json").write_text(json.dumps(jsonable(out), indent=2) + "\n")
+    (d / "report.json").write_text(json.dumps(to_jsonable(out), indent=2) + "\n")
     return paths

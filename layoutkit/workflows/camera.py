@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._json import to_jsonable
+
 __all__ = ["camera_attitude", "flyaround_case", "corner_noise_sensitivity", "detector_tilt_accuracy", "main",
            "PAPER_RESULTS", "CASES"]
 
@@ -469,24 +471,12 @@ def main(out_dir="studies/zhai2014_flyaround", quick: bool = False, seed: int = 
     _plot_detector(det, out / "detector_tilt.png")
     _example_frame(out / "example_frame.png")
     summary["elapsed_s"] = time.perf_counter() - t_start
-    (out / "results.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+    (out / "results.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
     (out / "table.md").write_text(_table(summary))
     progress(f"wrote {out} in {summary['elapsed_s']:.0f} s")
     return summary
 
 
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    if isinstance(o, (np.floating, float)):
-        return float(o) if np.isfinite(o) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    return o
 
 
 def _table(s: dict) -> str:

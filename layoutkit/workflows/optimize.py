@@ -149,7 +149,7 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..cli._common import to_jsonable
+    from .._json import to_jsonable
 
     d = Path(report_dir)
     d.mkdir(parents=True, exist_ok=True)
