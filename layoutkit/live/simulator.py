@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import matrix_to_rotvec, random_rotations, rotvec_to_matrix
-from ..lighthouse import Station, in_field_of_view, lh2_sweep_angles, sweep_angles
+from ..lighthouse import Station, lh2_sweep_angles, sweep_angles
 from ..noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
 
 __all__ = [
@@ -97,12 +97,11 @@ def lit_sensors(layout, R, t, station: Station | None = None, *, cone_deg: float
     Lit = normal within ``cone_deg`` of the direction from the sensor to the station centre and
     the sensor inside the station's field of view (no self-occlusion model).
     """
+    from ..simulate import facing_mask
+
     station = station or Station()
     Rs, ts = station.world_to_station(R, t)
-    p = np.einsum("kij,nj->kni", Rs, layout.positions) + ts[:, None, :]
-    nrm = np.einsum("kij,nj->kni", Rs, layout.normals)
-    facing = np.einsum("kni,kni->kn", nrm, -p) / np.linalg.norm(p, axis=-1) >= np.cos(np.deg2rad(cone_deg))
-    return facing & in_field_of_view(p, station.fov_deg)
+    return facing_mask(layout.positions, layout.normals, Rs, ts, half_angle_deg=cone_deg, fov_deg=station.fov_deg)
 
 
 def tumble_trajectory(layout, duration: float, rng: np.random.Generator, *, station: Station | None = None,
@@ -371,11 +370,17 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
 
     import os
     import select
+    import termios
     import tty
 
     realtime = True if realtime is None else bool(realtime)
     master, slave = os.openpty()
     tty.setraw(slave)
+    # Mark the line settings: a reader that configures the port (pyserial does, then flushes its
+    # input) changes VTIME, and the master sees the slave's settings — so we know when it is safe.
+    attrs = termios.tcgetattr(slave)
+    attrs[6][termios.VTIME] = _VTIME_MARK
+    termios.tcsetattr(slave, termios.TCSANOW, attrs)
     path = os.ttyname(slave)
     os.close(slave)  # so that POLLHUP on the master tells whether a reader has the port open
     if link is not None:
@@ -397,7 +402,10 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
         while not reader_present(50):  # a reader opening the port flushes its input: wait for it
             if wait_reader is not None and time.monotonic() - t_wait > wait_reader:
                 raise TimeoutError(f"no reader opened {path} within {wait_reader} s")
-        time.sleep(0.2)  # let the reader finish configuring (pyserial flushes the input at open)
+        t_cfg = time.monotonic()  # wait for the reader to configure the port (at most 2 s: `cat` never does)
+        while termios.tcgetattr(master)[6][termios.VTIME] == _VTIME_MARK and time.monotonic() - t_cfg < 2.0:
+            time.sleep(0.005)
+        time.sleep(0.05)  # pyserial flushes the input right after configuring
         os.set_blocking(master, False)
         t_wall0 = time.monotonic()
         for t_emit, data in chunks:
@@ -416,6 +424,9 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
     finally:
         os.close(master)
     return {"path": path, "bytes": total, "chunks": len(chunks), "wall_s": time.monotonic() - t_wall0}
+
+
+_VTIME_MARK = 77  # deciseconds; no reader sets this value
 
 
 def _sleep_until(t_wall: float) -> None:

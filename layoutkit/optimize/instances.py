@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import look_at_rotation, rotvec_to_matrix
-from ..lighthouse import in_field_of_view
 
 __all__ = ["box_candidates", "envelope_poses", "cone_visibility", "synthetic_instance"]
 
@@ -69,12 +68,11 @@ def envelope_poses(n, rng=None, distance=(1.0, 3.0), half_fov_deg=40.0, cone_deg
 
 
 def cone_visibility(positions, normals, R, t, half_angle_deg=70.0, fov_deg=120.0):
-    """(P, N) bool: the site faces the station within ``half_angle_deg`` and is in the FOV."""
-    pw = np.einsum("pij,nj->pni", R, positions) + t[:, None]
-    nw = np.einsum("pij,nj->pni", R, normals)
-    to_st = -pw / np.linalg.norm(pw, axis=-1, keepdims=True)
-    facing = np.sum(nw * to_st, axis=-1) > np.cos(np.deg2rad(half_angle_deg))
-    return facing & in_field_of_view(pw, fov_deg)
+    """(P, N) bool: the site faces the station within ``half_angle_deg`` and is in the FOV
+    (:func:`layoutkit.simulate.facing_mask`; exact for a convex body)."""
+    from ..simulate import facing_mask
+
+    return facing_mask(positions, normals, R, t, half_angle_deg=half_angle_deg, fov_deg=fov_deg)
 
 
 def synthetic_instance(n_candidates, n_poses, rng=None, size=(0.3, 0.3, 0.15), cone_deg=60.0,
