@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validate import as_array, check_finite
-from .geometry import attitude_error, transform_points
+from .geometry import attitude_error
 from .lighthouse import Station
 
 __all__ = [

@@ -1,7 +1,6 @@
 """The Chen (2024) study in simulation, reduced: simulated precision (eq. 23) tracks ADOP·σ, PDOP·σ
 (eq. 24). Proof kind: Monte-Carlo against the predicted covariance; tolerance from the sampling
 error of an RMS over F frames (relative s.e. ≈ 1/sqrt(2 F · dof))."""
-import numpy as np
 
 from layoutkit.workflows.chen import StudyConfig, dynamic_run, static_groups
 

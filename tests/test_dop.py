@@ -7,7 +7,7 @@ batch == per-item; Monte-Carlo of the linearised estimator against H σ².
 import numpy as np
 import pytest
 
-from layoutkit.dop import angle_jacobian, dop_from_jacobian, pose_dop, precision, pose_errors
+from layoutkit.dop import angle_jacobian, pose_dop, precision, pose_errors
 from layoutkit.geometry import random_rotations, right_jacobian_so3, rotvec_to_matrix, skew
 from layoutkit.lighthouse import Station, sweep_angles
 from layoutkit.noise import angle_correlation, sample_angle_noise

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from layoutkit.layout import Layout, load_layout, save_layout
+from layoutkit.layout import load_layout, save_layout
 from layoutkit.shapes import chen_target
 
 

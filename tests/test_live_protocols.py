@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from layoutkit.lighthouse import Station, lh2_sweep_angles, points_in_station, ticks_to_angles
+from layoutkit.lighthouse import lh2_sweep_angles, points_in_station, ticks_to_angles
 from layoutkit.live.protocols import PROTOCOLS, get_protocol
 from layoutkit.live.protocols import bitcraze as bc
 from layoutkit.live.protocols.layoutkit import NO_HIT, encode_sweep, encode_sweeps, frame_size

@@ -97,7 +97,7 @@ def flyaround_case(case: str, times, rng, blur_sigma_px: float = 0.7, noise_sigm
     Renders use the 1292 × 964, f = 8 mm, 3.75 µm camera; only a 128 × 128 window around the
     target is rasterised (same pixel grid, principal point shifted), 8× supersampled.
     """
-    from ..camera import rectangle_corners, solve_rectangle
+    from ..camera import rectangle_corners
     from ..camera.conventions import pose_paper_to_cv, project_paper
     from ..camera.corners import corners_to_paper, detect_quadrilateral
     from ..camera.synthetic import SyntheticCamera
