@@ -128,9 +128,14 @@ def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
         return
     click.echo(f"solved {summary['solved']} / {summary['frames']} frames; statuses {summary['status_counts']}")
     if "rms_rot_deg" in summary:
-        click.echo(f"RMS error vs truth: {summary['rms_rot_deg']:.4f} deg, {summary['rms_trans_m'] * 1e3:.3f} mm"
-                   + (f"  (DOP prediction {summary['predicted_rms_rot_deg']:.4f} deg, "
-                      f"{summary['predicted_rms_trans_m'] * 1e3:.3f} mm)" if "predicted_rms_rot_deg" in summary else ""))
+        click.echo(f"RMS error vs truth: {summary['rms_rot_deg']:.4f} deg, {summary['rms_trans_m'] * 1e3:.3f} mm "
+                   f"over all solved frames; {summary['gross_failures']} gross failure(s) (> 1 deg)")
+        msg = (f"without them: {summary['rms_rot_deg_without_gross']:.4f} deg, "
+               f"{summary['rms_trans_m_without_gross'] * 1e3:.3f} mm")
+        if "predicted_rms_rot_deg" in summary:
+            msg += (f"  (DOP prediction {summary['predicted_rms_rot_deg']:.4f} deg, "
+                    f"{summary['predicted_rms_trans_m'] * 1e3:.3f} mm)")
+        click.echo(msg)
 
 
 @click.group("study")

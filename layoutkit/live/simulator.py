@@ -422,6 +422,14 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
             total += len(data)
         _drain(path, drain_timeout)
     finally:
+        # Unplugged: the device node goes away first (a reader reconnecting through the link must
+        # not reopen this pty's number, which the system may already have given to another pty).
+        if link is not None:
+            try:
+                if os.readlink(link) == path:
+                    link.unlink()
+            except OSError:
+                pass
         os.close(master)
     return {"path": path, "bytes": total, "chunks": len(chunks), "wall_s": time.monotonic() - t_wall0}
 
