@@ -39,6 +39,8 @@ class SerialSource:
         self.url = url
         self.baudrate = baudrate
         self.timeout = timeout
+        if "://" not in url:  # a device path: take it exclusively (flock), so that two readers
+            kwargs.setdefault("exclusive", True)  # never split one device's bytes between them
         self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **kwargs)
 
     def read(self, max_bytes: int = 65536) -> bytes:
