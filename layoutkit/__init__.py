@@ -19,12 +19,18 @@ _EXPORTS = {
     "pose_errors": "layoutkit.dop",
     "sample_angle_noise": "layoutkit.noise",
     "solve_pnp": "layoutkit.pnp",
+    "PnPResult": "layoutkit.pnp",
     "Layout": "layoutkit.layout",
     "load_layout": "layoutkit.layout",
     "save_layout": "layoutkit.layout",
     # meshes and visibility
     "load_mesh": "layoutkit.mesh",
+    "sample_candidates": "layoutkit.candidates",
+    "load_envelope": "layoutkit.envelope",
+    "Envelope": "layoutkit.envelope",
     "visible_sensors": "layoutkit.visibility",
+    "envelope_visibility": "layoutkit.visibility",
+    "tracking_quality_map": "layoutkit.quality",
     # optimiser
     "optimize_layout": "layoutkit.optimize",
     # camera
