@@ -212,7 +212,8 @@ def demo_cmd(out_dir):
         run_demo = None
     if run_demo is not None:
         click.echo("== layoutkit optimize on the Chen target (bundled model) ==")
-        run_demo(out / "optimize", quick=True)
+        summ = run_demo(out / "optimize", quick=True)
+        click.echo(f"{summ['message']}\nlayout {out / 'optimize' / 'layout.json'}, report {out / 'optimize' / 'report'}")
     from ..workflows.chen import StudyConfig, run_chen2024, write_outputs
 
     click.echo("== reduced Chen (2024) precision study ==")
