@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["as_array", "check_finite"]
+__all__ = ["as_array", "check_finite", "read_structured"]
 
 
 def as_array(x, name: str, shape: tuple, dtype=float) -> np.ndarray:
@@ -34,3 +34,20 @@ def check_finite(a: np.ndarray, name: str) -> np.ndarray:
         bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
         raise ValueError(f"{name}: {bad} non-finite value(s) (NaN or inf)")
     return a
+
+
+def read_structured(path, what: str, fmt: str, parse, errors):
+    """Read and parse a text file, turning a missing file or a syntax error into ``ValueError``.
+
+    what : what the file is ("layout", "envelope", ...); fmt : its syntax ("JSON", "TOML", ...);
+    parse : text → object; errors : the parser's exception type(s).
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        return parse(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such {what} file") from None
+    except errors as exc:
+        raise ValueError(f"{path}: not valid {fmt} ({exc})") from None

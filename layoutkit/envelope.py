@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .geometry import look_at_rotation, random_rotations, rotvec_to_matrix
+from ._validate import read_structured
 from .lighthouse import Station
 
 __all__ = ["ATTITUDE_KINDS", "Envelope", "load_envelope", "sample_cone_rotations", "sample_cone_directions"]
@@ -219,12 +220,7 @@ class Envelope:
 def load_envelope(path) -> Envelope:
     """Read an envelope TOML file; ``ValueError`` naming the file for bad syntax or content."""
     path = Path(path)
-    try:
-        d = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such envelope file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not valid TOML ({exc})") from None
+    d = read_structured(path, "envelope", "TOML", tomllib.loads, tomllib.TOMLDecodeError)
     try:
         env = Envelope.from_dict(d, base_dir=path.parent)
         if env.attitude == "trajectory":

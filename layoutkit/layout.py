@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ._json import to_jsonable
-from ._validate import as_array, check_finite
+from ._validate import as_array, check_finite, read_structured
 
 __all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout"]
 
@@ -97,12 +97,7 @@ class Layout:
 def load_layout(path) -> Layout:
     """Read a layout JSON file; raises ``ValueError`` with the file name on bad content."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such layout file") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    d = read_structured(path, "layout", "JSON", json.loads, json.JSONDecodeError)
     try:
         return Layout.from_dict(d)
     except ValueError as exc:

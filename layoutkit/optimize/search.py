@@ -466,7 +466,6 @@ def greedy(problem: Problem, rng=None):
     regularised objective (``A + delta I`` keeps it defined before 6 angle pairs are in); repair."""
     lit = problem.lit
     sel = list(problem.fixed.tolist())
-    P = problem.P
     tg = np.trace(problem.G, axis1=-2, axis2=-1)
     delta = 1e-3 * np.where(lit.any(axis=1), tg.sum(axis=1) / np.maximum(lit.sum(axis=1), 1), 1.0) / 6
     reg = delta[:, None, None] * np.eye(6)

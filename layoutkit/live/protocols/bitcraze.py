@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..._validate import read_structured
 from ..frames import DecodeStats, SweepMeasurement
 
 __all__ = [
@@ -187,12 +188,7 @@ def load_system_config(source) -> SystemConfig:
 
         path = Path(source)
         name = str(path)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except FileNotFoundError:
-            raise ValueError(f"{path}: no such system configuration file") from None
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{path}: not valid YAML ({exc})") from None
+        data = read_structured(path, "system configuration", "YAML", yaml.safe_load, yaml.YAMLError)
     if not isinstance(data, dict) or data.get("type") != "lighthouse_system_configuration":
         raise ValueError(f"{name}: expected 'type: lighthouse_system_configuration'")
     if str(data.get("version")) != "1":
