@@ -132,9 +132,18 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  reference=reference, reference_units=reference_units,
                                  reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir)
+    except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
+        _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
+
+
+def _quiet_exit():
+    import os
+
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+    sys.exit(0)
 
 
 @click.command("live")
@@ -174,6 +183,8 @@ def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layou
 
             with Dashboard() as dash:
                 summary = run_live(port, layout_path, on_update=dash.update, **kw)
+    except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
+        _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
