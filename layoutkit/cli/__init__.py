@@ -6,12 +6,29 @@ libraries inside the command bodies. Commands parse, call one workflow, print.
 """
 from __future__ import annotations
 
+import errno
+
 import click
 
 from . import camera, core, fake, live, mesh, optimize, render
+from ._common import fail
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+class _Group(click.Group):
+    """The command group; a file that cannot be read or written (missing folder, permissions, disk
+    full) ends with one ``error:`` line naming the file instead of a traceback."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except OSError as exc:
+            if isinstance(exc, BrokenPipeError) or exc.errno == errno.EPIPE:
+                raise  # click ends quietly on a closed pipe
+            what = exc.strerror or str(exc)
+            fail(f"{exc.filename}: {what}" if exc.filename else what)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(package_name="layoutkit")
 def main():
     """Design and validate photodiode layouts for lighthouse (laser sweep) pose measurement.
