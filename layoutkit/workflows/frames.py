@@ -83,19 +83,40 @@ def read_frames(path, layout: Layout) -> Frames:
     if not path.exists():
         raise ValueError(f"{path}: no such frame file")
     if path.suffix == ".npz":
-        d = np.load(path, allow_pickle=False)
-        ids = tuple(str(i) for i in d["ids"])
-        ang = np.asarray(d["angles"], float)
-        R = rotvec_to_matrix(d["truth_rotvec"]) if "truth_rotvec" in d else None
-        T = np.asarray(d["truth_translation"]) if "truth_translation" in d else None
-        t = np.asarray(d["t"], float)
+        try:
+            d = np.load(path, allow_pickle=False)
+            need = [k for k in ("t", "angles", "ids") if k not in d.files]
+            if need:
+                raise KeyError(", ".join(need))
+            ids = tuple(str(i) for i in d["ids"])
+            ang = np.asarray(d["angles"], float)
+            R = rotvec_to_matrix(d["truth_rotvec"]) if "truth_rotvec" in d else None
+            T = np.asarray(d["truth_translation"]) if "truth_translation" in d else None
+            t = np.asarray(d["t"], float)
+        except KeyError as exc:
+            raise ValueError(f"{path}: frame .npz lacks {exc.args[0]}; expected arrays t, angles, ids") from None
+        except (OSError, EOFError, ValueError):  # not an .npz (zip of plain arrays) at all
+            raise ValueError(f"{path}: not a readable .npz frame file") from None
     else:
-        with open(path, newline="") as fh:
-            rd = csv.reader(fh)
-            header = next(rd, None)
-            if not header or header[0] != "t":
-                raise ValueError(f"{path}: expected a CSV header starting with 't'")
-            rows = [[float(x) if x.strip() else np.nan for x in r] for r in rd if r]
+        try:
+            with open(path, newline="") as fh:
+                rd = csv.reader(fh)
+                header = next(rd, None)
+                if not header or header[0] != "t":
+                    raise ValueError(f"{path}: expected a CSV header starting with 't'")
+                rows = []
+                for r in rd:
+                    if not r:
+                        continue
+                    if len(r) != len(header):
+                        raise ValueError(f"{path}: line {rd.line_num}: {len(r)} fields, the header has {len(header)}")
+                    try:
+                        rows.append([float(x) if x.strip() else np.nan for x in r])
+                    except ValueError:
+                        bad = next(x for x in r if x.strip() and not _is_number(x))
+                        raise ValueError(f"{path}: line {rd.line_num}: {bad[:40]!r} is not a number") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text (CSV) frame file") from None
         data = np.asarray(rows, float).reshape(-1, len(header))
         cols = {h: k for k, h in enumerate(header)}
         ids = tuple(h[5:] for h in header if h.startswith("th_x_"))
@@ -105,6 +126,17 @@ def read_frames(path, layout: Layout) -> Frames:
         if all(h in cols for h in _TRUTH):
             tr = data[:, [cols[h] for h in _TRUTH]]
             R, T = rotvec_to_matrix(tr[:, :3]), tr[:, 3:]
+    if len(t) == 0:
+        raise ValueError(f"{path}: no frames")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{path}: frame {int(np.argmin(np.isfinite(t)))}: time t is empty, NaN or infinite")
+    if np.isinf(ang).any():
+        raise ValueError(f"{path}: frame {int(np.isinf(ang).any((1, 2)).argmax())}: infinite angle "
+                         "(use an empty cell or NaN for a sensor that is not lit)")
+    for name, tr in (("truth rotation", R), ("truth translation", T)):
+        if tr is not None and not np.all(np.isfinite(tr)):
+            bad = int(np.argmin(np.isfinite(tr.reshape(len(tr), -1)).all(1)))
+            raise ValueError(f"{path}: frame {bad}: {name} is empty, NaN or infinite")
     missing = [i for i in ids if i not in layout.ids]
     if missing:
         raise ValueError(f"{path}: sensor ids {missing[:5]} are not in the layout")
@@ -114,6 +146,14 @@ def read_frames(path, layout: Layout) -> Frames:
         if k >= 0:
             full[:, j] = ang[:, k]
     return Frames(t, full, layout.ids, R, T)
+
+
+def _is_number(x: str) -> bool:
+    try:
+        float(x)
+    except ValueError:
+        return False
+    return True
 
 
 def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0) -> dict:
