@@ -67,8 +67,10 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
         echo_json(out)
         return
     if not r.success:
-        click.echo(f"DOP undefined: {r.message} ({out['n_lit']} lit: {', '.join(out['lit'])})")
-        raise SystemExit(1)
+        lit_ids = ", ".join(out["lit"]) or "none"
+        why = ("singular geometry" if out["n_lit"] >= 3 else "fewer than 3 sensors lit; the body may face away "
+               "from the station (try another --rotvec-deg, or --lit all)")
+        fail(f"DOP undefined at this pose: {why} (lit: {lit_ids})", code=1)
     click.echo(f"lit sensors ({out['n_lit']}): {', '.join(out['lit'])}")
     click.echo(f"ADOP = {out['adop_deg_per_rad']:.2f} deg/rad   PDOP = {out['pdop_m_per_rad']:.3f} m/rad   (rho = {rho})")
     click.echo(f"predicted precision at sigma = {sigma_arcsec}\": {out['predicted_sigma_rot_deg']:.4f} deg, "
@@ -188,10 +190,14 @@ def study_chen(groups, frames, seed, dynamic_seconds, sensor_error_mm, out_dir, 
 @click.option("--json", "json_path", type=click.Path(dir_okay=False), help="Write the summary JSON here ('-' = stdout).")
 def study_zhai(quick, seed, out_dir, json_path):
     """Zhai et al. (2014) rectangle-face attitude fly-around (both ground-test cases) with renders."""
+    import warnings
+
     from ..workflows.camera import main as zhai_main
 
-    summary = zhai_main(out_dir, quick=quick, seed=seed,
-                        progress=(lambda *a, **k: None) if json_path == "-" else click.echo)
+    with warnings.catch_warnings():  # pyvista cannot keep trimesh's 'parts' metadata: harmless, noisy
+        warnings.filterwarnings("ignore", message="Unable to store metadata key")
+        summary = zhai_main(out_dir, quick=quick, seed=seed,
+                            progress=(lambda *a, **k: None) if json_path == "-" else click.echo)
     if json_path:
         echo_json(summary, json_path)
     if json_path != "-":

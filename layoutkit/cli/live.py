@@ -137,6 +137,12 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
+    dec = summary.get("decode") or {}
+    if not dec.get("good"):  # nothing decodable: not a capture, or another protocol
+        n_in = dec.get("bytes_in", 0)
+        fail(f"{capture}: empty capture (0 bytes)" if not n_in else
+             f"{capture}: no valid {summary.get('protocol')} frame in {n_in} byte(s); not a capture file, "
+             "or recorded with another --protocol?")
 
 
 def _quiet_exit():
