@@ -65,8 +65,26 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                  half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out):
     """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
+    import warnings
+
     from ..workflows.optimize import run_optimize
 
+    with warnings.catch_warnings():  # mesh warnings (wrong --units, not watertight) as one line each
+        warnings.showwarning = lambda msg, *a, **k: click.secho(f"warning: {msg}", fg="yellow", err=True)
+        s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
+                      spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
+                      half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out, run_optimize)
+    if json_out:
+        echo_json(s)
+    else:
+        _print_summary(s)
+    if not s["success"]:
+        raise SystemExit(1)
+
+
+def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
+              spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
+              half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out, run_optimize):
     try:
         from ..optimize import parse_objective
 
@@ -90,17 +108,12 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
                              render=not no_render, echo=lambda m: click.echo(m, err=True))
     except ValueError as exc:
         fail(str(exc))
-    if json_out:
-        echo_json(s)
-    else:
-        _print_summary(s)
-    if not s["success"]:
-        raise SystemExit(1)
+    return s
 
 
 def _print_summary(s):
     if not s["success"]:
-        click.secho(f"{s['status']}: {s['message']}", fg="red", err=True)
+        click.secho(f"error: {s['status']}: {s['message']}", fg="red", err=True)
         return
     st = s["stats"]
     a, p = st["adop_deg_per_rad"], st["pdop_m_per_rad"]
@@ -125,10 +138,12 @@ class _progress:
     def __enter__(self):
         if self.quiet:
             return None
+        from rich.console import Console
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+        # on stderr: stdout keeps only the summary (no stray blank line when it is redirected)
         self.p = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[best]}"),
-                          TimeElapsedColumn(), transient=True)
+                          TimeElapsedColumn(), transient=True, console=Console(stderr=True))
         self.p.__enter__()
         self.task = self.p.add_task("preparing", total=1.0, best="")
 
