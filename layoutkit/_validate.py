@@ -49,5 +49,7 @@ def read_structured(path, what: str, fmt: str, parse, errors):
         return parse(path.read_text())
     except FileNotFoundError:
         raise ValueError(f"{path}: no such {what} file") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not valid {fmt} (a binary file, not text)") from None
     except errors as exc:
         raise ValueError(f"{path}: not valid {fmt} ({exc})") from None

@@ -57,3 +57,10 @@ def test_chen_target_reconstruction_properties():
     _, dist, tri = trimesh.proximity.closest_point(mesh, lay.positions)
     assert np.abs(dist).max() < 1e-12
     np.testing.assert_allclose(np.einsum("ij,ij->i", mesh.face_normals[tri], lay.normals), 1.0, atol=1e-12)
+
+
+def test_binary_file_as_layout_names_the_file(tmp_path):
+    p = tmp_path / "mesh.stl"
+    p.write_bytes(b"\x80\x81\x00binary")
+    with pytest.raises(ValueError, match=r"mesh.stl: not valid JSON \(a binary file, not text\)"):
+        load_layout(p)
