@@ -167,3 +167,33 @@ def test_simulator_bitcraze_lh1_stream(layout):
     with pytest.raises(ValueError, match=r"^protocol bitcraze-lh1: the Lighthouse deck has at most 4 sensors, "
                                          r"the layout has 12$"):
         simulate_stream(layout, duration=1.0, protocol="bitcraze-lh1")
+
+
+def test_pty_simulator_stops_when_its_reader_is_gone(monkeypatch):
+    """A reader that opens the port, reads nothing and closes it: once the pty buffer is full
+    and nobody has the port open, the simulator stops with ReaderGone instead of waiting forever."""
+    import os
+    import threading
+    import time
+
+    from layoutkit.live import simulator
+    from layoutkit.live.simulator import ReaderGone, run_fake_fpga
+
+    monkeypatch.setattr(simulator, "READER_GONE_S", 0.3)
+    chunks = [(0.0, bytes(4096))] * 200  # 800 KiB: more than a pty buffers
+    box = {}
+
+    def reader(path):
+        def go():
+            fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+            time.sleep(0.3)
+            os.close(fd)
+        threading.Thread(target=go, daemon=True).start()
+
+    t0 = time.monotonic()
+    try:
+        run_fake_fpga(chunks, realtime=False, on_ready=reader, wait_reader=5)
+    except ReaderGone as exc:
+        box["msg"] = str(exc)
+    assert "closed the port" in box.get("msg", "")
+    assert time.monotonic() - t0 < 10

@@ -47,7 +47,7 @@ def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, pro
 
     from ..layout import load_layout
     from ..live.capture import station_to_dict
-    from ..live.simulator import load_trajectory, run_fake_fpga, simulate_stream, write_truth
+    from ..live.simulator import ReaderGone, load_trajectory, run_fake_fpga, simulate_stream, write_truth
     from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
 
     if out is not None and use_pty:
@@ -91,7 +91,7 @@ def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, pro
     try:
         summary = run_fake_fpga(chunks, out=out, realtime=realtime, link=link, on_ready=ready, speed=speed,
                                 sidecar=sidecar, wait_reader=wait_reader_s)
-    except TimeoutError as exc:
+    except (TimeoutError, ReaderGone) as exc:
         fail(str(exc))
     except OSError as exc:
         fail(f"cannot emit: {exc}")

@@ -412,10 +412,18 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
             if realtime:
                 _sleep_until(t_wall0 + (t_emit - t0) / speed)
             view = memoryview(data)
+            away_since = None
             while view:
                 try:
                     k = os.write(master, view)
                 except BlockingIOError:  # reader slow or away: the pty buffer is full, wait
+                    if reader_present():
+                        away_since = None
+                    elif away_since is None:
+                        away_since = time.monotonic()
+                    elif time.monotonic() - away_since > READER_GONE_S:
+                        raise ReaderGone(f"the reader of {path} closed the port {READER_GONE_S:.0f} s ago "
+                                         f"with the buffer full; stopped after {total} bytes") from None
                     time.sleep(0.005)
                     continue
                 view = view[k:]
@@ -435,6 +443,11 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
 
 
 _VTIME_MARK = 77  # deciseconds; no reader sets this value
+READER_GONE_S = 10.0  # a full pty with no reader for this long: the reader is gone for good
+
+
+class ReaderGone(RuntimeError):
+    """The pty's reader went away and the simulator cannot deliver more bytes."""
 
 
 def _sleep_until(t_wall: float) -> None:
