@@ -14,7 +14,9 @@ that a live run keeps latency low (small chunks: ``chunk_seconds`` of frame time
 Frame time. A frame's ``t`` is the sync time of its X sweep (axis 0), in the decoder's time base
 (seconds since the capture started, device clock) — the definition of the simulator's TRUTH.csv
 (``docs/live-io.md``). Poses are in the station frame of a single station or, when the set-up
-gives station poses, in the common world frame (design §2).
+gives station poses, in the common world frame (design §2). The Y sweep comes 8.33 ms later; with
+``PipelineConfig.motion_compensation`` its angles are first moved to ``t`` with the body velocity
+of the recent poses (``docs/live.md`` "Motion compensation"), otherwise the pose blends both times.
 """
 from __future__ import annotations
 
@@ -41,6 +43,7 @@ __all__ = [
     "FrameBatcher",
     "PoseChunk",
     "lh2_to_lh1_angles",
+    "motion_corrected_angles",
     "solve_chunk",
     "PosePipeline",
 ]
@@ -81,6 +84,17 @@ class PipelineConfig:
         wrong PnP basin can fit the angles as well as the right one. After ``reacquire_s``
         without a good pose the next pose is accepted as is, and ``reacquire_frames`` consecutive
         jumped poses that agree with each other become the new track.
+    motion_compensation : correct each frame's Y-sweep angles to its X-sweep time with the body
+        velocity of the recent good poses (see :func:`solve_chunk`, ``docs/live.md`` "Motion
+        compensation"). Off by default: a stream whose X and Y angles come from one pose (the static
+        frame model of ``tests/test_live_pipeline.py``) is made worse by it; the simulator's and
+        real hardware's are not. LH1 frames only.
+    motion_window, motion_window_s : the velocity is the least-squares slope over the last
+        ``motion_window`` good poses of the station (at least 3) within ``motion_window_s`` s of the
+        frame, with no jump between consecutive ones; otherwise (first frames, after a gap, jump or
+        re-acquisition) the frame is not corrected.
+    motion_passes : correct-and-re-solve passes (the first estimates the velocity from uncorrected
+        poses, the next ones from corrected ones).
     """
 
     n_sensors: int
@@ -96,6 +110,10 @@ class PipelineConfig:
     gate_sigma: float = 6.0
     reacquire_s: float = 0.5
     reacquire_frames: int = 5
+    motion_compensation: bool = False
+    motion_window: int = 8
+    motion_window_s: float = 0.25
+    motion_passes: int = 2
 
     def __post_init__(self):
         if self.n_sensors < 1:
@@ -104,6 +122,10 @@ class PipelineConfig:
             raise ValueError(f"min_lit: expected >= 3, got {self.min_lit}")
         if self.chunk_frames < 1:
             raise ValueError(f"chunk_frames: expected >= 1, got {self.chunk_frames}")
+        if self.motion_passes < 1:
+            raise ValueError(f"motion_passes: expected >= 1, got {self.motion_passes}")
+        if self.motion_window < 3:
+            raise ValueError(f"motion_window: expected >= 3, got {self.motion_window}")
 
 
 @dataclass(frozen=True)
@@ -111,13 +133,15 @@ class AngleFrame:
     """One pose frame: both sweep angles of every sensor from one station.
 
     t : s, sync time of the X sweep; station : index; angles : (n, 2) rad [theta_x, theta_y],
-    NaN where a sensor was not hit on that axis; seq : X sweep's sequence number or None.
+    NaN where a sensor was not hit on that axis; seq : X sweep's sequence number or None;
+    dt_y : s, sync time of the Y sweep minus ``t`` (LH1; NaN for LH2 and when unknown).
     """
 
     t: float
     station: int
     angles: np.ndarray
     seq: int | None = None
+    dt_y: float = float("nan")
 
 
 def lh2_to_lh1_angles(plane_angles) -> np.ndarray:
@@ -175,7 +199,8 @@ class SweepPairer:
         if m.kind == "lh2":
             angles = lh2_to_lh1_angles(angles)
         self.paired += 1
-        return AngleFrame(t=float(x.t), station=int(m.station), angles=angles, seq=x.seq)
+        return AngleFrame(t=float(x.t), station=int(m.station), angles=angles, seq=x.seq,
+                          dt_y=float(gap) if m.kind == "lh1" else float("nan"))
 
     def flush(self) -> None:
         """End of stream: a still pending X sweep is unpaired."""
@@ -276,16 +301,18 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         frame with ``layoutkit.pnp.solve_pnp``, started from ``initial[station] = (R, t)`` when given
         (the previous pose), and mapped to the world frame when ``stations`` are given.
     initial : dict station -> (R (3, 3), t (3,), time s); updated in place with the last good pose
-        (also the reference of the continuity gate, see :class:`PipelineConfig`).
+        (also the reference of the continuity gate, see :class:`PipelineConfig`), and with the
+        recent poses per pass under ``("motion", station)`` when ``config.motion_compensation``:
+        then the Y angles of every frame with a velocity estimate are moved to its X time and the
+        frame is solved again (:func:`_compensate_motion`).
     Returns a :class:`PoseChunk`; failures are statuses, never exceptions.
     """
-    from ..dop import pose_dop
-
     P = as_array(points_body, "points_body", (None, 3))
     n = P.shape[0]
     F = len(frames)
     t = np.fromiter((f.t for f in frames), float, F)
     st = np.fromiter((f.station for f in frames), int, F)
+    dty = np.fromiter((f.dt_y for f in frames), float, F)
     ang = np.stack([f.angles for f in frames]) if F else np.zeros((0, n, 2))
     lit = np.all(np.isfinite(ang), axis=-1)
     n_lit = lit.sum(-1)
@@ -306,25 +333,20 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         if init is not None and 0 <= t[idx[0]] - init[2] <= config.reacquire_s:
             kw["initial"] = (np.broadcast_to(init[0], (len(idx), 3, 3)),
                              np.broadcast_to(init[1], (len(idx), 3)))
-        sol = solve_pnp(P, a, lit[idx], **kw)
-        ok = np.asarray(sol.success, bool)
-        Rs, ts = np.asarray(sol.rotation, float), np.asarray(sol.translation, float)
-        rr = np.asarray(sol.residual_rms, float)
-        d = pose_dop(P, np.where(ok[:, None, None], Rs, np.eye(3)), np.where(ok[:, None], ts, [0, 0, 1.0]),
-                     rho=config.rho, visible=lit[idx])
-        stat = np.where(~ok, STATUS_SOLVER_FAILED,
-                        np.where(rr > config.max_residual_sigma * config.sigma_theta,
-                                 STATUS_HIGH_RESIDUAL, STATUS_OK))
-        stat, cand = _continuity_gate(t[idx], Rs, ts, stat, d.adop, d.pdop, init, initial.get(("jump", int(s))),
-                                      config)
+        Rs, ts, ok, rr, ad, pd, stat = _solve_frames(solve_pnp, P, a, lit[idx], kw, config)
+        if config.motion_compensation:
+            (Rs, ts, ok, rr, ad, pd, stat), initial[("motion", int(s))] = _compensate_motion(
+                solve_pnp, P, t[idx], dty[idx], a, lit[idx], (Rs, ts, ok, rr, ad, pd, stat), init,
+                initial.get(("jump", int(s))), initial.get(("motion", int(s))), config)
+        stat, cand = _continuity_gate(t[idx], Rs, ts, stat, ad, pd, init, initial.get(("jump", int(s))), config)
         initial[("jump", int(s))] = cand
         if stations is not None:
             S = stations[int(s)]
             Rs = np.einsum("ij,fjk->fik", S.rotation, Rs)
             ts = ts @ S.rotation.T + S.translation
         R[idx], tr[idx], res[idx], status[idx] = Rs, ts, rr, stat
-        adop[idx] = np.where(ok, d.adop, np.inf)
-        pdop[idx] = np.where(ok, d.pdop, np.inf)
+        adop[idx] = np.where(ok, ad, np.inf)
+        pdop[idx] = np.where(ok, pd, np.inf)
         good = np.flatnonzero(stat == STATUS_OK)
         if good.size:
             j = idx[good[-1]]
@@ -338,6 +360,180 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         rv[has] = matrix_to_rotvec(R[has])
     return PoseChunk(t=t, station=st, n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
                      status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit)
+
+
+def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
+    """PnP + DOP + residual status of one station's frames: a (F, n, 2) rad, lit (F, n).
+
+    dop : None, or ``(adop (F,), pdop (F,))`` to reuse instead of computing them (a re-solve
+    whose pose moved by a fraction of a degree: the geometry, and so the DOP, is the same).
+    Returns writable arrays ``(R (F, 3, 3), t (F, 3), ok (F,), residual_rms (F,) rad, adop (F,),
+    pdop (F,), status (F,))`` (status before the continuity gate).
+    """
+    sol = solve_pnp(P, a, lit, **kw)
+    ok = np.array(sol.success, bool)
+    Rs, ts = np.array(sol.rotation, float), np.array(sol.translation, float)
+    rr = np.array(sol.residual_rms, float)
+    ad, pd = _dop(P, Rs, ts, ok, lit, config) if dop is None else (np.array(dop[0]), np.array(dop[1]))
+    stat = np.where(~ok, STATUS_SOLVER_FAILED,
+                    np.where(rr > config.max_residual_sigma * config.sigma_theta, STATUS_HIGH_RESIDUAL, STATUS_OK))
+    return Rs, ts, ok, rr, ad, pd, stat
+
+
+def _dop(P, R, t, ok, lit, config: PipelineConfig):
+    """ADOP (F,) deg/rad and PDOP (F,) m/rad at poses R (F, 3, 3), t (F, 3) (placeholder where not ok)."""
+    from ..dop import pose_dop
+
+    d = pose_dop(P, np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, [0, 0, 1.0]),
+                 rho=config.rho, visible=lit)
+    return np.array(d.adop, float), np.array(d.pdop, float)
+
+
+def _small_log(D) -> np.ndarray:
+    """Rotation vectors (..., 3) rad of rotation matrices D (..., 3, 3) with angle < pi."""
+    s = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1)
+    sn = np.linalg.norm(s, axis=-1)
+    ang = np.arctan2(sn, 0.5 * (np.trace(D, axis1=-2, axis2=-1) - 1.0))
+    return s * np.where(sn > 1e-300, ang / np.maximum(sn, 1e-300), 1.0)[..., None]
+
+
+def _recent_velocity(t, R, tr, good, adop, pdop, history, config: PipelineConfig):
+    """Body velocity of every frame from the recent good poses of its station (causal).
+
+    t (F,) s, R (F, 3, 3), tr (F, 3) m: one station's poses (station frame) in time order, good (F,)
+    bool the ones to use, adop/pdop (F,) their DOP; history: the previous chunk's tail (dict of
+    arrays ``t, R, tr, adop, pdop``) or None. The series = history + good poses; consecutive
+    entries more than ``motion_window_s`` apart, or further apart than the continuity gate allows,
+    start a new segment. Frame k's velocity is the least-squares slope over the last
+    ``motion_window`` entries before it (same segment as the latest, within ``motion_window_s``
+    of t[k]), relative to the latest one: rotation vectors of ``R_j R_ref^T`` (left perturbation,
+    station frame) and ``t_j - t_ref``. Only earlier poses enter (a frame's own noise never feeds
+    back into its correction, and the result does not depend on chunking).
+    Returns ``(omega (F, 3) rad/s, v (F, 3) m/s)``; NaN rows where fewer than 3
+    entries qualify or the estimate exceeds ``max_rate_deg_s`` / ``max_speed_m_s``.
+    """
+    W = config.motion_window
+    g = np.flatnonzero(good)
+    if history is not None and g.size and history["t"][-1] > t[g[0]]:
+        history = None  # time ran backwards (device reset): forget
+    H = 0 if history is None else history["t"].size
+    T, Rser, tser, aser, pser = ((x if H == 0 else np.concatenate([history[k], x])) for k, x in
+                                 (("t", t[g]), ("R", R[g]), ("tr", tr[g]), ("adop", adop[g]), ("pdop", pdop[g])))
+    N, F = T.size, t.size
+    omega = np.full((F, 3), np.nan)
+    vel = np.full((F, 3), np.nan)
+    if N < 3 or F == 0:
+        return omega, vel
+    rate = np.deg2rad(config.max_rate_deg_s)
+    k_sig = config.gate_sigma * config.sigma_theta
+    dt = np.diff(T)
+    step_a = np.linalg.norm(_small_log(Rser[1:] @ np.swapaxes(Rser[:-1], -1, -2)), axis=-1)
+    step_d = np.linalg.norm(np.diff(tser, axis=0), axis=-1)
+    cons = ((dt > 0) & (dt <= config.motion_window_s)
+            & (step_a <= rate * dt + k_sig * np.deg2rad(np.maximum(aser[1:], aser[:-1])))
+            & (step_d <= config.max_speed_m_s * dt + k_sig * np.maximum(pser[1:], pser[:-1])))
+    seg = np.concatenate([[0], np.cumsum(~cons)])
+    order = np.concatenate([np.full(H, -1), g])
+    e = np.searchsorted(order, np.arange(F), side="left")  # entries before each frame
+    ref = np.clip(e - 1, 0, N - 1)
+    j = e[:, None] - W + np.arange(W)  # (F, W), the last W entries
+    jc = np.clip(j, 0, N - 1)
+    age = t[:, None] - T[jc]
+    m = (j >= 0) & (seg[jc] == seg[ref][:, None]) & (age >= 0) & (age <= config.motion_window_s)
+    m &= (e >= 1)[:, None]
+    s = np.where(m, T[jc] - T[ref][:, None], 0.0)
+    cnt = m.sum(1)
+    sbar = s.sum(1) / np.maximum(cnt, 1)
+    ds = np.where(m, s - sbar[:, None], 0.0)
+    den = np.sum(ds * ds, 1)
+    y = np.concatenate([_small_log(Rser[jc] @ np.swapaxes(Rser[ref], -1, -2)[:, None]),
+                        tser[jc] - tser[ref][:, None]], -1)  # (F, W, 6)
+    slope = np.einsum("fw,fwi->fi", ds, y) / np.where(den > 0, den, 1.0)[:, None]
+    has = (cnt >= 3) & (den > 0)
+    has &= (np.linalg.norm(slope[:, :3], axis=-1) <= rate) & (np.linalg.norm(slope[:, 3:], axis=-1)
+                                                             <= config.max_speed_m_s)
+    omega[has], vel[has] = slope[has, :3], slope[has, 3:]
+    return omega, vel
+
+
+def _motion_history(history, t, R, tr, good, adop, pdop, size: int) -> dict | None:
+    """The last ``size`` good poses of a station (after ``history``), for the next chunk's velocity."""
+    g = np.flatnonzero(good)
+    if history is not None and g.size and history["t"][-1] > t[g[0]]:
+        history = None
+    new = {"t": t[g], "R": R[g], "tr": tr[g], "adop": adop[g], "pdop": pdop[g]}
+    if history is not None:
+        new = {k: np.concatenate([history[k], v]) for k, v in new.items()}
+    return {k: v[-size:].copy() for k, v in new.items()} if new["t"].size else history
+
+
+def _compensate_motion(solve_pnp, P, t, dt_y, angles, lit, first, last, cand, history, config: PipelineConfig):
+    """Motion-compensated poses of one station's frames (see :class:`PipelineConfig`).
+
+    t (F,) s, dt_y (F,) s (Y sync − X sync; NaN = no correction), angles (F, n, 2) rad, lit (F, n);
+    first = the uncorrected solution (arrays as from :func:`_solve_frames`); last, cand: the
+    continuity gate's state; history: None or, per pass, the station's previous poses of that pass
+    (:func:`_motion_history`).
+    Pass i (``motion_passes`` of them): velocity of every frame from the pass-i poses that the gate
+    accepts (:func:`_recent_velocity`, after the pass-i history), Y angles moved to the X time
+    (:func:`motion_corrected_angles` at the pass-i pose), PnP started from the pass-i pose → the
+    pass-(i+1) poses. Pass 1 uses uncorrected poses, whose X/Y-blend bias shifts with the geometry
+    (~1 % of the rate); pass 2 re-estimates from corrected ones. Each pass's velocity comes from
+    poses of that same pass only, so the result does not depend on chunking.
+    Frames without a velocity, or whose re-solve fails, keep the previous pass's solution.
+    Returns ``(arrays of first, updated; new history)``.
+    """
+    cur = tuple(np.array(x) for x in first)
+    new_history = []
+    moved = np.zeros(t.size, bool)
+    for i in range(config.motion_passes):
+        Rs, ts, ok, _, ad, pd, stat = cur
+        gated, _ = _continuity_gate(t, Rs, ts, stat, ad, pd, last, cand, config)
+        h = None if history is None else history[i]
+        w, v = _recent_velocity(t, Rs, ts, gated == STATUS_OK, ad, pd, h, config)
+        new_history.append(_motion_history(h, t, Rs, ts, gated == STATUS_OK, ad, pd, config.motion_window))
+        fix = np.flatnonzero(ok & np.isfinite(w[:, 0]) & np.isfinite(dt_y))
+        if fix.size == 0:
+            continue
+        a2 = motion_corrected_angles(P, Rs[fix], ts[fix], w[fix], v[fix], dt_y[fix], angles[fix])
+        out = _solve_frames(solve_pnp, P, a2, lit[fix], {"initial": (Rs[fix], ts[fix])}, config,
+                            dop=(ad[fix], pd[fix]))
+        nxt = tuple(x.copy() for x in cur)
+        for arr, new in zip(nxt, out):
+            arr[fix[out[2]]] = new[out[2]]
+        cur = nxt
+        moved[fix[out[2]]] = True
+    if moved.any():  # the reported DOP is at the final pose
+        Rs, ts, ok, _, ad, pd, _ = cur
+        k = np.flatnonzero(moved)
+        ad[k], pd[k] = _dop(P, Rs[k], ts[k], ok[k], lit[k], config)
+    return cur, new_history
+
+
+def motion_corrected_angles(points_body, rotation, translation, omega, velocity, dt, angles) -> np.ndarray:
+    """Y-sweep angles moved from the Y sweep's time to the X sweep's time (constant velocity).
+
+    points_body : (n, 3) m; rotation (F, 3, 3), translation (F, 3) m: the pose at the X time
+    (station frame, ``p = R p_body + t``); omega (F, 3) rad/s, velocity (F, 3) m/s: body velocity,
+    ``R(t_x + dt) = exp([omega dt]x) R``, ``t(t_x + dt) = t + velocity dt`` (the left perturbation of
+    design §5, both in the station frame); dt (F,) s = Y sync time − X sync time;
+    angles (F, n, 2) rad ``[theta_x, theta_y]`` (theta_x is returned unchanged).
+    Returns (F, n, 2) rad with ``theta_y + theta_y(pose at t_x) - theta_y(pose at t_x + dt)``, both
+    predicted with :func:`layoutkit.lighthouse.sweep_angles` — to first order the
+    ``- (d theta_y / d psi) psi``, ``psi = (omega dt, velocity dt)``, of
+    :func:`layoutkit.dop.angle_jacobian`, without the linearisation. An error ``e`` of the given
+    pose changes the correction by ``O(|e| |psi|)`` only.
+    """
+    from ..geometry import rotvec_to_matrix
+    from ..lighthouse import sweep_angles
+
+    dt = np.asarray(dt, float)[:, None]
+    p = np.asarray(points_body, float)
+    lever = np.einsum("fij,nj->fni", rotation, p)
+    moved = np.einsum("fij,fnj->fni", rotvec_to_matrix(omega * dt), lever) + (translation + velocity * dt)[:, None]
+    out = np.array(angles, float)
+    out[..., 1] += sweep_angles(lever + translation[:, None, :])[..., 1] - sweep_angles(moved)[..., 1]
+    return out
 
 
 def _continuity_gate(t, R, tr, status, adop, pdop, last, cand, config: PipelineConfig):

@@ -47,6 +47,8 @@ class LiveOptions:
     static_window : frames per static-detection window; static_factor : a window is static when its
         spread is within this factor of the predicted precision.
     min_lit : fewest lit sensors for a pose. series_capacity : points kept for plots.
+    motion_compensation : move each frame's Y-sweep angles to its X-sweep time with the body
+        velocity of the recent poses (``PipelineConfig.motion_compensation``; docs/live.md).
     """
 
     sigma_theta: float = SIGMA_THETA_PAPER
@@ -57,6 +59,7 @@ class LiveOptions:
     static_factor: float = 4.0
     min_lit: int = 4
     series_capacity: int = 20000
+    motion_compensation: bool = False
 
 
 @dataclass
@@ -82,7 +85,7 @@ class LiveSession:
         o = self.options
         self.config = PipelineConfig(n_sensors=self.layout.n, min_lit=o.min_lit, chunk_frames=o.chunk_frames,
                                      chunk_seconds=o.chunk_seconds, rotor_rpm=rpm, sigma_theta=o.sigma_theta,
-                                     rho=o.rho)
+                                     rho=o.rho, motion_compensation=o.motion_compensation)
         multi = self.stations is not None and len(self.stations) > 1
         self.pipeline = PosePipeline(self.layout.positions, self.config, self.stations if multi else None)
         self.static = StaticGroupTracker(o.sigma_theta, o.static_window, o.static_factor)
