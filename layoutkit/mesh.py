@@ -34,6 +34,10 @@ class MeshWarning(UserWarning):
     """A mesh loaded but looks suspicious (wrong unit, open surface, degenerate faces)."""
 
 
+class MeshUnitsWarning(MeshWarning):
+    """The mesh's size is implausible for a spacecraft in the given unit (probably the wrong --units)."""
+
+
 def load_mesh(path, units: str = "m"):
     """Read a mesh file and return a :class:`trimesh.Trimesh` in metres (body frame).
 
@@ -89,10 +93,10 @@ def load_mesh(path, units: str = "m"):
     extent = float(np.max(mesh.extents))
     if extent > MAX_PLAUSIBLE_EXTENT_M:
         warnings.warn(f"{path}: largest extent is {extent:.4g} m with units={units!r}; "
-                      f"if the file is in millimetres pass units='mm'", MeshWarning, stacklevel=2)
+                      f"if the file is in millimetres pass units='mm'", MeshUnitsWarning, stacklevel=2)
     elif extent < MIN_PLAUSIBLE_EXTENT_M:
         warnings.warn(f"{path}: largest extent is {extent * 1000:.4g} mm with units={units!r}; "
-                      f"if the file is in metres pass units='m'", MeshWarning, stacklevel=2)
+                      f"if the file is in metres pass units='m'", MeshUnitsWarning, stacklevel=2)
     if not mesh.is_watertight:
         warnings.warn(f"{path}: mesh is not watertight ({_open_edge_count(mesh)} open edge(s), "
                       f"{_nonmanifold_edge_count(mesh)} edge(s) shared by more than two faces); "

@@ -208,7 +208,7 @@ def test_optimize_infeasible_is_an_error_line(tmp_path):
 
 def test_optimize_wrong_units_warns_in_one_line(tmp_path):
     r = _run(["optimize", MESH, "--sensors", "12", "--envelope", _envelope(tmp_path), "--out", tmp_path / "x.json",
-              "--units", "mm", "--spacing-mm", "20", "--no-render"])
+              "--units", "mm", "--spacing-mm", "20", "--no-render", "--allow-odd-size"])
     assert r.exit_code == 2
     assert (f"warning: {MESH}: largest extent is 0.125 mm with units='mm'; if the file is in metres pass units='m'"
             in r.output.splitlines())
@@ -222,3 +222,13 @@ def test_optimize_summary_starts_on_first_line(tmp_path):
                                   "--out", str(tmp_path / "x.json"), "--spacing-mm", "12", "--no-render"])
     assert r.exit_code == 0, r.output
     assert r.stdout.splitlines()[0].startswith("12 of ")
+
+
+def test_optimize_refuses_a_mesh_at_the_wrong_scale(tmp_path):
+    """A metre model read as millimetres (0.125 mm target) used to run for minutes of badly scaled
+    conic solves; it now stops at once with the unit hint."""
+    r = _run(["optimize", MESH, "--sensors", "12", "--envelope",
+              str(REPO / "models" / "chen_envelope.toml"), "--out", str(tmp_path / "l.json"), "--no-render", "--units", "mm"])
+    assert r.exit_code == 2
+    assert "largest extent is 0.125 mm" in r.output and "--allow-odd-size" in r.output
+    assert "Traceback" not in r.output

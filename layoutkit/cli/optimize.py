@@ -59,21 +59,29 @@ def _k_range(ctx, param, value):
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="m", show_default=True,
               help="Length unit of the mesh file.")
+@click.option("--allow-odd-size", is_flag=True,
+              help="Optimise even when the mesh's size suggests the wrong --units (smaller than 1 cm or larger than the limit).")
 @click.option("--no-render", is_flag=True, help="Plots only, no pyvista renders.")
 @click.option("--json", "json_out", is_flag=True, help="Print the summary as JSON.")
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                 half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out):
+                 half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, json_out):
     """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
     import warnings
 
+    from ..mesh import MeshUnitsWarning
     from ..workflows.optimize import run_optimize
 
     with warnings.catch_warnings():  # mesh warnings (wrong --units, not watertight) as one line each
         warnings.showwarning = lambda msg, *a, **k: click.secho(f"warning: {msg}", fg="yellow", err=True)
-        s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
-                      spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                      half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out, run_optimize)
+        if not allow_odd_size:  # an optimisation at the wrong scale is minutes of nonsense: stop now
+            warnings.simplefilter("error", MeshUnitsWarning)
+        try:
+            s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
+                          spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
+                          half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out, run_optimize)
+        except MeshUnitsWarning as exc:
+            fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")
     if json_out:
         echo_json(s)
     else:

@@ -206,7 +206,7 @@ def relaxed_pose_values(problem: Problem, z, use_rho=True) -> np.ndarray:
     return np.where(ok, v, np.inf)
 
 
-def relax(problem: Problem, solver: str = "CLARABEL", time_limit=None, use_rho=True,
+def relax(problem: Problem, solver: str = "CLARABEL", time_limit=60.0, use_rho=True,
           initial_poses=24, add_poses=16, max_rounds=6, pose_bound_budget_s=30.0) -> RelaxResult:
     """Convex relaxation by pose generation; return the fractional z and a certified lower bound.
 
@@ -221,6 +221,8 @@ def relax(problem: Problem, solver: str = "CLARABEL", time_limit=None, use_rho=T
     trace bounds (:func:`aggregate_pose_bounds`).
     use_rho : bound the rho term through the GLS information (module docstring); False gives the
     design's ``(1 - rho) A^-1`` relaxation.
+    time_limit : seconds per conic solve (badly scaled input, e.g. a mesh in the wrong units, can
+    make Clarabel crawl); a solve that hits it leaves the closed-form trace bound.
     """
     t0 = time.perf_counter()
     P = problem.P
