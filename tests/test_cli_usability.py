@@ -259,3 +259,10 @@ def test_replay_motion_compensation_flag(tmp_path):
         out[bool(flag)] = json.loads(r.output)["truth"]
     assert out[False]["ratio_rot"] > 1.2
     assert abs(out[True]["ratio_rot"] - 1) < 0.1
+
+
+def test_live_on_a_port_that_never_opens():
+    """A missing device used to wait silently and exit 0; now it exits 2 saying the port never opened."""
+    r = _run(["live", "--port", "/dev/nonexistent-layoutkit", "--layout", LAYOUT, "--duration", "1", "--no-dashboard"])
+    assert r.exit_code == 2
+    assert "error: /dev/nonexistent-layoutkit: the port never opened" in r.output

@@ -198,6 +198,9 @@ def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layou
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
+    src = summary.get("source") or {}
+    if not src.get("connects"):  # the port never opened: say so rather than a silent empty run
+        fail(f"{port}: the port never opened ({src.get('last_error') or 'no such device'}); nothing was received")
 
 
 commands: list = [live_cmd, replay_cmd]
