@@ -29,21 +29,6 @@ from _util import write_result  # noqa: E402
 WARM_UP_S = 0.5
 
 
-def spin(rate_deg_s, speed_m_s, axis=(0.3, 0.2, 1.0), amplitude_m=0.3):
-    """Constant rotation about a fixed axis + sine translation (peak speed ``speed_m_s``)."""
-    from layoutkit.geometry import rotvec_to_matrix
-
-    ax = np.asarray(axis, float) / np.linalg.norm(axis)
-    d = np.array([1.0, 0.3, 0.5]) / np.linalg.norm([1.0, 0.3, 0.5])
-    w, f = np.deg2rad(rate_deg_s), speed_m_s / amplitude_m
-    R0 = rotvec_to_matrix(np.array([np.pi, 0.0, 0.0]))
-
-    def motion(t):
-        t = np.atleast_1d(np.asarray(t, float))
-        return rotvec_to_matrix(ax * (w * t)[:, None]) @ R0, np.array([0.1, 0.05, 2.0]) + np.outer(
-            amplitude_m * np.sin(f * t), d)
-
-    return motion
 
 
 def sweeps_of(sw):
@@ -122,7 +107,7 @@ def throughput(layout, seconds=60.0, rounds=3):
 
 
 def main(argv=None):
-    from layoutkit.live.simulator import tumble_trajectory
+    from layoutkit.live.simulator import spin_motion, tumble_trajectory
     from layoutkit.shapes import chen_target
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -131,9 +116,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     layout = chen_target()[1]
     t0 = time.perf_counter()
-    cases = [case(layout, "static", lambda s: spin(0.0, 0.0), args.seconds, args.seeds)]
+    cases = [case(layout, "static", lambda s: spin_motion(0.0, 0.0), args.seconds, args.seeds)]
     for rate in (0.0, 5.0, 20.0, 60.0):
-        cases.append(case(layout, f"spin {rate:g} deg/s + 0.2 m/s", lambda s, r=rate: spin(r, 0.2),
+        cases.append(case(layout, f"spin {rate:g} deg/s + 0.2 m/s", lambda s, r=rate: spin_motion(r, 0.2),
                           args.seconds, args.seeds))
     cases.append(case(layout, "default tumble (<= 0.5 deg/s)", lambda s: "tumble", args.seconds, args.seeds))
     cases.append(case(layout, "sine tumble +-20 deg, <= 18 deg/s",

@@ -14,7 +14,7 @@ from layoutkit.dop import pose_errors, rms
 from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.live.frames import SweepMeasurement
 from layoutkit.live.pipeline import STATUS_OK, PipelineConfig, PosePipeline
-from layoutkit.live.simulator import simulate_sweeps
+from layoutkit.live.simulator import simulate_sweeps, spin_motion
 from layoutkit.noise import SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 
@@ -26,21 +26,6 @@ def layout():
     return chen_target()[1]
 
 
-def spin(rate_deg_s, speed_m_s, axis=(0.3, 0.2, 1.0), amplitude_m=0.3):
-    """Constant rotation ``rate_deg_s`` about a fixed axis (station frame, through the body origin),
-    top face towards the station, ~2 m away; translation ``amplitude_m sin(f t)`` along a fixed
-    direction with peak speed ``speed_m_s``. Returns ``t (K,) -> (R (K, 3, 3), t (K, 3))``."""
-    ax = np.asarray(axis, float) / np.linalg.norm(axis)
-    d = np.array([1.0, 0.3, 0.5]) / np.linalg.norm([1.0, 0.3, 0.5])
-    w, f = np.deg2rad(rate_deg_s), speed_m_s / amplitude_m
-    R0 = rotvec_to_matrix(np.array([np.pi, 0.0, 0.0]))
-
-    def motion(t):
-        t = np.atleast_1d(np.asarray(t, float))
-        return rotvec_to_matrix(ax * (w * t)[:, None]) @ R0, np.array([0.1, 0.05, 2.0]) + np.outer(
-            amplitude_m * np.sin(f * t), d)
-
-    return motion
 
 
 def solve(layout, sw, chunk_frames=256, **cfg):
@@ -76,7 +61,7 @@ def test_fast_tumble_error_matches_dop_only_with_compensation(layout):
     prediction. Tolerance: the relative standard error of an RMS over N independent frames is
     ~1/sqrt(2N) = 1.7 % here, so 7 % is ~4 standard errors (measured: without 2.05 / 2.09,
     with 1.006 / 0.999)."""
-    sw = simulate_sweeps(layout, duration=30.0, seed=11, motion=spin(20.0, 0.2))
+    sw = simulate_sweeps(layout, duration=30.0, seed=11, motion=spin_motion(20.0, 0.2))
     off = ratios(solve(layout, sw))
     on = ratios(solve(layout, sw, motion_compensation=True))
     assert off[2] > 1700 and on[2] > 1700  # practically every frame is good either way
@@ -88,7 +73,7 @@ def test_noise_free_constant_velocity_is_removed(layout):
     """Proof of the model: no noise, no quantisation (1 THz clock), constant 60°/s rotation. After
     the warm-up every compensated pose is within 0.05 predicted σ of the truth, while the
     uncompensated poses are off by several σ (the whole error is the X/Y time skew)."""
-    sw = simulate_sweeps(layout, duration=3.0, seed=2, motion=spin(60.0, 0.0), sigma=0.0, clock_hz=1e12)
+    sw = simulate_sweeps(layout, duration=3.0, seed=2, motion=spin_motion(60.0, 0.0), sigma=0.0, clock_hz=1e12)
     out = {}
     for on in (False, True):
         c = solve(layout, sw, chunk_frames=64, motion_compensation=on)
@@ -104,7 +89,7 @@ def test_compensation_chunking_and_gaps(layout):
     """1-frame chunks (live) and 500-frame chunks (replay) agree far below the noise (0.02 σ); the
     first frames of the stream and of the track after a 1 s gap (no velocity yet) are not
     corrected (equal to the uncompensated poses, to the LM tolerance)."""
-    sw = simulate_sweeps(layout, duration=4.0, seed=5, motion=spin(20.0, 0.2))
+    sw = simulate_sweeps(layout, duration=4.0, seed=5, motion=spin_motion(20.0, 0.2))
     keep = (sw.t < 1.5) | (sw.t > 2.5)  # a 1 s gap: no good pose for longer than motion_window_s
     sw_gap = type(sw)(**{k: (getattr(sw, k)[keep] if isinstance(getattr(sw, k), np.ndarray) else getattr(sw, k))
                          for k in sw.__dataclass_fields__})

@@ -150,6 +150,24 @@ def static_trajectory(layout, rng: np.random.Generator, *, station: Station | No
     return Trajectory(np.zeros(1), matrix_to_rotvec(R), t)
 
 
+
+def spin_motion(rate_deg_s: float, speed_m_s: float, axis=(0.3, 0.2, 1.0), amplitude_m: float = 0.3):
+    """A fast test motion: constant rotation ``rate_deg_s`` about a fixed axis (station frame,
+    through the body origin), top face towards the station ~2 m away; translation
+    ``amplitude_m sin(f t)`` along a fixed direction with peak speed ``speed_m_s``.
+    Returns ``motion(t (K,)) -> (R (K, 3, 3), t (K, 3))`` (body pose in the station frame, m)."""
+    ax = np.asarray(axis, float) / np.linalg.norm(axis)
+    d = np.array([1.0, 0.3, 0.5]) / np.linalg.norm([1.0, 0.3, 0.5])
+    w, f = np.deg2rad(rate_deg_s), speed_m_s / amplitude_m
+    R0 = rotvec_to_matrix(np.array([np.pi, 0.0, 0.0]))
+
+    def motion(t):
+        t = np.atleast_1d(np.asarray(t, float))
+        return rotvec_to_matrix(ax * (w * t)[:, None]) @ R0, np.array([0.1, 0.05, 2.0]) + np.outer(
+            amplitude_m * np.sin(f * t), d)
+
+    return motion
+
 def load_trajectory(path) -> Trajectory:
     """Read a CSV with header ``t,rx,ry,rz,tx,ty,tz`` (s, rad, m) as a :class:`Trajectory`."""
     path = Path(path)
