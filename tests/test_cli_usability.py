@@ -183,22 +183,9 @@ def test_dop_undefined_is_an_error_line():
 # --- optimize: impossible request and a wrong-unit mesh
 
 
-def _envelope(tmp_path, count=30):
-    p = tmp_path / "env.toml"
-    p.write_text(f"""count = {count}
-seed = 3
-range_m = [1.0, 2.0]
-boresight_cone_deg = 20.0
-[attitude]
-kind = "cone"
-nominal_rotvec_deg = [180.0, 0.0, 0.0]
-half_angle_deg = 30.0
-""")
-    return str(p)
 
-
-def test_optimize_infeasible_is_an_error_line(tmp_path):
-    r = _run(["optimize", MESH, "--sensors", "3", "--envelope", _envelope(tmp_path), "--out", tmp_path / "x.json",
+def test_optimize_infeasible_is_an_error_line(tmp_path, small_envelope):
+    r = _run(["optimize", MESH, "--sensors", "3", "--envelope", small_envelope, "--out", tmp_path / "x.json",
               "--spacing-mm", "12", "--no-render"])
     assert r.exit_code == 1
     lines = _error_lines(r)
@@ -206,8 +193,8 @@ def test_optimize_infeasible_is_an_error_line(tmp_path):
     assert lines[0].startswith("error: infeasible: 3 sensors cannot keep 4 lit at every required pose")
 
 
-def test_optimize_wrong_units_warns_in_one_line(tmp_path):
-    r = _run(["optimize", MESH, "--sensors", "12", "--envelope", _envelope(tmp_path), "--out", tmp_path / "x.json",
+def test_optimize_wrong_units_warns_in_one_line(tmp_path, small_envelope):
+    r = _run(["optimize", MESH, "--sensors", "12", "--envelope", small_envelope, "--out", tmp_path / "x.json",
               "--units", "mm", "--spacing-mm", "20", "--no-render", "--allow-odd-size"])
     assert r.exit_code == 2
     assert (f"warning: {MESH}: largest extent is 0.125 mm with units='mm'; if the file is in metres pass units='m'"
@@ -216,9 +203,9 @@ def test_optimize_wrong_units_warns_in_one_line(tmp_path):
     assert _error_lines(r) == ["error: k: expected 1 <= k <= 1 (number of candidates), got 12"]
 
 
-def test_optimize_summary_starts_on_first_line(tmp_path):
+def test_optimize_summary_starts_on_first_line(tmp_path, small_envelope):
     """The progress bar goes to stderr: stdout is the summary alone (no stray blank first line)."""
-    r = CliRunner().invoke(main, ["optimize", MESH, "--sensors", "12", "--envelope", _envelope(tmp_path),
+    r = CliRunner().invoke(main, ["optimize", MESH, "--sensors", "12", "--envelope", small_envelope,
                                   "--out", str(tmp_path / "x.json"), "--spacing-mm", "12", "--no-render"])
     assert r.exit_code == 0, r.output
     assert r.stdout.splitlines()[0].startswith("12 of ")

@@ -16,28 +16,15 @@ REPO = Path(__file__).resolve().parents[1]
 MESH = str(REPO / "models" / "chen_target.stl")
 
 
-def _envelope(tmp_path, count=30):
-    p = tmp_path / "env.toml"
-    p.write_text(f"""count = {count}
-seed = 3
-range_m = [1.0, 2.0]
-boresight_cone_deg = 20.0
-[attitude]
-kind = "cone"
-nominal_rotvec_deg = [180.0, 0.0, 0.0]
-half_angle_deg = 30.0
-""")
-    return str(p)
-
 
 def test_cli_choices_come_from_registry():
     assert tuple(sorted(METHODS)) == METHOD_CHOICES
 
 
-def test_optimize_writes_layout_with_metadata(tmp_path):
+def test_optimize_writes_layout_with_metadata(tmp_path, small_envelope):
     """Layout JSON round-trips; its metadata carries the mesh hash, objective, value >= bound."""
     out = tmp_path / "lay.json"
-    r = CliRunner().invoke(main, ["optimize", MESH, "-k", "12", "--envelope", _envelope(tmp_path), "--out", str(out),
+    r = CliRunner().invoke(main, ["optimize", MESH, "-k", "12", "--envelope", small_envelope, "--out", str(out),
                                   "--report", str(tmp_path / "rep"), "--method", "greedy", "--spacing-mm", "12",
                                   "--no-render", "--json"])
     assert r.exit_code == 0, r.output
@@ -52,17 +39,17 @@ def test_optimize_writes_layout_with_metadata(tmp_path):
     assert (tmp_path / "rep" / "summary.json").is_file()
 
 
-def test_impossible_request_message(tmp_path):
+def test_impossible_request_message(tmp_path, small_envelope):
     """Too few sensors: exit 1 with the smallest k named."""
-    r = CliRunner().invoke(main, ["optimize", MESH, "-k", "3", "--envelope", _envelope(tmp_path), "--out",
+    r = CliRunner().invoke(main, ["optimize", MESH, "-k", "3", "--envelope", small_envelope, "--out",
                                   str(tmp_path / "x.json"), "--spacing-mm", "12"])
     assert r.exit_code == 1
     assert "infeasible: 3 sensors cannot keep 4 lit at every required pose: the smallest k that works is" in r.output
     assert not (tmp_path / "x.json").exists()
 
 
-def test_bad_objective_is_a_clear_error(tmp_path):
-    r = CliRunner().invoke(main, ["optimize", MESH, "-k", "8", "--envelope", _envelope(tmp_path), "--out",
+def test_bad_objective_is_a_clear_error(tmp_path, small_envelope):
+    r = CliRunner().invoke(main, ["optimize", MESH, "-k", "8", "--envelope", small_envelope, "--out",
                                   str(tmp_path / "x.json"), "--objective", "best-adop"])
     assert r.exit_code == 2
     assert "error: objective: expected '<worst|mean|pNN>-<adop|pdop|weighted>'" in r.output
