@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validate import as_array, check_finite
-from .geometry import attitude_error
+from .geometry import attitude_error, nearest_rotation
 from .lighthouse import Station
 
 __all__ = [
@@ -200,8 +200,6 @@ def precision(rotations, translations):
     R = as_array(rotations, "rotations", (..., None, 3, 3))
     t = as_array(translations, "translations", (..., None, 3))
     # chordal mean: project the arithmetic mean of matrices onto SO(3)
-    from .geometry import nearest_rotation
-
     Rm = nearest_rotation(R.mean(axis=-3))
     e_rot = attitude_error(R, Rm[..., None, :, :])
     tm = t.mean(axis=-2, keepdims=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._validate import as_array
-from .geometry import transform_points
+from .geometry import random_rotations, transform_points
 from .lighthouse import DEFAULT_CLOCK_HZ, LH1_ROTOR_RPM, in_field_of_view, quantize_angles, sweep_angles
 from .noise import sample_angle_noise
 
@@ -63,8 +63,6 @@ def poses_in_front(count: int, rng: np.random.Generator, *, x_range=(-1.5, 1.5),
     Positions outside the field of view (less ``margin_deg``) are redrawn.
     Returns rotation (count, 3, 3), translation (count, 3).
     """
-    from .geometry import random_rotations
-
     out = np.empty((0, 3))
     while len(out) < count:
         m = 2 * (count - len(out)) + 8

@@ -30,7 +30,6 @@ def test_static_groups_streaming_equals_batch_precision():
     s_t = pdop * SIG / np.sqrt(3)
     R0s = random_rotations(3, rng)
     parts, truth_groups = [], []
-    t_clock = 0.0
     for g in range(3):
         n = W * (4 + g)
         R, t = noisy_static(R0s[g], np.array([0.1 * g, 0, 2.0]), n, rng, s_rot, s_t)
