@@ -1,0 +1,192 @@
+"""One click option per quantity (after rasterio's ``rio/options.py``).
+
+Every command that takes a quantity takes it through the object defined here, so a quantity has
+one spelling, one unit, one range and one default across the whole CLI. Old spellings stay for
+one release as *hidden* aliases that print a one-line deprecation note to stderr and feed the
+same parameter (with a unit conversion where the old spelling had another unit).
+
+Conventions:
+- lengths and angles name their unit in the flag (``--distance-m``, ``--half-angle-deg``);
+  the Python parameter a command receives is SI unless its name says otherwise
+  (``--sigma-arcsec`` arrives as ``sigma`` in radians);
+- ``--json`` is always a flag that prints JSON to stdout; a JSON file is ``--json-out FILE``;
+- ``--out`` is a file, ``--out-dir`` / ``--report`` are folders;
+- choices that name an algorithm come from its registry (:func:`registry_choice`).
+
+Only click and the unit constants are imported here (no numpy): importing the CLI stays cheap.
+"""
+from __future__ import annotations
+
+from typing import Callable, Iterable
+
+import click
+from click.core import ParameterSource
+
+from ..units import ARCSEC, LENGTH_UNIT_NAMES, RHO_PAPER, SIGMA_THETA_PAPER
+
+__all__ = [
+    "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
+    "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
+    "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
+    "RHO_RANGE",
+]
+
+#: The one admissible range of the same-rotor correlation: rho = 1 makes R_theta singular
+#: (Chen eq. 19) and an ADOP ~30x too optimistic.
+RHO_RANGE = click.FloatRange(0.0, 1.0, max_open=True)
+
+_META = "layoutkit.alias."
+
+
+def _alias_callback(dest: str, old: str, new: str, convert: Callable | None):
+    def cb(ctx, param, value):
+        if value is None or ctx.get_parameter_source(param.name) in (ParameterSource.DEFAULT, None):
+            return None
+        click.echo(f"note: {old} is deprecated; use {new}", err=True)
+        ctx.meta[_META + dest] = convert(value) if convert is not None else value
+        return None
+    return cb
+
+
+def _main_callback(dest: str, user_callback: Callable | None):
+    def cb(ctx, param, value):
+        src = ctx.get_parameter_source(param.name)
+        if src in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None) and (_META + dest) in ctx.meta:
+            value = ctx.meta[_META + dest]
+        if user_callback is not None:
+            value = user_callback(ctx, param, value)
+        return value
+    return cb
+
+
+def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]] = (), callback=None, **kw):
+    """A click option ``flag`` delivering parameter ``dest``, with hidden deprecated ``aliases``.
+
+    Each alias is a flag or ``(flag, convert)`` where ``convert`` maps the old spelling's value to
+    the new one's (e.g. radians to arcseconds). Other keywords go to :func:`click.option`.
+    """
+    alias_type = kw.get("type")
+    alias_flag = kw.get("is_flag", False)
+    alias_nargs = kw.get("nargs", 1)
+
+    def deco(f):
+        for a in aliases:
+            old, convert = (a, None) if isinstance(a, str) else a
+            name = "_alias_" + old.lstrip("-").replace("-", "_")
+            extra = {"is_flag": True} if alias_flag else {"type": alias_type if convert is None else float,
+                                                          "nargs": alias_nargs}
+            f = click.option(old, name, hidden=True, expose_value=False, is_eager=True, default=None,
+                             callback=_alias_callback(dest, old, flag, convert), **extra)(f)
+        return click.option(flag, dest, callback=_main_callback(dest, callback), **kw)(f)
+    return deco
+
+
+def registry_choice(registry) -> click.Choice:
+    """A :class:`click.Choice` of a registry's names (a dict or any iterable of names)."""
+    return click.Choice(sorted(registry))
+
+
+# --------------------------------------------------------------------------- the quantities
+def sigma_option(f=None, *, default: float = SIGMA_THETA_PAPER):
+    """``--sigma-arcsec``: 1-sigma sweep-angle noise in arcsec; the command receives ``sigma`` in rad.
+
+    Aliases: ``--sigma-theta-arcsec`` (render), ``--sigma-rad`` (fake-fpga, radians).
+    """
+    def to_rad(ctx, param, value):
+        return None if value is None else float(value) * ARCSEC
+    deco = option("--sigma-arcsec", "sigma", type=click.FloatRange(min=0.0, min_open=True),
+                  default=default / ARCSEC, show_default=f"{default / ARCSEC:.4f} = {default:.4g} rad", callback=to_rad,
+                  aliases=("--sigma-theta-arcsec", ("--sigma-rad", lambda v: float(v) / ARCSEC)),
+                  help="Sweep-angle noise 1-sigma, arcsec (paper: 4.014e-5 rad = 8.28\"; Chen eq. 19).")
+    return deco(f) if f is not None else deco
+
+
+def rho_option(f=None, *, default: float = RHO_PAPER):
+    """``--rho``: same-rotor angle correlation in [0, 1) (Chen eq. 19)."""
+    deco = option("--rho", "rho", type=RHO_RANGE, default=default, show_default=True,
+                  help="Same-rotor sweep-angle correlation, 0 <= rho < 1 (Chen eq. 19; paper 0.8717).")
+    return deco(f) if f is not None else deco
+
+
+def half_angle_option(f=None, *, default: float = 60.0):
+    """``--half-angle-deg``: photodiode acceptance half-angle from its normal (alias
+    ``--sensor-half-angle-deg``)."""
+    deco = option("--half-angle-deg", "half_angle_deg", type=click.FloatRange(0.0, 90.0, min_open=True),
+                  default=default, show_default=True, aliases=("--sensor-half-angle-deg",),
+                  help="Photodiode acceptance half-angle from its normal, deg.")
+    return deco(f) if f is not None else deco
+
+
+def units_option(f=None, *, what: str = "the mesh file"):
+    """``--units``: length unit of an input file (m, cm, mm, in)."""
+    deco = click.option("--units", type=click.Choice(LENGTH_UNIT_NAMES), default="m", show_default=True,
+                        help=f"Length unit of {what}.")
+    return deco(f) if f is not None else deco
+
+
+def seed_option(f=None, *, default: int = 0):
+    """``--seed``: the random seed (``numpy.random.default_rng(seed)``)."""
+    deco = click.option("--seed", type=int, default=default, show_default=True,
+                        help="Random seed (runs with the same seed are identical).")
+    return deco(f) if f is not None else deco
+
+
+def json_flag(f=None, *, help: str = "Print JSON to stdout instead of a table."):
+    """``--json``: a flag; JSON goes to stdout. The command receives ``as_json``."""
+    deco = click.option("--json", "as_json", is_flag=True, help=help)
+    return deco(f) if f is not None else deco
+
+
+def json_out_option(f=None, *, help: str = "Also write the JSON to this file ('-' = stdout)."):
+    """``--json-out FILE``: write JSON to a file. The command receives ``json_out``."""
+    deco = click.option("--json-out", "json_out", type=click.Path(dir_okay=False, allow_dash=True),
+                        default=None, metavar="FILE", help=help)
+    return deco(f) if f is not None else deco
+
+
+def out_file_option(f=None, *, required: bool = True, help: str = "Output file.", default=None):
+    """``--out FILE``: the command's output file. The command receives ``out``."""
+    deco = click.option("--out", "out", type=click.Path(dir_okay=False), required=required, default=default,
+                        help=help)
+    return deco(f) if f is not None else deco
+
+
+def out_dir_option(f=None, *, required: bool = True, help: str = "Output folder.", default=None):
+    """``--out-dir DIR``: the command's output folder. The command receives ``out_dir``."""
+    deco = click.option("--out-dir", "out_dir", type=click.Path(file_okay=False), required=required,
+                        default=default, show_default=default is not None, help=help)
+    return deco(f) if f is not None else deco
+
+
+def report_option(f=None, *, help: str = "Write a report folder (JSON + plots) here."):
+    """``--report DIR``: a report folder. The command receives ``report_dir``."""
+    deco = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, help=help)
+    return deco(f) if f is not None else deco
+
+
+def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md)."):
+    """``--layout FILE``. The command receives ``layout_path``."""
+    deco = click.option("--layout", "layout_path", type=click.Path(dir_okay=False), required=required,
+                        default=None, help=help)
+    return deco(f) if f is not None else deco
+
+
+def envelope_option(f=None, *, required: bool = True, help: str = "Operating envelope TOML (docs/envelope.md)."):
+    """``--envelope FILE``. The command receives ``envelope_path``."""
+    deco = click.option("--envelope", "envelope_path", type=click.Path(dir_okay=False), required=required,
+                        default=None, help=help)
+    return deco(f) if f is not None else deco
+
+
+def distance_m_option(f=None, *, default: float = 2.0, help: str = "Distance, m."):
+    """``--distance-m`` (alias ``--distance``). The command receives ``distance_m``."""
+    deco = option("--distance-m", "distance_m", type=click.FloatRange(min=0.0, min_open=True), default=default,
+                  show_default=True, aliases=("--distance",), help=help)
+    return deco(f) if f is not None else deco
+
+
+def allow_odd_size_option(f=None):
+    """``--allow-odd-size``: go on although the size of a mesh/layout says its ``--units`` are wrong."""
+    deco = click.option("--allow-odd-size", is_flag=True,
+                        help="Go on although the size says the length unit is probably wrong.")
+    return deco(f) if f is not None else deco
