@@ -26,7 +26,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec
-from ..lighthouse import LH1_ROTOR_RPM, LH2_TILT_RAD, Station
+from ..lighthouse import LH1_ROTOR_RPM, Station, lh2_to_lh1_angles  # noqa: F401  (re-export)
 from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
 from .frames import SweepMeasurement
 
@@ -142,21 +142,6 @@ class AngleFrame:
     angles: np.ndarray
     seq: int | None = None
     dt_y: float = float("nan")
-
-
-def lh2_to_lh1_angles(plane_angles) -> np.ndarray:
-    """LH2 light-plane angles ``(..., 2)`` rad → LH1-equivalent ``[theta_x, theta_y]`` ``(..., 2)``.
-
-    Inverts :func:`layoutkit.lighthouse.lh2_sweep_angles` (planes tilted ``-tilt`` and ``+tilt``):
-    with ``base = (a0 + a1) / 2`` and ``s = sin((a1 - a0) / 2) / tan(tilt)`` the ray direction in
-    the package's station frame is ``(sin base, s, cos base)``, whose LH1 angles are
-    ``theta_x = atan2(cos base, sin base)``, ``theta_y = atan2(cos base, s)`` (Chen eq. 2).
-    """
-    a = np.asarray(plane_angles, dtype=float)
-    base = 0.5 * (a[..., 0] + a[..., 1])
-    s = np.sin(0.5 * (a[..., 1] - a[..., 0])) / np.tan(LH2_TILT_RAD)
-    c = np.cos(base)
-    return np.stack([np.arctan2(c, np.sin(base)), np.arctan2(c, s)], -1)
 
 
 class SweepPairer:

@@ -27,7 +27,8 @@ Pulse processing follows the firmware (``pulse_processor_v1.c``, ``pulse_process
   ``a0 = 4 offset0 * 2 pi / P - pi + pi/3``, ``a1 = 4 offset1 * 2 pi / P - pi - pi/3`` with
   ``P`` the channel's cycle period (24 MHz).
 
-Calibration (``lighthouse_calibration.c``) is the firmware's model, inverted by fixed-point
+Calibration (``lighthouse_calibration.c``) is the firmware's model (implemented in
+:mod:`layoutkit.lighthouse` as one case of the internal calibration model), inverted by fixed-point
 iteration from the raw angles (we iterate to 1e-10 rad; the firmware stops after a change below
 5e-4 rad or 5 steps). Applied: LH1 phase, tilt, curve, gibmag, gibphase; LH2 phase, tilt, gibmag,
 gibphase. Not applied (the firmware doesn't either): ogeemag, ogeephase, LH2 curve.
@@ -42,13 +43,14 @@ LH2: the firmware's angles are already the ``lh2_sweep_angles`` light-plane angl
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..._validate import read_structured
+from ...lighthouse import (StationCalibration, SweepCalibration, calibrate_lh1, calibrate_lh2,  # noqa: F401
+                           lh1_model, lh2_model)
 from ..frames import DecodeStats, SweepMeasurement
 
 __all__ = [
@@ -133,23 +135,8 @@ def parse_frame(b: bytes) -> DeckPulse | None:
 
 
 # --------------------------------------------------------------------------------- calibration
-@dataclass(frozen=True)
-class SweepCalibration:
-    """Factory calibration of one sweep / light plane (radians; Crazyflie file keys)."""
-
-    phase: float = 0.0
-    tilt: float = 0.0
-    curve: float = 0.0
-    gibmag: float = 0.0
-    gibphase: float = 0.0
-    ogeemag: float = 0.0
-    ogeephase: float = 0.0
-
-
-@dataclass(frozen=True)
-class StationCalibration:
-    sweeps: tuple = (SweepCalibration(), SweepCalibration())
-    uid: int = 0
+# The firmware's calibration records and model live in the core (layoutkit.lighthouse, one
+# internal model for both public conventions; docs/calibration.md); re-exported here.
 
 
 @dataclass(frozen=True)
@@ -211,72 +198,6 @@ def load_system_config(source) -> SystemConfig:
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{name}: bad geos/calibs entry ({exc})") from None
     return SystemConfig(stations, calibs, system_type)
-
-
-def lh1_model(ax_ideal, ay_ideal, calib: StationCalibration) -> np.ndarray:
-    """Firmware LH1 distortion: ideal firmware angles (rad) → measured angles ``(..., 2)``.
-
-    Point ``(1, tan ax, tan ay)`` in the Bitcraze station frame; sweep 0 sees ``(x, y, z)``,
-    sweep 1 ``(x, z, -y)``; ``a = atan2(y, x) - (asin(z tan(tilt) / r) + phase
-    - gibmag sin(atan2(y, x) + gibphase) + curve atan2(z, x)^2)``.
-    """
-    ax = np.asarray(ax_ideal, float)
-    ay = np.asarray(ay_ideal, float)
-    x, y, z = np.ones_like(ax), np.tan(ax), np.tan(ay)
-
-    def one(x, y, z, c):
-        a = np.arctan2(y, x)
-        b = np.arctan2(z, x)
-        r = np.hypot(x, y)
-        tilt = np.arcsin(np.clip(z * np.tan(c.tilt) / r, -1, 1))
-        gib = -c.gibmag * np.sin(a + c.gibphase)
-        return a - (tilt + c.phase + gib + c.curve * b * b)
-
-    return np.stack([one(x, y, z, calib.sweeps[0]), one(x, z, -y, calib.sweeps[1])], -1)
-
-
-def lh2_model(a1_ideal, a2_ideal, calib: StationCalibration) -> np.ndarray:
-    """Firmware LH2 distortion: ideal plane angles (rad) → measured ``(..., 2)``.
-
-    Point ``(1, tan((a1 + a2)/2), sin(a2 - a1) / (tan30 (cos a1 + cos a2)))``;
-    ``a = atan2(y, x) + asin(z tan(t - tilt) / r) - (phase - gibmag cos(atan2(y, x) + gibphase))``,
-    t = -30° (plane 0), +30° (plane 1).
-    """
-    a1 = np.asarray(a1_ideal, float)
-    a2 = np.asarray(a2_ideal, float)
-    t30 = math.pi / 6
-    x = np.ones_like(a1)
-    y = np.tan((a1 + a2) / 2)
-    z = np.sin(a2 - a1) / (math.tan(t30) * (np.cos(a2) + np.cos(a1)))
-
-    def one(t, c):
-        a = np.arctan2(y, x)
-        r = np.hypot(x, y)
-        base = a + np.arcsin(np.clip(z * np.tan(t - c.tilt) / r, -1, 1))
-        return base - (c.phase - c.gibmag * np.cos(a + c.gibphase))
-
-    return np.stack([one(-t30, calib.sweeps[0]), one(t30, calib.sweeps[1])], -1)
-
-
-def _invert(model, raw, calib, tol=1e-10, max_iter=50):
-    raw = np.asarray(raw, float)
-    est = raw.copy()
-    for _ in range(max_iter):
-        d = raw - model(est[..., 0], est[..., 1], calib)
-        est = est + d
-        if not np.any(np.abs(d) > tol):
-            break
-    return est
-
-
-def calibrate_lh1(raw, calib: StationCalibration) -> np.ndarray:
-    """Measured LH1 firmware angles ``(..., 2)`` → ideal angles (inverse of :func:`lh1_model`)."""
-    return _invert(lh1_model, raw, calib)
-
-
-def calibrate_lh2(raw, calib: StationCalibration) -> np.ndarray:
-    """Measured LH2 plane angles ``(..., 2)`` → ideal angles (inverse of :func:`lh2_model`)."""
-    return _invert(lh2_model, raw, calib)
 
 
 # ----------------------------------------------------------------------- reference encoders
