@@ -4,6 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
+from .options import overwrite_option
 
 
 @click.command("fake-fpga")
@@ -11,6 +12,7 @@ from ._common import echo_json, fail
               help="Sensor layout JSON.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), default=None,
               help="Write a capture file (+ .idx and .json sidecar) instead of streaming on a pty.")
+@overwrite_option(what="an existing --out capture")
 @click.option("--pty", "use_pty", is_flag=True, help="Stream on a pseudo-terminal (the default without --out).")
 @click.option("--link", type=click.Path(dir_okay=False), default=None,
               help="With a pty: also make this symlink point at the device path.")
@@ -34,7 +36,7 @@ from ._common import echo_json, fail
 @click.option("--wait-reader", "wait_reader_s", type=float, default=None,
               help="With a pty: give up when no reader opened it within this many seconds [default: wait].")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, protocol, motion, dropout,
+def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s, seed, protocol, motion, dropout,
               frame_loss, garbage, sigma_rad, rho, realtime, speed, wait_reader_s, as_json):
     """Hardware simulator: emit an FPGA board's exact bytes for a layout in motion.
 
@@ -90,8 +92,8 @@ def fake_fpga(layout_path, out, use_pty, link, truth_path, duration_s, seed, pro
 
     try:
         summary = run_fake_fpga(chunks, out=out, realtime=realtime, link=link, on_ready=ready, speed=speed,
-                                sidecar=sidecar, wait_reader=wait_reader_s)
-    except (TimeoutError, ReaderGone) as exc:
+                                sidecar=sidecar, wait_reader=wait_reader_s, overwrite=overwrite)
+    except (TimeoutError, ReaderGone, ValueError) as exc:
         fail(str(exc))
     except OSError as exc:
         fail(f"cannot emit: {exc}")

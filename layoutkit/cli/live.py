@@ -6,6 +6,8 @@ import sys
 
 import click
 
+from .options import overwrite_option
+
 ARCSEC = 3.141592653589793 / 180.0 / 3600.0
 
 _common_options = [
@@ -158,20 +160,27 @@ def _quiet_exit():
 @click.command("live")
 @click.option("--port", required=True, help="Serial port: device or pty path, or a pyserial URL (socket://, loop://).")
 @click.option("--record", type=click.Path(dir_okay=False), default=None,
-              help="Capture file: raw bytes are appended before decoding (+ .idx, .json sidecar).")
+              help="New capture file: raw bytes are written as received, before decoding (+ .idx, .json "
+                   "sidecar). An existing capture is never overwritten: the run is refused (exit 2) unless "
+                   "--overwrite.")
+@overwrite_option(what="an existing --record capture (and its .idx/.json)")
 @click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall clock) [default: Ctrl-C].")
 @click.option("--idle-timeout", type=float, default=None,
               help="Stop when no byte arrived for this many seconds after the first byte.")
 @click.option("--baudrate", type=int, default=None, help="Baud rate [default: 921600].")
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
-def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines, truth,
+def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines, truth,
              reference, reference_units, reference_offset, camera, report_dir, rho, sigma_arcsec, motion_compensation,
              as_json):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
-    Ctrl-C ends the run cleanly: everything received is in the capture, pending frames are
-    solved, and the report is written.
+    Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
+    capture (fsynced), pending frames are solved, the report and summary are written. Exit status:
+    0 (duration / idle timeout / Ctrl-C), 143 after SIGTERM, 129 after SIGHUP, 2 when the capture
+    could not be written (disk full: the capture keeps what was written, the report is still made).
+    Without a dashboard the waiting state is printed to stderr while the port is not connected.
+    A reconnect reads only the device first opened (same path and device identity), else refuses.
     """
     from ..workflows.live import run_live
     from ._common import fail
@@ -184,10 +193,10 @@ def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layou
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
-              idle_timeout=idle_timeout)
+              idle_timeout=idle_timeout, overwrite=overwrite)
     try:
         if json_lines or no_dashboard or not sys.stderr.isatty():
-            summary = run_live(port, layout_path, **kw)
+            summary = run_live(port, layout_path, on_status=lambda m: click.echo(m, err=True), **kw)
         else:
             from ..live.dashboard import Dashboard
 
@@ -199,6 +208,19 @@ def live_cmd(port, record, duration, idle_timeout, baudrate, no_dashboard, layou
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
     src = summary.get("source") or {}
+    if summary.get("capture_error"):  # disk full: the capture holds a valid prefix, the report was written
+        fail(f"{summary['capture_error']} (the capture keeps the {summary.get('capture_bytes') or 0} bytes "
+             "written before; reading stopped)")
+    if src.get("refusals") and not json_lines:
+        click.echo(f"warning: {src.get('refusals')} reconnect(s) refused: {src.get('last_error')}", err=True)
+    stopped = summary.get("stopped_by")
+    if stopped in ("SIGTERM", "SIGHUP"):
+        import signal
+
+        click.echo(f"stopped by {stopped}: " + ", ".join(
+            (["capture closed (fsynced)"] if summary.get("capture") else [])
+            + (["report written"] if summary.get("report") else []) + ["summary printed"]), err=True)
+        sys.exit(128 + int(getattr(signal, stopped)))
     if not src.get("connects"):  # the port never opened: say so rather than a silent empty run
         fail(f"{port}: the port never opened ({src.get('last_error') or 'no such device'}); nothing was received")
 

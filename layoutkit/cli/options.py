@@ -28,7 +28,7 @@ __all__ = [
     "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
     "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
-    "RHO_RANGE",
+    "overwrite_option", "RHO_RANGE",
 ]
 
 #: The one admissible range of the same-rotor correlation: rho = 1 makes R_theta singular
@@ -189,4 +189,11 @@ def allow_odd_size_option(f=None):
     """``--allow-odd-size``: go on although the size of a mesh/layout says its ``--units`` are wrong."""
     deco = click.option("--allow-odd-size", is_flag=True,
                         help="Go on although the size says the length unit is probably wrong.")
+    return deco(f) if f is not None else deco
+
+
+def overwrite_option(f=None, *, what: str = "an existing capture"):
+    """``--overwrite``: replace ``what`` explicitly (without it, an existing file is refused)."""
+    deco = click.option("--overwrite", is_flag=True,
+                        help=f"Replace {what} (without this flag it is refused and left untouched).")
     return deco(f) if f is not None else deco

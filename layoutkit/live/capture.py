@@ -22,6 +22,7 @@ import numpy as np
 from .._json import to_jsonable
 
 __all__ = [
+    "CaptureExists",
     "CaptureWriter",
     "CaptureReader",
     "sidecar_path",
@@ -63,20 +64,58 @@ def station_from_dict(d: dict):
 
 
 
-class CaptureWriter:
-    """Append-only raw capture with a timing index and a sidecar JSON.
+class CaptureExists(ValueError):
+    """A capture (or its index/sidecar) is already at the path: it is never replaced silently."""
 
-    path : capture file (created/truncated). sidecar : dict written to ``<path>.json`` at once
-    (``start_time_utc``, ``format`` are added). flush_interval : s between flushes to the OS.
-    ``write(data, t=None)`` appends bytes; ``t`` is the arrival time in s since the start
-    (default: host monotonic clock since the writer opened).
+
+class CaptureWriter:
+    """Append-only raw capture with a timing index and a sidecar JSON; never overwrites one.
+
+    path : capture file. It must not exist (nor its ``.idx``/``.json``): :class:`CaptureExists`
+    (a ValueError naming the file and its size) otherwise, unless ``overwrite=True``. The capture
+    is locked (``flock``) while open, so a second writer of the same file is refused instead of
+    truncating it under the first one (whose later writes would leave a hole of zero bytes).
+    sidecar : dict written to ``<path>.json`` at once (``start_time_utc``, ``format`` are added).
+    flush_interval : s between fsyncs of the raw bytes and index.
+    ``write(data, t=None)`` appends bytes with unbuffered writes (a failed write, e.g. disk full,
+    leaves exactly the bytes received so far, in order: a valid prefix; the index only points into
+    bytes that are on disk); ``t`` is the arrival time in s since the start (default: host
+    monotonic clock since the writer opened). After a failed write ``error`` holds the OSError
+    and the writer accepts no more bytes.
     """
 
-    def __init__(self, path, sidecar: dict | None = None, *, flush_interval: float = 0.25):
+    def __init__(self, path, sidecar: dict | None = None, *, flush_interval: float = 0.25,
+                 overwrite: bool = False):
+        import fcntl
+
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._raw = open(self.path, "wb")
-        self._idx = open(index_path(self.path), "wb")
+        self.closed = True
+        self.error = None
+        if not overwrite:
+            for p in (self.path, index_path(self.path), sidecar_path(self.path)):
+                if p.exists():
+                    size = p.stat().st_size if p.is_file() else 0
+                    what = "a capture" if p == self.path else "a capture's " + p.suffix + " file"
+                    raise CaptureExists(
+                        f"{p}: {what} already exists ({size:,} bytes); a capture is never overwritten: "
+                        "record to a new file, or pass --overwrite to replace it")
+        flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
+        if not overwrite:
+            flags |= os.O_EXCL
+        try:
+            self._fd = os.open(self.path, flags, 0o644)
+        except FileExistsError:  # created between the check and the open
+            raise CaptureExists(f"{self.path}: a capture already exists; a capture is never overwritten") from None
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(self._fd)
+            raise ValueError(f"{self.path}: the capture is being written by another process; "
+                             "not touching it") from None
+        if overwrite:
+            os.ftruncate(self._fd, 0)  # only once we hold the lock: never under a running writer
+        self._idx = os.open(index_path(self.path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o644)
         self._t0 = time.monotonic()
         self._last_flush = self._t0
         self.flush_interval = float(flush_interval)
@@ -85,43 +124,87 @@ class CaptureWriter:
         self.sidecar.setdefault("format", FORMAT)
         self.sidecar.setdefault("format_version", FORMAT_VERSION)
         self.sidecar.setdefault("start_time_utc", datetime.now(timezone.utc).isoformat())
-        self._write_sidecar()
         self.closed = False
+        try:
+            self._write_sidecar()
+        except OSError:
+            self._close_fds()
+            raise
 
     def _write_sidecar(self) -> None:
-        tmp = sidecar_path(self.path).with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(self.sidecar, indent=2) + "\n")
-        os.replace(tmp, sidecar_path(self.path))
+        from ..io.atomic import atomic_write_text
+
+        atomic_write_text(sidecar_path(self.path), json.dumps(self.sidecar, indent=2) + "\n")
 
     def write(self, data: bytes, t: float | None = None) -> None:
-        """Append ``data`` (before decoding) with its arrival time ``t`` (s since start)."""
+        """Append ``data`` (before decoding) with its arrival time ``t`` (s since start).
+
+        Raises OSError (``filename`` = the capture) when the bytes cannot be written; what was
+        written before (and any part of ``data`` the OS took) stays, in order.
+        """
         if not data:
             return
+        if self.error is not None:
+            raise self.error
         now = time.monotonic()
         t = now - self._t0 if t is None else float(t)
-        self._idx.write(_IDX.pack(self.bytes_written, t))
-        self._raw.write(data)
-        self.bytes_written += len(data)
+        view = memoryview(data)
+        start = self.bytes_written
+        try:
+            while view:
+                k = os.write(self._fd, view)
+                self.bytes_written += k
+                view = view[k:]
+        except OSError as exc:
+            exc.filename = str(self.path)
+            self.error = exc
+            raise
+        finally:
+            if self.bytes_written > start:  # index only what is on disk
+                try:
+                    os.write(self._idx, _IDX.pack(start, t))
+                except OSError:
+                    pass  # the index is a timing aid; the raw bytes are the record
         if now - self._last_flush >= self.flush_interval:
             self.flush()
             self._last_flush = now
 
     def flush(self) -> None:
-        self._raw.flush()
-        self._idx.flush()
+        """Push the raw bytes and the index to the disk (fsync)."""
+        for fd in (self._fd, self._idx):
+            try:
+                os.fsync(fd)
+            except OSError:
+                pass
+
+    def _close_fds(self) -> None:
+        for fd in (self._fd, self._idx):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.closed = True
 
     def close(self, **extra) -> None:
-        """Flush, close, and record ``bytes``, ``end_time_utc`` (and ``extra``) in the sidecar."""
+        """fsync, close, and record ``bytes``, ``end_time_utc`` (and ``extra``) in the sidecar.
+
+        The sidecar update is best effort on a full disk (the raw bytes are the record); raises
+        nothing for it, but keeps the OSError in ``sidecar_error``.
+        """
         if self.closed:
             return
         self.flush()
-        self._raw.close()
-        self._idx.close()
+        self._close_fds()
         self.sidecar.update(to_jsonable(extra))
         self.sidecar["bytes"] = self.bytes_written
         self.sidecar["end_time_utc"] = datetime.now(timezone.utc).isoformat()
-        self._write_sidecar()
-        self.closed = True
+        if self.error is not None:
+            self.sidecar["write_error"] = f"{self.error.strerror or self.error}"
+        self.sidecar_error = None
+        try:
+            self._write_sidecar()
+        except OSError as exc:
+            self.sidecar_error = exc
 
     def __enter__(self):
         return self

@@ -357,11 +357,11 @@ def read_truth(path) -> Trajectory:
 
 def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, on_ready=None,
                   drain_timeout: float = 5.0, speed: float = 1.0, sidecar: dict | None = None,
-                  wait_reader: float | None = None) -> dict:
+                  wait_reader: float | None = None, overwrite: bool = False) -> dict:
     """Emit ``chunks`` ``[(t_emit, bytes), ...]`` into a capture file or a pseudo-terminal.
 
     out : capture path → written with :class:`CaptureWriter` (index times = t_emit, sidecar
-    ``sidecar``), as fast as possible unless ``realtime``. Without ``out``: opens a pty (raw mode),
+    ``sidecar``; an existing capture is refused unless ``overwrite``), as fast as possible unless ``realtime``. Without ``out``: opens a pty (raw mode),
     calls ``on_ready(slave_path)`` (and makes symlink ``link`` → slave path), waits until a reader
     opens the port (at most ``wait_reader`` s; None = forever; opening a serial port flushes its
     input, so nothing is sent before), then writes each chunk at its time (``realtime`` default
@@ -378,7 +378,7 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
     total = 0
     if out is not None:
         realtime = bool(realtime)
-        with CaptureWriter(out, sidecar or {}) as w:
+        with CaptureWriter(out, sidecar or {}, overwrite=overwrite) as w:
             for t_emit, data in chunks:
                 if realtime:
                     _sleep_until(t_wall0 + (t_emit - t0) / speed)

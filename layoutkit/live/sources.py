@@ -5,10 +5,14 @@ or at the end of a capture), ``close()`` and ``eof`` (True only for a finished c
 """
 from __future__ import annotations
 
+import os
+import stat as stat_mod
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["open_source", "SerialSource", "ReconnectingSerial", "is_capture"]
+__all__ = ["open_source", "SerialSource", "ReconnectingSerial", "is_capture", "DeviceIdentity", "device_identity",
+           "same_device"]
 
 DEFAULT_BAUDRATE = 921600
 _URL_SCHEMES = ("loop://", "socket://", "rfc2217://", "spy://", "alt://", "hwgrep://", "cp2110://")
@@ -21,6 +25,83 @@ def is_capture(url_or_path) -> bool:
         return False
     p = Path(s)
     return p.is_file()
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """What the OS says about the device behind a path, to recognise it after a reconnect.
+
+    path : the path as given (may be a symlink); target : where it leads (``os.path.realpath``).
+    node : (st_dev, st_ino, st_rdev, st_ctime_ns) of the device node — a node made anew (a pty
+    number given to another program, udev re-creating ``/dev/ttyUSB0``) has a new ctime even when
+    its number is the same. link : (st_ino, st_ctime_ns) of the symlink itself when ``path`` is
+    one (a stable name whose owner re-points it on replug, ``fake-fpga --link``), else None.
+    hardware : USB ``idVendor:idProduct:serial`` from sysfs when the OS gives one, else None.
+    """
+
+    path: str
+    target: str
+    node: tuple
+    link: tuple | None
+    hardware: str | None
+
+    def describe(self) -> str:
+        hw = f", USB {self.hardware}" if self.hardware else ""
+        return f"{self.target} (device {os.major(self.node[2])}:{os.minor(self.node[2])}{hw})"
+
+
+def _usb_serial(rdev: int) -> str | None:
+    """``idVendor:idProduct:serial`` of the USB device behind a character device, from sysfs."""
+    d = Path(f"/sys/dev/char/{os.major(rdev)}:{os.minor(rdev)}")
+    try:
+        d = d.resolve(strict=True)
+    except OSError:
+        return None
+    for up in [d, *d.parents][:8]:
+        f = up / "serial"
+        if f.is_file() and (up / "idVendor").is_file():
+            try:
+                return ":".join((up / n).read_text().strip() for n in ("idVendor", "idProduct", "serial"))
+            except OSError:
+                return None
+    return None
+
+
+def device_identity(url: str) -> DeviceIdentity | None:
+    """The :class:`DeviceIdentity` of a device path, or None for a URL (``socket://``, ``loop://``)
+    or a path that does not lead to a device now (raises nothing)."""
+    if "://" in url:
+        return None
+    try:
+        st = os.stat(url)
+        lst = os.lstat(url)
+    except OSError:
+        return None
+    link = (lst.st_ino, lst.st_ctime_ns) if stat_mod.S_ISLNK(lst.st_mode) else None
+    hw = _usb_serial(st.st_rdev) if stat_mod.S_ISCHR(st.st_mode) else None
+    return DeviceIdentity(url, os.path.realpath(url), (st.st_dev, st.st_ino, st.st_rdev, st.st_ctime_ns), link, hw)
+
+
+def same_device(first: DeviceIdentity | None, now: DeviceIdentity | None) -> tuple[bool, str]:
+    """May a reconnecting reader that first opened ``first`` read ``now``? → (ok, reason).
+
+    Same USB serial number (when the OS gives one) → the same board, wherever it was enumerated.
+    Otherwise the very same device node (same numbers and creation time), or a symlink that its
+    owner has re-made since (a replug announced through the stable name). Anything else — the
+    path (or an unchanged symlink) now leading to a node made anew, e.g. a pty number the system
+    gave to another program after the board's simulator was killed — is refused.
+    """
+    if first is None or now is None:
+        return True, "no device identity from the OS (URL)"
+    if first.hardware or now.hardware:
+        ok = first.hardware == now.hardware
+        return ok, ("same USB device" if ok else f"another USB device ({now.hardware} instead of {first.hardware})")
+    if now.node == first.node:
+        return True, "same device node"
+    if first.link is not None and now.link is not None and now.link != first.link:
+        return True, f"{first.path} was re-made by its owner (replug) → {now.target}"
+    return False, (f"{now.path} now leads to {now.describe()}, a device made after the one first opened "
+                   f"({first.describe()}); refusing to read another device's bytes into this run")
 
 
 class SerialSource:
@@ -41,7 +122,14 @@ class SerialSource:
         self.timeout = timeout
         if "://" not in url:  # a device path: take it exclusively (flock), so that two readers
             kwargs.setdefault("exclusive", True)  # never split one device's bytes between them
+        self.identity = device_identity(url)
         self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout, **kwargs)
+        fd = getattr(self.port, "fd", None)
+        if self.identity is not None and isinstance(fd, int):  # the node we looked at is the one we opened
+            st = os.fstat(fd)
+            if (st.st_dev, st.st_ino, st.st_rdev) != self.identity.node[:3]:
+                self.port.close()
+                raise serial.SerialException(f"{url}: the device changed while it was being opened")
 
     def read(self, max_bytes: int = 65536) -> bytes:
         first = self.port.read(1)
@@ -74,7 +162,13 @@ class ReconnectingSerial:
     ``read`` never raises on port errors (``serial.SerialException``, ``OSError``): it marks the
     port disconnected and returns ``b""``; every byte returned before is the caller's (nothing
     read is ever dropped). ``state`` reports connected, connects, disconnects, retries, last_error.
-    ``on_event(kind, state)`` (optional) is called on "connected" / "disconnected".
+    ``on_event(kind, state)`` (optional) is called on "connected" / "disconnected" / "refused".
+
+    A reconnect reads only the device first opened (:func:`same_device`): same path and, where the
+    OS gives one, the same device identity (USB serial; else the same node, or a symlink re-made by
+    its owner). A path that now leads to another device (a pty number reused by another program
+    after the simulator was SIGKILLed) is refused: no byte is read from it; ``refusals`` counts
+    these attempts and ``last_error`` says why; the reader keeps waiting for the real device.
     """
 
     eof = False
@@ -95,6 +189,8 @@ class ReconnectingSerial:
         self.disconnects = 0
         self.retries = 0
         self.last_error = ""
+        self.refusals = 0
+        self.identity = None  # of the device first opened (updated on an accepted replug)
         self._closed = False
         self._try_open()
 
@@ -105,7 +201,9 @@ class ReconnectingSerial:
     @property
     def state(self) -> dict:
         return {"connected": self.connected, "connects": self.connects, "disconnects": self.disconnects,
-                "retries": self.retries, "last_error": self.last_error, "next_retry_s": self._delay}
+                "retries": self.retries, "refusals": self.refusals, "last_error": self.last_error,
+                "next_retry_s": self._delay,
+                "device": None if self.identity is None else self.identity.describe()}
 
     @property
     def settings(self) -> dict:
@@ -114,15 +212,36 @@ class ReconnectingSerial:
     def _try_open(self) -> bool:
         import serial
 
-        try:
-            self._src = self._opener()
-        except (serial.SerialException, OSError, ValueError) as exc:
+        def failed(message: str) -> bool:
             self._src = None
             self.retries += 1
-            self.last_error = str(exc)
+            self.last_error = message
             self._next_try = time.monotonic() + self._delay
             self._delay = min(self._delay * 2.0, self.backoff_max)
             return False
+
+        if self.identity is not None:  # a reconnect: only to the device first opened
+            ok, why = same_device(self.identity, device_identity(self.url))
+            if not ok:
+                self.refusals += 1
+                first = self.last_error != why
+                failed(why)
+                if first:
+                    self._emit("refused")
+                return False
+        try:
+            self._src = self._opener()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            return failed(str(exc))
+        ident = getattr(self._src, "identity", None)
+        if self.identity is not None and ident is not None:
+            ok, why = same_device(self.identity, ident)  # what was opened (fstat-checked), not just looked at
+            if not ok:
+                self._src.close()
+                self.refusals += 1
+                return failed(why)
+        if ident is not None:
+            self.identity = ident
         self.connects += 1
         self._delay = self.backoff0
         self._emit("connected")

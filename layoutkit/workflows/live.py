@@ -420,46 +420,82 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
 def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOptions | None = None,
              record=None, duration: float | None = None, truth=None, reference=None, reference_units: str = "m",
              reference_offset: float | None = None, camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
-             on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None) -> dict:
+             on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None,
+             overwrite: bool = False, on_status=None, status_interval: float = 10.0) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
-    port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar).
-    duration : stop after this many wall seconds (None: until Ctrl-C). idle_timeout : stop when no
-    byte arrived for this many seconds after the first byte (None: never). on_update(snapshot)
-    is called every ``update_interval`` s (dashboard). Ctrl-C ends the run cleanly: the capture is
-    closed with everything received, the pending frames are solved and the report is written.
+    port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar);
+    an existing capture is refused (:class:`layoutkit.live.capture.CaptureExists`) unless
+    ``overwrite``. duration : stop after this many wall seconds (None: until Ctrl-C / SIGTERM /
+    SIGHUP). idle_timeout : stop when no byte arrived for this many seconds after the first byte
+    (None: never). on_update(snapshot) is called every ``update_interval`` s (dashboard).
+    on_status(text) (no dashboard) is told once, then every ``status_interval`` s, while the port
+    is not connected and why (never a silent wait).
+
+    Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, the capture is fsynced and
+    closed with everything received, the pending frames are solved and the report is written;
+    ``summary["stopped_by"]`` names the signal. A capture write that fails (disk full) stops the
+    run the same way: the capture keeps the valid prefix, the report is still written (it can be
+    on another disk) and ``summary["capture_error"]`` says ``<capture>: <reason>``.
     """
     from ..live.capture import CaptureWriter, station_to_dict
     from ..live.sources import DEFAULT_BAUDRATE, ReconnectingSerial
+    from ..live.stopping import stop_on_signals
 
     options = options or LiveOptions(chunk_frames=1024)
     lay = _layout_from(layout, {})
     baudrate = baudrate or DEFAULT_BAUDRATE
-    src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
-    sidecar = {"protocol": protocol, "layout": lay.to_dict(), "port": src.settings,
+    settings = {"url": port, "baudrate": baudrate, "timeout": 0.05, "reconnect": True}
+    sidecar = {"protocol": protocol, "layout": lay.to_dict(), "port": settings,
                "stations": [station_to_dict(s) for s in stations] if stations else []}
-    writer = CaptureWriter(record, sidecar) if record is not None else None
-    with tempfile.TemporaryDirectory() as tmp:
-        poses = Path(report_dir) / "poses.csv" if report_dir is not None else (
-            Path(tmp) / "poses.csv" if (reference is not None or camera is not None) else None)
-        s = session_from_sidecar(lay, {"stations": sidecar["stations"]}, protocol=protocol, options=options,
-                                 truth=truth, json_out=json_out, poses_path=poses)
-        t_end = None if duration is None else time.monotonic() + duration
+    # the capture first: an existing one is refused before the port is touched
+    writer = CaptureWriter(record, sidecar, overwrite=overwrite) if record is not None else None
+    with tempfile.TemporaryDirectory() as tmp, stop_on_signals() as stop:
+        try:
+            src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
+            poses = Path(report_dir) / "poses.csv" if report_dir is not None else (
+                Path(tmp) / "poses.csv" if (reference is not None or camera is not None) else None)
+            s = session_from_sidecar(lay, {"stations": sidecar["stations"]}, protocol=protocol, options=options,
+                                     truth=truth, json_out=json_out, poses_path=poses)
+        except BaseException:
+            if writer is not None:
+                writer.close()
+            raise
+        t_start = time.monotonic()
+        t_end = None if duration is None else t_start + duration
         last_update = 0.0
         last_byte = None
+        last_status = None
         interrupted = False
+        capture_error = None
         try:
-            while t_end is None or time.monotonic() < t_end:
+            while (t_end is None or time.monotonic() < t_end) and not stop.requested:
                 data = src.read(_READ_BYTES)
                 now = time.monotonic()
                 if data:
                     if writer is not None:
-                        writer.write(data)  # raw bytes are kept before any decoding
+                        try:
+                            writer.write(data)  # raw bytes are kept before any decoding
+                        except OSError as exc:  # disk full: keep the prefix, stop, still report
+                            capture_error = f"{exc.filename}: {exc.strerror or exc}"
+                            break
                     s.feed_bytes(data)
                     s.flush_pending()  # one chunk per read: low latency, large chunks after a backlog
                     last_byte = now
                 elif idle_timeout is not None and last_byte is not None and now - last_byte > idle_timeout:
                     break
+                if on_status is not None and not src.connected and (
+                        last_status is None or now - last_status >= status_interval):
+                    st = src.state
+                    what = "refusing the device now at the path" if st.get("refusals") and st.get("connects") else (
+                        "disconnected" if st.get("connects") else "not connected yet")
+                    on_status(f"waiting for {port}: {what} ({st.get('last_error') or 'no such device'}); "
+                              f"{now - t_start:.0f} s so far, retrying (every <= {src.backoff_max:g} s); "
+                              + ("Ctrl-C or SIGTERM ends the run" if t_end is None else
+                                 f"the run ends in {t_end - now:.0f} s"))
+                    last_status = now
+                elif src.connected:
+                    last_status = None
                 if on_update is not None and now - last_update >= update_interval:
                     on_update(s.snapshot(src.state))
                     last_update = now
@@ -468,10 +504,14 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOpt
         finally:
             src.close()
             if writer is not None:
-                writer.close(decode=s.decoder.stats.as_dict())
+                writer.close(decode=s.decoder.stats.as_dict(),
+                             **({"stopped_by": stop.name} if stop.requested else {}))
         summary = s.finish()
-        summary.update(port=port, protocol=protocol, interrupted=interrupted, source=src.state,
-                       capture=None if record is None else str(record))
+        stopped_by = stop.name or ("SIGINT" if interrupted else None)
+        summary.update(port=port, protocol=protocol, interrupted=interrupted or stop.requested, source=src.state,
+                       capture=None if record is None else str(record), stopped_by=stopped_by,
+                       capture_error=capture_error,
+                       capture_bytes=None if writer is None else writer.bytes_written)
         out = _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
                           report_dir=report_dir, reference_offset=reference_offset)
         if on_update is not None:
