@@ -212,7 +212,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
         fail(f"{summary['capture_error']} (the capture keeps the {summary.get('capture_bytes') or 0} bytes "
              "written before; reading stopped)")
     if src.get("refusals") and not json_lines:
-        click.echo(f"warning: {src.get('refusals')} reconnect(s) refused: {src.get('last_error')}", err=True)
+        click.echo(f"warning: {src.get('refusals')} reconnect(s) refused: {src.get('last_refusal')}", err=True)
     stopped = summary.get("stopped_by")
     if stopped in ("SIGTERM", "SIGHUP"):
         import signal

@@ -190,6 +190,7 @@ class ReconnectingSerial:
         self.retries = 0
         self.last_error = ""
         self.refusals = 0
+        self.last_refusal = ""
         self.identity = None  # of the device first opened (updated on an accepted replug)
         self._closed = False
         self._try_open()
@@ -201,7 +202,8 @@ class ReconnectingSerial:
     @property
     def state(self) -> dict:
         return {"connected": self.connected, "connects": self.connects, "disconnects": self.disconnects,
-                "retries": self.retries, "refusals": self.refusals, "last_error": self.last_error,
+                "retries": self.retries, "refusals": self.refusals, "last_refusal": self.last_refusal,
+                "last_error": self.last_error,
                 "next_retry_s": self._delay,
                 "device": None if self.identity is None else self.identity.describe()}
 
@@ -224,7 +226,8 @@ class ReconnectingSerial:
             ok, why = same_device(self.identity, device_identity(self.url))
             if not ok:
                 self.refusals += 1
-                first = self.last_error != why
+                first = self.last_refusal != why
+                self.last_refusal = why
                 failed(why)
                 if first:
                     self._emit("refused")
@@ -239,6 +242,7 @@ class ReconnectingSerial:
             if not ok:
                 self._src.close()
                 self.refusals += 1
+                self.last_refusal = why
                 return failed(why)
         if ident is not None:
             self.identity = ident
