@@ -14,7 +14,7 @@ import numpy as np
 
 from ._validate import as_array, check_finite
 from .geometry import attitude_error, nearest_rotation
-from .lighthouse import Station
+from .lighthouse import Station, measure_jacobian
 
 __all__ = [
     "DopResult",
@@ -94,6 +94,17 @@ def angle_jacobian(points_lh, lever_world=None, station_rotation=None) -> np.nda
     return out
 
 
+def _model_jacobian(p_s, lever, station: Station) -> np.ndarray:
+    """``angle_jacobian`` with ``d angle / d p_s`` from :func:`layoutkit.lighthouse.measure_jacobian`
+    (the station's kind and calibration): rows ``[l x a, a]``, ``a = R_s (d angle / d p_s)``."""
+    _, dp, _ = measure_jacobian(p_s, station.calibration, station.kind)
+    a = dp @ station.rotation.T
+    out = np.empty(a.shape[:-1] + (6,))
+    out[..., :3] = np.cross(np.asarray(lever, float)[..., None, :], a)
+    out[..., 3:] = a
+    return out
+
+
 def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
     """ADOP/PDOP from per-sensor angle Jacobians.
 
@@ -162,6 +173,8 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
         of the single lighthouse (``stations=None``) or in the world frame of ``stations``.
     rho : same-rotor correlation (0.8717 measured in the paper).
     visible : (..., n) bool for one station or (..., S, n) for S stations; default all sensors.
+    stations : poses in one world frame; each station's kind (LH1 sweeps / LH2 planes) and
+        calibration enter through its forward model's Jacobian (:func:`layoutkit.lighthouse.measure_jacobian`).
     Returns a :class:`DopResult` with batch shape ``(...)``; numerical degeneracy is a status.
     """
     P = as_array(points_body, "points_body", (..., None, 3))
@@ -182,7 +195,10 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
         for st in stations:
             pw = lever + t[..., None, :]
             p_s = (pw - st.translation) @ st.rotation
-            Js.append(angle_jacobian(p_s, lever, st.rotation))
+            if st.kind == "lh1" and st.calibration is None:
+                Js.append(angle_jacobian(p_s, lever, st.rotation))
+            else:  # LH2 planes and calibrated stations: the forward model's own Jacobian
+                Js.append(_model_jacobian(p_s, lever, st))
         J = np.stack(Js, -4)
     if visible is not None:
         visible = np.broadcast_to(np.asarray(visible, bool), J.shape[:-2])

@@ -132,6 +132,8 @@ class Station:
 
     rotation : (3, 3) and translation : (3,) map station-frame points to the world frame,
     ``p_world = rotation @ p_station + translation`` (m). ``kind`` is ``"lh1"`` or ``"lh2"``.
+    calibration : the station's :class:`Calibration` (None = ideal); solvers and DOP go through
+    :func:`measure` with it.
     """
 
     id: str = "A"
@@ -141,6 +143,7 @@ class Station:
     rotor_rpm: float = LH1_ROTOR_RPM
     clock_hz: float = DEFAULT_CLOCK_HZ
     fov_deg: float = 120.0
+    calibration: "Calibration | None" = None
 
     def __post_init__(self):
         R = as_array(self.rotation, "Station.rotation", (3, 3))
@@ -151,6 +154,11 @@ class Station:
             raise ValueError("Station.rotation: expected a proper rotation matrix")
         if self.kind not in ("lh1", "lh2"):
             raise ValueError(f"Station.kind: expected 'lh1' or 'lh2', got {self.kind!r}")
+        if self.calibration is not None:
+            if not isinstance(self.calibration, Calibration):
+                raise ValueError("Station.calibration: expected a layoutkit.lighthouse.Calibration or None")
+            if self.calibration.kind != self.kind:
+                raise ValueError(f"Station.calibration: a {self.calibration.kind} model on a {self.kind} station")
         object.__setattr__(self, "rotation", R)
         object.__setattr__(self, "translation", t)
 

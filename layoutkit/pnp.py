@@ -761,7 +761,7 @@ PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_lm}
 
 
 def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations: int = 20,
-              method: str = "lm", chunk_size: int = DEFAULT_CHUNK) -> PnPResult:
+              method: str = "lm", chunk_size: int = DEFAULT_CHUNK, calibration=None) -> PnPResult:
     """Poses of a rigid sensor body from LH1 sweep angles, batched over frames.
 
     points_body : (n, 3) or (F, n, 3) float, m, sensor positions in the body frame.
@@ -776,10 +776,24 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
     method : key of :data:`PNP_SOLVERS`.
     chunk_size : frames per chunk; memory stays bounded for any F.
 
+    calibration : a :class:`layoutkit.lighthouse.Calibration` of the station: the residuals are
+        then minimised through its forward model (``angles`` are the measured, distorted ones;
+        LH2 calibrations take light-plane angles) by :func:`layoutkit.joint.solve_joint`.
+
     Returns a :class:`PnPResult` with a leading frame axis F (F = 1 for (n, 2) angles).
     Degenerate input (fewer than 4 lit sensors, collinear sensors, NaN) gives a status, not an
     exception; inconsistent shapes raise ``ValueError``.
     """
+    if calibration is not None:
+        from .joint import solve_joint
+        from .lighthouse import Station
+
+        a = np.asarray(angles, float)
+        a = a[None] if a.ndim == 2 else a
+        st = Station(kind=calibration.kind, calibration=calibration)
+        vis = None if visible is None else np.asarray(visible, bool)[:, None]
+        return solve_joint(points_body, a[:, None], vis, stations=[st], initial=initial,
+                           max_iterations=max(int(max_iterations), 30), chunk_size=chunk_size)
     if method not in PNP_SOLVERS:
         raise ValueError(f"method: expected one of {sorted(PNP_SOLVERS)}, got {method!r}")
     ang = as_array(angles, "angles", (..., None, 2))

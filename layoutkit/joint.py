@@ -1,0 +1,262 @@
+"""Pose from sweep angles through any forward model: calibrated, LH1 or LH2, one or several stations.
+
+The fast solver in :mod:`layoutkit.pnp` is specialised to one ideal LH1 station. This module is the
+general one: a batched Levenberg–Marquardt over frames that minimises the angle residuals
+``angles - measure(p_s, calib_s)`` (:func:`layoutkit.lighthouse.measure`; residuals are never
+pre-corrected) of all stations at once, the body pose in the stations' common world frame.
+
+Model (per frame): ``p_world = R p_body + t``; station s sees ``p_s = R_s^T (p_world - T_s)``.
+Perturbation as everywhere (design §2): ``R <- exp([dphi]x) R``, ``t <- t + dt``; the Jacobian row of
+one angle is ``[l x a, a]`` with ``a = R_s (d angle / d p_s)`` and ``l = R p_body`` (as in
+:func:`layoutkit.dop.angle_jacobian`, with the calibrated ``d angle / d p_s`` of
+:func:`layoutkit.lighthouse.measure_jacobian`).
+
+Optional motion compensation: station s's angles of a window were taken ``dt_s`` seconds from the
+window time; with a body angular velocity ``omega`` (rad/s, world frame) and velocity ``v`` (m/s)
+the pose station s saw is ``R_s' = exp([omega dt_s]x) R``, ``t_s' = t + v dt_s`` (constant
+velocity across the window); the rotation Jacobian becomes ``l x (E^T a)`` with ``E = exp([omega dt_s]x)``.
+
+Start: every station alone through :func:`layoutkit.pnp.solve_pnp` (its angles first undistorted
+by :func:`layoutkit.lighthouse.undistort` and, for LH2, turned into LH1-equivalent angles — for the
+start only), taken to the world frame; per frame the start with the lowest joint cost wins.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import as_array
+from .geometry import rotvec_to_matrix
+from .lighthouse import Station, lh2_to_lh1_angles, measure_jacobian, undistort
+from .pnp import (PnPResult, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_NOT_CONVERGED, STATUS_OK,
+                  STATUS_TOO_FEW, solve_pnp)
+
+__all__ = ["solve_joint", "model_angles_jacobian", "MIN_ANGLES", "DEFAULT_CHUNK"]
+
+#: Fewest angles for a pose (6 unknowns); fewer gives ``STATUS_TOO_FEW``.
+MIN_ANGLES = 6
+DEFAULT_CHUNK = 2048
+_RTOL = 1e-10     # converged when an accepted step lowers the cost by less than this fraction
+_ATOL = 1e-26     # ... or by less than this (rad², per angle)
+
+
+def _wrap(a):
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def model_angles_jacobian(points_body, rotation, translation, stations, *, dt=None, velocity=None,
+                          jacobian: bool = True):
+    """Predicted angles of all stations and their Jacobian with respect to the world pose.
+
+    points_body : (n, 3) m; rotation : (F, 3, 3), translation : (F, 3) m (world frame).
+    stations : S :class:`Station` (pose, kind, calibration).
+    dt : (F, S) s, optional time of each station's sweeps from the window time; velocity :
+        ``(omega (F, 3) rad/s, v (F, 3) m/s)`` (world frame), used with ``dt``.
+    Returns ``angles (F, S, n, 2)``, ``J (F, S, n, 2, 6)`` (None without ``jacobian``) and the
+    station-frame points ``p_s (F, S, n, 3)``.
+    """
+    P = np.asarray(points_body, float)
+    R = np.asarray(rotation, float)
+    t = np.asarray(translation, float)
+    F = R.shape[0]
+    lever = np.einsum("fij,nj->fni", R, P)                       # l = R p_body (F, n, 3)
+    angs, jacs, pts = [], [], []
+    for s, st in enumerate(stations):
+        E = None
+        if dt is not None and velocity is not None:
+            d = np.asarray(dt, float)[:, s]
+            E = rotvec_to_matrix(np.asarray(velocity[0], float) * d[:, None])
+            lw = np.einsum("fij,fnj->fni", E, lever)
+            tw = t + np.asarray(velocity[1], float) * d[:, None]
+        else:
+            lw, tw = lever, t
+        pw = lw + tw[:, None, :]
+        ps = (pw - st.translation) @ st.rotation                 # R_s^T (p_w - T_s)
+        a, dp, _ = measure_jacobian(ps, st.calibration, st.kind, jacobian=jacobian)
+        angs.append(a)
+        pts.append(ps)
+        if jacobian:
+            aw = dp @ st.rotation.T                              # d angle / d p_world (F, n, 2, 3)
+            if E is not None:
+                aw_rot = np.einsum("fji,fnkj->fnki", E, aw)      # E^T a
+            else:
+                aw_rot = aw
+            l = lever[:, :, None, :]
+            J = np.empty(a.shape + (6,))
+            J[..., :3] = np.cross(l, aw_rot)
+            J[..., 3:] = aw
+            jacs.append(J)
+    A = np.stack(angs, 1) if angs else np.zeros((F, 0, P.shape[0], 2))
+    return A, (np.stack(jacs, 1) if jacobian else None), np.stack(pts, 1)
+
+
+def _start(P, ang, mask, stations):
+    """Per-station starts in the world frame: list of (R (F,3,3), t (F,3), ok (F,))."""
+    out = []
+    for s, st in enumerate(stations):
+        a = np.where(mask[:, s], ang[:, s], np.nan)
+        if st.calibration is not None:
+            a = undistort(a, st.calibration, max_iterations=20, tol=1e-9)
+        if st.kind == "lh2":
+            a = lh2_to_lh1_angles(a)
+        lit = np.all(np.isfinite(a), -1)
+        r = solve_pnp(P, a, lit)
+        ok = r.success | (r.status == STATUS_NOT_CONVERGED)
+        Rw = np.einsum("ij,fjk->fik", st.rotation, np.where(ok[:, None, None], r.rotation, np.eye(3)))
+        tw = np.where(ok[:, None], r.translation, 0.0) @ st.rotation.T + st.translation
+        out.append((Rw, tw, ok))
+    return out
+
+
+def _cost(P, R, t, stations, meas, mask, dt, vel, jacobian):
+    A, J, ps = model_angles_jacobian(P, R, t, stations, dt=dt, velocity=vel, jacobian=jacobian)
+    r = np.where(mask, _wrap(meas - A), 0.0)
+    return np.sum(r * r, axis=(1, 2, 3)), r, J, ps
+
+
+def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
+    F = R.shape[0]
+    cost, r, J, ps = _cost(P, R, t, stations, meas, mask, dt, vel, True)
+    m = mask.sum(axis=(1, 2, 3))
+    lam = np.full(F, 1e-3)
+    done = np.zeros(F, bool)
+    its = np.zeros(F, int)
+    I6 = np.eye(6)
+    for _ in range(max_iterations):
+        act = ~done
+        if not act.any():
+            break
+        Jm = J[act] * mask[act][..., None]
+        Jv = Jm.reshape(Jm.shape[0], -1, 6)
+        A = np.swapaxes(Jv, 1, 2) @ Jv
+        g = np.einsum("fki,fk->fi", Jv, r[act].reshape(Jv.shape[0], -1))
+        D = np.diagonal(A, axis1=1, axis2=2)
+        M = A + lam[act][:, None, None] * (D[:, :, None] * I6 + 1e-12 * np.trace(A, axis1=1, axis2=2)[:, None, None] * I6)
+        try:
+            step = np.linalg.solve(M, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.stack([np.linalg.lstsq(Mi, gi, rcond=None)[0] for Mi, gi in zip(M, g)])
+        Rn = rotvec_to_matrix(step[:, :3]) @ R[act]
+        tn = t[act] + step[:, 3:]
+        sub = (None if dt is None else dt[act], None if vel is None else (vel[0][act], vel[1][act]))
+        cn, rn, Jn, psn = _cost(P, Rn, tn, stations, meas[act], mask[act], sub[0], sub[1], True)
+        idx = np.flatnonzero(act)
+        better = cn < cost[act]
+        its[idx] += 1
+        gain = cost[act] - cn
+        conv = better & ((gain <= _RTOL * cost[act]) | (gain <= _ATOL * np.maximum(m[act], 1)))
+        tiny = np.linalg.norm(step, axis=1) < 1e-14
+        acc = idx[better]
+        R[acc], t[acc], cost[acc], r[acc], J[acc], ps[acc] = Rn[better], tn[better], cn[better], rn[better], Jn[better], psn[better]
+        lam[idx] = np.where(better, np.maximum(lam[idx] / 10.0, 1e-9), lam[idx] * 10.0)
+        done[idx[conv | tiny | (lam[idx] > 1e8)]] = True
+    return R, t, cost, done, its, ps, J
+
+
+def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt=None, velocity=None,
+                max_iterations: int = 30, chunk_size: int = DEFAULT_CHUNK) -> PnPResult:
+    """Body poses in the stations' world frame from the angles of all stations at once.
+
+    points_body : (n, 3) m, sensors in the body frame.
+    angles : (F, S, n, 2) rad, each station's measured angles in its own kind's convention (LH1
+        ``theta``, LH2 light-plane angles, as :func:`layoutkit.lighthouse.measure` predicts them);
+        NaN = not seen. (F, n, 2) is accepted for S = 1.
+    visible : optional (F, S, n) or (F, S, n, 2) bool (per sensor or per angle).
+    stations : S :class:`Station` with poses in one world frame (and calibrations).
+    initial : optional ``(R (F, 3, 3), t (F, 3))`` world start; default the per-station solves.
+    dt, velocity : optional motion compensation (see :func:`model_angles_jacobian`).
+    Returns a :class:`layoutkit.pnp.PnPResult` (world frame; ``residual_rms`` over the used angles).
+    Frames with fewer than :data:`MIN_ANGLES` usable angles (or no station start) get
+    ``STATUS_TOO_FEW``; singular normal equations ``STATUS_DEGENERATE``; a used point behind its
+    station ``STATUS_BEHIND``. Never raises on bad angle values.
+    """
+    stations = list(stations)
+    S = len(stations)
+    if S == 0:
+        raise ValueError("stations: at least one station is required")
+    P = as_array(points_body, "points_body", (None, 3))
+    n = P.shape[0]
+    ang = np.asarray(angles, float)
+    if ang.ndim == 3 and S == 1:
+        ang = ang[:, None]
+    if ang.ndim != 4 or ang.shape[1:] != (S, n, 2):
+        raise ValueError(f"angles: expected shape (F, {S}, {n}, 2), got {ang.shape}")
+    F = ang.shape[0]
+    mask = np.isfinite(ang)
+    if visible is not None:
+        v = np.asarray(visible, bool)
+        if v.ndim == 3:
+            v = v[..., None]
+        try:
+            mask &= np.broadcast_to(v, mask.shape)
+        except ValueError:
+            raise ValueError(f"visible: expected shape (F, {S}, {n}) or (F, {S}, {n}, 2), got {v.shape}") from None
+    if dt is not None:
+        dt = np.broadcast_to(np.asarray(dt, float), (F, S))
+    if velocity is not None:
+        velocity = (np.broadcast_to(np.asarray(velocity[0], float), (F, 3)),
+                    np.broadcast_to(np.asarray(velocity[1], float), (F, 3)))
+    parts = []
+    chunk = max(int(chunk_size), 1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for s0 in range(0, F, chunk):
+            e = min(F, s0 + chunk)
+            ini = None if initial is None else (np.asarray(initial[0], float)[s0:e], np.asarray(initial[1], float)[s0:e])
+            parts.append(_solve_chunk(P, ang[s0:e], mask[s0:e], stations, ini,
+                                      None if dt is None else dt[s0:e],
+                                      None if velocity is None else (velocity[0][s0:e], velocity[1][s0:e]),
+                                      max_iterations))
+    fields = ("rotation", "translation", "success", "status", "residual_rms", "iterations")
+    if not parts:
+        return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, int),
+                         np.zeros(0), np.zeros(0, int))
+    return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in fields))
+
+
+def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> PnPResult:
+    F = ang.shape[0]
+    meas = np.where(mask, ang, 0.0)
+    m = mask.sum(axis=(1, 2, 3))
+    if initial is not None:
+        R0, t0 = initial[0].copy(), initial[1].copy()
+        have = np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1)
+    else:
+        starts = _start(P, ang, mask, stations)
+        best = np.full(F, np.inf)
+        R0, t0 = np.tile(np.eye(3), (F, 1, 1)), np.zeros((F, 3))
+        for Rw, tw, ok in starts:
+            if not ok.any():
+                continue
+            c = np.full(F, np.inf)
+            sub = (None if dt is None else dt[ok], None if vel is None else (vel[0][ok], vel[1][ok]))
+            c[ok] = _cost(P, Rw[ok], tw[ok], stations, meas[ok], mask[ok], sub[0], sub[1], False)[0]
+            c = np.where(np.isfinite(c), c, np.inf)
+            take = c < best
+            R0[take], t0[take], best[take] = Rw[take], tw[take], c[take]
+        have = np.isfinite(best)
+    status = np.full(F, STATUS_TOO_FEW)
+    R = np.full((F, 3, 3), np.nan)
+    t = np.full((F, 3), np.nan)
+    res = np.full(F, np.nan)
+    its = np.zeros(F, int)
+    go = have & (m >= MIN_ANGLES)
+    if go.any():
+        sub = (None if dt is None else dt[go], None if vel is None else (vel[0][go], vel[1][go]))
+        Rg, tg, cost, done, it, ps, J = _lm(P, R0[go].copy(), t0[go].copy(), stations, meas[go], mask[go],
+                                          sub[0], sub[1], max_iterations)
+        mk = mask[go]
+        Jm = (J * mk[..., None]).reshape(Rg.shape[0], -1, 6)
+        A = np.swapaxes(Jm, 1, 2) @ Jm
+        w = np.linalg.eigvalsh(A / np.maximum(np.trace(A, axis1=1, axis2=2), 1e-300)[:, None, None])
+        singular = w[:, 0] <= 1e-12 * w[:, -1]
+        used = np.any(mk, -1)                                    # (f, S, n)
+        behind = np.any(used & (ps[..., 2] <= 0), axis=(1, 2))
+        st = np.where(singular, STATUS_DEGENERATE,
+                      np.where(behind, STATUS_BEHIND, np.where(done, STATUS_OK, STATUS_NOT_CONVERGED)))
+        status[go] = st
+        R[go], t[go] = Rg, tg
+        res[go] = np.sqrt(cost / m[go])
+        its[go] = it
+        bad = go.copy()
+        bad[go] = st == STATUS_DEGENERATE
+        R[bad], t[bad] = np.nan, np.nan
+    return PnPResult(R, t, status == STATUS_OK, status, res, its)
