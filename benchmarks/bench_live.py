@@ -173,7 +173,8 @@ def static_steps_csv(layout, path: Path, groups: int, hold: float, move: float, 
     ``move`` s transitions: positions 1.5-3 m in front of the station, attitudes with >= 5 of the
     layout's sensors lit (like Chen's 50 static groups)."""
     from layoutkit.geometry import matrix_to_rotvec
-    from layoutkit.simulate import facing_mask, poses_in_front
+    from layoutkit.simulate import poses_in_front
+    from layoutkit.visibility import facing_mask
 
     rows, t = [], 0.0
     while len(rows) < 2 * groups:

@@ -15,6 +15,7 @@ import numpy as np
 from ._validate import as_array, check_finite
 from .geometry import attitude_error, nearest_rotation
 from .lighthouse import Station, measure_jacobian
+from .units import RAD2DEG
 
 __all__ = [
     "DopResult",
@@ -26,7 +27,6 @@ __all__ = [
     "rms",
 ]
 
-RAD2DEG = 180.0 / np.pi
 # Relative conditioning below which H is reported as singular (degenerate geometry).
 _RCOND = 1e-12
 

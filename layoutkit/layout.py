@@ -14,10 +14,12 @@ import numpy as np
 
 from ._json import to_jsonable
 from ._validate import as_array, check_finite, read_structured
+from .units import LENGTH_UNITS, length_scale
 
 __all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout"]
 
-UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+#: Back-compat name of :data:`layoutkit.units.LENGTH_UNITS` (metres per unit).
+UNIT_SCALE = LENGTH_UNITS
 
 
 @dataclass(frozen=True)
@@ -69,8 +71,7 @@ class Layout:
         if not isinstance(d, dict):
             raise ValueError("layout: expected a JSON object with 'units' and 'sensors'")
         units = d.get("units", "m")
-        if units not in UNIT_SCALE:
-            raise ValueError(f"layout units: expected one of {sorted(UNIT_SCALE)}, got {units!r}")
+        scale = length_scale(units, "layout units")
         sensors = d.get("sensors")
         if not isinstance(sensors, list) or not sensors:
             raise ValueError("layout: 'sensors' must be a non-empty list")
@@ -84,7 +85,7 @@ class Layout:
             ids.append(str(s.get("id", k)))
             extra.append({key: val for key, val in s.items() if key not in ("id", "position", "normal")})
         meta = {key: val for key, val in d.items() if key not in ("units", "sensors")}
-        return cls(np.asarray(pos) * UNIT_SCALE[units], np.asarray(nor), tuple(ids), meta, tuple(extra))
+        return cls(np.asarray(pos) * scale, np.asarray(nor), tuple(ids), meta, tuple(extra))
 
     def to_dict(self) -> dict:
         sensors = [

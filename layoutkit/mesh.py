@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .layout import UNIT_SCALE
+from .units import length_scale
 
 __all__ = ["MESH_FORMATS", "MeshWarning", "load_mesh", "mesh_hash", "describe_mesh", "save_mesh"]
 
@@ -54,8 +54,7 @@ def load_mesh(path, units: str = "m"):
     import trimesh
 
     path = Path(path)
-    if units not in UNIT_SCALE:
-        raise ValueError(f"units: expected one of {sorted(UNIT_SCALE)}, got {units!r}")
+    scale = length_scale(units, "units")
     fmt = path.suffix.lower().lstrip(".")
     if fmt not in MESH_FORMATS:
         raise ValueError(f"{path}: unknown mesh format {path.suffix or '(no suffix)'!r}; "
@@ -78,7 +77,7 @@ def load_mesh(path, units: str = "m"):
     if bad:
         raise ValueError(f"{path}: {bad} non-finite vertex coordinate(s) (NaN or inf)")
 
-    mesh.apply_scale(UNIT_SCALE[units])
+    mesh.apply_scale(scale)
     area = mesh.area_faces
     if not np.any(area > 0):
         raise ValueError(f"{path}: degenerate mesh (total surface area is zero)")

@@ -3,12 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .units import RHO_PAPER, SIGMA_THETA_PAPER  # re-exported: the constants live in units.py
+
 __all__ = ["SIGMA_THETA_PAPER", "RHO_PAPER", "angle_correlation", "sample_angle_noise"]
 
-# Chen §4.2 quotes sigma_theta = 4.014e-5 rad "(8.8'')". 8.8'' is really 4.266e-5 rad (4.014e-5 rad
-# is 8.28''); the radian value is the one the paper used in eq. (24), so it is our default.
-SIGMA_THETA_PAPER = 4.014e-5
-RHO_PAPER = 0.8717
 
 
 def angle_correlation(n: int, rho: float) -> np.ndarray:

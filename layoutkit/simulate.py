@@ -2,7 +2,8 @@
 
 Pure numpy; the measurement chain of design §3: true angles (Chen eq. 2) + correlated noise
 (eq. 19) + counter quantisation. Occlusion by a mesh is the visibility room's job
-(:mod:`layoutkit.visibility`); :func:`facing_mask` is the exact lit test for convex targets.
+(:mod:`layoutkit.visibility`, which also owns the lit rule :func:`~layoutkit.visibility.facing_mask`,
+re-exported here for old imports).
 """
 from __future__ import annotations
 
@@ -12,28 +13,9 @@ from ._validate import as_array
 from .geometry import random_rotations, transform_points
 from .lighthouse import DEFAULT_CLOCK_HZ, LH1_ROTOR_RPM, in_field_of_view, quantize_angles, sweep_angles
 from .noise import sample_angle_noise
+from .visibility import facing_mask  # re-export: the lit rule lives in the visibility room
 
 __all__ = ["facing_mask", "simulate_angles", "simulate_station_angles", "stations_looking_at", "poses_in_front"]
-
-
-def facing_mask(positions, normals, rotation, translation, *, half_angle_deg: float = 60.0,
-                fov_deg: float = 120.0) -> np.ndarray:
-    """Sensors facing a station at the origin and in its field of view, ``(P, n)`` bool.
-
-    positions, normals : (n, 3) body frame; rotation (P, 3, 3), translation (P, 3): body pose in
-    the station frame. A sensor is lit when the angle between its normal and the direction to
-    the station is ≤ ``half_angle_deg`` and both sweep angles are within ``fov_deg / 2`` of 90°.
-    No occlusion test: exact for convex targets.
-    """
-    P = as_array(positions, "positions", (None, 3))
-    N = as_array(normals, "normals", (P.shape[0], 3))
-    R = as_array(rotation, "rotation", (..., 3, 3))
-    t = as_array(translation, "translation", (..., 3))
-    p_lh = transform_points(R, t, P)
-    n_lh = np.einsum("...ij,nj->...ni", R, N)
-    to_station = -p_lh / np.linalg.norm(p_lh, axis=-1, keepdims=True)
-    cos = np.sum(n_lh * to_station, -1)
-    return (cos >= np.cos(np.deg2rad(half_angle_deg))) & in_field_of_view(p_lh, fov_deg)
 
 
 def simulate_angles(points_body, rotation, translation, *, sigma: float, rho: float,

@@ -31,10 +31,33 @@ from typing import Protocol
 import numpy as np
 
 from ._validate import as_array, check_finite
+from .geometry import transform_points
 from .lighthouse import in_field_of_view
 
-__all__ = ["RAY_ENGINES", "RayEngine", "ray_engine", "visible_sensors", "envelope_visibility",
+__all__ = ["facing_mask", "RAY_ENGINES", "RayEngine", "ray_engine", "visible_sensors", "envelope_visibility",
            "first_hit_distance", "segment_occlusion_reference", "DEFAULT_CHUNK"]
+
+
+def facing_mask(positions, normals, rotation, translation, *, half_angle_deg: float = 60.0,
+                fov_deg: float = 120.0) -> np.ndarray:
+    """Sensors facing a station at the origin and in its field of view, ``(P, n)`` bool.
+
+    positions, normals : (n, 3) body frame; rotation (P, 3, 3), translation (P, 3): body pose in
+    the station frame. A sensor is lit when the angle between its normal and the direction to
+    the station is ≤ ``half_angle_deg`` and both sweep angles are within ``fov_deg / 2`` of 90°.
+    No occlusion test: exact for convex targets.
+    Used by the simulators, the optimiser's instances and the Chen study (one lit rule).
+    """
+    P = as_array(positions, "positions", (None, 3))
+    N = as_array(normals, "normals", (P.shape[0], 3))
+    R = as_array(rotation, "rotation", (..., 3, 3))
+    t = as_array(translation, "translation", (..., 3))
+    p_lh = transform_points(R, t, P)
+    n_lh = np.einsum("...ij,nj->...ni", R, N)
+    to_station = -p_lh / np.linalg.norm(p_lh, axis=-1, keepdims=True)
+    cos = np.sum(n_lh * to_station, -1)
+    return (cos >= np.cos(np.deg2rad(half_angle_deg))) & in_field_of_view(p_lh, fov_deg)
+
 
 #: Pose × sensor pairs processed per chunk (bounds memory to a few tens of MB).
 DEFAULT_CHUNK = 1 << 17

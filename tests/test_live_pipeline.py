@@ -16,7 +16,7 @@ from layoutkit.live.pipeline import (STATUS_JUMP, STATUS_OK, STATUS_TOO_FEW_LIT,
                                      SweepPairer, lh2_to_lh1_angles)
 from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
 from layoutkit.shapes import chen_target
-from layoutkit.simulate import facing_mask
+from layoutkit.visibility import facing_mask
 
 SLOT = 1.0 / 120.0
 

@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import click
 
+from ..units import ARCSEC
 from ._common import echo_json, fail
-
-ARCSEC = 3.141592653589793 / 180.0 / 3600.0
 
 
 def _layout(path):
@@ -42,7 +41,7 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
 
     from ..dop import pose_dop
     from ..geometry import rotvec_to_matrix
-    from ..simulate import facing_mask
+    from ..visibility import facing_mask
 
     lay = _layout(layout_path)
     R = rotvec_to_matrix(np.radians(rotvec_deg))

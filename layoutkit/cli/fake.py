@@ -50,7 +50,7 @@ def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s
     from ..layout import load_layout
     from ..live.capture import station_to_dict
     from ..live.simulator import ReaderGone, load_trajectory, run_fake_fpga, simulate_stream, write_truth
-    from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
+    from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 
     if out is not None and use_pty:
         fail("--out and --pty: choose one")

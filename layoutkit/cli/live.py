@@ -6,9 +6,8 @@ import sys
 
 import click
 
+from ..units import ARCSEC
 from .options import overwrite_option
-
-ARCSEC = 3.141592653589793 / 180.0 / 3600.0
 
 _common_options = [
     click.option("--layout", "layout_path", type=click.Path(dir_okay=False), default=None,
@@ -50,7 +49,7 @@ def _add(options):
 
 
 def _options(rho, sigma_arcsec, live: bool, motion_compensation: bool = False):
-    from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
+    from ..units import RHO_PAPER, SIGMA_THETA_PAPER
     from ..workflows.live import LiveOptions
 
     if sigma_arcsec is not None and not sigma_arcsec > 0:

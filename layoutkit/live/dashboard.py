@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["render_snapshot", "Dashboard"]
+from ..units import RAD2DEG as DEG, SIGMA_THETA_PAPER
 
-DEG = 180.0 / np.pi
+__all__ = ["render_snapshot", "Dashboard"]
 
 
 def _fmt(x, spec=".3f", none="–"):
@@ -26,7 +26,7 @@ def render_snapshot(snap: dict):
     """A rich renderable (table) for one snapshot dict."""
     from rich.table import Table
 
-    sig = snap.get("sigma_theta", 4.014e-5)
+    sig = snap.get("sigma_theta", SIGMA_THETA_PAPER)
     t = Table(title="layoutkit live", show_header=False, expand=False, min_width=60)
     t.add_column("item", style="bold cyan", no_wrap=True)
     t.add_column("value")

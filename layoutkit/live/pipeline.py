@@ -27,7 +27,7 @@ import numpy as np
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec
 from ..lighthouse import LH1_ROTOR_RPM, Station, lh2_to_lh1_angles  # noqa: F401  (re-export)
-from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
+from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 from .frames import SweepMeasurement
 
 __all__ = [

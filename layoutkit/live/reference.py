@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec, nearest_rotation, rotvec_to_matrix
+from ..units import length_scale
 
 __all__ = [
     "PoseTrack",
@@ -44,7 +45,6 @@ _ROTVEC = ("rx", "ry", "rz")
 _QUAT = ("qx", "qy", "qz", "qw")
 _MATRIX = tuple(f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
 _POS = (("tx", "ty", "tz"), ("x", "y", "z"))
-_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2}
 
 
 @dataclass(frozen=True)
@@ -107,8 +107,7 @@ def read_pose_csv(path, units: str = "m") -> PoseTrack:
     ``x,y,z`` in ``units`` ("m", "cm", "mm"), optional. The simulator's TRUTH.csv
     (``t,rx,ry,rz,tx,ty,tz``) is one such file. Rows with non-finite values are skipped.
     """
-    if units not in _UNITS:
-        raise ValueError(f"units: expected one of {sorted(_UNITS)}, got {units!r}")
+    scale = length_scale(units, "units")
     with open(path, newline="") as fh:
         header = [h.strip().lower() for h in next(csv.reader(fh))]
     col = {h: i for i, h in enumerate(header)}
@@ -135,7 +134,7 @@ def read_pose_csv(path, units: str = "m") -> PoseTrack:
         R = Rotation.from_quat(a).as_matrix()
     else:
         R = nearest_rotation(a.reshape(-1, 3, 3))
-    tr = None if pos is None else data[:, pos] * _UNITS[units]
+    tr = None if pos is None else data[:, pos] * scale
     order = np.argsort(t, kind="stable")
     keep = np.concatenate([[True], np.diff(t[order]) > 0])
     order = order[keep]

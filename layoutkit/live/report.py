@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from .._json import to_jsonable
+from ..units import RAD2DEG as DEG, SIGMA_THETA_PAPER
 
 __all__ = ["write_report"]
 
-DEG = 180.0 / np.pi
 
 
 
@@ -123,7 +123,7 @@ def write_report(directory, summary: dict, *, error_series: dict | None = None, 
         _plot_errors(series, sums, d / "errors.png")
         paths["errors_png"] = str(d / "errors.png")
     if dop_series is not None and len(dop_series):
-        _plot_dop(np.asarray(dop_series), summary.get("sigma_theta_rad", 4.014e-5), d / "dop.png")
+        _plot_dop(np.asarray(dop_series), summary.get("sigma_theta_rad", SIGMA_THETA_PAPER), d / "dop.png")
         paths["dop_png"] = str(d / "dop.png")
     poses = d / "poses.csv"
     if poses.exists():

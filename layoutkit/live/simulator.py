@@ -23,7 +23,8 @@ import numpy as np
 
 from ..geometry import matrix_to_rotvec, random_rotations, rotvec_to_matrix
 from ..lighthouse import Station, lh2_sweep_angles, sweep_angles
-from ..noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
+from ..noise import sample_angle_noise
+from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 
 __all__ = [
     "Trajectory",
@@ -97,7 +98,7 @@ def lit_sensors(layout, R, t, station: Station | None = None, *, cone_deg: float
     Lit = normal within ``cone_deg`` of the direction from the sensor to the station centre and
     the sensor inside the station's field of view (no self-occlusion model).
     """
-    from ..simulate import facing_mask
+    from ..visibility import facing_mask
 
     station = station or Station()
     Rs, ts = station.world_to_station(R, t)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..dop import pose_errors, precision
 from ..geometry import matrix_to_rotvec, nearest_rotation
-from ..noise import SIGMA_THETA_PAPER
+from ..units import DEG, SIGMA_THETA_PAPER
 
 __all__ = [
     "DecimatedSeries",
@@ -31,8 +31,6 @@ __all__ = [
     "ErrorSummary",
     "ErrorAccumulator",
 ]
-
-DEG = np.pi / 180.0
 
 
 class DecimatedSeries:

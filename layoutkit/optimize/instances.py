@@ -69,8 +69,8 @@ def envelope_poses(n, rng=None, distance=(1.0, 3.0), half_fov_deg=40.0, cone_deg
 
 def cone_visibility(positions, normals, R, t, half_angle_deg=70.0, fov_deg=120.0):
     """(P, N) bool: the site faces the station within ``half_angle_deg`` and is in the FOV
-    (:func:`layoutkit.simulate.facing_mask`; exact for a convex body)."""
-    from ..simulate import facing_mask
+    (:func:`layoutkit.visibility.facing_mask`; exact for a convex body)."""
+    from ..visibility import facing_mask
 
     return facing_mask(positions, normals, R, t, half_angle_deg=half_angle_deg, fov_deg=fov_deg)
 

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..units import RAD2DEG
+
 __all__ = ["Objective", "parse_objective", "OBJECTIVE_METRICS", "OBJECTIVE_AGGREGATES"]
 
-RAD2DEG = 180.0 / np.pi
 OBJECTIVE_METRICS = ("adop", "pdop", "weighted")
 OBJECTIVE_AGGREGATES = ("worst", "mean", "pNN")
 

@@ -12,12 +12,12 @@ import numpy as np
 
 from ..dop import pose_dop, pose_errors, precision, rms
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
-from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
-from ..simulate import facing_mask, poses_in_front, simulate_angles
+from ..simulate import poses_in_front, simulate_angles
+from ..units import RAD2DEG, RHO_PAPER, SIGMA_THETA_PAPER
+from ..visibility import facing_mask
 
 __all__ = ["StudyConfig", "static_groups", "dynamic_run", "run_chen2024", "write_outputs"]
 
-RAD2DEG = 180.0 / np.pi
 GROSS_DEG = 1.0
 
 

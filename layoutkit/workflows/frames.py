@@ -38,7 +38,8 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
                     half_angle_deg: float = 60.0, min_lit: int = 4, rate_hz: float = 60.0,
                     quantize: bool = True) -> Frames:
     """Static random poses on the paper's area in front of the station, ≥ ``min_lit`` lit."""
-    from ..simulate import facing_mask, poses_in_front, simulate_angles
+    from ..simulate import poses_in_front, simulate_angles
+    from ..visibility import facing_mask
 
     rng = np.random.default_rng(seed)
     Rs, ts, vs = [], [], []

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..geometry import rotvec_to_matrix
 from ..layout import Layout, load_layout
-from ..noise import RHO_PAPER, SIGMA_THETA_PAPER
+from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 from ..live.pipeline import STATUS_NAMES, PipelineConfig, PoseChunk, PosePipeline
 from ..live.stats import DecimatedSeries, ErrorAccumulator, StaticGroupTracker
 

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..units import RHO_PAPER
+
 __all__ = ["prepare_problem", "run_optimize", "write_report", "run_demo", "evaluate_layout"]
 
 REPO = Path(__file__).resolve().parents[2]
@@ -79,7 +81,7 @@ def dop_stats(adop, pdop, n_lit, min_visible=4):
     return out
 
 
-def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-adop", rho=0.8717,
+def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-adop", rho=RHO_PAPER,
                  method="pipeline", candidates=None, spacing=None, keepout=(), fixed_ids=(),
                  min_visible=4, k_range=None, seed=0, units="m", min_spacing=0.0,
                  coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
@@ -243,6 +245,6 @@ def run_demo(out_dir, quick=True, echo=print, progress=None):
         env = dataclasses.replace(env, count=min(env.count, 100))
     mesh = load_mesh(mesh_path)
     return run_optimize(mesh, env, 12, out=out_dir / "layout.json", report=out_dir / "report",
-                        objective="worst-adop", rho=0.8717, spacing=0.008 if quick else 0.005,
+                        objective="worst-adop", rho=RHO_PAPER, spacing=0.008 if quick else 0.005,
                         seed=0, time_limit=60 if quick else None, progress=progress,
                         k_range=None, echo=echo)

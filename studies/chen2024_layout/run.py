@@ -24,7 +24,7 @@ import numpy as np
 
 from layoutkit._json import to_jsonable
 from layoutkit.envelope import load_envelope
-from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER
+from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 from layoutkit.optimize import optimize_stations
 from layoutkit.shapes import chen_target
 from layoutkit.workflows.optimize import evaluate_layout, prepare_problem
