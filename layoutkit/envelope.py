@@ -25,8 +25,8 @@ spherical cap of ``boresight_cone_deg`` around the boresight (+z) of the referen
 (``reference_station``, default the first). Attitudes (body in the WORLD frame): ``uniform``
 (Haar on SO(3)), ``cone`` (Haar measure restricted to the rotations within ``half_angle_deg``
 of ``R_nominal``, i.e. ``R = exp([w]x) R_nominal`` with ``|w| <= half_angle``), or ``trajectory``
-(a CSV ``t,rx,ry,rz,tx,ty,tz`` with the rotation vector in degrees and the position in metres,
-body in the world frame; it gives the whole pose and ``range_m``/``boresight_cone_deg`` are not
+(a pose table, :mod:`layoutkit.io.poses`: ``t,rx,ry,rz,tx,ty,tz`` at least, rotation vector in
+RADIANS — or columns ``rx_deg,ry_deg,rz_deg`` — and metres, body in the world frame; it gives the whole pose and ``range_m``/``boresight_cone_deg`` are not
 used). Without ``[[station]]`` one LH1 station sits at the world origin, so the world frame is
 the station frame.
 
@@ -270,25 +270,18 @@ def _station_from_dict(s, k: int) -> Station:
 
 
 def _read_trajectory(path, count: int):
-    """CSV ``t,rx,ry,rz,tx,ty,tz`` (rotvec deg, m) → body poses in the world, evenly subsampled to ``count``."""
+    """A pose table (:mod:`layoutkit.io.poses`: rotation vector rad — or ``rx_deg`` columns — and
+    metres) → body poses in the world, evenly subsampled to ``count``."""
+    from .io.poses import read_poses
+
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ValueError(f"attitude.file: no such trajectory file {str(path)!r}") from None
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    header = [h.strip() for h in lines[0].split(",")] if lines else []
-    want = ["t", "rx", "ry", "rz", "tx", "ty", "tz"]
-    if header != want:
-        raise ValueError(f"{path}: expected the header {','.join(want)}, got {lines[0] if lines else '(empty)'!r}")
-    try:
-        data = np.array([[float(x) for x in ln.split(",")] for ln in lines[1:]], dtype=float).reshape(-1, 7)
-    except ValueError as exc:
-        raise ValueError(f"{path}: bad trajectory row ({exc})") from None
-    if len(data) == 0:
-        raise ValueError(f"{path}: trajectory has no rows")
-    if not np.all(np.isfinite(data)):
+    if not path.is_file():
+        raise ValueError(f"attitude.file: no such trajectory file {str(path)!r}")
+    tb = read_poses(path, min_rows=1)
+    rv, tr = tb.rotvec, tb.translation
+    if not (np.all(np.isfinite(rv)) and np.all(np.isfinite(tr))):
         raise ValueError(f"{path}: trajectory has non-finite values")
-    if count and count < len(data):
-        data = data[np.round(np.linspace(0, len(data) - 1, count)).astype(int)]
-    return rotvec_to_matrix(np.deg2rad(data[:, 1:4])), data[:, 4:7]
+    if count and count < len(tb):
+        k = np.round(np.linspace(0, len(tb) - 1, count)).astype(int)
+        rv, tr = rv[k], tr[k]
+    return rotvec_to_matrix(rv), tr

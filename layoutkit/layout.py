@@ -14,7 +14,7 @@ import numpy as np
 
 from ._json import to_jsonable
 from ._validate import as_array, check_finite, read_structured
-from .units import LENGTH_UNITS, length_scale
+from .units import LENGTH_UNITS
 
 __all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout"]
 
@@ -71,7 +71,9 @@ class Layout:
         if not isinstance(d, dict):
             raise ValueError("layout: expected a JSON object with 'units' and 'sensors'")
         units = d.get("units", "m")
-        scale = length_scale(units, "layout units")
+        if units not in LENGTH_UNITS:
+            raise ValueError(f"layout units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
+        scale = LENGTH_UNITS[units]
         sensors = d.get("sensors")
         if not isinstance(sensors, list) or not sensors:
             raise ValueError("layout: 'sensors' must be a non-empty list")

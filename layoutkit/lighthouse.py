@@ -134,6 +134,7 @@ class Station:
     ``p_world = rotation @ p_station + translation`` (m). ``kind`` is ``"lh1"`` or ``"lh2"``.
     calibration : the station's :class:`Calibration` (None = ideal); solvers and DOP go through
     :func:`measure` with it.
+    To and from JSON: :mod:`layoutkit.io.stations`.
     """
 
     id: str = "A"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .units import length_scale
+from .units import LENGTH_UNITS
 
 __all__ = ["MESH_FORMATS", "MeshWarning", "load_mesh", "mesh_hash", "describe_mesh", "save_mesh"]
 
@@ -54,7 +54,9 @@ def load_mesh(path, units: str = "m"):
     import trimesh
 
     path = Path(path)
-    scale = length_scale(units, "units")
+    if units not in LENGTH_UNITS:
+        raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
+    scale = LENGTH_UNITS[units]
     fmt = path.suffix.lower().lstrip(".")
     if fmt not in MESH_FORMATS:
         raise ValueError(f"{path}: unknown mesh format {path.suffix or '(no suffix)'!r}; "

@@ -99,8 +99,9 @@ def test_bad_values_name_the_field(tmp_path, text, msg):
 
 
 def test_trajectory_csv_gives_the_poses_exactly(tmp_path):
+    """A trajectory is a pose table (io/poses.py): degrees only when the columns say so (rx_deg)."""
     rows = [(0.1 * k, 10.0 * k, -5.0, 2.0, 0.1 * k, 0.0, 2.0 + 0.01 * k) for k in range(11)]
-    (tmp_path / "traj.csv").write_text("t,rx,ry,rz,tx,ty,tz\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n")
+    (tmp_path / "traj.csv").write_text("t,rx_deg,ry_deg,rz_deg,tx,ty,tz\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n")
     p = tmp_path / "e.toml"
     p.write_text('count = 6\n[attitude]\nkind = "trajectory"\nfile = "traj.csv"\n')
     R, t = load_envelope(p).poses()
@@ -110,7 +111,11 @@ def test_trajectory_csv_gives_the_poses_exactly(tmp_path):
     (tmp_path / "traj.csv").write_text("time,rx,ry,rz,tx,ty,tz\n0,0,0,0,0,0,1\n")
     with pytest.raises(ValueError) as e:
         load_envelope(p)
-    assert str(e.value) == f"{p}: {tmp_path / 'traj.csv'}: expected the header t,rx,ry,rz,tx,ty,tz, got 'time,rx,ry,rz,tx,ty,tz'"
+    assert str(e.value).startswith(f"{p}: {tmp_path / 'traj.csv'}: not a pose table: missing column(s) t ")
+    # the same degrees under the radians header: rejected, not read 57x too large
+    (tmp_path / "traj.csv").write_text("t,rx,ry,rz,tx,ty,tz\n" + "\n".join(",".join(map(str, r)) for r in rows) + "\n")
+    with pytest.raises(ValueError, match=r"traj.csv: line 2: columns rx,ry,rz: rotation vector norm .* > pi .*degrees"):
+        load_envelope(p)
 
 
 def test_default_station_is_at_the_origin_and_round_trip():

@@ -46,7 +46,11 @@ def sim(tmp_path_factory):
 
 
 def truth_rows(path):
-    return np.loadtxt(path, delimiter=",", skiprows=1)
+    """TRUTH.csv (a pose table, read by name) as rows ``t, rx, ry, rz, tx, ty, tz``."""
+    from layoutkit.io.poses import read_poses
+
+    tb = read_poses(path)
+    return np.column_stack([tb.t, tb.rotvec, tb.translation])
 
 
 def test_replay_rms_error_consistent_with_dop(sim):

@@ -140,7 +140,7 @@ def test_csv_errors(tmp_path):
     with pytest.raises(ValueError, match=r"expected attitude columns rx,ry,rz or qx,qy,qz,qw or r11..r33, "
                                          r"got header \['t', 'a', 'b'\]$"):
         read_pose_csv(path)
-    with pytest.raises(ValueError, match=r"^units: expected one of \['cm', 'm', 'mm'\], got 'inch'$"):
+    with pytest.raises(ValueError, match=r"^units: expected one of \['cm', 'in', 'm', 'mm'\], got 'inch'$"):
         read_pose_csv(path, units="inch")
     with pytest.raises(ValueError, match=r"^PoseTrack: times must be strictly increasing$"):
         PoseTrack(np.array([0.0, 0.0]), np.stack([np.eye(3)] * 2))

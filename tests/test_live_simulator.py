@@ -112,14 +112,14 @@ def test_trajectory_motion_roundtrip(layout, tmp_path):
     rv = np.array([[0, 0, 0], [0.01, 0, 0], [0.02, 0.01, 0]])
     tr = np.array([[0, 0, 2.0], [0.001, 0, 2.0], [0.002, 0, 2.001]])
     path = tmp_path / "traj.csv"
-    np.savetxt(path, np.column_stack([t, rv, tr]), delimiter=",", header=TRUTH_HEADER, comments="")
+    np.savetxt(path, np.column_stack([t, rv, tr]), delimiter=",", header="t,rx,ry,rz,tx,ty,tz", comments="")
     traj = load_trajectory(path)
     sw = simulate_sweeps(layout, duration=2.0, seed=0, motion=traj, sigma=0.0)
     k = np.argmin(np.abs(sw.t - 1.0))
     R, tt = Trajectory(t, rv, tr)(sw.t[k:k + 1])
     np.testing.assert_allclose(sw.translation[k], tt[0], atol=1e-12)
     np.testing.assert_allclose(sw.translation[k], [0.001 * sw.t[k], 0, 2.0], atol=2e-6)
-    with pytest.raises(ValueError, match=r"expected header 't,rx,ry,rz,tx,ty,tz'"):
+    with pytest.raises(ValueError, match=r"bad.csv: not a pose table: missing column\(s\) t, rx, ry, rz, tx, ty, tz"):
         bad = tmp_path / "bad.csv"
         bad.write_text("a,b\n1,2\n")
         load_trajectory(bad)

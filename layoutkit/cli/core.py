@@ -105,14 +105,14 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma_arcsec, no_quantize,
 @click.command("solve")
 @click.argument("frames_path", type=click.Path(dir_okay=False))
 @click.option("--layout", "layout_path", required=True, type=click.Path(dir_okay=False), help="Layout JSON.")
-@click.option("--out", type=click.Path(dir_okay=False), help="Write poses CSV t,rx,ry,rz,tx,ty,tz,status.")
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Write the pose table CSV (t,station,status,rx,ry,rz,tx,ty,tz,residual_rms; rad, m).")
 @_noise_options
 @click.option("--json", "json_out", is_flag=True, help="Print a JSON summary.")
 def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present."""
-    import numpy as np
-
-    from ..workflows.frames import read_frames, solve_frames
+    from ..io.poses import write_poses
+    from ..workflows.frames import read_frames, solution_table, solve_frames
 
     lay = _layout(layout_path)
     try:
@@ -121,9 +121,9 @@ def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
         fail(str(exc))
     res = solve_frames(fr, lay, sigma=sigma_arcsec * ARCSEC, rho=rho)
     if out:
-        arr = np.column_stack([res["t"], res["rotvec"], res["translation"], res["status"]])
-        np.savetxt(out, arr, delimiter=",", header="t,rx,ry,rz,tx,ty,tz,status", comments="", fmt="%.10g")
-    summary = {k: v for k, v in res.items() if k not in ("t", "rotvec", "translation", "success", "status")}
+        write_poses(out, solution_table(res))
+    summary = {k: v for k, v in res.items()
+               if k not in ("t", "rotvec", "translation", "success", "status", "residual_rms")}
     if json_out:
         echo_json(summary)
         return

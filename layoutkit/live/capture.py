@@ -5,12 +5,12 @@ A capture ``run.lkcap`` is three files:
 - ``run.lkcap``        the raw bytes exactly as received, appended *before* any decoding;
 - ``run.lkcap.idx``    one 16-byte record per received chunk: ``<Q d`` = (byte offset of the
   chunk's first byte, host arrival time in seconds since the capture's start);
-- ``run.lkcap.json``   the sidecar: layout, station set-up, port settings, protocol (+ options),
-  start time (UTC ISO 8601), and at close the byte count and end time.
+- ``run.lkcap.json``   the sidecar (:class:`layoutkit.io.sidecar.CaptureSidecar`): layout, station
+  set-up, port settings, protocol (+ options), start time (UTC ISO 8601), and at close the byte
+  count and end time.
 """
 from __future__ import annotations
 
-import json
 import os
 import struct
 import time
@@ -19,7 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
+from ..io.sidecar import FORMAT, FORMAT_VERSION, CaptureSidecar, sidecar_path, write_sidecar
+from ..io.sidecar import read_sidecar as _read_sidecar
+from ..io.stations import station_from_dict, station_to_dict  # re-exported (old import path)
 
 __all__ = [
     "CaptureExists",
@@ -30,38 +32,15 @@ __all__ = [
     "read_sidecar",
     "station_to_dict",
     "station_from_dict",
+    "CaptureSidecar",
+    "FORMAT",
+    "FORMAT_VERSION",
 ]
 
 _IDX = struct.Struct("<Qd")
-FORMAT = "layoutkit-capture"
-FORMAT_VERSION = 1
-
-
-def sidecar_path(path) -> Path:
-    """``<capture>.json``."""
-    return Path(str(path) + ".json")
-
-
 def index_path(path) -> Path:
     """``<capture>.idx``."""
     return Path(str(path) + ".idx")
-
-
-def station_to_dict(station) -> dict:
-    """A :class:`layoutkit.lighthouse.Station` as plain JSON (rotation 3×3, translation m)."""
-    return {"id": station.id, "kind": station.kind, "rotation": np.asarray(station.rotation).tolist(),
-            "translation": np.asarray(station.translation).tolist(), "rotor_rpm": station.rotor_rpm,
-            "clock_hz": station.clock_hz, "fov_deg": station.fov_deg}
-
-
-def station_from_dict(d: dict):
-    """Inverse of :func:`station_to_dict`."""
-    from ..lighthouse import Station
-
-    keys = ("id", "kind", "rotation", "translation", "rotor_rpm", "clock_hz", "fov_deg")
-    return Station(**{k: d[k] for k in keys if k in d})
-
-
 
 
 class CaptureExists(ValueError):
@@ -75,7 +54,8 @@ class CaptureWriter:
     (a ValueError naming the file and its size) otherwise, unless ``overwrite=True``. The capture
     is locked (``flock``) while open, so a second writer of the same file is refused instead of
     truncating it under the first one (whose later writes would leave a hole of zero bytes).
-    sidecar : dict written to ``<path>.json`` at once (``start_time_utc``, ``format`` are added).
+    sidecar : :class:`CaptureSidecar` (or its dict) written to ``<path>.json`` at once
+    (``start_time_utc`` is added).
     flush_interval : s between fsyncs of the raw bytes and index.
     ``write(data, t=None)`` appends bytes with unbuffered writes (a failed write, e.g. disk full,
     leaves exactly the bytes received so far, in order: a valid prefix; the index only points into
@@ -120,10 +100,10 @@ class CaptureWriter:
         self._last_flush = self._t0
         self.flush_interval = float(flush_interval)
         self.bytes_written = 0
-        self.sidecar = dict(to_jsonable(sidecar or {}))
-        self.sidecar.setdefault("format", FORMAT)
-        self.sidecar.setdefault("format_version", FORMAT_VERSION)
-        self.sidecar.setdefault("start_time_utc", datetime.now(timezone.utc).isoformat())
+        sc = CaptureSidecar.from_dict(sidecar or {})
+        if sc.start_time_utc is None:
+            sc = sc.updated(start_time_utc=datetime.now(timezone.utc).isoformat())
+        self.sidecar = sc
         self.closed = False
         try:
             self._write_sidecar()
@@ -132,9 +112,7 @@ class CaptureWriter:
             raise
 
     def _write_sidecar(self) -> None:
-        from ..io.atomic import atomic_write_text
-
-        atomic_write_text(sidecar_path(self.path), json.dumps(self.sidecar, indent=2) + "\n")
+        write_sidecar(self.path, self.sidecar)
 
     def write(self, data: bytes, t: float | None = None) -> None:
         """Append ``data`` (before decoding) with its arrival time ``t`` (s since start).
@@ -195,11 +173,10 @@ class CaptureWriter:
             return
         self.flush()
         self._close_fds()
-        self.sidecar.update(to_jsonable(extra))
-        self.sidecar["bytes"] = self.bytes_written
-        self.sidecar["end_time_utc"] = datetime.now(timezone.utc).isoformat()
+        changes = dict(extra, bytes=self.bytes_written, end_time_utc=datetime.now(timezone.utc).isoformat())
         if self.error is not None:
-            self.sidecar["write_error"] = f"{self.error.strerror or self.error}"
+            changes["write_error"] = f"{self.error.strerror or self.error}"
+        self.sidecar = self.sidecar.updated(**changes)
         self.sidecar_error = None
         try:
             self._write_sidecar()
@@ -214,14 +191,13 @@ class CaptureWriter:
 
 
 def read_sidecar(path) -> dict:
-    """The sidecar dict of a capture (``{}`` when there is none); ValueError on bad JSON."""
-    p = sidecar_path(path)
-    if not p.exists():
+    """The sidecar of a capture as a plain dict (``{}`` when there is none); ValueError on bad JSON.
+
+    Old entry point: new code uses :func:`layoutkit.io.sidecar.read_sidecar` (a :class:`CaptureSidecar`).
+    """
+    if not sidecar_path(path).exists():
         return {}
-    try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{p}: not valid JSON ({exc})") from None
+    return _read_sidecar(path).to_dict()
 
 
 class CaptureReader:
@@ -236,7 +212,7 @@ class CaptureReader:
         self.path = Path(path)
         if not self.path.is_file():
             raise ValueError(f"{self.path}: no such capture file")
-        self.sidecar = read_sidecar(self.path)
+        self.sidecar = _read_sidecar(self.path)
         self._fh = open(self.path, "rb")
         self.size = self.path.stat().st_size
         self.realtime = bool(realtime)

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec, nearest_rotation, rotvec_to_matrix
-from ..units import length_scale
+from ..units import LENGTH_UNITS
 
 __all__ = [
     "PoseTrack",
@@ -100,21 +100,43 @@ class PoseTrack:
 
 
 def read_pose_csv(path, units: str = "m") -> PoseTrack:
-    """Read a pose stream from CSV with a header row.
+    """Read a reference pose stream (motion capture, camera attitude, TRUTH.csv) from CSV.
 
-    Columns: ``t`` (s); attitude as ``rx,ry,rz`` (rotation vector, rad), ``qx,qy,qz,qw``
-    (quaternion, scalar last) or ``r11..r33`` (row-major matrix); position as ``tx,ty,tz`` or
-    ``x,y,z`` in ``units`` ("m", "cm", "mm"), optional. The simulator's TRUTH.csv
-    (``t,rx,ry,rz,tx,ty,tz``) is one such file. Rows with non-finite values are skipped.
+    Columns: ``t`` (s); attitude as ``rx,ry,rz`` (rotation vector, rad; ``rx_deg,...`` for
+    degrees, the rules of :mod:`layoutkit.io.poses`), ``qx,qy,qz,qw`` (quaternion, scalar last)
+    or ``r11..r33`` (row-major matrix); position as ``tx,ty,tz`` or ``x,y,z`` in ``units`` ("m",
+    "cm", "mm", "in"), optional. A layoutkit pose table (TRUTH.csv, ``poses.csv``) is one such
+    file and is read by :func:`layoutkit.io.poses.read_poses`. Rows with non-finite values are
+    skipped.
     """
-    scale = length_scale(units, "units")
-    with open(path, newline="") as fh:
-        header = [h.strip().lower() for h in next(csv.reader(fh))]
+    from ..io.poses import check_rotvec_radians, read_pose_header, read_poses, rotvec_columns
+
+    if units not in LENGTH_UNITS:
+        raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
+    scale = LENGTH_UNITS[units]
+    try:
+        with open(path, newline="") as fh:
+            first = fh.readline()
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such reference file") from None
+    raw = next(csv.reader([first]), [])
+    header = [h.strip().lower() for h in raw]
     col = {h: i for i, h in enumerate(header)}
     if "t" not in col:
         raise ValueError(f"{path}: expected a 't' column, got header {header}")
-    if all(c in col for c in _ROTVEC):
-        att = ("rotvec", [col[c] for c in _ROTVEC])
+    rot = rotvec_columns(path, raw)
+    if rot is not None and (all(c in col for c in ("tx", "ty", "tz")) or any(h.startswith("tx_") for h in header)):
+        try:
+            read_pose_header(path, first, default_length_unit=units)
+            is_table = True
+        except ValueError:
+            is_table = False
+        if is_table:  # a pose table: the one reader
+            tb = read_poses(path, default_length_unit=units)
+            keep = np.all(np.isfinite(tb.rotvec), -1) & np.all(np.isfinite(tb.translation), -1)
+            return _track(tb.t[keep], rotvec_to_matrix(tb.rotvec[keep]), tb.translation[keep])
+    if rot is not None:
+        att = ("rotvec", rot[0])
     elif all(c in col for c in _QUAT):
         att = ("quat", [col[c] for c in _QUAT])
     elif all(c in col for c in _MATRIX):
@@ -123,18 +145,32 @@ def read_pose_csv(path, units: str = "m") -> PoseTrack:
         raise ValueError(f"{path}: expected attitude columns rx,ry,rz or qx,qy,qz,qw or r11..r33, "
                          f"got header {header}")
     pos = next(([col[c] for c in names] for names in _POS if all(c in col for c in names)), None)
-    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    data = data[np.all(np.isfinite(data), axis=1)]
+    try:
+        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"{path}: bad reference row ({exc})") from None
+    lines = np.arange(len(data)) + 2
+    fin = np.all(np.isfinite(data), axis=1)
+    data, lines = data[fin], lines[fin]
     t = data[:, col["t"]]
     kind, idx = att
     a = data[:, idx]
     if kind == "rotvec":
+        if rot[2]:
+            a = a * rot[1]
+        else:
+            check_rotvec_radians(path, a, [raw[i].strip() for i in idx], line_numbers=lines)
         R = rotvec_to_matrix(a)
     elif kind == "quat":
         R = Rotation.from_quat(a).as_matrix()
     else:
         R = nearest_rotation(a.reshape(-1, 3, 3))
     tr = None if pos is None else data[:, pos] * scale
+    return _track(t, R, tr)
+
+
+def _track(t, R, tr) -> PoseTrack:
+    """Sorted by time, duplicate times dropped."""
     order = np.argsort(t, kind="stable")
     keep = np.concatenate([[True], np.diff(t[order]) > 0])
     order = order[keep]

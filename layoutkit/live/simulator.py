@@ -36,12 +36,12 @@ __all__ = [
     "simulate_sweeps",
     "simulate_stream",
     "write_truth",
-    "read_truth",
     "run_fake_fpga",
     "TRUTH_HEADER",
 ]
 
-TRUTH_HEADER = "t,rx,ry,rz,tx,ty,tz"
+#: Header of TRUTH.csv: the pose table's columns (:data:`layoutkit.io.poses.POSE_COLUMNS`).
+TRUTH_HEADER = "t,station,status,rx,ry,rz,tx,ty,tz,residual_rms"
 MAX_RATE_RAD_S = np.deg2rad(0.5)  # tumble angular rate bound
 MAX_SPEED_M_S = 1e-3  # tumble translation speed bound
 
@@ -170,18 +170,13 @@ def spin_motion(rate_deg_s: float, speed_m_s: float, axis=(0.3, 0.2, 1.0), ampli
     return motion
 
 def load_trajectory(path) -> Trajectory:
-    """Read a CSV with header ``t,rx,ry,rz,tx,ty,tz`` (s, rad, m) as a :class:`Trajectory`."""
-    path = Path(path)
-    try:
-        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read a trajectory CSV ({exc})") from None
-    head = path.read_text().splitlines()[0].strip().replace(" ", "")
-    if head != TRUTH_HEADER or data.shape[1] != 7 or data.shape[0] < 1:
-        raise ValueError(f"{path}: expected header '{TRUTH_HEADER}' and 7 columns, got '{head}'")
-    order = np.argsort(data[:, 0], kind="stable")
-    data = data[order]
-    return Trajectory(data[:, 0], data[:, 1:4], data[:, 4:7])
+    """Read a pose table (:func:`layoutkit.io.poses.read_poses`: ``t,rx,ry,rz,tx,ty,tz`` at least;
+    s, rad — or ``rx_deg`` columns —, m) as a :class:`Trajectory`, sorted by time."""
+    from ..io.poses import read_poses
+
+    tb = read_poses(path, min_rows=1)
+    order = np.argsort(tb.t, kind="stable")
+    return Trajectory(tb.t[order], tb.rotvec[order], tb.translation[order])
 
 
 @dataclass(frozen=True)
@@ -345,15 +340,11 @@ def encode_frames(sw: SimulatedSweeps, protocol: str = "layoutkit") -> list[byte
 
 
 def write_truth(sw: SimulatedSweeps, path) -> None:
-    """TRUTH.csv: header ``t,rx,ry,rz,tx,ty,tz``, one row per sweep (emitted or not) at its sync time."""
-    data = np.column_stack([sw.t, sw.rotvec, sw.translation])
-    np.savetxt(path, data, delimiter=",", header=TRUTH_HEADER, comments="",
-               fmt=["%.9f"] + ["%.12g"] * 6)
+    """TRUTH.csv: a pose table (:mod:`layoutkit.io.poses`), one row per sweep (emitted or not) at
+    its sync time, ``station`` = the sweeping station, status 0, residual_rms NaN."""
+    from ..io.poses import PoseTable, write_poses
 
-
-def read_truth(path) -> Trajectory:
-    """TRUTH.csv → :class:`Trajectory` (same as :func:`load_trajectory`)."""
-    return load_trajectory(path)
+    write_poses(path, PoseTable(sw.t, sw.rotvec, sw.translation, station=sw.station))
 
 
 def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, on_ready=None,

@@ -17,7 +17,7 @@ import numpy as np
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..layout import Layout
 
-__all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames"]
+__all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames", "solution_table"]
 
 GROSS_DEG = 1.0
 _TRUTH = ["true_rx", "true_ry", "true_rz", "true_tx", "true_ty", "true_tz"]
@@ -157,6 +157,14 @@ def _is_number(x: str) -> bool:
     return True
 
 
+def solution_table(res: dict):
+    """The per-frame results of :func:`solve_frames` as a pose table (:mod:`layoutkit.io.poses`)."""
+    from ..io.poses import PoseTable
+
+    return PoseTable(res["t"], res["rotvec"], res["translation"], status=res["status"],
+                     residual_rms=res["residual_rms"])
+
+
 def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0) -> dict:
     """Solve every frame; summary with statuses, and errors against truth when the file has it."""
     from ..dop import pose_dop, pose_errors, rms
@@ -167,7 +175,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     out = {"frames": int(len(fr.t)), "solved": int(np.sum(sol.success)),
            "status_counts": {int(k): int(v) for k, v in zip(*np.unique(sol.status, return_counts=True))},
            "t": fr.t, "rotvec": matrix_to_rotvec(sol.rotation), "translation": sol.translation,
-           "success": sol.success, "status": sol.status}
+           "success": sol.success, "status": sol.status, "residual_rms": sol.residual_rms}
     if fr.truth_rotation is not None:
         ok = np.asarray(sol.success)
         e_r, e_t = pose_errors(sol.rotation[ok], sol.translation[ok], fr.truth_rotation[ok], fr.truth_translation[ok])

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import rotvec_to_matrix
+from ..io.poses import POSE_COLUMNS, PoseTable, PoseWriter, iter_poses
+from ..io.sidecar import CaptureSidecar
 from ..layout import Layout, load_layout
 from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 from ..live.pipeline import STATUS_NAMES, PipelineConfig, PoseChunk, PosePipeline
@@ -26,14 +28,16 @@ __all__ = [
     "LiveOptions",
     "LiveSession",
     "POSES_HEADER",
+    "POSES_EXTRAS",
     "session_from_sidecar",
     "replay_capture",
     "run_live",
     "reference_accuracy",
 ]
 
-POSES_HEADER = ["t", "rx", "ry", "rz", "tx", "ty", "tz", "status", "n_lit", "adop_deg_per_rad",
-                "pdop_m_per_rad", "residual_rms_rad", "station"]
+#: Extra columns of ``poses.csv`` after the pose table's fixed ones (:mod:`layoutkit.io.poses`).
+POSES_EXTRAS = ("n_lit", "adop_deg_per_rad", "pdop_m_per_rad")
+POSES_HEADER = list(POSE_COLUMNS + POSES_EXTRAS)
 _READ_BYTES = 1 << 16
 
 
@@ -93,13 +97,11 @@ class LiveSession:
         # decimated good poses (t, rotvec, translation) for reference alignment, and DOP series for plots
         self.pose_sample = DecimatedSeries(7, o.series_capacity)
         self.dop_series = DecimatedSeries(4, o.series_capacity)  # t, adop, pdop, n_lit
-        self._poses_fh = None
-        self._poses_csv = None
+        self._poses = None
         if self.poses_path is not None:
             self.poses_path = Path(self.poses_path)
             self.poses_path.parent.mkdir(parents=True, exist_ok=True)
-            self._poses_fh = open(self.poses_path, "w", newline="")
-            self._poses_fh.write(",".join(POSES_HEADER) + "\n")
+            self._poses = PoseWriter(self.poses_path, POSES_EXTRAS)
         self.wall_start = time.monotonic()
         self.t_first = None
         self.t_last = None
@@ -136,12 +138,10 @@ class LiveSession:
         if self.json_out is not None:
             self.json_out.write("".join(json.dumps(r) + "\n" for r in ch.records()))
             self.json_out.flush()
-        if self._poses_fh is not None:
-            data = np.column_stack([ch.t, ch.rotvec, ch.translation, ch.status, ch.n_lit,
-                                    np.where(np.isfinite(ch.adop), ch.adop, np.nan),
-                                    np.where(np.isfinite(ch.pdop), ch.pdop, np.nan), ch.residual_rms, ch.station])
-            np.savetxt(self._poses_fh, data, delimiter=",",
-                       fmt=["%.9f"] + ["%.10g"] * 6 + ["%d", "%d", "%.6g", "%.6g", "%.4g", "%d"])
+        if self._poses is not None:
+            self._poses.write(PoseTable(ch.t, ch.rotvec, ch.translation, ch.station, ch.status, ch.residual_rms, {
+                "n_lit": ch.n_lit, "adop_deg_per_rad": np.where(np.isfinite(ch.adop), ch.adop, np.nan),
+                "pdop_m_per_rad": np.where(np.isfinite(ch.pdop), ch.pdop, np.nan)}))
         g = ch.good
         self.dop_series.extend(np.column_stack([ch.t, np.where(g, ch.adop, np.nan),
                                                 np.where(g, ch.pdop, np.nan), ch.n_lit]))
@@ -194,8 +194,8 @@ class LiveSession:
         self._consume(self.pipeline.feed(self.decoder.flush()))
         self._consume(self.pipeline.flush(end_of_stream=True))
         groups = self.static.finish()
-        if self._poses_fh is not None:
-            self._poses_fh.close()
+        if self._poses is not None:
+            self._poses.close()
         wall = time.monotonic() - self.wall_start
         c = self.pipeline.counters
         span = (self.t_last - self.t_first) if self.t_first is not None else 0.0
@@ -226,22 +226,6 @@ class LiveSession:
 
 # ----------------------------------------------------------------------------------- helpers
 
-def iter_poses_csv(path, chunk_rows: int = 65536):
-    """Stream ``poses.csv`` back in chunks of rows: yields (m, 13) float arrays (POSES_HEADER order)."""
-    with open(path) as fh:
-        fh.readline()
-        while True:
-            try:
-                a = np.loadtxt(fh, delimiter=",", max_rows=chunk_rows, ndmin=2)
-            except StopIteration:  # numpy < 2 at EOF
-                return
-            if a.size == 0:
-                return
-            yield a
-            if len(a) < chunk_rows:
-                return
-
-
 def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA_PAPER, tau: float | None = None,
                        max_offset: float = 5.0, series_capacity: int = 20000, sample=None) -> dict:
     """Accuracy of the poses in ``poses_csv`` against a reference stream (Chen eq. 25).
@@ -262,21 +246,20 @@ def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA
         out["message"] = al.message
         return out
     acc = ErrorAccumulator(sigma_theta, series_capacity)
-    for a in iter_poses_csv(poses_csv):
-        g = a[:, 7] == 0
-        if not g.any():
+    for tb in iter_poses(poses_csv):  # streaming pass, columns by name
+        tb = tb.take(tb.ok)
+        if not len(tb):
             continue
-        a = a[g]
-        Rr, tr, v = al.apply(reference, a[:, 0])
+        Rr, tr, v = al.apply(reference, tb.t)
         if not v.any():
             continue
-        R = rotvec_to_matrix(a[v, 1:4])
-        t = a[v, 4:7]
+        R = rotvec_to_matrix(tb.rotvec[v])
+        t = tb.translation[v]
         if tr is None:  # attitude only: translation error reported as 0
             tr = t
         else:
             tr = tr[v]
-        acc.update(a[v, 0], R, t, Rr[v], tr, a[v, 9], a[v, 10])
+        acc.update(tb.t[v], R, t, Rr[v], tr, tb.extras["adop_deg_per_rad"][v], tb.extras["pdop_m_per_rad"][v])
     s = acc.summary()
     out["errors"] = None if s is None else s.as_dict()
     out["attitude_only"] = reference.translation is None
@@ -285,12 +268,12 @@ def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA
     return out
 
 
-def _layout_from(layout, sidecar: dict) -> Layout:
+def _layout_from(layout, sidecar: CaptureSidecar) -> Layout:
     if isinstance(layout, Layout):
         return layout
     if layout is not None:
         return load_layout(layout)
-    lay = sidecar.get("layout")
+    lay = sidecar.layout
     if isinstance(lay, dict) and "sensors" in lay:
         return Layout.from_dict(lay)
     if isinstance(lay, str) and Path(lay).is_file():
@@ -298,23 +281,8 @@ def _layout_from(layout, sidecar: dict) -> Layout:
     raise ValueError("no layout: pass --layout (the capture's sidecar names none that can be loaded)")
 
 
-def _protocol_from(sidecar: dict, protocol: str | None):
-    p = sidecar.get("protocol")
-    opts = dict(sidecar.get("protocol_options") or {})
-    if isinstance(p, dict):
-        opts.update(p.get("options") or {})
-        p = p.get("name")
-    return (protocol or p or "layoutkit"), opts
-
-
-def _stations_from(sidecar: dict):
-    from ..live.capture import station_from_dict
-
-    st = sidecar.get("stations") or []
-    try:
-        return [station_from_dict(d) for d in st] or None
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"capture sidecar: bad station entry ({exc})") from None
+def _protocol_from(sidecar: CaptureSidecar, protocol: str | None):
+    return (protocol or sidecar.protocol or "layoutkit"), dict(sidecar.protocol_options)
 
 
 def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | None = None):
@@ -335,14 +303,18 @@ def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | N
     return cls(n_sensors=n_sensors, **kw)
 
 
-def session_from_sidecar(layout, sidecar: dict, *, protocol: str | None = None, options: LiveOptions | None = None,
+def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, options: LiveOptions | None = None,
                          truth=None, json_out=None, poses_path=None) -> LiveSession:
-    """A :class:`LiveSession` configured from a capture sidecar (protocol, stations) and overrides."""
+    """A :class:`LiveSession` configured from a capture sidecar (protocol, stations) and overrides.
+
+    sidecar : :class:`~layoutkit.io.sidecar.CaptureSidecar` or its dict.
+    """
     from ..live.reference import read_pose_csv
 
+    sidecar = CaptureSidecar.from_dict(sidecar)
     lay = _layout_from(layout, sidecar)
     name, popts = _protocol_from(sidecar, protocol)
-    stations = _stations_from(sidecar)
+    stations = list(sidecar.stations) or None
     dec = make_decoder(name, lay.n, stations, popts)
     tr = read_pose_csv(truth) if isinstance(truth, (str, Path)) else truth
     return LiveSession(lay, dec, options or LiveOptions(), stations, tr, json_out, poses_path)
@@ -386,7 +358,7 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     time and frame from the data; ``reference_offset`` s fixes the clock offset instead). json_out : stream for ``--json-lines``. report_dir : write
     ``report.json``, plots and ``poses.csv`` there.
     """
-    from ..live.capture import read_sidecar
+    from ..io.sidecar import read_sidecar
 
     capture = Path(capture)
     if not capture.is_file():
@@ -438,16 +410,16 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOpt
     run the same way: the capture keeps the valid prefix, the report is still written (it can be
     on another disk) and ``summary["capture_error"]`` says ``<capture>: <reason>``.
     """
-    from ..live.capture import CaptureWriter, station_to_dict
+    from ..live.capture import CaptureWriter
     from ..live.sources import DEFAULT_BAUDRATE, ReconnectingSerial
     from ..live.stopping import stop_on_signals
 
     options = options or LiveOptions(chunk_frames=1024)
-    lay = _layout_from(layout, {})
+    lay = _layout_from(layout, CaptureSidecar())
     baudrate = baudrate or DEFAULT_BAUDRATE
     settings = {"url": port, "baudrate": baudrate, "timeout": 0.05, "reconnect": True}
-    sidecar = {"protocol": protocol, "layout": lay.to_dict(), "port": settings,
-               "stations": [station_to_dict(s) for s in stations] if stations else []}
+    sidecar = CaptureSidecar(protocol=protocol, layout=lay.to_dict(), port=settings, stations=tuple(stations or ()),
+                             source="live")
     # the capture first: an existing one is refused before the port is touched
     writer = CaptureWriter(record, sidecar, overwrite=overwrite) if record is not None else None
     with tempfile.TemporaryDirectory() as tmp, stop_on_signals() as stop:
@@ -455,7 +427,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveOpt
             src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
             poses = Path(report_dir) / "poses.csv" if report_dir is not None else (
                 Path(tmp) / "poses.csv" if (reference is not None or camera is not None) else None)
-            s = session_from_sidecar(lay, {"stations": sidecar["stations"]}, protocol=protocol, options=options,
+            s = session_from_sidecar(lay, CaptureSidecar(stations=sidecar.stations), protocol=protocol, options=options,
                                      truth=truth, json_out=json_out, poses_path=poses)
         except BaseException:
             if writer is not None:
