@@ -158,6 +158,7 @@ class ErrorStateEKF:
         self.stations = list(stations)
         self.model = model if model is not None else FORWARD_MODELS[self.config.model]
         self._both = getattr(self.model, "angles_and_jacobian", None)
+        self._rows = getattr(self.model, "sweep_rows", None)
         d = self.config.dim
         self.dim = d
         self.initialized = False
@@ -309,19 +310,21 @@ class ErrorStateEKF:
         sensors = np.asarray(sensors, np.intp)
         z = np.asarray(angles, float)
         m = sensors.size
-        sig0 = self.pose_sigma()
+        sig0 = np.sqrt(np.diagonal(self.P)[self._pose_idx])
         if m == 0:
             return SweepUpdate(0, 0, False, float("nan"), 0, np.zeros(6), sig0)
         st = self.stations[station]
         R = quat_to_matrix(self.q)
         b = self.points_body[sensors]
-        if self._both is not None:
-            ang, J = self._both(b, R, self.p, st)
+        if self._rows is not None:
+            zp, rows = self._rows(b, R, self.p, st, axis)
+            Jr, Jt = rows[:, 0:3], rows[:, 3:6]
         else:
-            ang, J = self.model(b, R, self.p, st), self.model.jacobian(b, R, self.p, st)
-        Jr = J[:, axis, 0:3]
-        Jt = J[:, axis, 3:6]
-        zp = ang[:, axis]
+            if self._both is not None:
+                ang, J = self._both(b, R, self.p, st)
+            else:
+                ang, J = self.model(b, R, self.p, st), self.model.jacobian(b, R, self.p, st)
+            Jr, Jt, zp = J[:, axis, 0:3], J[:, axis, 3:6], ang[:, axis]
         H = np.zeros((m, self.dim))
         H[:, 0:3] = Jr
         H[:, 6:9] = Jt
@@ -339,7 +342,7 @@ class ErrorStateEKF:
         HP = H @ self.P
         S = HP @ H.T + self._correlation(m)
         keep = y * y <= self._q1 * np.diagonal(S)
-        k = int(keep.sum())
+        k = int(np.count_nonzero(keep))
         rejected = m - k
         if k == 0:
             return SweepUpdate(0, rejected, True, float("nan"), 0, np.zeros(6), sig0)

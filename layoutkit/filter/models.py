@@ -123,6 +123,33 @@ class PlainSweepModel:
         return ang, J
 
 
+    def sweep_rows(self, points_body, rotation, translation, station: Station, axis: int):
+        """One axis only, single pose: ``(angles (m,), rows (m, 6))`` — the filter's per-sweep fast
+        path (optional for other models; the filter falls back to ``angles_and_jacobian`` /
+        ``__call__`` + ``jacobian``). LH1: only ``theta_axis = atan2(z, x_axis)`` and its gradient
+        ``(-z e_axis + x_axis e_z) / (x_axis² + z²)`` (Chen eq. 2)."""
+        R = np.asarray(rotation, float)
+        if station.kind != "lh1" or R.ndim != 2:
+            ang, J = self.angles_and_jacobian(points_body, rotation, translation, station)
+            return ang[:, axis], J[:, axis, :]
+        lever = points_body @ R.T
+        Rs = station.rotation
+        ps = (lever + (translation - station.translation)) @ Rs
+        u = ps[:, axis]
+        z = ps[:, 2]
+        inv = 1.0 / (u * u + z * z)
+        gu, gz = -z * inv, u * inv
+        a = gu[:, None] * Rs[:, axis] + gz[:, None] * Rs[:, 2]  # d theta / d p_world, (m, 3)
+        rows = np.empty((u.shape[0], 6))
+        rows[:, 3:] = a
+        lx, ly, lz = lever[:, 0], lever[:, 1], lever[:, 2]
+        ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+        rows[:, 0] = ly * az - lz * ay
+        rows[:, 1] = lz * ax - lx * az
+        rows[:, 2] = lx * ay - ly * ax
+        return np.arctan2(z, u), rows
+
+
 def pose_jacobian(lever, grad_station, station: Station) -> np.ndarray:
     """Chain rule to the world-frame pose perturbation: ``d p_station = R_s^T (-[l]x dphi + dt)``.
 

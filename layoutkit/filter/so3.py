@@ -16,7 +16,7 @@ __all__ = ["quat_from_rotvec", "quat_mul", "quat_to_matrix", "quat_from_matrix",
 
 def quat_from_rotvec(phi) -> np.ndarray:
     """Rotation vector (3,) rad → unit quaternion ``[x, y, z, w]`` (series below 1e-6 rad)."""
-    x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
+    x, y, z = np.asarray(phi, float).tolist()
     th = math.sqrt(x * x + y * y + z * z)
     if th < 1e-6:
         s = 0.5 - th * th / 48.0
@@ -29,8 +29,8 @@ def quat_from_rotvec(phi) -> np.ndarray:
 
 def quat_mul(a, b) -> np.ndarray:
     """Hamilton product ``a ⊗ b`` (rotation b first, then a), normalised."""
-    ax, ay, az, aw = float(a[0]), float(a[1]), float(a[2]), float(a[3])
-    bx, by, bz, bw = float(b[0]), float(b[1]), float(b[2]), float(b[3])
+    ax, ay, az, aw = np.asarray(a, float).tolist()
+    bx, by, bz, bw = np.asarray(b, float).tolist()
     x = aw * bx + ax * bw + ay * bz - az * by
     y = aw * by - ax * bz + ay * bw + az * bx
     z = aw * bz + ax * by - ay * bx + az * bw
@@ -43,7 +43,7 @@ def quat_mul(a, b) -> np.ndarray:
 
 def quat_to_matrix(q) -> np.ndarray:
     """Unit quaternion ``[x, y, z, w]`` → rotation matrix (3, 3)."""
-    x, y, z, w = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    x, y, z, w = np.asarray(q, float).tolist()
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
     return np.array([[1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
@@ -61,7 +61,7 @@ def quat_from_matrix(R) -> np.ndarray:
 
 def quat_to_rotvec(q) -> np.ndarray:
     """Unit quaternion ``[x, y, z, w]`` (w >= 0) → rotation vector (3,) rad, norm in [0, pi]."""
-    x, y, z, w = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    x, y, z, w = np.asarray(q, float).tolist()
     s = math.sqrt(x * x + y * y + z * z)
     if s < 1e-12:
         k = 2.0 / w if w != 0 else 0.0

@@ -56,7 +56,7 @@ class FilterOutput:
     of this sweep used / dropped by the gate; sweep_rejected : the sweep failed the NIS gate;
     nis, dof : its NIS and degrees of freedom; static : the static detector's verdict;
     event : "init" on the sweep that (re-)initialised the filter, else "";
-    pose_cov : (6, 6) covariance of ``(dphi rad, dp m)``; correction : (6,) pose correction applied
+    state_cov : (d, d) error-state covariance (``pose_cov`` its pose block); correction : (6,) pose correction applied
     by this sweep's update and prior_sigma : (6,) the pose 1-sigma before it (None without update).
     """
 
@@ -75,13 +75,19 @@ class FilterOutput:
     dof: int = 0
     static: bool = False
     event: str = ""
-    pose_cov: np.ndarray | None = None
+    state_cov: np.ndarray | None = None
     correction: np.ndarray | None = None
     prior_sigma: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+    @property
+    def pose_cov(self) -> np.ndarray:
+        """(6, 6) covariance of ``(dphi rad, dp m)`` (from the full error-state covariance)."""
+        i = np.r_[0:3, 6:9]
+        return self.state_cov[np.ix_(i, i)]
 
     def record(self) -> dict:
         """The JSON-lines object (``--filter ekf --json-lines``)."""
@@ -330,8 +336,10 @@ class SweepTracker:
     def _output(self, t, s, axis, upd: SweepUpdate | None, event: str) -> FilterOutput:
         c = self.config
         ekf = self.ekf
-        srot, spos = ekf.sigma_deg_m()
-        big = max(srot.max() / c.max_sigma_rot_deg, spos.max() / c.max_sigma_pos_m)
+        P = ekf.P  # never modified in place by the filter: safe to hand out
+        sig = np.sqrt(np.diagonal(P)[ekf._pose_idx])
+        srot, spos = sig[:3] * RAD2DEG, sig[3:]
+        big = max(float(srot.max()) / c.max_sigma_rot_deg, float(spos.max()) / c.max_sigma_pos_m)
         if big > c.lost_factor and not self._lost:
             self._declare_lost()
         if self._lost:
@@ -341,10 +349,9 @@ class SweepTracker:
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"
-        cov = ekf.pose_covariance()
         if upd is None:
-            return FilterOutput(t, s, axis, status, ekf.rotvec, ekf.p.copy(), srot, spos,
-                                static=self.static, event=event, pose_cov=cov)
-        return FilterOutput(t, s, axis, status, ekf.rotvec, ekf.p.copy(), srot, spos, upd.used, upd.rejected,
-                            upd.sweep_rejected, upd.nis, upd.dof, self.static, event, cov, upd.correction,
+            return FilterOutput(t, s, axis, status, ekf.rotvec, ekf.p, srot, spos,
+                                static=self.static, event=event, state_cov=P)
+        return FilterOutput(t, s, axis, status, ekf.rotvec, ekf.p, srot, spos, upd.used, upd.rejected,
+                            upd.sweep_rejected, upd.nis, upd.dof, self.static, event, P, upd.correction,
                             upd.prior_sigma)
