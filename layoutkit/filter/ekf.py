@@ -89,7 +89,7 @@ class EkfConfig:
     zupt_p: float = 0.01
     zupt_sigma_rate: float = 1e-7
     zupt_sigma_speed: float = 1e-7
-    model: str = "plain"
+    model: str = "station"
 
     def __post_init__(self):
         for name in ("psd_rot", "psd_pos", "psd_jerk_rot", "psd_jerk_pos"):

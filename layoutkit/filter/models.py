@@ -1,12 +1,18 @@
 """Sweep-angle forward models for the filter: ``h(points_body, R, t, station) -> angles`` + Jacobian.
 
 A forward model maps a body pose in the **world** frame (``p_world = R p_body + t``) and a
-:class:`layoutkit.lighthouse.Station` (station-to-world pose, kind) to the two sweep angles of
-every sensor, and gives the Jacobian of those angles with respect to the left pose perturbation
-in the world frame, ``R <- exp([dphi]x) R``, ``t <- t + dt`` (design §2, §5; the convention of
-:func:`layoutkit.dop.angle_jacobian`). The filter only talks to this protocol, so a calibrated
-model (per-station factory calibration: phase, tilt, curve, gib, ogee) plugs in by registering an
-object with the same two methods in :data:`FORWARD_MODELS`.
+:class:`layoutkit.lighthouse.Station` (station-to-world pose, kind, calibration) to the two sweep
+angles of every sensor, and gives the Jacobian of those angles with respect to the left pose
+perturbation in the world frame, ``R <- exp([dphi]x) R``, ``t <- t + dt`` (design §2, §5; the
+convention of :func:`layoutkit.dop.angle_jacobian`). The filter only talks to this protocol.
+
+Registered models (:data:`FORWARD_MODELS`):
+
+- ``"station"`` (default): each station's own model — its :class:`~layoutkit.lighthouse.Calibration`
+  through :func:`layoutkit.lighthouse.measure_jacobian` (factory phase, tilt, curve, gib, ogee;
+  docs/calibration.md), the ideal LH1 / LH2 model when it has none;
+- ``"plain"``: always the ideal models (:func:`~layoutkit.lighthouse.sweep_angles`, Chen eq. 2;
+  :func:`~layoutkit.lighthouse.lh2_sweep_angles`), ignoring any calibration.
 
 Shapes: points_body ``(..., n, 3)`` m; R ``(..., 3, 3)``; t ``(..., 3)`` m → angles
 ``(..., n, 2)`` rad (LH1 ``[theta_x, theta_y]``, LH2 ``[alpha_plane0, alpha_plane1]``) and
@@ -18,9 +24,10 @@ from typing import Protocol
 
 import numpy as np
 
-from ..lighthouse import LH2_TILT_RAD, Station, lh2_sweep_angles, sweep_angles
+from ..lighthouse import LH2_TILT_RAD, Station, lh2_sweep_angles, measure_jacobian, sweep_angles
 
-__all__ = ["ForwardModel", "PlainSweepModel", "FORWARD_MODELS", "station_points", "angle_gradient"]
+__all__ = ["ForwardModel", "PlainSweepModel", "StationSweepModel", "FORWARD_MODELS", "station_points",
+           "angle_gradient", "pose_jacobian"]
 
 
 class ForwardModel(Protocol):
@@ -161,5 +168,32 @@ def pose_jacobian(lever, grad_station, station: Station) -> np.ndarray:
     return np.concatenate([np.cross(l, a), a], -1)
 
 
+class StationSweepModel(PlainSweepModel):
+    """Each station's calibrated model (:func:`layoutkit.lighthouse.measure_jacobian` with
+    ``station.calibration``); stations without a calibration use the ideal model's fast paths."""
+
+    def __call__(self, points_body, rotation, translation, station: Station) -> np.ndarray:
+        if station.calibration is None:
+            return super().__call__(points_body, rotation, translation, station)
+        _, ps = station_points(points_body, rotation, translation, station)
+        return measure_jacobian(ps, station.calibration, station.kind, jacobian=False)[0]
+
+    def jacobian(self, points_body, rotation, translation, station: Station) -> np.ndarray:
+        return self.angles_and_jacobian(points_body, rotation, translation, station)[1]
+
+    def angles_and_jacobian(self, points_body, rotation, translation, station: Station):
+        if station.calibration is None:
+            return super().angles_and_jacobian(points_body, rotation, translation, station)
+        lever, ps = station_points(points_body, rotation, translation, station)
+        ang, dp, _ = measure_jacobian(ps, station.calibration, station.kind)
+        return ang, pose_jacobian(lever, dp, station)
+
+    def sweep_rows(self, points_body, rotation, translation, station: Station, axis: int):
+        if station.calibration is None:
+            return super().sweep_rows(points_body, rotation, translation, station, axis)
+        ang, J = self.angles_and_jacobian(points_body, rotation, translation, station)
+        return ang[:, axis], J[:, axis, :]
+
+
 #: Registry of forward models by name (``--filter-model`` offers these).
-FORWARD_MODELS: "dict[str, ForwardModel]" = {"plain": PlainSweepModel()}
+FORWARD_MODELS: "dict[str, ForwardModel]" = {"station": StationSweepModel(), "plain": PlainSweepModel()}

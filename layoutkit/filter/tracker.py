@@ -10,7 +10,8 @@ Life cycle (docs/filter.md):
 1. *init*: per station the latest angle of every sensor on each axis is kept; the sensors with
    both angles younger than ``init_window_s`` form a frame (with heavy dropout one X/Y pair rarely
    has 4 lit sensors, a few consecutive sweeps do). With >= 4 of them
-   :func:`layoutkit.pnp.solve_pnp` solves it (LH2 plane angles first converted to LH1 angles). A
+   :func:`layoutkit.pnp.solve_pnp` solves it (angles of a calibrated station first undistorted,
+   LH2 plane angles converted to LH1 angles — for the start only). A
    pose with status ok and an RMS residual below ``init_max_residual_sigma`` sigma starts the
    filter at the sweep's time with the PnP covariance (the sandwich ``A^-1 J^T R J A^-1`` of Chen
    eq. 18) times ``init_inflation``, plus the motion the velocity prior allows over the age of the
@@ -36,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..lighthouse import LH2_TILT_RAD, Station
+from ..lighthouse import Station, lh2_to_lh1_angles, undistort
 from ..units import RAD2DEG
 from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile
 
@@ -116,17 +117,6 @@ class TrackerCounters:
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
-
-
-def lh2_planes_to_lh1(plane_angles) -> np.ndarray:
-    """LH2 plane angles (..., 2) rad → LH1-equivalent ``[theta_x, theta_y]`` (inverse of
-    :func:`layoutkit.lighthouse.lh2_sweep_angles`; ray ``(sin base, s, cos base)`` with
-    ``base = (a0 + a1)/2``, ``s = sin((a1 - a0)/2) / tan(tilt)``)."""
-    a = np.asarray(plane_angles, float)
-    base = 0.5 * (a[..., 0] + a[..., 1])
-    s = np.sin(0.5 * (a[..., 1] - a[..., 0])) / np.tan(LH2_TILT_RAD)
-    c = np.cos(base)
-    return np.stack([np.arctan2(c, np.sin(base)), np.arctan2(c, s)], -1)
 
 
 def pnp_pose_covariance(jac, sigma: float, rho: float) -> np.ndarray:
@@ -212,8 +202,10 @@ class SweepTracker:
             return False  # the same lit set failed on the previous sweep: wait for new sensors
         self._tried[s] = key
         ang = ang.copy()
+        if st.calibration is not None:  # the start only; the updates go through the forward model
+            ang[lit] = undistort(ang[lit], st.calibration, max_iterations=20, tol=1e-9)
         if st.kind == "lh2":
-            ang[lit] = lh2_planes_to_lh1(ang[lit])
+            ang[lit] = lh2_to_lh1_angles(ang[lit])
         self.counters.pnp_tries += 1
         a = np.where(lit[:, None], ang, np.pi / 2)
         sol = solve_pnp(self.points_body, a[None], lit[None])
@@ -222,9 +214,7 @@ class SweepTracker:
         Rs, ts = sol.rotation[0], sol.translation[0]
         R = st.rotation @ Rs
         p = st.rotation @ ts + st.translation
-        from .models import PlainSweepModel
-
-        Jm = PlainSweepModel().jacobian(self.points_body[lit], R, p, Station(st.id, st.rotation, st.translation))
+        Jm = self.ekf.model.jacobian(self.points_body[lit], R, p, st)
         c = self.config
         try:
             cov = pnp_pose_covariance(Jm, c.sigma_theta, c.rho) * c.init_inflation
