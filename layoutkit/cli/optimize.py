@@ -86,6 +86,10 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
         echo_json(s)
     else:
         _print_summary(s)
+    if s.get("interrupted"):  # outputs written; the conventional 128 + signal number
+        click.secho(f"interrupted by {s['interrupted']}: wrote the best layout so far and every finished k",
+                    fg="yellow", err=True)
+        raise SystemExit(143 if s["interrupted"] == "SIGTERM" else 130)
     if not s["success"]:
         raise SystemExit(1)
 
@@ -106,14 +110,21 @@ def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, 
 
             keep = [parse_keepout("box:" + b) for b in keepout_box]
         fixed_ids = [f.strip() for f in fixed.split(",") if f.strip()]
+        from ..optimize.runcontrol import Interrupted
+
         with _progress(json_out) as prog:
-            s = run_optimize(mesh, envelope_path, k, out=out, report=report_dir, objective=objective, rho=rho,
-                             method=method, candidates=candidates_path,
-                             spacing=None if spacing_mm is None else spacing_mm * 1e-3, keepout=keep,
-                             fixed_ids=fixed_ids, min_visible=min_visible, k_range=k_range, seed=seed,
-                             units=units, min_spacing=min_spacing_mm * 1e-3, coverage_fraction=coverage_fraction,
-                             time_limit=time_limit_s, progress=prog, sensor_half_angle_deg=half_angle_deg,
-                             render=not no_render, echo=lambda m: click.echo(m, err=True))
+            try:
+                s = run_optimize(mesh, envelope_path, k, out=out, report=report_dir, objective=objective, rho=rho,
+                                 method=method, candidates=candidates_path,
+                                 spacing=None if spacing_mm is None else spacing_mm * 1e-3, keepout=keep,
+                                 fixed_ids=fixed_ids, min_visible=min_visible, k_range=k_range, seed=seed,
+                                 units=units, min_spacing=min_spacing_mm * 1e-3, coverage_fraction=coverage_fraction,
+                                 time_limit=time_limit_s, progress=prog, sensor_half_angle_deg=half_angle_deg,
+                                 render=not no_render, echo=lambda m: click.echo(m, err=True))
+            except Interrupted as exc:
+                click.secho(f"error: interrupted by {exc.signame} before any layout was found; nothing written",
+                            fg="red", err=True)
+                raise SystemExit(143 if exc.signame == "SIGTERM" else 130)
     except ValueError as exc:
         fail(str(exc))
     return s
@@ -126,13 +137,18 @@ def _print_summary(s):
     st = s["stats"]
     a, p = st["adop_deg_per_rad"], st["pdop_m_per_rad"]
     click.echo(f"{s['k']} of {s['candidates']} candidate sites over {s['poses']} poses ({s['method']}, rho {s['rho']})")
-    click.echo(f"  {s['objective']} = {s['value']:.5g}   certified bound {s['bound']:.5g} ({s['certified_by']})"
-               f"   gap {100 * s['gap']:.2f} %")
+    if s["certified_by"] == "none" or s["bound"] is None or s["bound"] != s["bound"]:
+        click.echo(f"  {s['objective']} = {s['value']:.5g}   bound: none ({s['message'].split('bound: none')[-1].strip(' ;')})")
+    else:
+        click.echo(f"  {s['objective']} = {s['value']:.5g}   certified bound {s['bound']:.5g} ({s['certified_by']})"
+                   f"   gap {100 * s['gap']:.2f} %")
     click.echo(f"  ADOP deg/rad  median {a['median']:.5g}  p95 {a['p95']:.5g}  max {a['max']:.5g}")
     click.echo(f"  PDOP m/rad    median {p['median']:.5g}  p95 {p['p95']:.5g}  max {p['max']:.5g}")
     for row in s["k_sweep"]:
-        click.echo(f"  k={row['k']:>3}  {row['status']:<10} value {row['value']:.5g}  gap "
-                   f"{100 * row['gap']:.1f} %" if row["stats"] else f"  k={row['k']:>3}  {row['status']}")
+        gap = row["gap"]
+        gtxt = f"{100 * gap:.1f} %" if isinstance(gap, float) and gap == gap else "none"
+        click.echo(f"  k={row['k']:>3}  {row['status']:<10} value {row['value']:.5g}  gap {gtxt}"
+                   if row["stats"] else f"  k={row['k']:>3}  {row['status']}")
     click.echo(f"  layout -> {s.get('out')}" + (f"   report -> {s['report']['dir']}" if s.get("report") else ""))
     click.echo(f"  {s['timings_s']['total_s']:.1f} s")
 

@@ -28,8 +28,12 @@ __all__ = [
     "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
     "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
-    "overwrite_option", "RHO_RANGE",
+    "overwrite_option", "RHO_RANGE", "coverage_option", "COVERAGE_CHOICES", "min_visible_option",
 ]
+
+#: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
+#: stays numpy-free; a test checks they match the registry)
+COVERAGE_CHOICES = ("any-station", "each-station", "joint")
 
 #: The one admissible range of the same-rotor correlation: rho = 1 makes R_theta singular
 #: (Chen eq. 19) and an ADOP ~30x too optimistic.
@@ -196,4 +200,21 @@ def overwrite_option(f=None, *, what: str = "an existing capture"):
     """``--overwrite``: replace ``what`` explicitly (without it, an existing file is refused)."""
     deco = click.option("--overwrite", is_flag=True,
                         help=f"Replace {what} (without this flag it is refused and left untouched).")
+    return deco(f) if f is not None else deco
+
+
+def coverage_option(f=None):
+    """``--coverage``: what "m lit" means with several stations (docs/optimize.md, coverage rules).
+    The command receives ``coverage``."""
+    deco = click.option("--coverage", "coverage", type=click.Choice(COVERAGE_CHOICES), default="any-station",
+                        show_default=True,
+                        help="Coverage rule: any-station (sensor lit by any station counts once), each-station "
+                             "(every station alone sees --min-visible), joint (lit station-sensor pairs).")
+    return deco(f) if f is not None else deco
+
+
+def min_visible_option(f=None, *, default: int = 4):
+    """``--min-visible``: lit sensors a pose needs to count as covered. The command receives ``min_visible``."""
+    deco = click.option("--min-visible", "min_visible", type=click.IntRange(min=1), default=default,
+                        show_default=True, help="Lit sensors needed for a pose to count as covered.")
     return deco(f) if f is not None else deco

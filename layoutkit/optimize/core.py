@@ -1,6 +1,7 @@
 """``optimize_layout``: choose k photodiode sites with a certified lower bound (design §6)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -10,7 +11,7 @@ import numpy as np
 from .._validate import as_array, check_finite
 from ..dop import angle_jacobian
 from .coverage import analyse_coverage
-from .methods import METHODS, Context
+from .methods import METHODS, Context, Interrupted
 from .objectives import parse_objective
 from .problem import build_problem, exact_dop
 from .relaxation import _fallback_bound
@@ -18,6 +19,8 @@ from .relaxation import _fallback_bound
 # wall-time budget of the default pipeline when the caller gives none (s); small problems stop
 # much earlier (when random kicks stop improving)
 DEFAULT_PIPELINE_TIME_S = 100.0
+# seconds of a time limit kept for the exact evaluation of the result after the method stops
+_FINISH_RESERVE_S = 0.05
 
 __all__ = ["OptimizeResult", "optimize_layout", "optimize_stations", "candidate_jacobians",
            "sweep_k", "spacing_conflicts"]
@@ -198,13 +201,28 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
     if not cov.feasible:
         return fail(cov.status, cov.message, cov)
+    if k == N:  # one selection only (scoring an existing layout): its value is the optimum
+        from .methods import MethodOutput
+
+        out = MethodOutput(np.arange(N), exact_optimum=True, info={"note": "k = N: the only selection"})
+        return _finish(problem, obj, out, method, t0, t0, t0, [], P)
     if time_limit is None and method == "pipeline":
         time_limit = DEFAULT_PIPELINE_TIME_S
-    deadline = math.inf if time_limit is None else time.perf_counter() + float(time_limit)
+    # the budget counts from the call (coverage analysis and relaxation included); the final exact
+    # evaluation after the deadline takes well under a second
+    deadline = math.inf if time_limit is None else t0 + float(time_limit) - _FINISH_RESERVE_S
     ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
     t1 = time.perf_counter()
-    out = METHODS[method](problem, ctx)
+    try:
+        out = METHODS[method](problem, ctx)
+    except (Interrupted, KeyboardInterrupt) as exc:
+        sig = getattr(exc, "signame", "SIGINT")
+        r = fail("interrupted", f"{method}: interrupted by {sig} before a layout was found")
+        return dataclasses.replace(r, info={"interrupted": sig})
     t2 = time.perf_counter()
+    if out.selected is None and ctx.interrupted:
+        return dataclasses.replace(fail("interrupted", f"{method}: interrupted by {ctx.interrupted} before a "
+                                        f"layout was found"), info={"interrupted": ctx.interrupted})
     if out.selected is None:
         cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
         if not cov.feasible:
@@ -212,6 +230,16 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
         why = ("; ".join(ctx.notes) + "; ") if ctx.notes else ""
         return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout although one "
                     f"exists (smallest k = {cov.min_k}); try method 'pipeline'", cov)
+    res = _finish(problem, obj, out, method, t0, t1, t2, ctx.notes, P)
+    if ctx.interrupted:
+        res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": ctx.interrupted},
+                                  message=res.message + " [interrupted: best so far]")
+    return res
+
+
+def _finish(problem, obj, out, method, t0, t1, t2, notes, P):
+    """OptimizeResult of a method's selection: exact values, bound, gap, status, message."""
+    empty = np.zeros(0, int)
     sel = np.sort(np.asarray(out.selected, int))
     d = exact_dop(problem, sel)
     adop = np.asarray(d.adop, float)
@@ -225,12 +253,18 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
         bound, how = out.relaxation.bound, out.relaxation.certified_by
     else:
         bound, how = _fallback_bound(problem), "trace"
-    gap = value / bound - 1.0 if bound > 0 and np.isfinite(bound) else np.inf
+    if how == "none":  # no valid bound: say so instead of a meaningless gap (issue 13, item 5)
+        gap = float("nan")
+        why = out.relaxation.status if out.relaxation is not None else ""
+        bound_txt = f"bound: none ({why})"
+    else:
+        gap = value / bound - 1.0 if bound > 0 and np.isfinite(bound) else np.inf
+        bound_txt = f"certified bound {bound:.6g} ({how}), gap {100 * gap:.2f}%"
     status = "optimal" if out.exact_optimum else "ok"
     msg = (f"{method}: {obj.name} = {value:.6g} ({'deg/rad' if obj.metric == 'adop' else 'm/rad' if obj.metric == 'pdop' else 'weighted'}), "
-           f"certified bound {bound:.6g} ({how}), gap {100 * gap:.2f}%")
-    if ctx.notes:
-        msg += "; " + "; ".join(ctx.notes)
+           + bound_txt)
+    if notes:
+        msg += "; " + "; ".join(notes)
     timings = {"total_s": time.perf_counter() - t0, "method_s": t2 - t1}
     if out.relaxation is not None:
         timings["relaxation_s"] = out.relaxation.time_s

@@ -17,7 +17,7 @@ from .problem import Problem
 from .relaxation import RelaxResult, relax
 from .search import evaluate_subsets, exhaustive, greedy, local_search, repair
 
-__all__ = ["METHODS", "MethodOutput", "Method", "register_method", "Context"]
+__all__ = ["METHODS", "MethodOutput", "Method", "register_method", "Context", "Interrupted"]
 
 
 @dataclass
@@ -29,6 +29,14 @@ class Context:
     n_round: int = 64
     patience: int = 6
     notes: list = field(default_factory=list)
+    #: share of the remaining budget the relaxation may use in methods that search afterwards
+    relax_share: float = 0.6
+    #: set to the signal name when a method stopped early on Ctrl-C / SIGTERM (Interrupted)
+    interrupted: "str | None" = None
+    #: optional warm start (candidate indices), e.g. the incumbent of a previous round
+    warm_start: "np.ndarray | None" = None
+    #: pose indices to start the relaxation's pose generation from
+    active_poses: "np.ndarray | None" = None
 
     def report(self, stage, fraction=None, best=None):
         if self.progress is not None:
@@ -101,12 +109,81 @@ def _m_greedy(problem: Problem, ctx: Context) -> MethodOutput:
     return MethodOutput(greedy(problem))
 
 
-def _relax(problem: Problem, ctx: Context) -> RelaxResult:
+class Interrupted(Exception):
+    """Raised by the signal handlers of :func:`layoutkit.optimize.runcontrol.interruptible`."""
+
+    def __init__(self, signame="SIGINT"):
+        super().__init__(signame)
+        self.signame = signame
+
+
+def _relax(problem: Problem, ctx: Context, share=None) -> RelaxResult:
     ctx.report("relaxation (cvxpy/Clarabel)", 0.0)
-    r = relax(problem)
+    dl = ctx.deadline
+    if share is not None and math.isfinite(dl):
+        dl = time.perf_counter() + share * max(dl - time.perf_counter(), 0.0)
+    r = relax_until(problem, dl, ctx.active_poses)
     ctx.report("relaxation (cvxpy/Clarabel)", 1.0)
     ctx.notes.append(f"relaxation {r.status} in {r.time_s:.1f} s")
+    if r.certified_by == "none":
+        ctx.notes.append("bound: none (the relaxation did not solve to status optimal within its time)")
     return r
+
+
+def _relax_child(problem, deadline, active, conn):  # pragma: no cover - runs in the forked child
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        conn.send(relax(problem, deadline=deadline, active_poses=active))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent as a status
+        conn.send(f"{type(exc).__name__}: {exc}")
+    finally:
+        conn.close()
+
+
+def relax_until(problem: Problem, deadline: float, active_poses=None) -> RelaxResult:
+    """The relaxation, ended at ``deadline`` whatever it is doing.
+
+    cvxpy's problem compilation cannot be interrupted and Clarabel checks its time limit only
+    between iterations, so with a finite deadline the relaxation runs in a forked child process
+    that is killed at the deadline (then: no bound, uniform z). Ctrl-C / SIGTERM in the parent kill
+    the child as well. Without a deadline it runs in-process.
+    """
+    if not math.isfinite(deadline):
+        return relax(problem, active_poses=active_poses)
+    import multiprocessing as mp
+
+    import cvxpy  # noqa: F401 - imported once in the parent, so each forked child starts warm
+
+    mpc = mp.get_context("fork")
+    recv, send = mpc.Pipe(duplex=False)
+    proc = mpc.Process(target=_relax_child, args=(problem, deadline, active_poses, send), daemon=True)
+    proc.start()
+    send.close()
+    got = None
+    try:
+        if recv.poll(max(deadline - time.perf_counter(), 0.0)):
+            got = recv.recv()
+    except EOFError:
+        got = "the relaxation process ended without a result"
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join()
+        recv.close()
+    if isinstance(got, RelaxResult):
+        return got
+    why = got if isinstance(got, str) else "relaxation stopped at the time limit"
+    return _no_relaxation(problem, why)
+
+
+def _no_relaxation(problem: Problem, why: str) -> RelaxResult:
+    from .relaxation import _fallback_bound
+
+    return RelaxResult(np.full(problem.N, problem.k / problem.N), float("nan"), "none", why, 0.0,
+                       _fallback_bound(problem))
 
 
 def _topk(problem: Problem, z):
@@ -123,14 +200,17 @@ def _m_topk(problem: Problem, ctx: Context) -> MethodOutput:
     return MethodOutput(_topk(problem, r.z), r)
 
 
-def _roundings(problem: Problem, z, rng, n):
-    """Randomised rounding: k sites drawn without replacement with probability ∝ z; repaired."""
+def _roundings(problem: Problem, z, rng, n, deadline=math.inf):
+    """Randomised rounding: k sites drawn without replacement with probability ∝ z; repaired
+    (stops early at ``deadline``)."""
     free = np.setdiff1d(np.arange(problem.N), problem.fixed)
     p = np.maximum(z[free], 1e-9)
     p = p / p.sum()
     kk = problem.k - len(problem.fixed)
     out = []
     for _ in range(n):
+        if time.perf_counter() > deadline:
+            break
         pick = _gumbel_topk(rng, free, kk, p)
         s = repair(problem, np.r_[problem.fixed, pick], z)
         if s is not None:
@@ -166,53 +246,77 @@ def _m_relax_round(problem: Problem, ctx: Context) -> MethodOutput:
 def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
     """Relaxation bound; starts from top-k, greedy and the best randomised roundings; 1- and 2-swap
     local search from each; then random kicks (2–3 sensors) around the incumbent until
-    ``patience`` kicks in a row bring nothing or the time is up."""
-    r = _relax(problem, ctx)
+    ``patience`` kicks in a row bring nothing or the time is up. The relaxation gets at most
+    ``relax_share`` of the time budget. On :class:`Interrupted` / KeyboardInterrupt the best layout
+    found so far is returned (``ctx.interrupted`` names the signal)."""
     t_start = time.perf_counter()
-    starts = []
-    tk = _topk(problem, r.z)
-    if tk is not None:
-        starts.append(tk)
-    g = greedy(problem)
-    if g is not None:
-        starts.append(g)
-    subs = _roundings(problem, r.z, ctx.rng, ctx.n_round)
-    if subs:
-        v, _ = evaluate_subsets(problem, np.array(subs))
-        starts += [subs[i] for i in np.argsort(v)[:3]]
-    if not starts:
-        return MethodOutput(None, r)
     best, bv = None, np.inf
-    seen = set()
+    r = None
     n_ls = 0
+    starts = []
+    try:
+        r = _relax(problem, ctx, ctx.relax_share)
+        if ctx.warm_start is not None:
+            w = repair(problem, np.asarray(ctx.warm_start, int), r.z)
+            if w is not None:
+                starts.append(w)
+        tk = _topk(problem, r.z)
+        if tk is not None:
+            starts.append(tk)
+        g = greedy(problem, deadline=ctx.deadline)
+        if g is not None:
+            starts.append(g)
+        subs = _roundings(problem, r.z, ctx.rng, ctx.n_round, ctx.deadline)
+        if subs:
+            v, _ = evaluate_subsets(problem, np.array(subs))
+            starts += [subs[i] for i in np.argsort(v)[:3]]
+        if not starts:
+            return MethodOutput(None, r)
+        sv, feas = evaluate_subsets(problem, np.array(starts))
+        i0 = int(np.argmin(np.where(feas, sv, np.inf)))
+        if feas[i0]:
+            best, bv = starts[i0], float(sv[i0])
+        seen = set()
 
-    def run(s):
-        nonlocal best, bv, n_ls
-        key = tuple(np.sort(s))
-        if key in seen:
+        def run(s):
+            nonlocal best, bv, n_ls
+            key = tuple(np.sort(s))
+            if key in seen:
+                return False
+            seen.add(key)
+            s2, val, _ = local_search(problem, s, deadline=ctx.deadline, z=r.z)
+            n_ls += 1
+            seen.add(tuple(s2))
+            if val < bv * (1 - 1e-9):
+                best, bv = s2, val
+                return True
             return False
-        seen.add(key)
-        s2, val, _ = local_search(problem, s, deadline=ctx.deadline, z=r.z)
-        n_ls += 1
-        seen.add(tuple(s2))
-        if val < bv * (1 - 1e-9):
-            best, bv = s2, val
-            return True
-        return False
 
-    for i, s in enumerate(starts):
-        ctx.report("local search", i / (len(starts) + ctx.patience), bv)
-        run(s)
-        if time.perf_counter() > ctx.deadline:
-            break
-    fails = 0
-    while fails < ctx.patience and time.perf_counter() < ctx.deadline and best is not None:
-        ctx.report("local search", (len(starts) + fails) / (len(starts) + ctx.patience), bv)
-        kick = _kick(problem, best, ctx.rng, r.z)
-        if kick is None or not run(kick):
-            fails += 1
-        else:
-            fails = 0
+        for i, s in enumerate(starts):
+            if time.perf_counter() > ctx.deadline:
+                break
+            ctx.report("local search", i / (len(starts) + ctx.patience), bv)
+            run(s)
+        fails = 0
+        while fails < ctx.patience and time.perf_counter() < ctx.deadline and best is not None:
+            ctx.report("local search", (len(starts) + fails) / (len(starts) + ctx.patience), bv)
+            kick = _kick(problem, best, ctx.rng, r.z)
+            if kick is None or not run(kick):
+                fails += 1
+            else:
+                fails = 0
+    except (Interrupted, KeyboardInterrupt) as exc:
+        ctx.interrupted = getattr(exc, "signame", "SIGINT")
+        ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
+        if r is None:
+            r = _no_relaxation(problem, f"interrupted by {ctx.interrupted} during the relaxation")
+        if best is None:
+            for s in starts:
+                best = s
+                break
+        if best is None:
+            best = repair(problem, np.r_[problem.fixed, np.setdiff1d(np.arange(problem.N), problem.fixed)[
+                : problem.k - len(problem.fixed)]], r.z)
     ctx.report("local search", 1.0, bv)
     return MethodOutput(best, r, info={"local_searches": n_ls, "search_s": time.perf_counter() - t_start})
 
@@ -226,6 +330,8 @@ def _kick(problem: Problem, sel, rng, z):
     out = rng.choice(movable, nk, replace=False)
     keep = np.setdiff1d(sel, out)
     cand = np.setdiff1d(np.arange(problem.N), sel)
+    if len(cand) < nk:  # k close to N: no kick possible (issue 13: k = N crashed here)
+        return None
     p = 0.5 * z[cand] / max(z[cand].sum(), 1e-12) + 0.5 / len(cand)
     add = rng.choice(cand, nk, replace=False, p=p / p.sum())
     return repair(problem, np.r_[keep, add], z)

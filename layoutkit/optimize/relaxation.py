@@ -42,13 +42,17 @@ _POSE_SAFETY = 1e-4
 class RelaxResult:
     """z : (N,) fractional selection in [0, 1]; bound : certified lower bound on the objective
     (d units: deg/rad for ADOP, m/rad for PDOP), or the fallback bound; certified_by :
-    "relaxation" or "trace"; status : solver status; time_s : wall time of build + solve."""
+    "relaxation", "trace", "per-pose relaxation" or "none" (no valid relaxation bound: bound NaN, reason
+    in status); status : solver status; time_s : wall time of build + solve; trace_bound : the
+    closed-form bound (always valid, loose); active : pose indices of the last pose-generation round."""
 
     z: np.ndarray
     bound: float
     certified_by: str
     status: str
     time_s: float
+    trace_bound: float = float("nan")
+    active: np.ndarray = None
 
 
 def pose_trace_bounds(problem: Problem) -> np.ndarray:
@@ -207,7 +211,8 @@ def relaxed_pose_values(problem: Problem, z, use_rho=True) -> np.ndarray:
 
 
 def relax(problem: Problem, solver: str = "CLARABEL", time_limit=60.0, use_rho=True,
-          initial_poses=24, add_poses=16, max_rounds=6, pose_bound_budget_s=30.0) -> RelaxResult:
+          initial_poses=24, add_poses=16, max_rounds=6, pose_bound_budget_s=30.0, deadline=None,
+          active_poses=None) -> RelaxResult:
     """Convex relaxation by pose generation; return the fractional z and a certified lower bound.
 
     Worst case with full coverage: the worst case over a subset of poses is a lower bound on the
@@ -222,9 +227,20 @@ def relax(problem: Problem, solver: str = "CLARABEL", time_limit=60.0, use_rho=T
     use_rho : bound the rho term through the GLS information (module docstring); False gives the
     design's ``(1 - rho) A^-1`` relaxation.
     time_limit : seconds per conic solve (badly scaled input, e.g. a mesh in the wrong units, can
-    make Clarabel crawl); a solve that hits it leaves the closed-form trace bound.
+    make Clarabel crawl). deadline : perf_counter time by which the whole relaxation must end: each
+    solve gets the remaining time as Clarabel's time limit, pose generation stops there (the last
+    completed round's bound stays valid). A solve that ends without status ``optimal`` (time limit,
+    ``optimal_inaccurate``, numerical failure) gives **no** relaxation bound: ``certified_by`` is then
+    "none" and ``bound`` NaN, with the reason in ``status`` (the closed-form trace bound is kept in
+    ``trace_bound``; it is valid but usually far too loose to be a meaningful gap).
+    active_poses : pose indices to start the pose generation from (e.g. the previous round's).
     """
     t0 = time.perf_counter()
+    deadline = float("inf") if deadline is None else float(deadline)
+
+    def tl():
+        rem = deadline - time.perf_counter()
+        return max(min(time_limit if time_limit is not None else rem, rem), 0.05)
     P = problem.P
     joint = problem.objective.aggregate == "worst" and problem.n_cover >= P
     if not joint or P <= initial_poses:
@@ -232,15 +248,19 @@ def relax(problem: Problem, solver: str = "CLARABEL", time_limit=60.0, use_rho=T
         if act is None:  # worst case with a coverage fraction: z from the initial poses only
             z0 = np.full(problem.N, problem.k / problem.N)
             act = np.sort(np.argsort(-relaxed_pose_values(problem, z0, use_rho))[:initial_poses])
-        best = _relax_poses(problem, act, solver, time_limit, use_rho)
+        best = _relax_poses(problem, act, solver, tl(), use_rho)
         n_active = len(act)
     else:
         z0 = np.full(problem.N, problem.k / problem.N)
         v0 = relaxed_pose_values(problem, z0, use_rho)
         active = np.argsort(-v0)[:initial_poses]
+        if active_poses is not None:
+            active = np.unique(np.r_[np.asarray(active_poses, int), active[: max(0, initial_poses - len(active_poses))]])
         best = None
         for rnd in range(max_rounds):
-            r = _relax_poses(problem, np.sort(active), solver, time_limit, use_rho)
+            if best is not None and time.perf_counter() >= deadline:
+                break
+            r = _relax_poses(problem, np.sort(active), solver, tl(), use_rho)
             if best is None or best.certified_by != "relaxation" or (
                     r.certified_by == "relaxation" and r.bound >= best.bound):
                 best = r
@@ -255,12 +275,12 @@ def relax(problem: Problem, solver: str = "CLARABEL", time_limit=60.0, use_rho=T
     bound, how = best.bound, best.certified_by
     if not joint:
         L = pose_relaxation_bounds(problem, use_rho=use_rho, solver=solver,
-                                   deadline=time.perf_counter() + pose_bound_budget_s)
+                                   deadline=min(time.perf_counter() + pose_bound_budget_s, deadline))
         b = aggregate_pose_bounds(problem, L)
         if b > bound:
             bound, how = b, "per-pose relaxation"
     return RelaxResult(best.z, bound, how, f"{best.status} ({n_active} of {P} poses active)",
-                       time.perf_counter() - t0)
+                       time.perf_counter() - t0, best.trace_bound, np.asarray(active if joint and P > initial_poses else [], int))
 
 
 def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, use_rho=True) -> RelaxResult:
@@ -317,10 +337,12 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
     if zval is None:
         zval = np.full(N, k / N)
     fallback = _fallback_bound(problem)
-    if (status == "optimal" and obj.aggregate == "worst" and problem.n_cover >= P
-            and prob.value is not None and np.isfinite(prob.value)):
+    joint = obj.aggregate == "worst" and problem.n_cover >= P
+    if status == "optimal" and joint and prob.value is not None and np.isfinite(prob.value):
         b = float(np.sqrt(max(prob.value, 0.0) * cbar * (1 - _SAFETY)))
         bound, how = max(b, fallback), "relaxation" if b >= fallback else "trace"
+    elif joint:  # inaccurate / cut / failed solve: its value certifies nothing (issue 13, item 5)
+        bound, how = float("nan"), "none"
     else:
         bound, how = fallback, "trace"
-    return RelaxResult(zval, bound, how, status, time.perf_counter() - t0)
+    return RelaxResult(zval, bound, how, status, time.perf_counter() - t0, fallback)

@@ -461,9 +461,10 @@ def repair(problem: Problem, sel, score=None, max_iter=None):
     return None
 
 
-def greedy(problem: Problem, rng=None):
+def greedy(problem: Problem, rng=None, deadline=None):
     """Greedy construction: add the site that most reduces the coverage shortfall, then the
-    regularised objective (``A + delta I`` keeps it defined before 6 angle pairs are in); repair."""
+    regularised objective (``A + delta I`` keeps it defined before 6 angle pairs are in); repair.
+    Returns None if ``deadline`` (perf_counter s) passes first."""
     lit = problem.lit
     sel = list(problem.fixed.tolist())
     tg = np.trace(problem.G, axis1=-2, axis2=-1)
@@ -472,6 +473,8 @@ def greedy(problem: Problem, rng=None):
     A = problem.G[:, sel].sum(axis=1) + reg
     b = problem.U[:, sel].sum(axis=1)
     while len(sel) < problem.k:
+        if deadline is not None and time.perf_counter() > deadline:
+            return None
         ok = np.ones(problem.N, bool)
         ok[sel] = False
         if problem.conflict is not None and sel:

@@ -93,8 +93,11 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
     from ..layout import Layout, save_layout
     from ..mesh import mesh_hash
     from ..optimize import optimize_stations, spacing_conflicts
+    from ..optimize.runcontrol import Interrupted, interruptible
 
     t0 = time.perf_counter()
+    import cvxpy  # noqa: F401 - the relaxation's import (1–2 s) happens before any time budget starts
+
     prep = prepare_problem(mesh, envelope, candidates=candidates, spacing=spacing, keepout=keepout,
                            units=units, sensor_half_angle_deg=sensor_half_angle_deg, seed=seed,
                            max_candidates=max_candidates)
@@ -107,13 +110,30 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
     kw = dict(objective=objective, rho=rho, min_visible=min_visible, method=method, fixed=fixed,
               conflict=spacing_conflicts(cand.positions, min_spacing),
               coverage_fraction=coverage_fraction, time_limit=time_limit, progress=progress)
-    res = optimize_stations(prep["jac"], prep["visible"], k, rng=seed, **kw)
-    sweep = []
-    if k_range is not None:
-        for kk in range(int(k_range[0]), int(k_range[1]) + 1):
-            r = res if kk == k else optimize_stations(prep["jac"], prep["visible"], kk, rng=seed, **kw)
-            sweep.append({"k": kk, "status": r.status, "value": r.value, "bound": r.bound, "gap": r.gap,
-                          "stats": r.stats() if r.success else None, "selected": r.selected.tolist()})
+    interrupted = None
+    with interruptible():
+        try:
+            res = optimize_stations(prep["jac"], prep["visible"], k, rng=seed, **kw)
+        except Interrupted as exc:  # outside the method (coverage analysis): nothing to write
+            raise Interrupted(exc.signame) from None
+        interrupted = res.info.get("interrupted")
+        sweep = []
+        if k_range is not None:
+            for kk in range(int(k_range[0]), int(k_range[1]) + 1):
+                if interrupted:  # every finished k is kept; the rest is not started
+                    sweep.append({"k": kk, "status": "not run (interrupted)", "value": None, "bound": None,
+                                  "gap": None, "stats": None, "selected": []})
+                    continue
+                try:
+                    r = res if kk == k else optimize_stations(prep["jac"], prep["visible"], kk, rng=seed, **kw)
+                except Interrupted as exc:
+                    interrupted = exc.signame
+                    sweep.append({"k": kk, "status": "interrupted", "value": None, "bound": None, "gap": None,
+                                  "stats": None, "selected": []})
+                    continue
+                interrupted = interrupted or r.info.get("interrupted")
+                sweep.append({"k": kk, "status": r.status, "value": r.value, "bound": r.bound, "gap": r.gap,
+                              "stats": r.stats() if r.success else None, "selected": r.selected.tolist()})
     m = prep["mesh"]
     summary = {
         "mesh": str(mesh) if isinstance(mesh, (str, Path)) else "(in memory)",
@@ -126,6 +146,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
         "timings_s": {**res.timings, "total_s": time.perf_counter() - t0},
         "selected_ids": [cand.ids[i] for i in res.selected],
         "stats": res.stats() if res.success else None, "k_sweep": sweep,
+        "interrupted": interrupted,
     }
     if res.success and out is not None:
         lay = Layout(cand.positions[res.selected], cand.normals[res.selected],

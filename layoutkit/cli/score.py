@@ -1,0 +1,79 @@
+"""CLI command ``layoutkit score``: a fixed layout over an envelope (issue 13, item 4)."""
+from __future__ import annotations
+
+import click
+
+from ._common import echo_json, fail
+from .options import (coverage_option, envelope_option, half_angle_option, json_flag, min_visible_option,
+                      report_option, rho_option, seed_option, units_option)
+
+
+@click.command("score")
+@click.argument("layout", type=click.Path(dir_okay=False))
+@envelope_option
+@click.option("--mesh", "mesh_path", default=None, type=click.Path(dir_okay=False),
+              help="Mesh for self-occlusion (without: acceptance cone and field of view only).")
+@units_option
+@rho_option
+@half_angle_option
+@coverage_option
+@min_visible_option
+@click.option("--poses", "n_poses", type=click.IntRange(min=1), default=None,
+              help="Number of envelope poses (overrides the envelope's count, e.g. a dense set).")
+@seed_option(default=None)
+@click.option("--compare", "compare_path", default=None, type=click.Path(dir_okay=False),
+              help="Second layout scored over the same poses: side-by-side table (and CDF with --report).")
+@report_option
+@json_flag
+def score_cmd(layout, envelope_path, mesh_path, units, rho, half_angle_deg, coverage, min_visible, n_poses,
+              seed, compare_path, report_dir, as_json):
+    """Score LAYOUT over the envelope: DOP distribution, coverage by rule, per-sensor usage.
+
+    --seed replaces the envelope's pose seed (a held-out pose set). ADOP in deg/rad, PDOP in m/rad;
+    statistics over the covered poses. Exit 1 if no pose is covered.
+    """
+    from ..workflows.score import score_layout
+
+    try:
+        res = score_layout(layout, envelope_path, mesh=mesh_path, units=units, rho=rho,
+                           half_angle_deg=half_angle_deg, min_visible=min_visible, coverage=coverage,
+                           poses=n_poses, seed=seed, compare=compare_path, report=report_dir)
+    except ValueError as exc:
+        fail(str(exc))
+    out = {k: v for k, v in res.items() if not k.startswith("_")}
+    if as_json:
+        echo_json(out)
+    else:
+        _print(out)
+    if not res["success"]:
+        raise SystemExit(1)
+
+
+def _fmt(v):
+    return "-" if v is None else f"{v:.5g}" if isinstance(v, float) else str(v)
+
+
+def _print(r):
+    rows = [("poses", "poses"), ("covered poses", "covered_poses"), ("coverage fraction", "coverage_fraction"),
+            ("ADOP worst (deg/rad)", "worst_adop"), ("ADOP p99", "p99_adop"), ("ADOP p95", "p95_adop"),
+            ("ADOP median", "median_adop"), ("PDOP worst (m/rad)", "worst_pdop"), ("PDOP p95", "p95_pdop"),
+            ("PDOP median", "median_pdop")]
+    c = r.get("compare")
+    click.echo(f"{r['layout']} over {r['envelope']} ({r['coverage_rule']}, >= {r['min_visible']} lit, rho {r['rho']}, "
+               f"occlusion: {r['occlusion']})")
+    head = f"{'':<22}{'layout':>14}" + (f"{'compare':>14}{'ratio':>9}" if c else "")
+    click.echo(head)
+    for lab, k in rows:
+        line = f"{lab:<22}{_fmt(r[k]):>14}"
+        if c:
+            ratio = (c[k] / r[k]) if isinstance(r[k], float) and r[k] not in (0.0,) and isinstance(c[k], float) else None
+            line += f"{_fmt(c[k]):>14}{_fmt(ratio) if ratio is not None else '':>9}"
+        click.echo(line)
+    used = sorted(r["per_sensor"], key=lambda u: u["lit_fraction"])
+    click.echo("least used sensors: " + ", ".join(f"{u['id']} {100 * u['lit_fraction']:.0f} %" for u in used[:5]))
+    click.echo(r["message"])
+    if r.get("report"):
+        click.echo(f"report -> {r['report']['dir']}")
+
+
+commands: list = [score_cmd]
