@@ -210,7 +210,8 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
         time_limit = DEFAULT_PIPELINE_TIME_S
     # the budget counts from the call (coverage analysis and relaxation included); the final exact
     # evaluation after the deadline takes well under a second
-    deadline = math.inf if time_limit is None else t0 + float(time_limit) - _FINISH_RESERVE_S
+    deadline = (math.inf if time_limit is None
+                else t0 + float(time_limit) - min(max(_FINISH_RESERVE_S, 0.08 * float(time_limit)), 2.0))
     ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
     t1 = time.perf_counter()
     try:

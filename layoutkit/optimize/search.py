@@ -486,6 +486,8 @@ def greedy(problem: Problem, rng=None, deadline=None):
         d = _deficit(problem, n[None] + lit[:, cand].T)
         vals = np.empty(len(cand))
         for s in range(0, len(cand), 256):
+            if deadline is not None and time.perf_counter() > deadline:
+                return None
             c = cand[s:s + 256]
             An = A[None] + problem.G[:, c].transpose(1, 0, 2, 3)
             bn = b[None] + problem.U[:, c].transpose(1, 0, 2, 3)
