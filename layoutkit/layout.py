@@ -109,5 +109,7 @@ def load_layout(path) -> Layout:
 
 def save_layout(layout: Layout, path) -> None:
     """Write ``layout`` as JSON (units m)."""
-    Path(path).write_text(json.dumps(to_jsonable(layout.to_dict()), indent=2) + "\n")
+    from .io.atomic import atomic_write_text
+
+    atomic_write_text(path, json.dumps(to_jsonable(layout.to_dict()), indent=2) + "\n")
 

@@ -145,11 +145,23 @@ def _plotter(size, *, anti_aliasing: bool = True, shape=(1, 1)):
 
 def _shoot(pl, path) -> Path:
     """Render the current scene and write it to ``path`` (PNG)."""
+    import os
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")  # complete or not at all (disk full)
     pl.suppress_rendering = False
     pl.render()
-    pl.screenshot(str(path))
-    pl.suppress_rendering = True
-    return Path(path)
+    try:
+        pl.screenshot(str(tmp))
+        os.replace(tmp, path)
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            exc.filename = str(path)
+        raise
+    finally:
+        pl.suppress_rendering = True
+    return path
 
 
 def _check_size(size):
@@ -283,7 +295,7 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
                               fmt="%.0f", color="black", title_font_size=max(12, h // 55),
                               label_font_size=max(11, h // 60))
     pl.add_axes(line_width=3, labels_off=False, color="black")
-    head = title or "layout"
+    head = title or "Photodiode layout"
     parts = ([f"{P.shape[0]} {what}"] if P.shape[0] else []) + (
         [f"{len(candidates)} candidate sites"] if candidates is not None else [])
     n_txt = ", ".join(parts) or "mesh only"
@@ -555,12 +567,14 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
             ax.annotate(lbl, (lon, lat), xytext=(5, 3), textcoords="offset points", fontsize=10, color="black",
                         fontweight="bold", path_effects=halo)
     frac = q.summary()["tracked_solid_angle_fraction"]
+    from .io.figures import CAPTION_GID, save_figure
+
     fig.text(0.5, 0.01, (f"Station direction in the body frame (longitude atan2(y, x), latitude asin(z)); "
                          f"grey: fewer than {q.min_lit} sensors lit or singular; blue line: {q.min_lit}-sensor "
                          f"boundary. Tracked at every roll over {100 * frac:.1f} % of the sphere."),
-             ha="center", fontsize=10)
+             ha="center", fontsize=10, gid=CAPTION_GID)
     fig.subplots_adjust(left=0.03, right=0.97, top=0.9, bottom=0.06, wspace=0.1, hspace=0.25)
-    fig.savefig(out, dpi=dpi)
+    save_figure(fig, out, caption="", dpi=dpi, close=False)
     return out
 
 

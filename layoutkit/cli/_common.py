@@ -15,8 +15,9 @@ def echo_json(obj, path=None) -> None:
     if path in (None, "-"):
         click.echo(text)
     else:
-        with open(path, "w") as fh:
-            fh.write(text + "\n")
+        from ..io.atomic import atomic_write_text
+
+        atomic_write_text(path, text + "\n")
 
 
 def fail(message: str, code: int = 2):

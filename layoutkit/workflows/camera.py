@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from .._json import to_jsonable
+from ..io.atomic import atomic_write, atomic_write_text
+from ..io.figures import save_figure
 
 __all__ = ["camera_attitude", "flyaround_case", "corner_noise_sensitivity", "detector_tilt_accuracy", "main",
            "PAPER_RESULTS", "CASES"]
@@ -336,11 +338,13 @@ def _plot_case(case, res, errs, path):
             a.axvspan(t[near][0], t[near][-1], color="0.5", alpha=0.12, lw=0)
         ax[1].text(t[near].mean(), ax[1].get_ylim()[1] * 0.5, "|θ| < 10°: tilt sign\nnearly unobservable",
                    ha="center", va="top", fontsize=8)
-    ax[2].set_ylabel("px")
+    ax[2].set_ylabel("corner error (px) / θ (deg/100)")
     ax[2].set_xlabel("t (s)")
+    ax[0].set_xlabel("t (s)")
+    ax[1].set_xlabel("t (s)")
     ax[2].legend(loc="upper right", fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, caption=f"Zhai {case}: error of the rotation angle about the case's axis (top), total "
+                "attitude error (middle), median corner error and the true angle (bottom), per rendered frame.")
 
 
 def _plot_sensitivity(sens, measured_px, path):
@@ -360,8 +364,8 @@ def _plot_sensitivity(sens, measured_px, path):
     ax.set_title("3 m face at 100 m (≈64 px): attitude error vs corner noise")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, caption="Median and 95th percentile attitude error of the two solvers over Monte-Carlo "
+                "corner noise; dotted: the noise our detector measured on renders at 100 m.")
 
 
 def _plot_detector(tilt_res, path):
@@ -382,14 +386,12 @@ def _plot_detector(tilt_res, path):
     ax.set_title(f"Detector on 1292×964 renders, face at {tilt_res['distance_m']:.0f} m, "
                  f"blur {tilt_res['blur_sigma_px']} px, noise {tilt_res['noise_sigma']} DN")
     ax.legend()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, caption="Corner error of the sub-pixel detector on each rendered frame (four corners per "
+                "tilt); red x: detection failed.")
 
 
 def _example_frame(path):
     """A full 1292 × 964 render of case 1 at t = 0 with the detected corners, and a zoom."""
-    import cv2
-
     from ..camera.conventions import pose_paper_to_cv
     from ..camera.corners import detect_quadrilateral
     from ..camera.synthetic import SyntheticCamera
@@ -402,20 +404,27 @@ def _example_frame(path):
     with SyntheticCamera(mesh, full, face_colors=_target_colors(mesh), supersample=2) as sc:
         img = sc.render(Rc, tc, blur_sigma_px=0.7, noise_sigma=2.0, rng=np.random.default_rng(0))
     det = detect_quadrilateral(img, threshold=80.0)
-    rgb = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     cx, cy = full.principal_point
-    z = 6
     x0, y0 = int(cx) - 50, int(cy) - 50
-    zoom = cv2.resize(rgb[y0:y0 + 100, x0:x0 + 100], (100 * z, 100 * z), interpolation=cv2.INTER_NEAREST)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(13, 5.2), gridspec_kw={"width_ratios": [1.34, 1]})
+    ax[0].imshow(img, cmap="gray", vmin=0, vmax=255)
+    ax[0].add_patch(plt.Rectangle((x0, y0), 100, 100, fill=False, ec="orange", lw=1))
+    ax[0].set_title(f"Case 1 render at t = 0 ({img.shape[1]}×{img.shape[0]} px, face at {DISTANCE_M:.0f} m)")
+    ax[1].imshow(img[y0:y0 + 100, x0:x0 + 100], cmap="gray", vmin=0, vmax=255, extent=(x0 - .5, x0 + 99.5, y0 + 99.5, y0 - .5),
+                 interpolation="nearest")
     if det.success:
-        for p in det.corners_px:
-            q = ((p - [x0, y0] + 0.5) * z).astype(int)
-            cv2.circle(zoom, tuple(q), 6, (0, 0, 255), 2)
-    canvas = rgb.copy()
-    canvas[10:10 + 100 * z // 2, 10:10 + 100 * z // 2] = cv2.resize(zoom, (100 * z // 2, 100 * z // 2))
-    cv2.rectangle(canvas, (10, 10), (10 + 100 * z // 2, 10 + 100 * z // 2), (0, 200, 255), 1)
-    cv2.rectangle(canvas, (x0, y0), (x0 + 100, y0 + 100), (0, 200, 255), 1)
-    cv2.imwrite(str(path), canvas)
+        ax[1].plot(det.corners_px[:, 0], det.corners_px[:, 1], "o", mfc="none", mec="r", ms=10, label="detected corners")
+        ax[1].legend(fontsize=8)
+    ax[1].set_title("Zoom on the face (orange box) with the detected corners")
+    for a in ax:
+        a.set_xlabel("u (px)")
+        a.set_ylabel("v (px)")
+    save_figure(fig, path, caption="Synthetic camera frame (blur 0.7 px, noise 2 DN) of the Zhai target and the "
+                "sub-pixel corners the detector found (red circles); pixel coordinates, origin top left.")
 
 
 # ----------------------------------------------------------------------------- study entry point
@@ -456,9 +465,11 @@ def main(out_dir="studies/zhai2014_flyaround", quick: bool = False, seed: int = 
             "render_detect_s_per_frame": res["render_detect_s_per_frame"],
             "methods": {m: _stats(e, res["theta"]) for m, e in errs.items()},
         }
-        np.savez_compressed(out / f"{case}_series.npz", t=res["t"], theta=res["theta"], uv_det=res["uv_det"],
-                            uv_true=res["uv_true"], **{f"euler_err_deg__{m}": e["euler_err_deg"] for m, e in errs.items()},
-                            **{f"attitude_err_deg__{m}": e["attitude_err_deg"] for m, e in errs.items()})
+        with atomic_write(out / f"{case}_series.npz", "wb") as fh:
+            np.savez_compressed(fh, t=res["t"], theta=res["theta"], uv_det=res["uv_det"],
+                                uv_true=res["uv_true"],
+                                **{f"euler_err_deg__{m}": e["euler_err_deg"] for m, e in errs.items()},
+                                **{f"attitude_err_deg__{m}": e["attitude_err_deg"] for m, e in errs.items()})
         progress(f"{case}: done ({res['render_detect_s_per_frame'] * 1e3:.0f} ms/frame)")
     med = float(np.median(np.concatenate(measured)))
     sig = np.geomspace(0.003, 1.0, 6 if quick else 12)
@@ -471,8 +482,8 @@ def main(out_dir="studies/zhai2014_flyaround", quick: bool = False, seed: int = 
     _plot_detector(det, out / "detector_tilt.png")
     _example_frame(out / "example_frame.png")
     summary["elapsed_s"] = time.perf_counter() - t_start
-    (out / "results.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
-    (out / "table.md").write_text(_table(summary))
+    atomic_write_text(out / "results.json", json.dumps(to_jsonable(summary), indent=2) + "\n")
+    atomic_write_text(out / "table.md", _table(summary))
     progress(f"wrote {out} in {summary['elapsed_s']:.0f} s")
     return summary
 

@@ -59,19 +59,23 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
 
 
 def write_frames(fr: Frames, path) -> None:
+    """Write a frame table (.csv) or .npz atomically: ``path`` is complete or untouched."""
+    from ..io.atomic import atomic_write
+
     path = Path(path)
     if path.suffix == ".npz":
         extra = {}
         if fr.truth_rotation is not None:
             extra = {"truth_rotvec": matrix_to_rotvec(fr.truth_rotation), "truth_translation": fr.truth_translation}
-        np.savez_compressed(path, t=fr.t, angles=fr.angles, ids=np.asarray(fr.ids), **extra)
+        with atomic_write(path, "wb") as fh:
+            np.savez_compressed(fh, t=fr.t, angles=fr.angles, ids=np.asarray(fr.ids), **extra)
         return
     header = ["t"] + [f"th_{ax}_{i}" for i in fr.ids for ax in ("x", "y")]
     rows = np.column_stack([fr.t, fr.angles.reshape(len(fr.t), -1)])
     if fr.truth_rotation is not None:
         header += _TRUTH
         rows = np.column_stack([rows, matrix_to_rotvec(fr.truth_rotation), fr.truth_translation])
-    with open(path, "w", newline="") as fh:
+    with atomic_write(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         for r in rows:

@@ -171,8 +171,11 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     from .._json import to_jsonable
+    from ..io.atomic import atomic_write_text
+    from ..io.figures import integer_ticks, save_figure
 
     d = Path(report_dir)
     d.mkdir(parents=True, exist_ok=True)
@@ -181,19 +184,29 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
         t = prep["translations"]
         ref = prep["stations"][prep["envelope"].reference_station]
         rng_m = np.linalg.norm(t - ref.translation, axis=1)
-        fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+        fig, ax = plt.subplots(1, 2, figsize=(12, 4.6))
         for a, y, lab in ((ax[0], res.adop, "ADOP (deg/rad)"), (ax[1], res.pdop, "PDOP (m/rad)")):
             sc = a.scatter(rng_m, y, c=res.n_lit, s=12, cmap="viridis")
+            fin = np.isfinite(y)
+            if fin.any():  # the worst pose of the envelope, marked and labelled
+                w = int(np.flatnonzero(fin)[np.argmax(y[fin])])
+                a.scatter([rng_m[w]], [y[w]], s=140, facecolors="none", edgecolors="r", linewidths=1.6,
+                          label=f"worst pose #{w}: {y[w]:.4g} at {rng_m[w]:.2f} m")
+                a.legend(fontsize=8, loc="lower right")
             a.set_xlabel("range to station (m)")
             a.set_ylabel(lab)
             a.set_yscale("log")
+            a.set_title(lab.split(" ")[0] + " per envelope pose")
+            a.xaxis.set_major_locator(MaxNLocator(nbins=6))
             a.grid(alpha=0.3)
-        fig.colorbar(sc, ax=ax, label="lit sensors")
+        cb = fig.colorbar(sc, ax=ax, label="lit sensors (count)")
+        cb.locator = MaxNLocator(integer=True)
+        cb.update_ticks()
         fig.suptitle(f"{res.objective} over the envelope: value {res.value:.4g}, bound {res.bound:.4g}, "
                      f"gap {100 * res.gap:.1f} %")
         p = d / "dop_over_envelope.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
+        save_figure(fig, p, caption=f"{len(rng_m)} envelope poses of the optimised {len(res.selected)}-sensor layout; "
+                    "colour: lit sensors; red circle: the worst pose (largest DOP); log scale.")
         files.append(p.name)
         fig, ax = plt.subplots(1, 2, figsize=(11, 4))
         for a, y, lab in ((ax[0], res.adop, "ADOP (deg/rad)"), (ax[1], res.pdop, "PDOP (m/rad)")):
@@ -202,10 +215,10 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
             a.set_xlabel(lab)
             a.set_ylabel("fraction of poses")
             a.grid(alpha=0.3)
-        fig.suptitle("cumulative distribution over the envelope")
+        fig.suptitle("Cumulative distribution of ADOP and PDOP over the envelope")
         p = d / "dop_cdf.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
+        save_figure(fig, p, caption="Fraction of the envelope poses whose DOP is at most the value on the x axis "
+                    "(poses with an undefined DOP left out).")
         files.append(p.name)
     sweep = [s for s in summary.get("k_sweep", []) if s["stats"]]
     if sweep:
@@ -219,16 +232,19 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
         ax.set_ylabel("ADOP (deg/rad)" if summary["objective"].endswith("adop") else
                       "PDOP (m/rad)" if summary["objective"].endswith("pdop") else "weighted DOP")
         ax.set_xticks(ks)
+        integer_ticks(ax, "x")
         infeasible = [s["k"] for s in summary["k_sweep"] if not s["stats"]]
+        title = f"Optimised {summary['objective']} against the number of sensors"
         if infeasible:
-            ax.set_title(f"infeasible (too few sensors for {summary['min_visible']} lit): k = "
-                         + ", ".join(map(str, infeasible)), fontsize=9)
+            title += (f"\ninfeasible (too few sensors for {summary['min_visible']} lit): k = "
+                      + ", ".join(map(str, infeasible)))
+        ax.set_title(title, fontsize=9)
         ax.set_yscale("log")
         ax.legend()
         ax.grid(alpha=0.3)
         p = d / "dop_vs_k.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
+        save_figure(fig, p, caption="For each k of --k-range: the optimiser's value, the certified lower bound "
+                    "(the gap between them is the optimality gap) and, for ADOP objectives, the median ADOP.")
         files.append(p.name)
     if render and res.success:
         try:
@@ -239,7 +255,8 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
             pos, nor = cand.positions[res.selected], cand.normals[res.selected]
             lit_frac = prep["visible"][:, :, res.selected].any(axis=1).mean(axis=0)
             paths = render_layout_views(prep["mesh"], pos, nor, lit_frac, candidates=cand.positions,
-                                        out_dir=d, prefix="layout")
+                                        out_dir=d, prefix="layout",
+                                        title=f"Optimised {len(res.selected)}-sensor layout ({res.objective})")
             files += [Path(p).name for p in paths]
             env = prep["envelope"]
             q = tracking_quality_map(prep["mesh"], pos, nor, distance=float(np.mean(env.range_m)),
@@ -247,7 +264,7 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
             files.append(Path(render_tracking_map(q, out=d / "tracking_map.png")).name)
         except Exception as exc:  # rendering is optional: plots-only report
             echo(f"note: renders skipped ({type(exc).__name__}: {exc}); the report has plots only")
-    (d / "summary.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
+    atomic_write_text(d / "summary.json", json.dumps(to_jsonable(summary), indent=2) + "\n")
     files.append("summary.json")
     return {"dir": str(d), "files": files}
 

@@ -120,7 +120,8 @@ def render_design(mesh_path, *, out_dir, units: str = "m", layout_path=None, can
         frac = lit_fraction(inp.visibility(lay, **kw)) if inp.envelope is not None else None
         if frac is not None:
             result["lit_fraction"] = dict(zip(lay.ids, frac.tolist()))
-        name = lay.metadata.get("name") or Path(layout_path).stem
+        meta_name = lay.metadata.get("name")  # not "layout layout" for a file called layout.json
+        name = f"'{meta_name}'" if meta_name else f"from {Path(layout_path).name}"
         result["paths"] += render.render_layout_views(
             inp.mesh, lay.positions, lay.normals, frac, candidates=None if cand is None else cand.positions,
             views=options.views, size=options.size, out_dir=out_dir, prefix=stem, ids=lay.ids,
