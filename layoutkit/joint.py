@@ -27,7 +27,7 @@ import numpy as np
 from ._validate import as_array
 from .geometry import rotvec_to_matrix
 from .lighthouse import Station, lh2_to_lh1_angles, measure_jacobian, undistort
-from .pnp import (PnPResult, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_NOT_CONVERGED, STATUS_OK,
+from .pnp import (PnPResult, STATUS_AMBIGUOUS, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_NOT_CONVERGED, STATUS_OK,
                   STATUS_TOO_FEW, solve_pnp)
 
 __all__ = ["solve_joint", "model_angles_jacobian", "MIN_ANGLES", "DEFAULT_CHUNK"]
@@ -100,7 +100,8 @@ def _start(P, ang, mask, stations):
             a = lh2_to_lh1_angles(a)
         lit = np.all(np.isfinite(a), -1)
         r = solve_pnp(P, a, lit)
-        ok = r.success | (r.status == STATUS_NOT_CONVERGED)
+        # an ambiguous single-station pose is still a start: the joint fit over stations decides
+        ok = r.success | (r.status == STATUS_NOT_CONVERGED) | (r.status == STATUS_AMBIGUOUS)
         Rw = np.einsum("ij,fjk->fik", st.rotation, np.where(ok[:, None, None], r.rotation, np.eye(3)))
         tw = np.where(ok[:, None], r.translation, 0.0) @ st.rotation.T + st.translation
         out.append((Rw, tw, ok))

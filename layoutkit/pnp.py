@@ -39,6 +39,7 @@ import numpy as np
 
 from ._validate import as_array
 from .geometry import nearest_rotation
+from .units import RHO_PAPER, SIGMA_THETA_PAPER
 
 __all__ = [
     "PnPResult",
@@ -49,6 +50,7 @@ __all__ = [
     "STATUS_DEGENERATE",
     "STATUS_NOT_CONVERGED",
     "STATUS_BEHIND",
+    "STATUS_AMBIGUOUS",
     "STATUS_NAMES",
     "solve_pnp",
     "solve_pnp_lm",
@@ -59,12 +61,14 @@ STATUS_TOO_FEW = 1          # fewer than 4 lit sensors with finite angles in (0,
 STATUS_DEGENERATE = 2       # lit sensors (nearly) collinear, singular normal equations, or range unobservable
 STATUS_NOT_CONVERGED = 3    # refinement hit max_iterations without meeting the tolerance
 STATUS_BEHIND = 4           # best pose puts a lit sensor at z <= 0 (behind the station)
+STATUS_AMBIGUOUS = 5        # two distinct poses fit the angles equally well at the noise level
 STATUS_NAMES = {
     STATUS_OK: "ok",
     STATUS_TOO_FEW: "too few lit sensors (< 4)",
     STATUS_DEGENERATE: "degenerate geometry (collinear sensors, singular normal equations or unobservable range)",
     STATUS_NOT_CONVERGED: "not converged",
     STATUS_BEHIND: "behind the station (a lit sensor at z <= 0)",
+    STATUS_AMBIGUOUS: "ambiguous (two poses fit equally well at the noise level; both returned)",
 }
 
 DEFAULT_CHUNK = 4096
@@ -80,6 +84,13 @@ MAX_RANGE_RATIO = 1e5
 #: A refined solution whose angle-residual RMS exceeds this (rad) is retried from the planar
 #: candidates (a wrong basin has residuals far above lighthouse noise, ~4e-5 rad).
 RETRY_RESIDUAL = 1e-3
+#: Two refined solutions are distinct poses (not one minimum reached twice) when their attitudes
+#: differ by more than this (rad).
+DISTINCT_ANGLE = 1e-2
+#: Likelihood-ratio threshold of the ambiguity test: the runner-up is rejected when
+#: ``(cost_2 - cost_1) / sigma^2 = -2 ln(L_2 / L_1)`` reaches this, i.e. it is at least 1000 times
+#: less likely than the best pose (2 ln 1000); below, both are reported (STATUS_AMBIGUOUS).
+AMBIGUITY_LR = 2.0 * np.log(1000.0)
 _RTOL = 1e-6     # converged when the step lowers the cost by less than this fraction of it
 _ATOL = 1e-26    # ... or by less than this (rad², per angle) — the noise-free floor
 
@@ -94,6 +105,9 @@ class PnPResult:
     status : (F,) int, codes in :data:`STATUS_NAMES`.
     residual_rms : (F,) rad, RMS angle residual over the 2 n_lit angles of the returned pose.
     iterations : (F,) int, Levenberg–Marquardt iterations of the returned solution.
+    alt_rotation, alt_translation, alt_residual_rms : (F, 3, 3), (F, 3), (F,) — the runner-up
+        distinct pose (the other planar solution) where the frame is STATUS_AMBIGUOUS, NaN
+        elsewhere (None when the solver does not report alternatives).
     """
 
     rotation: np.ndarray
@@ -102,6 +116,9 @@ class PnPResult:
     status: np.ndarray
     residual_rms: np.ndarray
     iterations: np.ndarray
+    alt_rotation: np.ndarray | None = None
+    alt_translation: np.ndarray | None = None
+    alt_residual_rms: np.ndarray | None = None
 
     @property
     def message(self) -> str:
@@ -120,11 +137,12 @@ class PnPSolver(Protocol):
 
     points_body : (n, 3) or (F, n, 3) m; angles : (F, n, 2) rad; lit : (F, n) bool, already
     cleaned (only finite angles in (0, pi) and finite points are lit); initial : ``(R (F, 3, 3),
-    t (F, 3))`` or None; max_iterations : int. Returns a :class:`PnPResult` for the F frames.
+    t (F, 3))`` or None; max_iterations : int; sigma : rad or None, the angle noise of the
+    ambiguity test (STATUS_AMBIGUOUS), rho its same-rotor correlation. Returns a :class:`PnPResult`.
     """
 
     def __call__(self, points_body: np.ndarray, angles: np.ndarray, lit: np.ndarray,
-                 initial, max_iterations: int) -> PnPResult: ...
+                 initial, max_iterations: int, sigma: float | None = None, rho: float = 0.0) -> PnPResult: ...
 
 
 # ------------------------------------------------------------------------------ chunk data
@@ -678,8 +696,28 @@ def _ippe_pair(fr, c):
 
 # ------------------------------------------------------------------------------ solver
 
-def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 20) -> PnPResult:
-    """Levenberg–Marquardt PnP on one chunk (see the module docstring; shapes as :class:`PnPSolver`)."""
+def _noise_quadratic(fr, ev, sigma: float, rho: float) -> np.ndarray:
+    """(F,) ``r^T Sigma^-1 r`` of the angle residuals under Chen eq. 19's noise: variance sigma², the
+    same-axis angles of one frame correlated with rho. Per axis, with n lit sensors,
+    ``Sigma^-1 = (I - rho / (1 - rho + n rho) 1 1^T) / (sigma² (1 - rho))`` (Sherman–Morrison)."""
+    rho = min(max(float(rho), 0.0), 1.0 - 1e-9)
+    c = rho / (1.0 - rho + fr.nl * rho)
+    q = 0.0
+    for r in (ev["rx"], ev["ry"]):  # unlit sensors have zero residuals
+        q = q + (r * r).sum(0) - c * r.sum(0) ** 2
+    return q / (float(sigma) ** 2 * (1.0 - rho))
+
+
+def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 20, sigma: float | None = None,
+                 rho: float = RHO_PAPER) -> PnPResult:
+    """Levenberg–Marquardt PnP on one chunk (see the module docstring; shapes as :class:`PnPSolver`).
+
+    sigma : rad, and rho : the angle noise (Chen eq. 19) of the ambiguity test (sigma None: no
+    test). The best distinct runner-up among the refined candidates (the other planar solution)
+    is kept; when the likelihood-ratio statistic ``-2 ln(L_2 / L_1) = q(r_2) - q(r_1)``
+    (:func:`_noise_quadratic` of the two residual vectors) is below :data:`AMBIGUITY_LR` the
+    frame is STATUS_AMBIGUOUS and both poses are returned.
+    """
     lit = np.asarray(lit, bool)
     F, n = lit.shape
     fr = _Frames(np.asarray(points_body, float), np.asarray(angles, float), lit)
@@ -704,6 +742,19 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
     best_cost = np.full(F, np.inf)
     best_it = np.zeros(F, int)
     best_status = np.full(F, STATUS_DEGENERATE)
+    alt_R = np.full((F, 3, 3), np.nan)
+    alt_t = np.full((F, 3), np.nan)
+    alt_cost = np.full(F, np.inf)
+
+    def distinct(Ra, Rb):
+        c = (np.einsum("fij,fij->f", Ra, Rb) - 1.0) / 2.0  # cos of the angle between the attitudes
+        return ~(np.clip(c, -1.0, 1.0) > np.cos(DISTINCT_ANGLE))
+
+    def keep_alt(j, R, t, cost):
+        """Candidates (R, t, cost) for frames j: the cheapest one distinct from the best is the runner-up."""
+        take = (cost < alt_cost[j]) & distinct(R, best_R[j])
+        k = j[take]
+        alt_R[k], alt_t[k], alt_cost[k] = R[take], t[take], cost[take]
 
     def consider(idx, R0, t0):
         sub = fr if idx.size == F else fr.take(idx)
@@ -717,12 +768,23 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
         better = np.where(st == STATUS_OK, ~prev_ok | (cost < best_cost[idx]),
                           ~prev_ok & ok & (cost < best_cost[idx]))
         j = idx[better]
+        jw = idx[better & prev_ok]  # an ok best displaced by a better one may be the runner-up
+        old = (best_R[jw].copy(), best_t[jw].copy(), best_cost[jw].copy())
         best_R[j], best_t[j], best_cost[j] = R[better], t[better], cost[better]
         best_it[j], best_status[j] = it[better], st[better]
+        if sigma is not None:
+            same = np.isfinite(alt_cost[j]) & ~distinct(alt_R[j], best_R[j])
+            alt_cost[j[same]] = np.inf  # a runner-up that is the new best's pose is no runner-up
+            keep_alt(jw, *old)
+            cand = ~better & (st == STATUS_OK)
+            keep_alt(idx[cand], R[cand], t[cand], cost[cand])
 
-    def poor(idx):
+    def poor(idx, limit=RETRY_RESIDUAL):
         rms = np.sqrt(best_cost[idx] / np.maximum(2 * fr.nl[idx], 1))
-        return (best_status[idx] != STATUS_OK) | ~(rms <= RETRY_RESIDUAL)
+        return (best_status[idx] != STATUS_OK) | ~(rms <= limit)
+
+    # a cold solution with a residual far above the noise also gets the planar candidates
+    retry = RETRY_RESIDUAL if not sigma else min(RETRY_RESIDUAL, 5.0 * float(sigma))
 
     cold = todo.copy()
     if initial is not None:
@@ -743,7 +805,7 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
         consider(idx, R0, t0)
     tried = np.flatnonzero(cold)
     need = np.zeros(F, bool)
-    need[tried] = (planarity[tried] < PLANARITY_THRESHOLD) | poor(tried)
+    need[tried] = (planarity[tried] < PLANARITY_THRESHOLD) | poor(tried, retry)
     idx = np.flatnonzero(need)
     if idx.size:
         for R0, t0 in _ippe_pair(fr.take(idx), c[idx]):
@@ -752,8 +814,21 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
     status[todo] = best_status[todo]
     res = np.sqrt(best_cost / np.maximum(2 * fr.nl, 1))
     res[~todo] = np.nan
+    amb = np.zeros(F, bool)
+    if sigma is not None and sigma > 0:  # sigma = 0: noise-free data, the lower cost decides
+        k = np.flatnonzero(todo & (status == STATUS_OK) & np.isfinite(alt_cost))
+        if k.size:
+            sub = fr.take(k)
+            q1 = _noise_quadratic(sub, _eval(sub, best_R[k].reshape(-1, 9).T, best_t[k].T), sigma, rho)
+            q2 = _noise_quadratic(sub, _eval(sub, alt_R[k].reshape(-1, 9).T, alt_t[k].T), sigma, rho)
+            amb[k[q2 - q1 < AMBIGUITY_LR]] = True
+        status[amb] = STATUS_AMBIGUOUS
+    alt_R[~amb] = np.nan
+    alt_t[~amb] = np.nan
+    alt_res = np.where(amb, np.sqrt(alt_cost / np.maximum(2 * fr.nl, 1)), np.nan)
     return PnPResult(rotation=best_R, translation=best_t, success=status == STATUS_OK,
-                     status=status, residual_rms=res, iterations=best_it)
+                     status=status, residual_rms=res, iterations=best_it,
+                     alt_rotation=alt_R, alt_translation=alt_t, alt_residual_rms=alt_res)
 
 
 #: Registry of batched PnP solvers (the names the CLI offers).
@@ -761,7 +836,8 @@ PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_lm}
 
 
 def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations: int = 20,
-              method: str = "lm", chunk_size: int = DEFAULT_CHUNK, calibration=None) -> PnPResult:
+              method: str = "lm", chunk_size: int = DEFAULT_CHUNK, calibration=None,
+              sigma: float | None = SIGMA_THETA_PAPER, rho: float = RHO_PAPER) -> PnPResult:
     """Poses of a rigid sensor body from LH1 sweep angles, batched over frames.
 
     points_body : (n, 3) or (F, n, 3) float, m, sensor positions in the body frame.
@@ -779,6 +855,13 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
     calibration : a :class:`layoutkit.lighthouse.Calibration` of the station: the residuals are
         then minimised through its forward model (``angles`` are the measured, distorted ones;
         LH2 calibrations take light-plane angles) by :func:`layoutkit.joint.solve_joint`.
+
+    sigma : rad, angle noise (default: the paper's 4.014e-5) of the planar-ambiguity test: when
+        the two planar (IPPE) solutions' residuals are not separable at this noise (likelihood
+        ratio < 1000, :data:`AMBIGUITY_LR`) the frame is STATUS_AMBIGUOUS — not ok — and both
+        poses are returned (``alt_rotation``, ``alt_translation``) for a continuity gate or a filter
+        to pick. None: no test (the lower residual wins, as before). rho : same-rotor
+        correlation of the angle noise in that test (Chen eq. 19; default the paper's 0.8717).
 
     Returns a :class:`PnPResult` with a leading frame axis F (F = 1 for (n, 2) angles).
     Degenerate input (fewer than 4 lit sensors, collinear sensors, NaN) gives a status, not an
@@ -832,9 +915,12 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
             if P.ndim == 3:
                 lit &= np.all(np.isfinite(p), -1)
             ini = None if R0 is None else (R0[s:e], t0[s:e])
-            parts.append(solver(p, a, lit, ini, max_iterations))
+            parts.append(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho))
     fields = ("rotation", "translation", "success", "status", "residual_rms", "iterations")
     if not parts:
         return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, bool),
                          np.zeros(0, int), np.zeros(0), np.zeros(0, int))
-    return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in fields))
+    alts = ("alt_rotation", "alt_translation", "alt_residual_rms")
+    extra = ({f: np.concatenate([getattr(r, f) for r in parts]) for f in alts}
+             if all(r.alt_rotation is not None for r in parts) else {})
+    return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in fields), **extra)

@@ -130,7 +130,12 @@ def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
     click.echo(f"solved {summary['solved']} / {summary['frames']} frames; statuses {summary['status_counts']}")
     if "rms_rot_deg" in summary:
         click.echo(f"RMS error vs truth: {summary['rms_rot_deg']:.4f} deg, {summary['rms_trans_m'] * 1e3:.3f} mm "
-                   f"over all solved frames; {summary['gross_failures']} gross failure(s) (> 1 deg)")
+                   f"over the {summary['solved']} frames with status ok; {summary['gross_failures']} of them "
+                   "gross failure(s) (> 1 deg)")
+        amb = summary.get("ambiguous")
+        if amb:
+            click.echo(f"{amb['frames']} ambiguous frame(s) (two poses fit equally well; not counted as solved): "
+                       f"the truth is within 1 deg of one of the two candidates in {amb['truth_within_1deg_of_a_candidate']}")
         msg = (f"without them: {summary['rms_rot_deg_without_gross']:.4f} deg, "
                f"{summary['rms_trans_m_without_gross'] * 1e3:.3f} mm")
         if "predicted_rms_rot_deg" in summary:

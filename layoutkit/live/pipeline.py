@@ -36,6 +36,7 @@ __all__ = [
     "STATUS_SOLVER_FAILED",
     "STATUS_HIGH_RESIDUAL",
     "STATUS_JUMP",
+    "STATUS_AMBIGUOUS",
     "STATUS_NAMES",
     "PipelineConfig",
     "AngleFrame",
@@ -54,12 +55,14 @@ STATUS_TOO_FEW_LIT = 1
 STATUS_SOLVER_FAILED = 2
 STATUS_HIGH_RESIDUAL = 3
 STATUS_JUMP = 4
+STATUS_AMBIGUOUS = 5  # two poses fit the angles equally well (planar ambiguity, layoutkit.pnp)
 STATUS_NAMES = {
     STATUS_OK: "ok",
     STATUS_TOO_FEW_LIT: "too_few_lit",
     STATUS_SOLVER_FAILED: "solver_failed",
     STATUS_HIGH_RESIDUAL: "high_residual",
     STATUS_JUMP: "jump",
+    STATUS_AMBIGUOUS: "ambiguous",
 }
 
 LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
@@ -355,12 +358,15 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
     Returns writable arrays ``(R (F, 3, 3), t (F, 3), ok (F,), residual_rms (F,) rad, adop (F,),
     pdop (F,), status (F,))`` (status before the continuity gate).
     """
-    sol = solve_pnp(P, a, lit, **kw)
+    sol = solve_pnp(P, a, lit, sigma=config.sigma_theta, rho=config.rho, **kw)
     ok = np.array(sol.success, bool)
     Rs, ts = np.array(sol.rotation, float), np.array(sol.translation, float)
     rr = np.array(sol.residual_rms, float)
     ad, pd = _dop(P, Rs, ts, ok, lit, config) if dop is None else (np.array(dop[0]), np.array(dop[1]))
-    stat = np.where(~ok, STATUS_SOLVER_FAILED,
+    from ..pnp import STATUS_AMBIGUOUS as PNP_AMBIGUOUS
+
+    failed = np.where(np.asarray(sol.status) == PNP_AMBIGUOUS, STATUS_AMBIGUOUS, STATUS_SOLVER_FAILED)
+    stat = np.where(~ok, failed,
                     np.where(rr > config.max_residual_sigma * config.sigma_theta, STATUS_HIGH_RESIDUAL, STATUS_OK))
     return Rs, ts, ok, rr, ad, pd, stat
 

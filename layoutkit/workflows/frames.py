@@ -174,8 +174,10 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     from ..dop import pose_dop, pose_errors, rms
     from ..pnp import solve_pnp
 
+    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES
+
     vis = np.all(np.isfinite(fr.angles), -1)
-    sol = solve_pnp(layout.positions, fr.angles, vis)
+    sol = solve_pnp(layout.positions, fr.angles, vis, **({} if sigma is None else {"sigma": sigma, "rho": rho}))
     out = {"frames": int(len(fr.t)), "solved": int(np.sum(sol.success)),
            "status_counts": {int(k): int(v) for k, v in zip(*np.unique(sol.status, return_counts=True))},
            "t": fr.t, "rotvec": matrix_to_rotvec(sol.rotation), "translation": sol.translation,
@@ -190,8 +192,17 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
         out.update(rms_rot_deg=float(np.degrees(rms(e_r))), rms_trans_m=float(rms(e_t)),
                    max_rot_deg=float(np.degrees(e_r.max())) if ok.any() else None,
                    gross_failures=int(gross.sum()),
+                   gross_failures_by_status={STATUS_NAMES[0]: int(gross.sum())},
                    rms_rot_deg_without_gross=float(np.degrees(rms(e_r[good]))),
                    rms_trans_m_without_gross=float(rms(e_t[good])))
+        amb = np.flatnonzero(np.asarray(sol.status) == STATUS_AMBIGUOUS)
+        if amb.size:  # neither candidate is reported as the pose; say how often the truth is among them
+            e1, _ = pose_errors(sol.rotation[amb], sol.translation[amb], fr.truth_rotation[amb], fr.truth_translation[amb])
+            e2, _ = pose_errors(sol.alt_rotation[amb], sol.alt_translation[amb], fr.truth_rotation[amb],
+                                fr.truth_translation[amb])
+            out["gross_failures_by_status"]["ambiguous (best candidate)"] = int(np.sum(np.degrees(e1) > GROSS_DEG))
+            out["ambiguous"] = {"frames": int(amb.size),
+                                "truth_within_1deg_of_a_candidate": int(np.sum(np.degrees(np.minimum(e1, e2)) <= GROSS_DEG))}
         if sigma is not None:
             sel = np.flatnonzero(ok)[good]
             d = pose_dop(layout.positions, fr.truth_rotation[sel], fr.truth_translation[sel], rho=rho, visible=vis[sel])
