@@ -5,6 +5,7 @@ import click
 
 from ..units import ARCSEC
 from ._common import echo_json, fail
+from .options import filter_options
 
 
 def _layout(path):
@@ -109,8 +110,14 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma_arcsec, no_quantize,
               help="Write the pose table CSV (t,station,status,rx,ry,rz,tx,ty,tz,residual_rms; rad, m).")
 @_noise_options
 @click.option("--json", "json_out", is_flag=True, help="Print a JSON summary.")
-def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
-    """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present."""
+@filter_options
+def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out, filter_settings):
+    """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
+
+    With --filter ekf the frames (in time order, by their t) also go through the tracking filter
+    (X then Y sweep at the frame's t); --out then holds the filtered poses (status 0 ok, 10
+    uncertain, 11 lost, -1 before the first start; extras cov_rot_deg_*, cov_pos_m_* = 1-sigma).
+    """
     from ..io.poses import write_poses
     from ..workflows.frames import read_frames, solution_table, solve_frames
 
@@ -120,10 +127,21 @@ def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
     except (ValueError, OSError) as exc:
         fail(str(exc))
     res = solve_frames(fr, lay, sigma=sigma_arcsec * ARCSEC, rho=rho)
+    fres = None
+    if filter_settings is not None:
+        from ..workflows.filter import filter_config, filter_frames, filter_table
+
+        try:
+            fres = filter_frames(fr, lay, filter_config(filter_settings, sigma_arcsec * ARCSEC, rho))
+        except ValueError as exc:
+            fail(f"{frames_path}: {exc}")
     if out:
-        write_poses(out, solution_table(res))
+        write_poses(out, solution_table(res) if fres is None else filter_table(fres))
     summary = {k: v for k, v in res.items()
                if k not in ("t", "rotvec", "translation", "success", "status", "residual_rms")}
+    if fres is not None:
+        summary["filter"] = {k: v for k, v in fres.items()
+                             if k not in ("t", "rotvec", "translation", "status", "cov_rot_deg", "cov_pos_m")}
     if json_out:
         echo_json(summary)
         return
@@ -142,6 +160,14 @@ def solve_cmd(frames_path, layout_path, out, rho, sigma_arcsec, json_out):
             msg += (f"  (DOP prediction {summary['predicted_rms_rot_deg']:.4f} deg, "
                     f"{summary['predicted_rms_trans_m'] * 1e3:.3f} mm)")
         click.echo(msg)
+    f = summary.get("filter")
+    if f:
+        click.echo(f"filter: ok {f['ok']} / {f['frames']} frames (inits {f['counters']['inits']}, lost "
+                   f"{f['counters']['losts']}, angles rejected {f['counters']['angles_rejected']})")
+        if "filter_rms_rot_deg" in f:
+            click.echo(f"filter RMS error vs truth: {f['filter_rms_rot_deg']:.4f} deg, {f['filter_rms_pos_m'] * 1e3:.3f} mm "
+                       f"(own covariance {f['filter_cov_rms_rot_deg']:.4f} deg, {f['filter_cov_rms_pos_m'] * 1e3:.3f} mm; "
+                       f"mean NEES {f['filter_mean_nees_6dof']:.2f} of 6)")
 
 
 @click.group("study")

@@ -7,7 +7,7 @@ import sys
 import click
 
 from ..units import ARCSEC
-from .options import overwrite_option
+from .options import filter_options, overwrite_option
 
 _common_options = [
     click.option("--layout", "layout_path", type=click.Path(dir_okay=False), default=None,
@@ -48,7 +48,7 @@ def _add(options):
     return deco
 
 
-def _options(rho, sigma_arcsec, live: bool, motion_compensation: bool = False):
+def _options(rho, sigma_arcsec, live: bool, motion_compensation: bool = False, filter_settings=None):
     from ..units import RHO_PAPER, SIGMA_THETA_PAPER
     from ..workflows.live import LiveOptions
 
@@ -64,6 +64,15 @@ def _options(rho, sigma_arcsec, live: bool, motion_compensation: bool = False):
               rho=RHO_PAPER if rho is None else rho, motion_compensation=motion_compensation)
     if live:
         kw.update(chunk_frames=1024)  # live: one chunk per port read (see workflows.live.run_live)
+    if filter_settings is not None:
+        from ..workflows.filter import filter_config
+
+        try:
+            kw["filter"] = filter_config(filter_settings, kw["sigma_theta"], kw["rho"])
+        except ValueError as exc:
+            from ._common import fail
+
+            fail(f"--filter: {exc}")
     return LiveOptions(**kw)
 
 
@@ -109,6 +118,23 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
                     lines.append(f"  note: {a['message']}")
             else:
                 lines.append(f"{name}: {r.get('message')}")
+    f = summary.get("filter")
+    if f:
+        c = f["counters"]
+        lines.append(f"filter: {c['sweeps']} sweeps, ok {f['share_ok'] * 100:.1f} %, inits {c['inits']}, lost "
+                     f"{c['losts']}, angles used {c['angles_used']} / rejected {c['angles_rejected']}, sweeps "
+                     f"rejected {c['sweeps_rejected']}" + (f", {f['sweeps_per_s']:.0f} sweeps/s" if f.get("sweeps_per_s")
+                                                           else ""))
+        e = f.get("truth")
+        if e:
+            lines.append(f"filter error vs truth: RMS {e['rms_rot_deg']:.4f} deg / {e['rms_pos_m'] * 1e3:.3f} mm "
+                         f"(own covariance {e['cov_rms_rot_deg']:.4f} deg / {e['cov_rms_pos_m'] * 1e3:.3f} mm, "
+                         f"ratio {e['ratio_to_cov_rot']:.3f} / {e['ratio_to_cov_pos']:.3f}; mean NEES "
+                         f"{e['mean_nees_6dof']:.2f} of 6)")
+            if e.get("frame_dop_predicted_rot_deg") is not None:
+                lines.append(f"  frame by frame: RMS {e['frame_by_frame_rms_rot_deg']:.4f} deg / "
+                             f"{e['frame_by_frame_rms_pos_m'] * 1e3:.3f} mm, DOP prediction "
+                             f"{e['frame_dop_predicted_rot_deg']:.4f} deg / {e['frame_dop_predicted_pos_m'] * 1e3:.3f} mm")
     rep = summary.get("report")
     if rep:
         lines.append(f"report: {rep.get('json')}")
@@ -119,8 +145,9 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @click.command("replay")
 @click.argument("capture", type=click.Path(dir_okay=False))
 @_add(_common_options)
+@filter_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
-               report_dir, rho, sigma_arcsec, motion_compensation, as_json):
+               report_dir, rho, sigma_arcsec, motion_compensation, as_json, filter_settings):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -130,7 +157,8 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     from ..workflows.live import replay_capture
     from ._common import fail
 
-    opts = _options(rho, sigma_arcsec, live=False, motion_compensation=motion_compensation)
+    opts = _options(rho, sigma_arcsec, live=False, motion_compensation=motion_compensation,
+                    filter_settings=filter_settings)
     try:
         summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
                                  reference=reference, reference_units=reference_units,
@@ -169,9 +197,10 @@ def _quiet_exit():
 @click.option("--baudrate", type=int, default=None, help="Baud rate [default: 921600].")
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
+@filter_options
 def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines, truth,
              reference, reference_units, reference_offset, camera, report_dir, rho, sigma_arcsec, motion_compensation,
-             as_json):
+             as_json, filter_settings):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
@@ -188,7 +217,8 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
         fail("--layout is required for live runs")
     if duration is not None and not duration > 0:
         fail(f"--duration: expected a positive number of seconds, got {duration}")
-    opts = _options(rho, sigma_arcsec, live=True, motion_compensation=motion_compensation)
+    opts = _options(rho, sigma_arcsec, live=True, motion_compensation=motion_compensation,
+                    filter_settings=filter_settings)
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,

@@ -218,3 +218,52 @@ def min_visible_option(f=None, *, default: int = 4):
     deco = click.option("--min-visible", "min_visible", type=click.IntRange(min=1), default=default,
                         show_default=True, help="Lit sensors needed for a pose to count as covered.")
     return deco(f) if f is not None else deco
+
+#: ``--filter`` choices: frame-by-frame PnP only, or the per-sweep EKF (layoutkit.filter).
+FILTER_CHOICES = ("none", "ekf")
+
+
+def filter_options(f):
+    """``--filter ekf|none`` and the filter's tuning flags (SI units; docs/filter.md).
+
+    The command receives ``filter_settings``: None for ``--filter none``, else a dict of
+    :class:`layoutkit.filter.EkfConfig` keywords (``psd_rot`` rad²/s³, ``psd_pos`` m²/s³,
+    ``gate_angle_p``, ``gate_sweep_p``, ``zupt``, ``constant_acceleration``, ``hit_timing``,
+    ``model``) — the command adds sigma / rho from its own noise options.
+    """
+    import functools
+
+    @functools.wraps(f)
+    def wrapper(*args, filter_name, filter_psd_rot, filter_psd_pos, filter_gate_p, filter_zupt, filter_ca,
+                filter_hit_timing, filter_model, **kwargs):
+        kwargs["filter_settings"] = None if filter_name == "none" else {
+            "psd_rot": filter_psd_rot, "psd_pos": filter_psd_pos, "gate_angle_p": filter_gate_p,
+            "gate_sweep_p": filter_gate_p, "zupt": filter_zupt, "constant_acceleration": filter_ca,
+            "hit_timing": filter_hit_timing, "model": filter_model}
+        return f(*args, **kwargs)
+
+    opts = [
+        click.option("--filter", "filter_name", type=click.Choice(FILTER_CHOICES), default="none", show_default=True,
+                     help="ekf: per-sweep error-state Kalman filter (one pose per sweep, with covariance); "
+                          "none: frame-by-frame PnP only."),
+        click.option("--filter-psd-rot", "filter_psd_rot", type=click.FloatRange(min=0.0), default=1e-6,
+                     show_default=True, help="Filter: PSD of the white angular acceleration, rad^2/s^3."),
+        click.option("--filter-psd-pos", "filter_psd_pos", type=click.FloatRange(min=0.0), default=1e-6,
+                     show_default=True, help="Filter: PSD of the white linear acceleration, m^2/s^3."),
+        click.option("--filter-gate-p", "filter_gate_p", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True),
+                     default=1e-4, show_default=True,
+                     help="Filter: false-rejection probability of the chi^2 outlier gates (per angle, per sweep)."),
+        click.option("--filter-zupt", "filter_zupt", is_flag=True,
+                     help="Filter: static detector with zero-velocity updates."),
+        click.option("--filter-ca", "filter_ca", is_flag=True,
+                     help="Filter: constant-acceleration motion model (default constant velocity)."),
+        click.option("--filter-hit-timing/--no-filter-hit-timing", "filter_hit_timing", default=True, show_default=True,
+                     help="Filter: each angle at its own hit time (sync + angle / rotor rate); off = at the sync time "
+                          "(the simulator's model)."),
+        click.option("--filter-model", "filter_model", type=click.Choice(("station", "plain")), default="station",
+                     show_default=True,
+                     help="Filter: forward model (station = each station's calibration when it has one)."),
+    ]
+    for o in reversed(opts):
+        wrapper = o(wrapper)
+    return wrapper

@@ -83,7 +83,7 @@ class EkfConfig:
     max_sigma_rot_deg: float = 1.0
     max_sigma_pos_m: float = 0.02
     lost_factor: float = 10.0
-    lost_after: int = 12
+    lost_after: int = 6
     zupt: bool = False
     zupt_window: int = 60
     zupt_p: float = 0.01

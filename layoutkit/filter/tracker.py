@@ -18,7 +18,8 @@ Life cycle (docs/filter.md):
    oldest angle used (``(init_sigma_rate · age)²``, ``(init_sigma_speed · age)²``), and zero velocities.
 2. *tracking*: every sweep predicts to its sync time and updates with its lit angles
    (:meth:`ErrorStateEKF.update_sweep`). Status "ok" while the 1-sigma pose is within the limits
-   of :class:`EkfConfig`, else "uncertain".
+   of :class:`EkfConfig`, fewer than two consecutive sweeps were rejected and ``confirm_sweeps``
+   sweeps were accepted since the start, else "uncertain".
 3. *lost*: ``lost_after`` consecutive rejected sweeps (the innovations say the state is wrong),
    a pose sigma beyond ``lost_factor`` times the limits, or time running backwards → status
    "lost" and back to 1 (the outputs keep coming, with status "lost", until a frame re-initialises).
@@ -141,11 +142,13 @@ class SweepTracker:
     points_body : (n, 3) m; stations : list of :class:`Station` in the world frame (default one LH1
     station at the origin); config : :class:`EkfConfig`; model : optional forward model;
     init_max_residual_sigma : PnP starts whose RMS angle residual exceeds this many sigma are refused;
-    init_window_s : s, oldest angle used for a PnP start.
+    init_window_s : s, oldest angle used for a PnP start; confirm_sweeps : after a (re-)start the
+    status stays "uncertain" until this many sweeps were accepted (a PnP start from a wrong basin
+    or from mixed data is not reported as ok).
     """
 
     def __init__(self, points_body, stations=None, config: EkfConfig | None = None, model=None,
-                 init_max_residual_sigma: float = 8.0, init_window_s: float = 0.1):
+                 init_max_residual_sigma: float = 8.0, init_window_s: float = 0.1, confirm_sweeps: int = 4):
         self.config = config or EkfConfig()
         self.points_body = np.ascontiguousarray(points_body, float)
         self.n = self.points_body.shape[0]
@@ -153,6 +156,8 @@ class SweepTracker:
         self.ekf = ErrorStateEKF(self.points_body, self.stations, self.config, model)
         self.init_max_residual_sigma = float(init_max_residual_sigma)
         self.init_window_s = float(init_window_s)
+        self.confirm_sweeps = int(confirm_sweeps)
+        self._confirm = 0
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
@@ -226,6 +231,7 @@ class SweepTracker:
         cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
         cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
         self.ekf.initialize(t, R, p, cov)
+        self._confirm = self.confirm_sweeps
         self._lost = False
         self._bad_run = 0
         self._tried.clear()
@@ -316,6 +322,7 @@ class SweepTracker:
                 self._declare_lost()
         elif upd.used:
             self._bad_run = 0
+            self._confirm -= 1
 
     def _declare_lost(self) -> None:
         if not self._lost:
@@ -334,8 +341,8 @@ class SweepTracker:
             self._declare_lost()
         if self._lost:
             status = "lost"
-        else:
-            status = "ok" if big <= 1.0 else "uncertain"
+        else:  # two consecutive rejected sweeps: the data no longer support the state
+            status = "ok" if big <= 1.0 and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"

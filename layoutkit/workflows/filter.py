@@ -291,3 +291,187 @@ def throughput_scenario(layout, *, duration: float = 30.0, rounds: int = 5, seed
     med = float(np.median(rates))
     return {"sweeps": int(len(sw.t)), "rounds": rounds, "sweeps_per_s_median": med,
             "sweeps_per_s_all": rates, "live_sweeps_per_s": sweep_rate, "x_real_time": med / sweep_rate}
+
+
+# ------------------------------------------------------------------------------ live / replay glue
+
+def filter_config(settings: dict | None, sigma_theta: float, rho: float) -> EkfConfig | None:
+    """EkfConfig from the CLI's ``filter_settings`` (see :func:`layoutkit.cli.options.filter_options`)
+    and the run's noise model; None for ``--filter none``."""
+    if settings is None:
+        return None
+    return EkfConfig(sigma_theta=sigma_theta, rho=rho, **settings)
+
+
+class FilterSink:
+    """The filter's side of a live / replay run: decoded sweeps in, one JSON line per sweep out,
+    running error statistics against the truth (when given), a summary at the end.
+
+    points_body : (n, 3) m; stations : the run's stations (None → one ideal LH1 station; a single
+    station is used with an identity pose, so poses are in its frame as the pipeline's are);
+    config : :class:`EkfConfig`; truth : optional :class:`layoutkit.live.reference.PoseTrack` in the
+    same frame; json_out : text stream or None.
+    Memory is flat: outputs are written as they come and only sums are kept.
+    """
+
+    def __init__(self, points_body, stations, config: EkfConfig, truth=None, json_out=None):
+        if not stations:
+            sts = [Station()]
+        elif len(stations) == 1:
+            s0 = stations[0]
+            sts = [Station(s0.id, np.eye(3), np.zeros(3), s0.kind, s0.rotor_rpm, s0.clock_hz, s0.fov_deg,
+                           getattr(s0, "calibration", None))]
+        else:
+            sts = list(stations)
+        self.tracker = SweepTracker(points_body, sts, config)
+        self.truth = truth
+        self.json_out = json_out
+        self.seconds = 0.0
+        self.sweeps = 0
+        self._acc = {"n": 0, "e_rot2": 0.0, "e_pos2": 0.0, "s_rot2": 0.0, "s_pos2": 0.0, "nees": 0.0,
+                     "max_z": 0.0, "within3": 0}
+
+    def feed(self, sweeps) -> list:
+        """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
+        import json
+
+        t0 = time.perf_counter()
+        outs = []
+        push = self.tracker.push
+        for m in sweeps:
+            self.sweeps += 1
+            try:
+                o = push(m)
+            except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
+                continue
+            if o is not None:
+                outs.append(o)
+        self.seconds += time.perf_counter() - t0
+        if outs and self.json_out is not None:
+            self.json_out.write("".join(json.dumps(o.record()) + "\n" for o in outs))
+            self.json_out.flush()
+        if outs and self.truth is not None:
+            self._compare(outs)
+        return outs
+
+    def _compare(self, outs) -> None:
+        ok = [o for o in outs if o.ok]
+        if not ok:
+            return
+        t = np.array([o.t for o in ok])
+        Rr, tr, v = self.truth.at(t)
+        if not v.any() or tr is None:
+            return
+        idx = np.flatnonzero(v)
+        rv = np.array([ok[i].rotvec for i in idx])
+        p = np.array([ok[i].translation for i in idx])
+        from ..geometry import matrix_to_rotvec
+
+        e = np.concatenate([matrix_to_rotvec(Rr[idx] @ np.swapaxes(rotvec_to_matrix(rv), -1, -2)), tr[idx] - p], 1)
+        cov = np.array([ok[i].pose_cov for i in idx])
+        a = self._acc
+        a["n"] += len(idx)
+        a["e_rot2"] += float(np.sum(e[:, :3] ** 2))
+        a["e_pos2"] += float(np.sum(e[:, 3:] ** 2))
+        d = np.diagonal(cov, axis1=1, axis2=2)
+        a["s_rot2"] += float(np.sum(d[:, :3]))
+        a["s_pos2"] += float(np.sum(d[:, 3:]))
+        from ..filter.consistency import nees
+
+        a["nees"] += float(np.nansum(nees(e, cov)))
+        z = np.abs(e) / np.sqrt(d)
+        a["max_z"] = max(a["max_z"], float(z.max()))
+        a["within3"] += int(np.sum(np.all(z <= 3.0, 1)))
+
+    def summary(self, frame_truth: dict | None = None) -> dict:
+        """Counters, throughput, and (with a truth) the filtered error vs the filter's covariance and
+        vs the frame-by-frame DOP prediction (``frame_truth``: the pipeline's truth summary)."""
+        c = self.tracker.counters.as_dict()
+        out = {"counters": c, "share_ok": c["ok"] / c["sweeps"] if c["sweeps"] else 0.0,
+               "filter_seconds": self.seconds, "sweeps_per_s": self.sweeps / self.seconds if self.seconds else None,
+               "config": {k: getattr(self.tracker.config, k) for k in (
+                   "psd_rot", "psd_pos", "constant_acceleration", "gate_angle_p", "gate_sweep_p", "zupt",
+                   "hit_timing", "model", "sigma_theta", "rho")}}
+        a = self._acc
+        if a["n"]:
+            n = a["n"]
+            t = {"n": n, "rms_rot_deg": float(np.sqrt(a["e_rot2"] / n)) * RAD2DEG,
+                 "rms_pos_m": float(np.sqrt(a["e_pos2"] / n)),
+                 "cov_rms_rot_deg": float(np.sqrt(a["s_rot2"] / n)) * RAD2DEG,
+                 "cov_rms_pos_m": float(np.sqrt(a["s_pos2"] / n)), "mean_nees_6dof": a["nees"] / n,
+                 "max_error_over_sigma": a["max_z"], "share_within_3_sigma": a["within3"] / n}
+            t["ratio_to_cov_rot"] = t["rms_rot_deg"] / t["cov_rms_rot_deg"]
+            t["ratio_to_cov_pos"] = t["rms_pos_m"] / t["cov_rms_pos_m"]
+            if frame_truth:
+                t["frame_by_frame_rms_rot_deg"] = frame_truth.get("rms_rot_deg")
+                t["frame_by_frame_rms_pos_m"] = frame_truth.get("rms_trans_m")
+                t["frame_dop_predicted_rot_deg"] = frame_truth.get("predicted_rot_deg")
+                t["frame_dop_predicted_pos_m"] = frame_truth.get("predicted_trans_m")
+            out["truth"] = t
+        return out
+
+
+#: Pose-table status codes of filtered poses (``layoutkit solve --filter ekf --out``): 0 = ok.
+FILTER_STATUS_CODES = {"ok": 0, "uncertain": 10, "lost": 11}
+
+
+def filter_frames(fr, layout, config: EkfConfig) -> dict:
+    """The filter over a frame table (:class:`layoutkit.workflows.frames.Frames`, one station).
+
+    Each frame becomes its X and then its Y sweep, both at the frame's time stamp ``t`` (a frame
+    table has no sub-frame timing, so ``hit_timing`` is off); the pose reported for the frame is
+    the state after its Y sweep. Frames must be in time order (ValueError otherwise). Returns
+    dict: t, rotvec (F, 3), translation (F, 3), status (F,) int (:data:`FILTER_STATUS_CODES`,
+    -1 before the first start), cov_rot_deg, cov_pos_m (F, 3), counters, and with truth
+    the filtered error vs the filter's own covariance.
+    """
+    from dataclasses import replace
+
+    from ..filter.consistency import _Sweep
+
+    t = np.asarray(fr.t, float)
+    if np.any(np.diff(t) < 0):
+        raise ValueError("frames: time stamps t must be non-decreasing for --filter ekf")
+    cfg = replace(config, hit_timing=False)
+    trk = SweepTracker(layout.positions, [Station()], cfg)
+    F = len(t)
+    rv = np.full((F, 3), np.nan)
+    tr = np.full((F, 3), np.nan)
+    status = np.full(F, -1)
+    srot = np.full((F, 3), np.nan)
+    spos = np.full((F, 3), np.nan)
+    cov = np.full((F, 6, 6), np.nan)
+    for k in range(F):
+        o = None
+        for ax in (0, 1):
+            o = trk.push(_Sweep(float(t[k]), 0, ax, fr.angles[k, :, ax], "lh1")) or o
+        if o is None:
+            continue
+        rv[k], tr[k], status[k] = o.rotvec, o.translation, FILTER_STATUS_CODES[o.status]
+        srot[k], spos[k], cov[k] = o.cov_rot_deg, o.cov_pos_m, o.pose_cov
+    out = {"frames": F, "ok": int(np.sum(status == 0)), "counters": trk.counters.as_dict(),
+           "t": t, "rotvec": rv, "translation": tr, "status": status, "cov_rot_deg": srot, "cov_pos_m": spos}
+    if fr.truth_rotation is not None:
+        from ..geometry import matrix_to_rotvec
+
+        ok = status == 0
+        if ok.any():
+            e = pose_error(rv[ok], tr[ok], matrix_to_rotvec(fr.truth_rotation[ok]), fr.truth_translation[ok])
+            d = np.diagonal(cov[ok], axis1=1, axis2=2)
+            out.update(filter_rms_rot_deg=float(np.sqrt(np.mean(np.sum(e[:, :3] ** 2, 1)))) * RAD2DEG,
+                       filter_rms_pos_m=float(np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, 1)))),
+                       filter_cov_rms_rot_deg=float(np.sqrt(np.mean(d[:, :3].sum(1)))) * RAD2DEG,
+                       filter_cov_rms_pos_m=float(np.sqrt(np.mean(d[:, 3:].sum(1)))),
+                       filter_mean_nees_6dof=float(np.nanmean(nees(e, cov[ok]))))
+    return out
+
+
+def filter_table(res: dict):
+    """:func:`filter_frames` results as a pose table with extras ``cov_rot_deg_{x,y,z}``, ``cov_pos_m_{x,y,z}``."""
+    from ..io.poses import PoseTable
+
+    ex = {}
+    for name, key in (("cov_rot_deg", "cov_rot_deg"), ("cov_pos_m", "cov_pos_m")):
+        for i, ax in enumerate("xyz"):
+            ex[f"{name}_{ax}"] = res[key][:, i]
+    return PoseTable(res["t"], res["rotvec"], res["translation"], status=res["status"], extras=ex)

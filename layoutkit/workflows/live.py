@@ -53,6 +53,8 @@ class LiveOptions:
     min_lit : fewest lit sensors for a pose. series_capacity : points kept for plots.
     motion_compensation : move each frame's Y-sweep angles to its X-sweep time with the body
         velocity of the recent poses (``PipelineConfig.motion_compensation``; docs/live.md).
+    filter : a :class:`layoutkit.filter.EkfConfig` to also run the per-sweep filter
+        (``--filter ekf``; its outputs replace the frame records on ``--json-lines``), or None.
     """
 
     sigma_theta: float = SIGMA_THETA_PAPER
@@ -64,6 +66,7 @@ class LiveOptions:
     min_lit: int = 4
     series_capacity: int = 20000
     motion_compensation: bool = False
+    filter: object = None
 
 
 @dataclass
@@ -109,11 +112,23 @@ class LiveSession:
         self.lit_sum = 0
         self.frames_in_rate = []  # (wall time, frames) samples over the last few seconds
         self.finished = None
+        self.filter = None
+        if o.filter is not None:
+            from .filter import FilterSink
+
+            self.filter = FilterSink(self.layout.positions, self.stations, o.filter, self.truth, self.json_out)
 
     # -- feeding ----------------------------------------------------------------------------
     def feed_bytes(self, data: bytes) -> list[PoseChunk]:
-        """Decode ``data`` and solve whatever frames complete a chunk."""
-        return self._consume(self.pipeline.feed(self.decoder.feed(data)))
+        """Decode ``data`` and solve whatever frames complete a chunk (and filter every sweep)."""
+        return self._consume(self.pipeline.feed(self._filtered(self.decoder.feed(data))))
+
+    def _filtered(self, sweeps):
+        if self.filter is None:
+            return sweeps
+        sweeps = list(sweeps)
+        self.filter.feed(sweeps)
+        return sweeps
 
     def flush_pending(self) -> list[PoseChunk]:
         """Solve the frames waiting in the current chunk now (live: when the port is quiet)."""
@@ -135,7 +150,7 @@ class LiveSession:
         while self.frames_in_rate and now - self.frames_in_rate[0][0] > 2.0:
             self.frames_in_rate.pop(0)
         self.lit_sum += int(ch.n_lit.sum())
-        if self.json_out is not None:
+        if self.json_out is not None and self.filter is None:
             self.json_out.write("".join(json.dumps(r) + "\n" for r in ch.records()))
             self.json_out.flush()
         if self._poses is not None:
@@ -191,7 +206,7 @@ class LiveSession:
         """End of stream: decode and solve what is left, close files, return the run summary."""
         if self.finished is not None:
             return self.finished
-        self._consume(self.pipeline.feed(self.decoder.flush()))
+        self._consume(self.pipeline.feed(self._filtered(self.decoder.flush())))
         self._consume(self.pipeline.flush(end_of_stream=True))
         groups = self.static.finish()
         if self._poses is not None:
@@ -211,6 +226,8 @@ class LiveSession:
             "truth": None if self.truth_err is None or self.truth_err.n == 0 else self.truth_err.summary().as_dict(),
             "status_names": STATUS_NAMES,
         }
+        if self.filter is not None:
+            self.finished["filter"] = self.filter.summary(self.finished["truth"])
         return self.finished
 
     def pose_track(self):
