@@ -29,6 +29,7 @@ __all__ = [
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
     "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
     "overwrite_option", "RHO_RANGE", "coverage_option", "COVERAGE_CHOICES", "min_visible_option",
+    "FILTER_CHOICES", "filter_options",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
