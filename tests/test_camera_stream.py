@@ -130,8 +130,10 @@ def test_corners_csv_and_cli(tmp_path):
 
 def test_cli_choices_match_registry():
     """The CLI's --method choices are exactly the solver registry."""
-    from layoutkit.cli.camera import SOLVER_CHOICES
-    assert sorted(SOLVER_CHOICES) == sorted(RECTANGLE_SOLVERS)
+    from layoutkit.cli import main
+
+    opt = next(p for p in main.commands["camera-attitude"].params if p.name == "method")
+    assert list(opt.type.choices) == sorted(RECTANGLE_SOLVERS)
 
 
 def test_image_folder_stream(tmp_path):

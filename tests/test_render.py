@@ -185,7 +185,7 @@ def test_cli_render_writes_every_picture(tmp_path):
 
     res = CliRunner().invoke(main, [
         "render", str(MODELS / "chen_target.stl"), "--layout", str(MODELS / "chen_target.layout.json"),
-        "--envelope", str(MODELS / "chen_envelope.toml"), "--out", str(tmp_path), "--size", "400x300",
+        "--envelope", str(MODELS / "chen_envelope.toml"), "--out-dir", str(tmp_path), "--size", "400x300",
         "--views", "iso", "--quality-map", "--grid-deg", "20", "--roll-samples", "2", "--rho", "0.8717",
         "--station-view-pose", "envelope:3", "--json"])
     assert res.exit_code == 0, res.output
@@ -212,7 +212,7 @@ def test_cli_render_bad_input(tmp_path, args, msg):
 
     from layoutkit.cli import main
 
-    res = CliRunner().invoke(main, ["render", str(MODELS / "chen_target.stl"), "--out", str(tmp_path),
+    res = CliRunner().invoke(main, ["render", str(MODELS / "chen_target.stl"), "--out-dir", str(tmp_path),
                                     "--views", "iso", "--size", "64x48"] + args)
     assert res.exit_code == 2
     assert res.output.strip().splitlines()[-1] == msg

@@ -177,7 +177,7 @@ def test_cli_visibility_report_matches_direct_computation(tmp_path):
     args = [str(models / "chen_target.stl"), "--layout", str(models / "chen_target.layout.json"),
             "--envelope", str(models / "chen_envelope.toml")]
     out = tmp_path / "v.json"
-    r = CliRunner().invoke(main, ["visibility", *args, "--json", str(out)])
+    r = CliRunner().invoke(main, ["visibility", *args, "--json-out", str(out)])
     assert r.exit_code == 0, r.output
     rep = json.loads(out.read_text())
     env, lay = load_envelope(models / "chen_envelope.toml"), load_layout(models / "chen_target.layout.json")

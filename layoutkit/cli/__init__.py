@@ -19,8 +19,13 @@ class _Group(click.Group):
     full) ends with one ``error:`` line naming the file instead of a traceback."""
 
     def invoke(self, ctx):
+        argv = [*getattr(ctx, "_protected_args", ()), *ctx.args]
         try:
             return super().invoke(ctx)
+        except click.UsageError as exc:
+            if "--json" in argv and "extra argument" in exc.message:  # the old `--json PATH` form
+                exc.message += " (--json is a flag that prints JSON; write a file with --json-out FILE)"
+            raise
         except OSError as exc:
             if isinstance(exc, BrokenPipeError) or exc.errno == errno.EPIPE:
                 raise  # click ends quietly on a closed pipe

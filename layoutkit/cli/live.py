@@ -6,13 +6,12 @@ import sys
 
 import click
 
-from ..units import ARCSEC
-from .options import filter_options, overwrite_option
+from .options import (filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
+                      rho_option, sigma_option, units_option)
 
 _common_options = [
-    click.option("--layout", "layout_path", type=click.Path(dir_okay=False), default=None,
-                 help="Layout JSON (sensor positions, m, body frame)."),
-    click.option("--protocol", default=None, help="Frame protocol (default: the capture's sidecar, else 'layoutkit')."),
+    layout_option(required=False, help="Layout JSON (sensor positions, m, body frame)."),
+    protocol_option(default=None, help="Frame protocol (default: the capture's sidecar, else 'layoutkit')."),
     click.option("--json-lines", is_flag=True,
                  help="Print one JSON object per solved frame (t, rotvec, translation, n_lit, status, adop, pdop, "
                       "residual_rms) instead of the dashboard/summary."),
@@ -21,22 +20,19 @@ _common_options = [
     click.option("--reference", type=click.Path(exists=True, dir_okay=False), default=None,
                  help="Motion-capture CSV (t + rx,ry,rz | qx,qy,qz,qw | r11..r33 + tx,ty,tz | x,y,z); clock offset "
                       "and frames estimated from the data."),
-    click.option("--reference-units", type=click.Choice(["m", "cm", "mm"]), default="m", show_default=True,
-                 help="Position units of --reference."),
+    units_option(flag="--reference-units", dest="reference_units", what="the positions in --reference"),
     click.option("--reference-offset", type=float, default=None,
                  help="Known clock offset of --reference in s (reference time = lighthouse time + offset) "
                       "[default: estimated from the data]."),
     click.option("--camera", type=click.Path(exists=True, dir_okay=False), default=None,
                  help="Camera attitude CSV (t + r11..r33 or rx,ry,rz): second, attitude-only reference."),
-    click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
-                 help="Write report.json, poses.csv and PNG plots into this directory."),
-    click.option("--rho", type=float, default=None, help="Same-rotor angle correlation for predictions [default: 0.8717]."),
-    click.option("--sigma-arcsec", type=float, default=None,
-                 help="Angle noise sigma_theta in arcsec for predictions [default: paper, 4.014e-5 rad = 8.28\"]."),
+    report_option(help="Write report.json, poses.csv and PNG plots into this directory."),
+    rho_option(),
+    sigma_option(),
     click.option("--motion-compensation", is_flag=True,
                  help="Move each frame's Y-sweep angles to its X-sweep time with the velocity of the recent "
                       "poses (LH1; for fast motion: RMS 2.1x -> 1.0x the DOP prediction at 20 deg/s; costs speed)."),
-    click.option("--json", "as_json", is_flag=True, help="Print the run summary as JSON."),
+    json_flag(help="Print the run summary as JSON."),
 ]
 
 
@@ -48,20 +44,10 @@ def _add(options):
     return deco
 
 
-def _options(rho, sigma_arcsec, live: bool, motion_compensation: bool = False, filter_settings=None):
-    from ..units import RHO_PAPER, SIGMA_THETA_PAPER
+def _options(rho, sigma, live: bool, motion_compensation: bool = False, filter_settings=None):
     from ..workflows.live import LiveOptions
 
-    if sigma_arcsec is not None and not sigma_arcsec > 0:
-        from ._common import fail
-
-        fail(f"--sigma-arcsec: expected a positive value, got {sigma_arcsec}")
-    if rho is not None and not 0 <= rho < 1:
-        from ._common import fail
-
-        fail(f"--rho: expected a value in [0, 1), got {rho}")
-    kw = dict(sigma_theta=SIGMA_THETA_PAPER if sigma_arcsec is None else sigma_arcsec * ARCSEC,
-              rho=RHO_PAPER if rho is None else rho, motion_compensation=motion_compensation)
+    kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation)
     if live:
         kw.update(chunk_frames=1024)  # live: one chunk per port read (see workflows.live.run_live)
     if filter_settings is not None:
@@ -142,12 +128,12 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
         click.echo(ln, err=err)
 
 
-@click.command("replay")
+@click.command("replay", short_help="Decode and solve a recorded capture as fast as possible.")
 @click.argument("capture", type=click.Path(dir_okay=False))
 @_add(_common_options)
 @filter_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
-               report_dir, rho, sigma_arcsec, motion_compensation, as_json, filter_settings):
+               report_dir, rho, sigma, motion_compensation, as_json, filter_settings):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -157,7 +143,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     from ..workflows.live import replay_capture
     from ._common import fail
 
-    opts = _options(rho, sigma_arcsec, live=False, motion_compensation=motion_compensation,
+    opts = _options(rho, sigma, live=False, motion_compensation=motion_compensation,
                     filter_settings=filter_settings)
     try:
         summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
@@ -184,8 +170,8 @@ def _quiet_exit():
     sys.exit(0)
 
 
-@click.command("live")
-@click.option("--port", required=True, help="Serial port: device or pty path, or a pyserial URL (socket://, loop://).")
+@click.command("live", short_help="Solve poses live from a serial port, with a dashboard.")
+@port_option
 @click.option("--record", type=click.Path(dir_okay=False), default=None,
               help="New capture file: raw bytes are written as received, before decoding (+ .idx, .json "
                    "sidecar). An existing capture is never overwritten: the run is refused (exit 2) unless "
@@ -198,8 +184,8 @@ def _quiet_exit():
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
 @filter_options
-def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines, truth,
-             reference, reference_units, reference_offset, camera, report_dir, rho, sigma_arcsec, motion_compensation,
+def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
+             truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
              as_json, filter_settings):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
@@ -217,7 +203,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
         fail("--layout is required for live runs")
     if duration is not None and not duration > 0:
         fail(f"--duration: expected a positive number of seconds, got {duration}")
-    opts = _options(rho, sigma_arcsec, live=True, motion_compensation=motion_compensation,
+    opts = _options(rho, sigma, live=True, motion_compensation=motion_compensation,
                     filter_settings=filter_settings)
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,

@@ -4,10 +4,10 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
+from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option, out_file_option,
+                      seed_option, units_option)
 
-UNITS = ("mm", "cm", "m", "in")
-_units_option = click.option("--units", type=click.Choice(UNITS), default="m", show_default=True,
-                             help="Length unit of the mesh file (converted to metres).")
+_units_option = units_option(what="the mesh file (converted to metres)")
 
 
 def _warn(msgs):
@@ -15,11 +15,11 @@ def _warn(msgs):
         click.secho(f"warning: {m}", fg="yellow", err=True)
 
 
-@click.command("mesh-info")
+@click.command("mesh-info", short_help="Size, faces, watertightness and parts of a mesh file.")
 @click.argument("mesh", type=click.Path(dir_okay=False))
 @_units_option
-@click.option("--json", "json_out", is_flag=True, help="Print JSON.")
-def mesh_info_cmd(mesh, units, json_out):
+@json_flag
+def mesh_info_cmd(mesh, units, as_json):
     """Size, face count, watertightness, parts and warnings of a mesh file (STL/OBJ/PLY/OFF/GLB/GLTF)."""
     from ..workflows.design import mesh_info
 
@@ -27,7 +27,7 @@ def mesh_info_cmd(mesh, units, json_out):
         info = mesh_info(mesh, units)
     except ValueError as exc:
         fail(str(exc))
-    if json_out:
+    if as_json:
         echo_json(info)
         return
     _warn(info["warnings"])
@@ -43,7 +43,7 @@ def mesh_info_cmd(mesh, units, json_out):
     click.echo(f"  sha256      {info['sha256'][:16]}…")
 
 
-@click.command("candidates")
+@click.command("candidates", short_help="Evenly spaced candidate photodiode sites on a mesh.")
 @click.argument("mesh", type=click.Path(dir_okay=False))
 @_units_option
 @click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), required=True,
@@ -57,11 +57,11 @@ def mesh_info_cmd(mesh, units, json_out):
               help="Keep only sites whose normal is within HALF_DEG of (DX,DY,DZ).")
 @click.option("--flat-only", is_flag=True, help="Only faces of large coplanar facets (>= (2 x spacing)^2).")
 @click.option("--max-count", type=click.IntRange(min=1), default=None, help="Keep at most this many (random subset).")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Candidates file (layout JSON).")
-@click.option("--json", "json_out", is_flag=True, help="Print a JSON summary.")
+@seed_option
+@out_file_option(help="Candidates file (layout JSON).")
+@json_flag(help="Print a JSON summary.")
 def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_cone, normal_cone, flat_only,
-                   max_count, seed, out, json_out):
+                   max_count, seed, out, as_json):
     """Evenly spaced candidate photodiode sites with outward normals, saved as a layout file."""
     from ..candidates import parse_keepout
     from ..workflows.design import make_candidates
@@ -82,7 +82,7 @@ def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_c
         if "part" in e:
             parts[e["part"]] = parts.get(e["part"], 0) + 1
     summary = {"out": out, "count": lay.n, "spacing_mm": spacing_mm, "parts": parts, "warnings": list(msgs)}
-    if json_out:
+    if as_json:
         echo_json(summary)
         return
     _warn(msgs)
@@ -91,19 +91,18 @@ def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_c
         click.echo("  per part: " + ", ".join(f"{k} {v}" for k, v in parts.items()))
 
 
-@click.command("visibility")
+@click.command("visibility", short_help="Which sensors are lit over an envelope, per station.")
 @click.argument("mesh", type=click.Path(dir_okay=False))
 @_units_option
-@click.option("--layout", "layout_path", required=True, type=click.Path(dir_okay=False), help="Layout JSON.")
-@click.option("--envelope", "envelope_path", required=True, type=click.Path(dir_okay=False), help="Envelope TOML.")
-@click.option("--half-angle-deg", type=click.FloatRange(0.0, 90.0), default=60.0, show_default=True,
-              help="Sensor acceptance half-angle.")
+@layout_option
+@envelope_option
+@half_angle_option
 @click.option("--max-range-m", type=click.FloatRange(min=0.0, min_open=True), default=None, help="Maximum range.")
 @click.option("--min-lit", type=click.IntRange(min=1), default=4, show_default=True,
               help="Sensors one station must see for a pose fix.")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, allow_dash=True), default=None,
-              help="Write the full summary as JSON to this file ('-' = stdout).")
-def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_range_m, min_lit, json_out):
+@json_flag(help="Print the full summary as JSON to stdout (instead of the table).")
+@json_out_option(help="Also write the full summary as JSON to this file.")
+def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_range_m, min_lit, as_json, json_out):
     """Which sensors are lit over the envelope: per-sensor lit fraction, min lit count, poses below --min-lit."""
     from ..workflows.design import visibility_report
 
@@ -114,8 +113,10 @@ def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_
         fail(str(exc))
     if json_out:
         echo_json(rep, json_out)
-        if json_out == "-":
-            return
+    if as_json or json_out == "-":
+        if as_json:
+            echo_json(rep)
+        return
     _warn(rep["warnings"])
     st = rep["stations"]
     click.echo(f"{rep['poses']} poses x {len(st)} station(s) x {rep['sensors']} sensors")

@@ -4,10 +4,8 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-
-# Method and objective names are listed here without importing the optimiser (start-up time);
-# tests check that they match layoutkit.optimize.METHODS.
-METHOD_CHOICES = ("exhaustive", "greedy", "pipeline", "random", "relax-round", "topk")
+from .options import (allow_odd_size_option, envelope_option, half_angle_option, json_flag, out_file_option,
+                      registry_choice, report_option, rho_option, seed_option, time_limit_option, units_option)
 
 
 def _k_range(ctx, param, value):
@@ -22,21 +20,19 @@ def _k_range(ctx, param, value):
     return a, b
 
 
-@click.command("optimize")
+@click.command("optimize", short_help="Choose K photodiode sites minimising DOP (certified gap).")
 @click.argument("mesh", type=click.Path(dir_okay=False))
 @click.option("--sensors", "-k", "k", type=click.IntRange(min=1), required=True, help="Number of photodiodes.")
-@click.option("--envelope", "envelope_path", required=True, type=click.Path(dir_okay=False),
-              help="Operating envelope TOML (poses x stations).")
+@envelope_option(help="Operating envelope TOML (poses x stations; docs/envelope.md).")
 @click.option("--objective", default="worst-adop", show_default=True,
               help="<worst|mean|pNN>-<adop|pdop|weighted>, e.g. worst-adop, mean-pdop, p95-adop.")
 @click.option("--weights", default=None, metavar="A,B",
               help="For *-weighted: weights of ADOP^2 (deg^2) and PDOP^2 (m^2).")
-@click.option("--rho", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.8717, show_default=True,
-              help="Same-rotor angle correlation (Chen eq. 19).")
-@click.option("--out", required=True, type=click.Path(dir_okay=False), help="Output layout JSON.")
-@click.option("--report", "report_dir", default=None, type=click.Path(file_okay=False),
-              help="Report folder (plots, renders, summary.json).")
-@click.option("--method", type=click.Choice(METHOD_CHOICES), default="pipeline", show_default=True)
+@rho_option
+@out_file_option(help="Output layout JSON.")
+@report_option(help="Report folder (plots, renders, summary.json).")
+@click.option("--method", type=registry_choice("layoutkit.optimize:METHODS"), default="pipeline", show_default=True,
+              help="Search method (the registry layoutkit.optimize.METHODS).")
 @click.option("--candidates", "candidates_path", default=None, type=click.Path(dir_okay=False),
               help="Candidate sites (layout JSON from `layoutkit candidates`).")
 @click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
@@ -50,22 +46,18 @@ def _k_range(ctx, param, value):
               show_default=True, help="Share of poses that must have --min-visible lit.")
 @click.option("--min-spacing-mm", type=click.FloatRange(min=0.0), default=0.0, show_default=True,
               help="Minimum distance between chosen sensors, mm.")
-@click.option("--half-angle-deg", type=click.FloatRange(0.0, 90.0), default=60.0, show_default=True,
-              help="Photodiode acceptance half-angle.")
+@half_angle_option
 @click.option("--k-range", default=None, callback=_k_range, metavar="KMIN:KMAX",
               help="Also optimise every k in the range (DOP vs sensor count).")
-@click.option("--time-limit-s", type=click.FloatRange(min=0.0, min_open=True), default=None,
-              help="Wall-time budget per optimisation, s.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--units", type=click.Choice(["mm", "cm", "m", "in"]), default="m", show_default=True,
-              help="Length unit of the mesh file.")
-@click.option("--allow-odd-size", is_flag=True,
-              help="Optimise even when the mesh's size suggests the wrong --units (smaller than 1 cm or larger than the limit).")
+@time_limit_option(help="Wall-time budget per optimisation, s.")
+@seed_option
+@units_option
+@allow_odd_size_option
 @click.option("--no-render", is_flag=True, help="Plots only, no pyvista renders.")
-@click.option("--json", "json_out", is_flag=True, help="Print the summary as JSON.")
+@json_flag(help="Print the summary as JSON.")
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                 half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, json_out):
+                 half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json):
     """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
     import warnings
 
@@ -79,10 +71,10 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
         try:
             s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                           spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                          half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out, run_optimize)
+                          half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize)
         except MeshUnitsWarning as exc:
             fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")
-    if json_out:
+    if as_json:
         echo_json(s)
     else:
         _print_summary(s)
@@ -96,7 +88,7 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
 
 def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
               spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-              half_angle_deg, k_range, time_limit_s, seed, units, no_render, json_out, run_optimize):
+              half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize):
     try:
         from ..optimize import parse_objective
 
@@ -112,7 +104,7 @@ def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, 
         fixed_ids = [f.strip() for f in fixed.split(",") if f.strip()]
         from ..optimize.runcontrol import Interrupted
 
-        with _progress(json_out) as prog:
+        with _progress(as_json) as prog:
             try:
                 s = run_optimize(mesh, envelope_path, k, out=out, report=report_dir, objective=objective, rho=rho,
                                  method=method, candidates=candidates_path,

@@ -17,6 +17,7 @@ Only click and the unit constants are imported here (no numpy): importing the CL
 """
 from __future__ import annotations
 
+import importlib
 from typing import Callable, Iterable
 
 import click
@@ -28,8 +29,9 @@ __all__ = [
     "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
     "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
-    "overwrite_option", "RHO_RANGE", "coverage_option", "COVERAGE_CHOICES", "min_visible_option",
-    "FILTER_CHOICES", "filter_options",
+    "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
+    "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
+    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
@@ -39,6 +41,9 @@ COVERAGE_CHOICES = ("any-station", "each-station", "joint")
 #: The one admissible range of the same-rotor correlation: rho = 1 makes R_theta singular
 #: (Chen eq. 19) and an ADOP ~30x too optimistic.
 RHO_RANGE = click.FloatRange(0.0, 1.0, max_open=True)
+#: Sweep-angle noise: > 0 (a prediction divides by it); simulators also take 0 (noise-free).
+SIGMA_RANGE = click.FloatRange(min=0.0, min_open=True)
+SIGMA_RANGE_SIMULATION = click.FloatRange(min=0.0)
 
 _META = "layoutkit.alias."
 
@@ -53,11 +58,13 @@ def _alias_callback(dest: str, old: str, new: str, convert: Callable | None):
     return cb
 
 
-def _main_callback(dest: str, user_callback: Callable | None):
+def _main_callback(dest: str, user_callback: Callable | None, required: bool = False):
     def cb(ctx, param, value):
         src = ctx.get_parameter_source(param.name)
         if src in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None) and (_META + dest) in ctx.meta:
             value = ctx.meta[_META + dest]
+        if required and value is None and not ctx.resilient_parsing:
+            raise click.MissingParameter(ctx=ctx, param=param)
         if user_callback is not None:
             value = user_callback(ctx, param, value)
         return value
@@ -68,8 +75,11 @@ def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]
     """A click option ``flag`` delivering parameter ``dest``, with hidden deprecated ``aliases``.
 
     Each alias is a flag or ``(flag, convert)`` where ``convert`` maps the old spelling's value to
-    the new one's (e.g. radians to arcseconds). Other keywords go to :func:`click.option`.
+    the new one's (e.g. radians to arcseconds). Other keywords go to :func:`click.option`;
+    ``required=True`` is checked after the aliases (an alias satisfies it).
     """
+    required = bool(kw.pop("required", False))
+    aliases = tuple(aliases)
     alias_type = kw.get("type")
     alias_flag = kw.get("is_flag", False)
     alias_nargs = kw.get("nargs", 1)
@@ -82,27 +92,66 @@ def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]
                                                           "nargs": alias_nargs}
             f = click.option(old, name, hidden=True, expose_value=False, is_eager=True, default=None,
                              callback=_alias_callback(dest, old, flag, convert), **extra)(f)
-        return click.option(flag, dest, callback=_main_callback(dest, callback), **kw)(f)
+        return click.option(flag, dest, callback=_main_callback(dest, callback, required and bool(aliases)),
+                            required=required and not aliases, **kw)(f)
     return deco
 
 
-def registry_choice(registry) -> click.Choice:
-    """A :class:`click.Choice` of a registry's names (a dict or any iterable of names)."""
-    return click.Choice(sorted(registry))
+class RegistryChoice(click.Choice):
+    """A :class:`click.Choice` whose choices are the names of a registry, read when first needed.
+
+    ``registry`` is a mapping (or iterable of names) or a ``"module:ATTR"`` string naming one; the
+    string form keeps a heavy registry (the optimiser's methods) out of the CLI's import time.
+    ``where(name, entry)`` keeps only some entries (e.g. protocols that have an encoder).
+    The registry is looked up again on every access, so an entry registered later is offered too.
+    """
+
+    def __init__(self, registry, where: Callable | None = None, case_sensitive: bool = True):
+        self.registry = registry
+        self.where = where
+        self.case_sensitive = case_sensitive
+
+    def resolve(self):
+        """The registry object itself."""
+        reg = self.registry
+        if isinstance(reg, str):
+            mod, _, attr = reg.partition(":")
+            reg = getattr(importlib.import_module(mod), attr)
+        return reg
+
+    @property
+    def choices(self) -> tuple:  # type: ignore[override]
+        reg = self.resolve()
+        if self.where is None:
+            return tuple(sorted(reg))
+        return tuple(sorted(k for k in reg if self.where(k, reg[k])))
+
+    @choices.setter
+    def choices(self, value):  # click never sets it after __init__; keep the registry the source
+        raise AttributeError("RegistryChoice.choices comes from its registry")
+
+
+def registry_choice(registry, *, where: Callable | None = None) -> RegistryChoice:
+    """A choice of a registry's names: a dict, an iterable of names, or ``"module:ATTR"`` (lazy)."""
+    return RegistryChoice(registry, where=where)
 
 
 # --------------------------------------------------------------------------- the quantities
-def sigma_option(f=None, *, default: float = SIGMA_THETA_PAPER):
+def sigma_option(f=None, *, default: float | None = SIGMA_THETA_PAPER, help: str | None = None,
+                 allow_zero: bool = False):
     """``--sigma-arcsec``: 1-sigma sweep-angle noise in arcsec; the command receives ``sigma`` in rad.
 
+    ``default`` is in radians (None: no default, the command receives None); ``allow_zero``: a
+    simulator, where 0 means noise-free (elsewhere sigma must be > 0).
     Aliases: ``--sigma-theta-arcsec`` (render), ``--sigma-rad`` (fake-fpga, radians).
     """
     def to_rad(ctx, param, value):
         return None if value is None else float(value) * ARCSEC
-    deco = option("--sigma-arcsec", "sigma", type=click.FloatRange(min=0.0, min_open=True),
-                  default=default / ARCSEC, show_default=f"{default / ARCSEC:.4f} = {default:.4g} rad", callback=to_rad,
+    shown = False if default is None else f"{default / ARCSEC:.4f} = {default:.4g} rad"
+    deco = option("--sigma-arcsec", "sigma", type=SIGMA_RANGE_SIMULATION if allow_zero else SIGMA_RANGE,
+                  default=None if default is None else default / ARCSEC, show_default=shown, callback=to_rad,
                   aliases=("--sigma-theta-arcsec", ("--sigma-rad", lambda v: float(v) / ARCSEC)),
-                  help="Sweep-angle noise 1-sigma, arcsec (paper: 4.014e-5 rad = 8.28\"; Chen eq. 19).")
+                  help=help or "Sweep-angle noise 1-sigma, arcsec (paper: 4.014e-5 rad = 8.28\"; Chen eq. 19).")
     return deco(f) if f is not None else deco
 
 
@@ -122,9 +171,10 @@ def half_angle_option(f=None, *, default: float = 60.0):
     return deco(f) if f is not None else deco
 
 
-def units_option(f=None, *, what: str = "the mesh file"):
-    """``--units``: length unit of an input file (m, cm, mm, in)."""
-    deco = click.option("--units", type=click.Choice(LENGTH_UNIT_NAMES), default="m", show_default=True,
+def units_option(f=None, *, what: str = "the mesh file", flag: str = "--units", dest: str = "units"):
+    """``--units``: length unit of an input file (m, cm, mm, in); another ``flag`` names the unit of
+    another input (``--reference-units``)."""
+    deco = click.option(flag, dest, type=click.Choice(LENGTH_UNIT_NAMES), default="m", show_default=True,
                         help=f"Length unit of {what}.")
     return deco(f) if f is not None else deco
 
@@ -156,10 +206,14 @@ def out_file_option(f=None, *, required: bool = True, help: str = "Output file."
     return deco(f) if f is not None else deco
 
 
-def out_dir_option(f=None, *, required: bool = True, help: str = "Output folder.", default=None):
-    """``--out-dir DIR``: the command's output folder. The command receives ``out_dir``."""
-    deco = click.option("--out-dir", "out_dir", type=click.Path(file_okay=False), required=required,
-                        default=default, show_default=default is not None, help=help)
+def out_dir_option(f=None, *, required: bool = True, help: str = "Output folder.", default=None,
+                   aliases: Iterable = ()):
+    """``--out-dir DIR``: the command's output folder. The command receives ``out_dir``.
+
+    ``aliases``: old spellings (``("--out",)`` where a command used ``--out`` for a folder).
+    """
+    deco = option("--out-dir", "out_dir", type=click.Path(file_okay=False), required=required,
+                  default=default, show_default=default is not None, help=help, aliases=aliases)
     return deco(f) if f is not None else deco
 
 
@@ -268,3 +322,37 @@ def filter_options(f):
     for o in reversed(opts):
         wrapper = o(wrapper)
     return wrapper
+
+
+def _has_encoder(name, entry) -> bool:
+    """A protocol entry that can be emitted: an ``encode``/``encoder`` attribute that is not None
+    (entries without that attribute at all are taken as symmetric)."""
+    for attr in ("encode", "encoder"):
+        if hasattr(entry, attr):
+            return getattr(entry, attr) is not None
+    return True
+
+
+def protocol_option(f=None, *, default: str | None = "layoutkit", encodable: bool = False,
+                    help: str = "Wire protocol (the registry in layoutkit.live.protocols)."):
+    """``--protocol NAME``: a name of the protocol registry (``encodable``: only protocols that the
+    simulator can emit). The command receives ``protocol``."""
+    deco = click.option("--protocol", "protocol",
+                        type=registry_choice("layoutkit.live.protocols:PROTOCOLS",
+                                             where=_has_encoder if encodable else None),
+                        default=default, show_default=default is not None, help=help)
+    return deco(f) if f is not None else deco
+
+
+def port_option(f=None, *, required: bool = True):
+    """``--port``: a serial device, pty path or pyserial URL. The command receives ``port``."""
+    deco = click.option("--port", "port", required=required, metavar="PORT",
+                        help="Serial port: device or pty path, or a pyserial URL (socket://, loop://).")
+    return deco(f) if f is not None else deco
+
+
+def time_limit_option(f=None, *, help: str = "Wall-time budget, s."):
+    """``--time-limit-s``: a wall-time budget in seconds. The command receives ``time_limit_s``."""
+    deco = click.option("--time-limit-s", "time_limit_s", type=click.FloatRange(min=0.0, min_open=True),
+                        default=None, help=help)
+    return deco(f) if f is not None else deco

@@ -17,7 +17,8 @@ import numpy as np
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..layout import Layout
 
-__all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames", "solution_table"]
+__all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames", "solution_table",
+           "simulate_frame_file", "solve_frame_file"]
 
 GROSS_DEG = 1.0
 _TRUTH = ["true_rx", "true_ry", "true_rz", "true_tx", "true_ty", "true_tz"]
@@ -169,15 +170,20 @@ def solution_table(res: dict):
                      residual_rms=res["residual_rms"])
 
 
-def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0) -> dict:
-    """Solve every frame; summary with statuses, and errors against truth when the file has it."""
+def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0,
+                 method: str = "lm") -> dict:
+    """Solve every frame; summary with statuses, and errors against truth when the file has it.
+
+    method : a key of :data:`layoutkit.pnp.PNP_SOLVERS`.
+    """
     from ..dop import pose_dop, pose_errors, rms
     from ..pnp import solve_pnp
 
     from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES
 
     vis = np.all(np.isfinite(fr.angles), -1)
-    sol = solve_pnp(layout.positions, fr.angles, vis, **({} if sigma is None else {"sigma": sigma, "rho": rho}))
+    sol = solve_pnp(layout.positions, fr.angles, vis, method=method,
+                    **({} if sigma is None else {"sigma": sigma, "rho": rho}))
     out = {"frames": int(len(fr.t)), "solved": int(np.sum(sol.success)),
            "status_counts": {int(k): int(v) for k, v in zip(*np.unique(sol.status, return_counts=True))},
            "t": fr.t, "rotvec": matrix_to_rotvec(sol.rotation), "translation": sol.translation,
@@ -209,3 +215,53 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
             out.update(predicted_rms_rot_deg=float(np.sqrt(np.mean(d.adop**2)) * sigma),
                        predicted_rms_trans_m=float(np.sqrt(np.mean(d.pdop**2)) * sigma))
     return out
+
+
+def simulate_frame_file(layout: Layout, frames: int, out, *, seed: int, sigma: float, rho: float,
+                        quantize: bool = True) -> dict:
+    """What ``layoutkit simulate`` does: :func:`simulate_frames`, written to ``out`` (.csv or .npz).
+
+    Returns the summary ``{out, frames, mean_lit, min_lit}`` (lit sensors per frame).
+    """
+    fr = simulate_frames(layout, frames, seed=seed, sigma=sigma, rho=rho, quantize=quantize)
+    write_frames(fr, out)
+    lit = np.all(np.isfinite(fr.angles), -1).sum(1)
+    return {"out": str(out), "frames": int(frames), "mean_lit": float(lit.mean()), "min_lit": int(lit.min())}
+
+
+def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | None = None, rho: float = 0.0,
+                     method: str = "lm", filter_settings: dict | None = None) -> dict:
+    """What ``layoutkit solve`` does: read a frame file, solve every frame, write the pose table to ``out``
+    (:mod:`layoutkit.io.poses`: t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m).
+
+    filter_settings : None, or keywords of :class:`layoutkit.filter.EkfConfig` (see
+    :func:`layoutkit.workflows.filter.filter_config`): the frames also go through the tracking
+    filter, ``out`` then holds the filtered poses and the summary a ``filter`` entry.
+    Returns the JSON-ready summary of :func:`solve_frames` (without the per-frame arrays).
+    ValueError (naming the file) for an unreadable frame file or filter settings.
+    """
+    fr = read_frames(frames_path, layout)
+    res = solve_frames(fr, layout, sigma=sigma, rho=rho, method=method)
+    fres = None
+    if filter_settings is not None:
+        from .filter import filter_config, filter_frames
+
+        try:
+            fres = filter_frames(fr, layout, filter_config(filter_settings, sigma, rho))
+        except ValueError as exc:
+            raise ValueError(f"{frames_path}: {exc}") from None
+    if out:
+        from ..io.poses import write_poses
+
+        if fres is None:
+            write_poses(out, solution_table(res))
+        else:
+            from .filter import filter_table
+
+            write_poses(out, filter_table(fres))
+    summary = {k: v for k, v in res.items()
+               if k not in ("t", "rotvec", "translation", "success", "status", "residual_rms")}
+    if fres is not None:
+        summary["filter"] = {k: v for k, v in fres.items()
+                             if k not in ("t", "rotvec", "translation", "status", "cov_rot_deg", "cov_pos_m")}
+    return summary

@@ -269,7 +269,7 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
     return {"dir": str(d), "files": files}
 
 
-def run_demo(out_dir, quick=True, echo=print, progress=None):
+def run_demo(out_dir, quick=True, echo=print, progress=None, seed: int = 0):
     """Optimise 12 sensors on the bundled Chen target over ``models/chen_envelope.toml`` (< 2 min).
 
     Writes ``out_dir/layout.json`` and the report folder ``out_dir/report``; returns the summary."""
@@ -284,5 +284,5 @@ def run_demo(out_dir, quick=True, echo=print, progress=None):
     mesh = load_mesh(mesh_path)
     return run_optimize(mesh, env, 12, out=out_dir / "layout.json", report=out_dir / "report",
                         objective="worst-adop", rho=RHO_PAPER, spacing=0.008 if quick else 0.005,
-                        seed=0, time_limit=60 if quick else None, progress=progress,
+                        seed=seed, time_limit=60 if quick else None, progress=progress,
                         k_range=None, echo=echo)

@@ -1,0 +1,91 @@
+"""What ``layoutkit fake-fpga`` does: simulate a layout in motion and emit a board's exact bytes.
+
+:func:`fake_fpga_stream` builds the byte stream, its truth and the capture sidecar (no I/O);
+:func:`run_fake` writes the truth file and emits the stream into a capture file or a pty.
+Studies and tests call these instead of the command.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..layout import Layout
+from ..units import RHO_PAPER, SIGMA_THETA_PAPER
+
+__all__ = ["FakeStream", "fake_fpga_stream", "run_fake"]
+
+
+@dataclass(frozen=True)
+class FakeStream:
+    """chunks : list of ``(t_emit s, bytes)``; sweeps : :class:`layoutkit.live.simulator.SimulatedSweeps`
+    (the truth); sidecar : the capture's ``.json`` sidecar (dict)."""
+
+    chunks: list
+    sweeps: object
+    sidecar: dict
+
+
+def _check_probability(name: str, p: float) -> None:
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"{name}: expected a probability in [0, 1], got {p}")
+
+
+def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protocol: str = "layoutkit",
+                     motion="tumble", dropout: float = 0.0, frame_loss: float = 0.0, garbage: float = 0.0,
+                     sigma: float = SIGMA_THETA_PAPER, rho: float = RHO_PAPER) -> FakeStream:
+    """The simulated device output for ``layout`` over ``duration_s`` seconds.
+
+    motion : ``"tumble"``, ``"static"``, a trajectory pose table path (:mod:`layoutkit.io.poses`)
+    or a :class:`layoutkit.live.simulator.Trajectory`. sigma : sweep-angle noise, rad; rho :
+    same-rotor correlation in [0, 1). ValueError (naming the option) for bad input.
+    """
+    from ..live.capture import station_to_dict
+    from ..live.simulator import load_trajectory, simulate_stream
+
+    if not duration_s > 0:
+        raise ValueError(f"--duration: expected > 0 s, got {duration_s}")
+    for name, p in (("--dropout", dropout), ("--frame-loss", frame_loss), ("--garbage", garbage)):
+        _check_probability(name, p)
+    motion_name = motion if isinstance(motion, str) and motion in ("tumble", "static") else "csv"
+    if isinstance(motion, (str, Path)) and motion_name == "csv":
+        if not Path(motion).is_file():
+            raise ValueError(f"--motion: expected tumble, static or a trajectory CSV file, got {str(motion)!r}")
+        motion = load_trajectory(motion)
+    chunks, sw = simulate_stream(layout, duration=duration_s, seed=seed, protocol=protocol, motion=motion,
+                                 dropout=dropout, frame_loss=frame_loss, garbage=garbage, sigma=sigma, rho=rho)
+    sidecar = {
+        "source": "fake-fpga",
+        "protocol": protocol,
+        "protocol_options": ({"n_sensors": layout.n, "rotor_rpm": sw.stations[0].rotor_rpm, "clock_hz": sw.clock_hz}
+                             if protocol == "layoutkit" else {"n_sensors": layout.n}),
+        "n_sensors": layout.n,
+        "layout": layout.to_dict(),
+        "stations": [station_to_dict(s) for s in sw.stations],
+        "port": {"url": None, "baudrate": None},
+        "simulator": {"seed": seed, "duration_s": duration_s, "motion": motion_name, **sw.info},
+    }
+    return FakeStream(chunks, sw, sidecar)
+
+
+def run_fake(layout: Layout, *, out=None, link=None, truth_path=None, realtime: bool | None = None,
+             speed: float = 1.0, wait_reader_s: float | None = None, overwrite: bool = False, on_ready=None,
+             **stream_kw) -> dict:
+    """Simulate (:func:`fake_fpga_stream` with ``stream_kw``), write the truth, emit the bytes.
+
+    out : capture file (+ ``.idx`` and ``.json`` sidecar); None: a pseudo-terminal, whose path is
+    given to ``on_ready(path)`` (``link``: a symlink kept pointing at it); an existing ``out`` is
+    refused unless ``overwrite``. truth_path : TRUTH.csv, a pose table (s, rad, m;
+    one row per sweep). Returns the emit summary with
+    ``sweeps``, ``frames_sent``, ``truth`` and ``protocol``. Raises ValueError (bad input),
+    TimeoutError / :class:`layoutkit.live.simulator.ReaderGone` (pty reader) and OSError.
+    """
+    from ..live.simulator import run_fake_fpga, write_truth
+
+    st = fake_fpga_stream(layout, **stream_kw)
+    if truth_path:
+        write_truth(st.sweeps, truth_path)
+    summary = run_fake_fpga(st.chunks, out=out, realtime=realtime, link=link, on_ready=on_ready, speed=speed,
+                            sidecar=st.sidecar, wait_reader=wait_reader_s, overwrite=overwrite)
+    summary.update({"sweeps": int(len(st.sweeps.t)), "frames_sent": int(st.sweeps.emitted.sum()),
+                    "truth": None if truth_path is None else str(truth_path), "protocol": st.sidecar["protocol"]})
+    return summary
