@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m layoutkit demo --out out/demo
+	$(BIN)/python -m layoutkit demo --out-dir out/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q

@@ -8,7 +8,7 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
                       sigma_option)
 
 
-@click.command("fake-fpga", short_help="Hardware simulator: a board's bytes on a pty or to a file.")
+@click.command("fake-fpga", short_help="Hardware simulator: a board's bytes to a pty or a file.")
 @layout_option(help="Sensor layout JSON.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), default=None,
               help="Write a capture file (+ .idx and .json sidecar) instead of streaming on a pty.")
