@@ -16,7 +16,7 @@ _common_options = [
                  help="Print one JSON object per solved frame (t, rotvec, translation, n_lit, status, adop, pdop, "
                       "residual_rms) instead of the dashboard/summary."),
     click.option("--truth", type=click.Path(exists=True, dir_okay=False), default=None,
-                 help="Simulator TRUTH.csv (t,rx,ry,rz,tx,ty,tz; station frame): direct eq. (25) errors."),
+                 help="Simulator TRUTH.csv (a pose table; station frame): direct eq. (25) errors."),
     click.option("--reference", type=click.Path(exists=True, dir_okay=False), default=None,
                  help="Motion-capture CSV (t + rx,ry,rz | qx,qy,qz,qw | r11..r33 + tx,ty,tz | x,y,z); clock offset "
                       "and frames estimated from the data."),
