@@ -49,9 +49,10 @@ SYNONYMS = {
     "layout": ("--layout", {"--layout", "--layout-json", "--layout-file"}),
     "envelope": ("--envelope", {"--envelope", "--envelope-toml", "--envelope-file"}),
     "time-limit": ("--time-limit-s", {"--time-limit-s", "--time-limit", "--timeout-s", "--time-budget"}),
+    "min-lit": ("--min-visible", {"--min-visible", "--min-lit", "--min-sensors", "--min-lit-sensors"}),
 }
 # parameter name a command receives -> the flag that must deliver it
-DEST_FLAG = {"sigma": "--sigma-arcsec", "rho": "--rho", "half_angle_deg": "--half-angle-deg",
+DEST_FLAG = {"min_visible": "--min-visible", "sigma": "--sigma-arcsec", "rho": "--rho", "half_angle_deg": "--half-angle-deg",
              "distance_m": "--distance-m", "out_dir": "--out-dir", "json_out": "--json-out", "as_json": "--json"}
 # registries a choice may come from (imported by the test, not through the CLI)
 REGISTRIES = {
@@ -239,6 +240,8 @@ ALIASES = [  # (command, old args, new args, base args, old flag, new flag)
     ("study chen2024", ["--out", "o"], ["--out-dir", "o"], [], "--out", "--out-dir"),
     ("study zhai2014", ["--out", "o"], ["--out-dir", "o"], [], "--out", "--out-dir"),
     ("demo", ["--out", "o"], ["--out-dir", "o"], [], "--out", "--out-dir"),
+    ("visibility", ["--min-lit", "5"], ["--min-visible", "5"], [MESH, "--layout", LAYOUT, "--envelope", "e.toml"],
+     "--min-lit", "--min-visible"),
     ("optimize", ["--sensor-half-angle-deg", "50"], ["--half-angle-deg", "50"],
      [MESH, "-k", "4", "--envelope", "e.toml", "--out", "l.json"], "--sensor-half-angle-deg", "--half-angle-deg"),
 ]

@@ -4,8 +4,8 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option, out_file_option,
-                      seed_option, units_option)
+from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option,
+                      min_visible_option, out_file_option, seed_option, units_option)
 
 _units_option = units_option(what="the mesh file (converted to metres)")
 
@@ -98,17 +98,17 @@ def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_c
 @envelope_option
 @half_angle_option
 @click.option("--max-range-m", type=click.FloatRange(min=0.0, min_open=True), default=None, help="Maximum range.")
-@click.option("--min-lit", type=click.IntRange(min=1), default=4, show_default=True,
-              help="Sensors one station must see for a pose fix.")
+@min_visible_option(help="Sensors one station must see for a pose fix.", aliases=("--min-lit",))
 @json_flag(help="Print the full summary as JSON to stdout (instead of the table).")
 @json_out_option(help="Also write the full summary as JSON to this file.")
-def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_range_m, min_lit, as_json, json_out):
-    """Which sensors are lit over the envelope: per-sensor lit fraction, min lit count, poses below --min-lit."""
+def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_range_m, min_visible, as_json,
+                   json_out):
+    """Which sensors are lit over the envelope: per-sensor lit fraction, min lit count, poses below --min-visible."""
     from ..workflows.design import visibility_report
 
     try:
         rep = visibility_report(mesh, layout_path, envelope_path, units=units, sensor_half_angle_deg=half_angle_deg,
-                                max_range=max_range_m, min_lit=min_lit)
+                                max_range=max_range_m, min_lit=min_visible)
     except ValueError as exc:
         fail(str(exc))
     if json_out:
@@ -124,7 +124,7 @@ def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_
     for row in rep["sensor_lit_fraction"]:
         click.echo(f"  {row['id']:<8} {row['any']:5.2f}  " + "  ".join(f"{row[str(s)]:5.2f}" for s in st))
     click.echo(f"  lit by the best station: min {rep['lit_count_min']}, median {rep['lit_count_median']:g}")
-    click.echo(f"  poses with < {min_lit} lit: {rep['poses_below_min_lit']} "
+    click.echo(f"  poses with < {min_visible} lit: {rep['poses_below_min_lit']} "
                f"({100 * rep['fraction_below_min_lit']:.1f} %)")
 
 

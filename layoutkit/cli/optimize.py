@@ -4,8 +4,9 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import (allow_odd_size_option, envelope_option, half_angle_option, json_flag, out_file_option,
-                      registry_choice, report_option, rho_option, seed_option, time_limit_option, units_option)
+from .options import (allow_odd_size_option, envelope_option, half_angle_option, json_flag, min_visible_option,
+                      out_file_option, registry_choice, report_option, rho_option, seed_option, time_limit_option,
+                      units_option)
 
 
 def _k_range(ctx, param, value):
@@ -40,8 +41,7 @@ def _k_range(ctx, param, value):
 @click.option("--keepout-box", multiple=True, metavar="X0,Y0,Z0,X1,Y1,Z1",
               help="Keep-out box in the body frame, mm (repeatable; with --spacing-mm sampling).")
 @click.option("--fixed", default="", metavar="ID,...", help="Candidate ids placed in advance.")
-@click.option("--min-visible", type=click.IntRange(min=1), default=4, show_default=True,
-              help="Lit sensors needed at every pose.")
+@min_visible_option(help="Lit sensors needed at every pose.")
 @click.option("--coverage-fraction", type=click.FloatRange(0.0, 1.0, min_open=True), default=1.0,
               show_default=True, help="Share of poses that must have --min-visible lit.")
 @click.option("--min-spacing-mm", type=click.FloatRange(min=0.0), default=0.0, show_default=True,

@@ -268,10 +268,13 @@ def coverage_option(f=None):
     return deco(f) if f is not None else deco
 
 
-def min_visible_option(f=None, *, default: int = 4):
-    """``--min-visible``: lit sensors a pose needs to count as covered. The command receives ``min_visible``."""
-    deco = click.option("--min-visible", "min_visible", type=click.IntRange(min=1), default=default,
-                        show_default=True, help="Lit sensors needed for a pose to count as covered.")
+def min_visible_option(f=None, *, default: int = 4, help: str = "Lit sensors needed for a pose to count as covered.",
+                       aliases: Iterable = ()):
+    """``--min-visible``: lit sensors a pose needs to count as covered. The command receives ``min_visible``.
+
+    ``aliases``: old spellings (``("--min-lit",)`` in ``visibility``)."""
+    deco = option("--min-visible", "min_visible", type=click.IntRange(min=1), default=default,
+                  show_default=True, help=help, aliases=aliases)
     return deco(f) if f is not None else deco
 
 #: ``--filter`` choices: frame-by-frame PnP only, or the per-sweep EKF (layoutkit.filter).

@@ -8,7 +8,7 @@ from .options import (coverage_option, envelope_option, half_angle_option, json_
                       report_option, rho_option, seed_option, units_option)
 
 
-@click.command("score")
+@click.command("score", short_help="Score a layout over an envelope: DOP, coverage, usage.")
 @click.argument("layout", type=click.Path(dir_okay=False))
 @envelope_option
 @click.option("--mesh", "mesh_path", default=None, type=click.Path(dir_okay=False),
