@@ -142,7 +142,8 @@ def sigma_option(f=None, *, default: float | None = SIGMA_THETA_PAPER, help: str
     """``--sigma-arcsec``: 1-sigma sweep-angle noise in arcsec; the command receives ``sigma`` in rad.
 
     ``default`` is in radians (None: no default, the command receives None); ``allow_zero``: a
-    simulator, where 0 means noise-free (elsewhere sigma must be > 0).
+    simulator or a solver of simulated frames, where 0 means noise-free (elsewhere sigma must be
+    > 0: live predictions divide by it).
     Aliases: ``--sigma-theta-arcsec`` (render), ``--sigma-rad`` (fake-fpga, radians).
     """
     def to_rad(ctx, param, value):
