@@ -54,7 +54,7 @@ class DopResult:
         s = np.asarray(self.status)
         if np.all(s == 0):
             return "ok"
-        return (f"{int(np.sum(s == 1))} pose(s) with fewer than 3 lit sensors, "
+        return (f"{int(np.sum(s == 1))} pose(s) with fewer than 3 lit sensors (6 angles), "
                 f"{int(np.sum(s == 2))} with singular geometry")
 
 
@@ -110,7 +110,10 @@ def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
 
     jac : (..., S, n, 2, 6) float — S stations (rotor sweeps), n sensors, [theta_x, theta_y] rows.
     rho : same-rotor correlation (Chen eq. 19); only angles of the same station and axis correlate.
-    visible : bool broadcastable to (..., S, n), lit sensors; default all.
+    visible : bool broadcastable to (..., S, n) (lit sensors) or exactly (..., S, n, 2) (seen
+        angles: a sensor seen on one axis contributes its one row); default all.
+    status 1 ("too few") when fewer than 6 angles are seen (for per-sensor masks: fewer than 3
+    sensors, the same count), 2 when H is singular.
     Implements eq. (18) in closed form: with ``A = J^T J`` and ``b_{s,axis} = sum_i v_i j_{s,i,axis}``,
     ``J^T R J = (1 - rho) A + rho sum b b^T`` and ``H = A^-1 J^T R J A^-1``.
     """
@@ -118,22 +121,24 @@ def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
     if J.ndim < 4 or J.shape[-2:] != (2, 6):
         raise ValueError(f"jac: expected shape (..., S, n, 2, 6), got {J.shape}")
     v = np.ones(J.shape[:-2], bool) if visible is None else np.asarray(visible, bool)
+    per_angle = v.ndim == J.ndim - 1 and v.shape[-1] == 2 and v.shape[-2] == J.shape[-3]
     try:
-        v = np.broadcast_to(v, J.shape[:-2])
+        v = np.broadcast_to(v, J.shape[:-1]) if per_angle else np.broadcast_to(v[..., None], J.shape[:-1])
     except ValueError:
-        raise ValueError(f"visible: expected shape {J.shape[:-2]}, got {v.shape}") from None
-    Jm = J * v[..., None, None]
+        raise ValueError(f"visible: expected shape {J.shape[:-2]} or {J.shape[:-1]}, got {v.shape}") from None
+    Jm = J * v[..., None]
     Jv = Jm.reshape(J.shape[:-4] + (-1, 6))
     A = np.swapaxes(Jv, -1, -2) @ Jv  # sum over stations, sensors, axes of j j^T
     b = Jm.sum(axis=-3).reshape(J.shape[:-4] + (-1, 6))  # (..., 2S, 6): per station and axis
     M = (1.0 - rho) * A + rho * (np.swapaxes(b, -1, -2) @ b)
-    nvis = v.sum(axis=(-1, -2))
+    n_angles = v.sum(axis=(-1, -2, -3))
+    nvis = v.any(-1).sum(axis=(-1, -2))
     singular = _singular(A)
     Asafe = np.where(singular[..., None, None], np.eye(6), A)
     Ainv = np.linalg.inv(Asafe)
     H = Ainv @ M @ Ainv  # Chen eq. (18)
     H = 0.5 * (H + np.swapaxes(H, -1, -2))
-    status = np.where(nvis < 3, 1, np.where(singular, 2, 0))
+    status = np.where(n_angles < 6, 1, np.where(singular, 2, 0))
     ok = status == 0
     tr_rot = np.trace(H[..., :3, :3], axis1=-2, axis2=-1)
     tr_t = np.trace(H[..., 3:, 3:], axis1=-2, axis2=-1)
@@ -172,7 +177,8 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
     rotation : (..., 3, 3), translation : (..., 3) m — body pose ``p = R p_body + t`` in the frame
         of the single lighthouse (``stations=None``) or in the world frame of ``stations``.
     rho : same-rotor correlation (0.8717 measured in the paper).
-    visible : (..., n) bool for one station or (..., S, n) for S stations; default all sensors.
+    visible : (..., n) bool for one station or (..., S, n) for S stations (lit sensors), or with a
+        trailing axis of 2, ``(..., n, 2)`` / ``(..., S, n, 2)``, per angle; default all sensors.
     stations : poses in one world frame; each station's kind (LH1 sweeps / LH2 planes) and
         calibration enter through its forward model's Jacobian (:func:`layoutkit.lighthouse.measure_jacobian`).
     Returns a :class:`DopResult` with batch shape ``(...)``; numerical degeneracy is a status.
@@ -189,7 +195,10 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
         p_lh = lever + t[..., None, :]
         J = angle_jacobian(p_lh, lever)[..., None, :, :, :]
         if visible is not None:
-            visible = np.asarray(visible, bool)[..., None, :]
+            visible = np.asarray(visible, bool)
+            per_angle = visible.ndim >= 2 and visible.shape[-1] == 2 and visible.shape[-2] == P.shape[-2] and (
+                visible.ndim == R.ndim or P.shape[-2] != 2)
+            visible = visible[..., None, :, :] if per_angle else visible[..., None, :]
     else:
         Js = []
         for st in stations:
@@ -201,7 +210,9 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
                 Js.append(_model_jacobian(p_s, lever, st))
         J = np.stack(Js, -4)
     if visible is not None:
-        visible = np.broadcast_to(np.asarray(visible, bool), J.shape[:-2])
+        visible = np.asarray(visible, bool)
+        per_angle = visible.ndim == J.ndim - 1 and visible.shape[-1] == 2 and visible.shape[-2] == J.shape[-3]
+        visible = np.broadcast_to(visible, J.shape[:-1] if per_angle else J.shape[:-2])
     return dop_from_jacobian(J, rho, visible)
 
 

@@ -51,24 +51,42 @@ __all__ = [
     "STATUS_NOT_CONVERGED",
     "STATUS_BEHIND",
     "STATUS_AMBIGUOUS",
+    "STATUS_INVALID_ANGLE",
+    "STATUS_NO_START",
     "STATUS_NAMES",
+    "MIN_ANGLES",
+    "MIN_SENSORS",
     "solve_pnp",
     "solve_pnp_lm",
 ]
 
+#: The minimum rule: a pose is attempted when a frame has at least MIN_ANGLES seen angles from at
+#: least MIN_SENSORS sensors (6 equations for the 6 pose unknowns; with fewer than 3 sensors the
+#: rotation about the line through them is free). A sensor seen on one axis only contributes its
+#: one angle. The cold starts (POSIT, IPPE) need 4 sensors seen on both axes; a frame that meets
+#: the rule with fewer such sensors is solved from ``initial`` (e.g. a neighbouring frame's pose)
+#: or gets STATUS_NO_START. Collinear sensors give STATUS_DEGENERATE.
+MIN_ANGLES = 6
+MIN_SENSORS = 3
+MIN_START_SENSORS = 4
+
 STATUS_OK = 0
-STATUS_TOO_FEW = 1          # fewer than 4 lit sensors with finite angles in (0, pi)
+STATUS_TOO_FEW = 1          # below the minimum rule: < 6 angles or < 3 sensors seen
 STATUS_DEGENERATE = 2       # lit sensors (nearly) collinear, singular normal equations, or range unobservable
 STATUS_NOT_CONVERGED = 3    # refinement hit max_iterations without meeting the tolerance
 STATUS_BEHIND = 4           # best pose puts a lit sensor at z <= 0 (behind the station)
 STATUS_AMBIGUOUS = 5        # two distinct poses fit the angles equally well at the noise level
+STATUS_INVALID_ANGLE = 6    # a seen angle is infinite or outside (0, pi) rad: garbage or wrong units
+STATUS_NO_START = 7         # meets the rule, but < 4 sensors seen on both axes and no initial pose
 STATUS_NAMES = {
     STATUS_OK: "ok",
-    STATUS_TOO_FEW: "too few lit sensors (< 4)",
+    STATUS_TOO_FEW: "too few angles (< 6 angles or < 3 sensors seen)",
     STATUS_DEGENERATE: "degenerate geometry (collinear sensors, singular normal equations or unobservable range)",
     STATUS_NOT_CONVERGED: "not converged",
     STATUS_BEHIND: "behind the station (a lit sensor at z <= 0)",
     STATUS_AMBIGUOUS: "ambiguous (two poses fit equally well at the noise level; both returned)",
+    STATUS_INVALID_ANGLE: "invalid angle (infinite or outside (0, pi) rad; degrees?)",
+    STATUS_NO_START: "no start (fewer than 4 sensors seen on both axes and no initial pose)",
 }
 
 DEFAULT_CHUNK = 4096
@@ -135,10 +153,11 @@ class PnPResult:
 class PnPSolver(Protocol):
     """A batched PnP solver for one chunk of frames (an entry of :data:`PNP_SOLVERS`).
 
-    points_body : (n, 3) or (F, n, 3) m; angles : (F, n, 2) rad; lit : (F, n) bool, already
-    cleaned (only finite angles in (0, pi) and finite points are lit); initial : ``(R (F, 3, 3),
-    t (F, 3))`` or None; max_iterations : int; sigma : rad or None, the angle noise of the
-    ambiguity test (STATUS_AMBIGUOUS), rho its same-rotor correlation. Returns a :class:`PnPResult`.
+    points_body : (n, 3) or (F, n, 3) m; angles : (F, n, 2) rad; lit : (F, n, 2) bool per angle
+    (or (F, n) per sensor), already cleaned (only finite angles in (0, pi) and finite points are
+    lit); initial : ``(R (F, 3, 3), t (F, 3))`` or None; max_iterations : int; sigma : rad or None,
+    the angle noise of the ambiguity test (STATUS_AMBIGUOUS), rho its same-rotor correlation.
+    Returns a :class:`PnPResult`.
     """
 
     def __call__(self, points_body: np.ndarray, angles: np.ndarray, lit: np.ndarray,
@@ -153,27 +172,38 @@ class PnPSolver(Protocol):
 
 class _Frames:
     """Per-chunk data: body points Px, Py, Pz ((n, 1) for a shared body, else (n, F)); image
-    coordinates ux, uy = cot(theta) (n, F) (Chen eq. 2), zero where unlit; lit mask w (n, F) float
-    (``all_lit`` skips the masking); number of lit sensors nl (F,)."""
+    coordinates ux, uy = cot(theta) (n, F) (Chen eq. 2), zero where that angle is unlit; per-angle
+    masks wx, wy (n, F) float; w = wx * wy, the sensors seen on both axes (the starts use only
+    those); ``all_lit`` skips the masking; nl (F,) sensors seen on both axes; na (F,) seen angles;
+    ns (F,) sensors seen on at least one axis."""
 
     def __init__(self, P, ang, lit):
-        F, n = lit.shape
+        lit = np.asarray(lit, bool)
+        if lit.ndim == 2:
+            lit = np.repeat(lit[..., None], 2, -1)
+        F, n = lit.shape[:2]
+        any_lit = lit.any(-1)
         self.shared = P.ndim == 2
         if self.shared:
             self.Px, self.Py, self.Pz = (P[:, k, None].copy() for k in range(3))
         else:
-            Pt = np.where(lit[..., None], P, 0.0).transpose(2, 1, 0)
+            Pt = np.where(any_lit[..., None], P, 0.0).transpose(2, 1, 0)
             self.Px, self.Py, self.Pz = (np.ascontiguousarray(Pt[k]) for k in range(3))
         self.all_lit = bool(lit.all())
-        self.w = np.ascontiguousarray(lit.T, dtype=float)
+        lx, ly = lit[..., 0].T, lit[..., 1].T
+        self.wx = np.ascontiguousarray(lx, dtype=float)
+        self.wy = np.ascontiguousarray(ly, dtype=float)
+        self.w = self.wx * self.wy
         th = np.ascontiguousarray(ang.transpose(2, 1, 0))  # (2, n, F)
         if self.all_lit:
             self.ux = 1.0 / np.tan(th[0])
             self.uy = 1.0 / np.tan(th[1])
         else:
-            self.ux = np.where(lit.T, 1.0 / np.tan(np.where(lit.T, th[0], 1.0)), 0.0)
-            self.uy = np.where(lit.T, 1.0 / np.tan(np.where(lit.T, th[1], 1.0)), 0.0)
-        self.nl = lit.sum(1).astype(float)
+            self.ux = np.where(lx, 1.0 / np.tan(np.where(lx, th[0], 1.0)), 0.0)
+            self.uy = np.where(ly, 1.0 / np.tan(np.where(ly, th[1], 1.0)), 0.0)
+        self.nl = self.w.sum(0)
+        self.na = (self.wx + self.wy).sum(0)
+        self.ns = np.maximum(self.wx, self.wy).sum(0)
 
     def take(self, idx):
         out = object.__new__(_Frames)
@@ -182,11 +212,12 @@ class _Frames:
         for k in ("Px", "Py", "Pz"):
             v = getattr(self, k)
             setattr(out, k, v if self.shared else v[:, idx])
-        for k in ("w", "ux", "uy"):
+        for k in ("w", "wx", "wy", "ux", "uy"):
             setattr(out, k, getattr(self, k)[:, idx])
-        out.nl = self.nl[idx]
+        for k in ("nl", "na", "ns"):
+            setattr(out, k, getattr(self, k)[idx])
         if not out.all_lit:
-            out.all_lit = bool(out.w.all())
+            out.all_lit = bool(out.wx.all() and out.wy.all())
         return out
 
     def masked(self, a):
@@ -231,9 +262,9 @@ def _eval(fr, r, t):
         rx = _atan_ratio(x - fr.ux * z, z + fr.ux * x)
         ry = _atan_ratio(y - fr.uy * z, z + fr.uy * y)
     else:
-        w = fr.w
-        rx = _atan_ratio((x - fr.ux * z) * w, (z + fr.ux * x - 1.0) * w + 1.0)
-        ry = _atan_ratio((y - fr.uy * z) * w, (z + fr.uy * y - 1.0) * w + 1.0)
+        wx, wy = fr.wx, fr.wy
+        rx = _atan_ratio((x - fr.ux * z) * wx, (z + fr.ux * x - 1.0) * wx + 1.0)
+        ry = _atan_ratio((y - fr.uy * z) * wy, (z + fr.uy * y - 1.0) * wy + 1.0)
     cost = (rx * rx + ry * ry).sum(0)
     return {"lx": lx, "ly": ly, "lz": lz, "x": x, "y": y, "z": z, "rx": rx, "ry": ry, "cost": cost}
 
@@ -250,11 +281,13 @@ def _jacobian(fr, ev):
     x, y, z, lx, ly, lz = ev["x"], ev["y"], ev["z"], ev["lx"], ev["ly"], ev["lz"]
     ix = 1.0 / (x * x + z * z)
     iy = 1.0 / (y * y + z * z)
-    zm = fr.masked(z)
-    a0 = -zm * ix
-    a2 = fr.masked(x) * ix
-    b1 = -zm * iy
-    b2 = fr.masked(y) * iy
+    if fr.all_lit:
+        a0, a2, b1, b2 = -z * ix, x * ix, -z * iy, y * iy
+    else:  # per-angle masks: an axis that was not seen contributes no row
+        a0 = -z * fr.wx * ix
+        a2 = x * fr.wx * ix
+        b1 = -z * fr.wy * iy
+        b2 = y * fr.wy * iy
     jx = (ly * a2, lz * a0 - lx * a2, -ly * a0, a0, None, a2)
     jy = (ly * b2 - lz * b1, -lx * b2, lx * b1, None, b1, b2)
     return jx, jy
@@ -405,7 +438,7 @@ def _refine(fr, R, t, max_iterations):
             sub, evs = fr.take(act), {k: v[:, act] for k, v in ev.items()}
             ra, ta, ca, la = r[:, act], t[:, act], cost[act], lam[act]
         na = act.size
-        tol = _RTOL * ca + _ATOL * sub.nl
+        tol = _RTOL * ca + _ATOL * 0.5 * sub.na
         jx, jy = _jacobian(sub, evs)
         g = _gradient(jx, jy, evs)
         G = np.stack(g)
@@ -485,7 +518,8 @@ def _refine(fr, R, t, max_iterations):
         ok[act[~okc]] = False
         act = act[~(small | ~okc | (lnew > 1e10))]
     z = ev["z"]
-    depth = (np.where(fr.w > 0, z, np.inf).min(0), np.where(fr.w > 0, z, -np.inf).max(0))
+    seen = (fr.wx + fr.wy) > 0
+    depth = (np.where(seen, z, np.inf).min(0), np.where(seen, z, -np.inf).max(0))
     return r.T.reshape(F, 3, 3), t.T.copy(), cost, iters, conv, ok, depth
 
 
@@ -509,9 +543,13 @@ def _sym3_eigvals(S00, S11, S22, S01, S02, S12):
     return e_lo, e_mid, e_hi
 
 
-def _scatter(fr):
-    """Centroid c (F, 3) and scatter (S00, S11, S22, S01, S02, S12) (F,) of the lit body points."""
-    nl = np.maximum(fr.nl, 1.0)
+def _scatter(fr, w=None):
+    """Centroid c (F, 3) and scatter (S00, S11, S22, S01, S02, S12) (F,) of the lit body points
+    (weights ``w`` (n, F); default the sensors seen on both axes)."""
+    if w is None:
+        w, nl = fr.w, np.maximum(fr.nl, 1.0)
+    else:
+        nl = np.maximum(w.sum(0), 1.0)
     F = nl.shape[0]
     P = (fr.Px, fr.Py, fr.Pz)
     if fr.shared and fr.all_lit:  # the same set in every frame: compute once
@@ -522,7 +560,6 @@ def _scatter(fr):
         c = np.broadcast_to(c0, (F, 3)).copy()
         S = tuple(np.full(F, S0[i, j]) for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)))
         return c, S
-    w = fr.w
     c = np.stack([(w * v).sum(0) for v in P], -1) / nl[:, None]
     M = [(w * P[i] * P[j]).sum(0) for i, j in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))]
     S = tuple(M[k] - nl * c[:, i] * c[:, j]
@@ -562,7 +599,7 @@ def _posit(fr, c, S, iterations=2):
     ux, uy = fr.ux, fr.uy
     F = ux.shape[1]
     # virtual boresight: the ray through the mean image point of the lit sensors
-    m, _ = _unit3([ux.sum(0), uy.sum(0), fr.nl])
+    m, _ = _unit3([fr.masked(ux).sum(0), fr.masked(uy).sum(0), fr.nl])
     # Rc: the rotation taking m to e_z, I + [v]x + [v]x² / (1 + c) with v = m × e_z, c = m_z
     vx, vy, cz = m[1], -m[0], m[2]
     k = 1.0 / (1.0 + cz)
@@ -701,9 +738,9 @@ def _noise_quadratic(fr, ev, sigma: float, rho: float) -> np.ndarray:
     same-axis angles of one frame correlated with rho. Per axis, with n lit sensors,
     ``Sigma^-1 = (I - rho / (1 - rho + n rho) 1 1^T) / (sigma² (1 - rho))`` (Sherman–Morrison)."""
     rho = min(max(float(rho), 0.0), 1.0 - 1e-9)
-    c = rho / (1.0 - rho + fr.nl * rho)
     q = 0.0
-    for r in (ev["rx"], ev["ry"]):  # unlit sensors have zero residuals
+    for r, w in ((ev["rx"], fr.wx), (ev["ry"], fr.wy)):  # unseen angles have zero residuals
+        c = rho / (1.0 - rho + w.sum(0) * rho)  # n = the angles seen on this axis
         q = q + (r * r).sum(0) - c * r.sum(0) ** 2
     return q / (float(sigma) ** 2 * (1.0 - rho))
 
@@ -719,23 +756,25 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
     frame is STATUS_AMBIGUOUS and both poses are returned.
     """
     lit = np.asarray(lit, bool)
-    F, n = lit.shape
+    F, n = lit.shape[:2]
     fr = _Frames(np.asarray(points_body, float), np.asarray(angles, float), lit)
-    c, S = _scatter(fr)
+    c, S = _scatter(fr)  # of the sensors seen on both axes: the starts' input
     e_lo, _, e_hi = _sym3_eigvals(*S)
     planarity = np.sqrt(np.maximum(e_lo, 0.0) / np.maximum(e_hi, 1e-300))
     # collinear: lambda_mid / lambda_max ~ (sum of principal 2x2 minors) / trace² (no eigen-solve,
-    # whose double-zero eigenvalue is only accurate to sqrt(eps))
-    S00, S11, S22, S01, S02, S12 = S
+    # whose double-zero eigenvalue is only accurate to sqrt(eps)), over every sensor seen
+    Sa = S if fr.all_lit else _scatter(fr, np.maximum(fr.wx, fr.wy))[1]
+    S00, S11, S22, S01, S02, S12 = Sa
     minors = S00 * S11 - S01 * S01 + S00 * S22 - S02 * S02 + S11 * S22 - S12 * S12
     trace = S00 + S11 + S22
     collinear = minors <= COLLINEAR_THRESHOLD ** 2 * trace * trace
-    size = np.sqrt(np.maximum(trace, 0.0) / np.maximum(fr.nl, 1.0))  # RMS radius of the lit set
+    size = np.sqrt(np.maximum(trace, 0.0) / np.maximum(fr.ns, 1.0))  # RMS radius of the lit set
 
     status = np.full(F, STATUS_TOO_FEW)
-    valid = fr.nl >= 4
+    valid = (fr.na >= MIN_ANGLES) & (fr.ns >= MIN_SENSORS)
     status[valid & collinear] = STATUS_DEGENERATE
     todo = valid & ~collinear
+    startable = fr.nl >= MIN_START_SENSORS
 
     best_R = np.full((F, 3, 3), np.nan)
     best_t = np.full((F, 3), np.nan)
@@ -780,13 +819,14 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
             keep_alt(idx[cand], R[cand], t[cand], cost[cand])
 
     def poor(idx, limit=RETRY_RESIDUAL):
-        rms = np.sqrt(best_cost[idx] / np.maximum(2 * fr.nl[idx], 1))
+        rms = np.sqrt(best_cost[idx] / np.maximum(fr.na[idx], 1))
         return (best_status[idx] != STATUS_OK) | ~(rms <= limit)
 
     # a cold solution with a residual far above the noise also gets the planar candidates
     retry = RETRY_RESIDUAL if not sigma else min(RETRY_RESIDUAL, 5.0 * float(sigma))
 
     cold = todo.copy()
+    tried_initial = np.zeros(F, bool)
     if initial is not None:
         R0, t0 = initial
         idx = np.flatnonzero(todo & np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1))
@@ -796,8 +836,13 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
             if off.any():  # not a rotation: start from the nearest one
                 Ri[off] = nearest_rotation(Ri[off])
             consider(idx, Ri, t0[idx])
+            tried_initial[idx] = True
             cold[idx[~poor(idx)]] = False
 
+    no_start = cold & ~startable
+    if no_start.any():  # the cold starts need 4 sensors seen on both axes
+        best_status[no_start & ~tried_initial] = STATUS_NO_START
+        cold &= startable
     idx = np.flatnonzero(cold & (planarity > COPLANAR_THRESHOLD))
     if idx.size:
         sub = fr if idx.size == F else fr.take(idx)
@@ -812,8 +857,8 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
             consider(idx, R0, t0)
 
     status[todo] = best_status[todo]
-    res = np.sqrt(best_cost / np.maximum(2 * fr.nl, 1))
-    res[~todo] = np.nan
+    res = np.sqrt(best_cost / np.maximum(fr.na, 1))
+    res[~todo | ~np.isfinite(best_cost)] = np.nan
     amb = np.zeros(F, bool)
     if sigma is not None and sigma > 0:  # sigma = 0: noise-free data, the lower cost decides
         k = np.flatnonzero(todo & (status == STATUS_OK) & np.isfinite(alt_cost))
@@ -825,10 +870,24 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
         status[amb] = STATUS_AMBIGUOUS
     alt_R[~amb] = np.nan
     alt_t[~amb] = np.nan
-    alt_res = np.where(amb, np.sqrt(alt_cost / np.maximum(2 * fr.nl, 1)), np.nan)
+    alt_res = np.where(amb, np.sqrt(alt_cost / np.maximum(fr.na, 1)), np.nan)
     return PnPResult(rotation=best_R, translation=best_t, success=status == STATUS_OK,
                      status=status, residual_rms=res, iterations=best_it,
                      alt_rotation=alt_R, alt_translation=alt_t, alt_residual_rms=alt_res)
+
+
+def _with_status(r: PnPResult, where, status: int) -> PnPResult:
+    """``r`` with the frames ``where`` (F,) set to ``status`` and no pose."""
+    st = np.where(where, status, r.status)
+    R = np.where(where[:, None, None], np.nan, r.rotation)
+    t = np.where(where[:, None], np.nan, r.translation)
+    res = np.where(where, np.nan, r.residual_rms)
+    alts = {}
+    if r.alt_rotation is not None:
+        alts = {"alt_rotation": np.where(where[:, None, None], np.nan, r.alt_rotation),
+                "alt_translation": np.where(where[:, None], np.nan, r.alt_translation),
+                "alt_residual_rms": np.where(where, np.nan, r.alt_residual_rms)}
+    return PnPResult(R, t, st == STATUS_OK, st, res, np.where(where, 0, r.iterations), **alts)
 
 
 #: Registry of batched PnP solvers (the names the CLI offers).
@@ -844,7 +903,11 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
     angles : (F, n, 2) or (n, 2) float, rad, ``[theta_x, theta_y]`` as from
         :func:`layoutkit.lighthouse.sweep_angles`. A sensor whose angles are NaN or outside
         (0, pi) is not lit.
-    visible : (F, n) bool, optional; lit sensors (default: all with valid angles).
+    visible : (F, n) bool per sensor or (F, n, 2) bool per angle, optional (default: every angle
+        that is not NaN). NaN always means "not seen". A seen angle that is infinite or outside
+        (0, pi) gives the frame :data:`STATUS_INVALID_ANGLE` (no pose), never an exception.
+        Frames below the minimum rule (:data:`MIN_ANGLES` angles from :data:`MIN_SENSORS`
+        sensors) get :data:`STATUS_TOO_FEW`.
     initial : optional ``(rotation (F, 3, 3), translation (F, 3))`` start, e.g. the previous
         frame when tracking; frames where it does not give a good solution fall back to the
         cold start.
@@ -889,11 +952,16 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
     if (P.ndim == 2 and P.shape[0] != n) or P.ndim not in (2, 3) or (P.ndim == 3 and P.shape[:2] != (F, n)):
         raise ValueError(f"points_body: expected shape ({n}, 3) or ({F}, {n}, 3), got {P.shape}")
     if visible is None:
-        vis = np.ones((F, n), bool)
+        vis = np.ones((F, n, 2), bool)
     else:
         vis = np.asarray(visible, bool)
-        if vis.shape != (F, n):
-            raise ValueError(f"visible: expected shape ({F}, {n}), got {vis.shape}")
+        if vis.ndim == 1 and F == 1:
+            vis = vis[None]
+        if vis.shape == (F, n):
+            vis = np.repeat(vis[..., None], 2, -1)
+        elif vis.shape != (F, n, 2):
+            raise ValueError(f"visible: expected shape ({F}, {n}) per sensor or ({F}, {n}, 2) per angle, "
+                             f"got {vis.shape}")
     R0 = t0 = None
     if initial is not None:
         R0 = np.asarray(initial[0], float)
@@ -911,11 +979,17 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
             e = min(F, s + chunk)
             a = ang[s:e]
             p = P if P.ndim == 2 else P[s:e]
-            lit = vis[s:e] & np.all(np.isfinite(a) & (a > 0) & (a < np.pi), -1)
+            v = vis[s:e] & ~np.isnan(a)  # NaN = not seen
+            good = np.isfinite(a) & (a > 0) & (a < np.pi)
+            invalid = (v & ~good).any((1, 2))  # a seen angle that is inf or outside (0, pi)
+            lit = v & good
             if P.ndim == 3:
-                lit &= np.all(np.isfinite(p), -1)
+                lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
-            parts.append(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho))
+            r = solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho)
+            if invalid.any():
+                r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
+            parts.append(r)
     fields = ("rotation", "translation", "success", "status", "residual_rms", "iterations")
     if not parts:
         return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, bool),

@@ -65,4 +65,4 @@ def test_frame_file_with_foreign_ids(chen_layout, tmp_path):
     f = tmp_path / "f.csv"
     f.write_text("t,th_x_Q9,th_y_Q9\n0,1.5,1.5\n")
     r = CliRunner().invoke(main, ["solve", str(f), "--layout", str(chen_layout)])
-    assert r.exit_code == 2 and "sensor ids ['Q9'] are not in the layout" in r.output
+    assert r.exit_code == 2 and "sensor id(s) ['Q9'] (columns th_x_Q9, ...) are not in the layout" in r.output

@@ -14,7 +14,8 @@ from layoutkit.geometry import attitude_error, random_rotations, transform_point
 from layoutkit.lighthouse import in_field_of_view, sweep_angles
 from layoutkit.noise import SIGMA_THETA_PAPER, sample_angle_noise
 from layoutkit import pnp
-from layoutkit.pnp import (PNP_SOLVERS, STATUS_DEGENERATE, STATUS_OK, STATUS_TOO_FEW, PnPResult,
+from layoutkit.pnp import (PNP_SOLVERS, STATUS_DEGENERATE, STATUS_INVALID_ANGLE, STATUS_NO_START, STATUS_OK,
+                           STATUS_TOO_FEW, PnPResult,
                            solve_pnp)
 from layoutkit.shapes import chen_target
 
@@ -192,10 +193,10 @@ def test_degenerate_inputs_give_status(rng):
     vis[3, :] = False
     ang[4, :, 0] = np.inf                   # non-finite
     res = solve_pnp(P12, ang, vis)
-    np.testing.assert_array_equal(res.status, [STATUS_TOO_FEW] * 5 + [STATUS_OK])
+    np.testing.assert_array_equal(res.status, [STATUS_NO_START] + [STATUS_TOO_FEW] * 3 + [STATUS_INVALID_ANGLE, STATUS_OK])
     assert not res.success[:5].any() and res.success[5]
     assert np.isnan(res.rotation[:5]).all() and np.isnan(res.residual_rms[:5]).all()
-    assert "5 too few lit sensors (< 4)" in res.message
+    assert "3 too few angles" in res.message and "1 invalid angle" in res.message and "1 no start" in res.message
     # collinear body points (a rod), 5 sensors
     rod = np.outer(np.linspace(-0.05, 0.05, 5), [1.0, 0.5, 0.2])
     Rr, tr = poses(3, rod, rng)
@@ -217,7 +218,7 @@ def test_bad_shapes_exact_messages():
     assert str(e.value) == "points_body: expected shape (12, 3) or (5, 12, 3), got (4, 12, 3)"
     with pytest.raises(ValueError) as e:
         solve_pnp(P12, ang, np.ones((5, 11), bool))
-    assert str(e.value) == "visible: expected shape (5, 12), got (5, 11)"
+    assert str(e.value) == "visible: expected shape (5, 12) per sensor or (5, 12, 2) per angle, got (5, 11)"
     with pytest.raises(ValueError) as e:
         solve_pnp(P12, ang, initial=(np.eye(3), np.zeros(3)))
     assert str(e.value) == "initial: expected shapes (5, 3, 3) and (5, 3), got (3, 3) and (3,)"

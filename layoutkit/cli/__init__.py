@@ -10,7 +10,7 @@ import errno
 
 import click
 
-from . import camera, core, fake, live, mesh, optimize, render, score
+from . import camera, core, fake, importers, live, mesh, optimize, render, score
 from ._common import fail
 
 
@@ -42,6 +42,6 @@ def main():
     """
 
 
-for _mod in (core, mesh, render, optimize, score, live, fake, camera):
+for _mod in (core, mesh, render, optimize, score, live, fake, camera, importers):
     for _cmd in _mod.commands:
         main.add_command(_cmd)

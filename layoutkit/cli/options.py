@@ -32,6 +32,7 @@ __all__ = [
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION",
+    "out_folder_option", "system_config_option", "stations_option",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
@@ -277,6 +278,31 @@ def min_visible_option(f=None, *, default: int = 4, help: str = "Lit sensors nee
     deco = option("--min-visible", "min_visible", type=click.IntRange(min=1), default=default,
                   show_default=True, help=help, aliases=aliases)
     return deco(f) if f is not None else deco
+
+
+def out_folder_option(f=None, *, required: bool = True, help: str = "Output folder."):
+    """``--out DIR`` where a command's interface fixes ``--out`` as a folder (``layoutkit import
+    libsurvive|cfusdlog``, issue 10). The command receives ``out``."""
+    deco = click.option("--out", "out", type=click.Path(file_okay=False), required=required, metavar="DIR",
+                        help=help)
+    return deco(f) if f is not None else deco
+
+
+def system_config_option(f=None):
+    """``--system-config YAML``: a Crazyflie lighthouse system configuration (base-station geometry
+    and calibration, cfclient's export). The command receives ``system_config``."""
+    deco = click.option("--system-config", "system_config", type=click.Path(dir_okay=False), default=None,
+                        metavar="YAML", help="Crazyflie lighthouse system config YAML (station geometry + calibration).")
+    return deco(f) if f is not None else deco
+
+
+def stations_option(f=None):
+    """``--stations FILE``: a stations JSON (station poses and calibration). The command receives
+    ``stations_path``."""
+    deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False), default=None,
+                        metavar="FILE", help="Stations JSON (station poses, calibration), e.g. from layoutkit import.")
+    return deco(f) if f is not None else deco
+
 
 #: ``--filter`` choices: frame-by-frame PnP only, or the per-sweep EKF (layoutkit.filter).
 FILTER_CHOICES = ("none", "ekf")

@@ -1,0 +1,114 @@
+"""CLI: ``layoutkit import`` — foreign recordings and device files into layoutkit's own files."""
+from __future__ import annotations
+
+import click
+
+from ._common import echo_json, fail
+from .options import json_flag, out_file_option, out_folder_option, system_config_option
+
+
+@click.group("import")
+def import_group():
+    """Bring in the field's formats: each writes layoutkit's own files (layout JSON, frame table,
+    pose table, stations JSON, capture + sidecar) that every other command reads."""
+
+
+def _run(fn, *args, **kw):
+    try:
+        return fn(*args, **kw)
+    except ValueError as exc:
+        fail(str(exc))
+
+
+@import_group.command("vive-config")
+@click.argument("file", type=click.Path(dir_okay=False))
+@out_file_option(help="Layout JSON to write.")
+@json_flag(help="Print a JSON summary.")
+def vive_config_cmd(file, out, as_json):
+    """A Vive / Index device calibration JSON (lighthouse_config.modelPoints / modelNormals,
+    metres, device frame) → layout JSON with ids, positions and normals."""
+    from ..workflows.importers import import_vive_config
+
+    s = _run(import_vive_config, file, out)
+    if as_json:
+        echo_json(s)
+    else:
+        click.echo(f"wrote {s['sensors']} sensors to {out}")
+
+
+@import_group.command("libsurvive")
+@click.argument("recording", type=click.Path(dir_okay=False))
+@out_folder_option(help="Output folder: <device>/layout.json, <device>/frames.csv, stations.json, ...")
+@click.option("--device", default=None, metavar="NAME", help="Only this device (libsurvive code name: HMD, T20, WM0, ...).")
+@click.option("--config", "config", type=click.Path(dir_okay=False), default=None, metavar="JSON",
+              help="libsurvive lighthouse config (default: <recording>.json beside it).")
+@json_flag(help="Print the JSON summary.")
+def libsurvive_cmd(recording, out, device, config, as_json):
+    """A libsurvive .rec / .rec.gz recording → per-device layout, frame table and reference poses,
+    and the stations (poses + factory calibration) from the recording's .json.
+
+    Angles are converted to layoutkit's convention (theta = pi/2 + libsurvive angle; station frame
+    = libsurvive lighthouse frame turned by diag(1, -1, -1); docs/real-data.md). A truncated .gz
+    imports what is there and says where it ended.
+    """
+    from ..workflows.importers import import_libsurvive
+
+    s = _run(import_libsurvive, recording, out, device=device, config=config)
+    if as_json:
+        echo_json(s)
+        return
+    if s["ended"]:
+        click.echo(f"warning: {s['ended']}", err=True)
+    for dev, info in s["devices"].items():
+        if "frames" in info:
+            click.echo(f"{dev}: {info['frames']} frames ({info['frames_with_4_lit']} with >= 4 sensors on both axes), "
+                       f"{info['sensors']} sensors -> {out}/{dev}/")
+        else:
+            click.echo(f"{dev}: " + ", ".join(f"{k}" for k in info) + f" -> {out}/{dev}/")
+    if "stations" in s:
+        st = s["stations"]
+        click.echo(f"stations: {st['count']} ({st['with_pose']} with pose, {st['with_calibration']} with calibration) "
+                   f"-> {st['file']}")
+
+
+@import_group.command("cfusdlog")
+@click.argument("log", type=click.Path(dir_okay=False))
+@out_folder_option(help="Output folder: capture.bin (+ .json sidecar), firmware_angles.csv.")
+@system_config_option
+@json_flag(help="Print the JSON summary.")
+def cfusdlog_cmd(log, out, system_config, as_json):
+    """A Crazyflie microSD event log (cfusdlog) → a deck capture + sidecar for `layoutkit replay`
+    (lhUartFrame events) and the firmware's own angles (lhAngle events) as a table."""
+    from ..workflows.importers import import_cfusdlog
+
+    s = _run(import_cfusdlog, log, out, system_config=system_config)
+    if as_json:
+        echo_json(s)
+        return
+    if s.get("ended"):
+        click.echo(f"warning: {s['ended']}", err=True)
+    click.echo(f"{s['uart_frames']} lhUartFrame events -> {s['capture']}; {s['angle_rows']} lhAngle rows -> "
+               f"{s['firmware_angles']}")
+    for note in s.get("notes", []):
+        click.echo(f"note: {note}")
+
+
+@import_group.command("reference")
+@click.argument("file", type=click.Path(dir_okay=False))
+@out_file_option(help="Pose table (CSV) to write.")
+@click.option("--units", type=click.Choice(["m", "cm", "mm", "in"]), default="m", show_default=True,
+              help="Length unit of the positions in FILE.")
+@json_flag(help="Print a JSON summary.")
+def reference_cmd(file, out, units, as_json):
+    """A motion-capture reference (CSV or .npy): t plus attitude and position, or position only
+    (t,x,y,z) → a pose table (status 0; position-only rows have empty rotation)."""
+    from ..workflows.importers import import_reference
+
+    s = _run(import_reference, file, out, units=units)
+    if as_json:
+        echo_json(s)
+    else:
+        click.echo(f"wrote {s['rows']} reference poses ({'position only' if s['position_only'] else 'pose'}) to {out}")
+
+
+commands = [import_group]

@@ -1,0 +1,411 @@
+"""libsurvive recordings (``.rec`` / ``.rec.gz`` text) and their lighthouse configuration JSON.
+
+Format (cntools/libsurvive ``src/survive_recording.c``): one event per line,
+``<t> <object> <TYPE> <fields...>`` with ``t`` the host run time in seconds. The lines read here:
+
+- ``<dev> CONFIG <json>``: the device's own configuration; ``lighthouse_config.modelPoints`` /
+  ``modelNormals`` give the layout (:mod:`layoutkit.importers.vive`);
+- ``<dev> A <sensor> <acode> <timecode> <length> <angle> <lh>`` (LH1 angle): axis = ``acode & 1``
+  (0 = the X sweep), ``angle`` in rad, 0 on the lighthouse boresight, ``lh`` the lighthouse index;
+- ``<dev> B <channel> <sensor> <timecode> <plane> <angle>`` (LH2 sweep angle), ``plane`` 0/1;
+- ``<dev> POSE x y z qw qx qy qz`` and ``<name> EXTERNAL_POSE x y z qw qx qy qz``: object poses
+  in the world (libsurvive's solution; an external tracker);
+- ``<mode> LH_POSE x y z qw qx qy qz``: a lighthouse pose in the world;
+- everything else (IMU ``i``/``I``, raw light ``C``/``L``/``R``/``W``/``Y``, ``INFO``) is counted
+  and skipped.
+
+``timecode`` is the device's 48 MHz counter (32 bits, unwrapped here onto one monotone clock).
+The lighthouse configuration ``<recording>.json`` beside the recording (libsurvive's config
+file; one ``"key":value`` per line, not strict JSON) holds ``lighthouseN`` objects with ``pose``
+``[x, y, z, qw, qx, qy, qz]`` (lighthouse → world), ``mode`` (the LH2 channel) and the factory
+calibration ``fcalphase``, ``fcaltilt``, ``fcalcurve``, ``fcalgibpha``, ``fcalgibmag``,
+``fcalogeephase``, ``fcalogeemag`` (one value per axis).
+
+Conventions (derived and checked on the shipped samples in docs/real-data.md): libsurvive's
+lighthouse frame looks along −z with x to the right and y up; its LH1 angles are
+``a_x = -atan(X / -Z)``, ``a_y = atan(Y / -Z)`` (``lighthouse_gen1.py`` ``reproject_axis`` without
+calibration). layoutkit's station frame is ``p_st = diag(1, -1, -1) p_lh`` and its angles are
+``theta = pi/2 + a`` on both axes. LH2 plane angles (``lighthouse_gen2.py``:
+``a_k = atan2(D, X) - asin(tan(t_k) Y / sqrt(X² + D²)) - pi/2``, ``D = -Z``, tilt ``t_0 = +pi/6``,
+``t_1 = -pi/6``) are turned into the same two angles per sensor when both planes of one rotation
+were seen (:func:`lh2_to_sweep_angles`).
+"""
+from __future__ import annotations
+
+import gzip
+import json
+import re
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..io.frames import Frames
+from ..layout import Layout
+from .vive import layout_from_config
+
+__all__ = [
+    "TICK_HZ", "LH2_TILT", "Recording", "DeviceLight", "read_recording", "read_lighthouse_config",
+    "libsurvive_to_theta", "lh2_to_sweep_angles", "station_rotation_from_quaternion",
+    "device_frames", "FLIP",
+]
+
+#: libsurvive's device timecode clock (Vive / Index / Tracker), Hz.
+TICK_HZ = 48e6
+#: LH2 light-plane tilt in libsurvive's model, rad (plane 0: +pi/6, plane 1: -pi/6).
+LH2_TILT = np.pi / 6
+#: layoutkit station frame = FLIP @ libsurvive lighthouse frame (x kept, y and z reversed).
+FLIP = np.diag([1.0, -1.0, -1.0])
+
+_CAL_KEYS = ("fcalphase", "fcaltilt", "fcalcurve", "fcalgibpha", "fcalgibmag", "fcalogeephase", "fcalogeemag")
+# a sweep of one station and axis lasts well under one 8.33 ms LH1 slot
+_SWEEP_GAP_S = 0.004
+# X and the following Y sweep of one LH1 station start one slot (8.33 ms) apart
+_LH1_PAIR_S = 0.0125
+
+
+def _float(s: str) -> float:
+    try:
+        return float(s)
+    except ValueError:
+        return float.fromhex(s)  # SURVIVE_HEX_FLOATS recordings
+
+
+@dataclass
+class DeviceLight:
+    """Light events of one device, in file order (lists while reading, arrays after)."""
+
+    t: list = field(default_factory=list)          # host time, s
+    timecode: list = field(default_factory=list)   # raw 32-bit device timecode
+    sensor: list = field(default_factory=list)
+    station: list = field(default_factory=list)    # LH1: lighthouse index; LH2: channel
+    axis: list = field(default_factory=list)       # LH1: acode & 1; LH2: plane
+    angle: list = field(default_factory=list)      # libsurvive angle, rad
+    gen: list = field(default_factory=list)        # 1 or 2
+
+
+@dataclass
+class Recording:
+    """What :func:`read_recording` found.
+
+    configs : device name → CONFIG dict; light : device name → :class:`DeviceLight`;
+    poses : object name → list of ``(t, x, y, z, qw, qx, qy, qz)`` (POSE lines);
+    external_poses : the same for EXTERNAL_POSE; lh_poses : mode → last ``(x, y, z, qw, qx, qy, qz)``;
+    lines : lines read; counts : line type → count; skipped : reason → count;
+    ended : None if the file ended cleanly, else a message saying where and why it ended.
+    """
+
+    path: str
+    configs: dict = field(default_factory=dict)
+    light: dict = field(default_factory=dict)
+    poses: dict = field(default_factory=dict)
+    external_poses: dict = field(default_factory=dict)
+    lh_poses: dict = field(default_factory=dict)
+    lines: int = 0
+    counts: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
+    ended: str | None = None
+    last_t: float = float("nan")
+
+
+def _lines(path: Path, rec: Recording):
+    """Text lines of a (possibly gzip-compressed, possibly truncated) recording.
+
+    A truncated or corrupt gzip stream ends the iteration after the last complete line and sets
+    ``rec.ended`` to where it ended (line number, decompressed byte offset, reason).
+    """
+    with open(path, "rb") as fh:
+        gz = fh.read(2) == b"\x1f\x8b"
+    opener = gzip.open if gz else open
+    pos = 0
+    n = 0
+    pending = b""
+    try:
+        with opener(path, "rb") as fh:
+            while True:
+                try:
+                    chunk = fh.read(1 << 20)
+                except (EOFError, zlib.error, gzip.BadGzipFile, OSError) as exc:
+                    why = "the compressed stream ends early (truncated .gz)" if isinstance(exc, EOFError) else str(exc)
+                    rec.ended = (f"{path}: {why}; imported the {n} complete line(s) before decompressed byte "
+                                 f"{pos} (last time stamp {rec.last_t:.6f} s)")
+                    return
+                if not chunk:
+                    break
+                data = pending + chunk
+                parts = data.split(b"\n")
+                pending = parts.pop()
+                for p in parts:
+                    pos += len(p) + 1
+                    n += 1
+                    yield p.decode("utf-8", "replace")
+        if pending.strip():
+            # a last line without its newline: complete only if the stream ended cleanly
+            n += 1
+            yield pending.decode("utf-8", "replace")
+    finally:
+        rec.lines = n
+
+
+def read_recording(path) -> Recording:
+    """Parse a libsurvive recording (``ValueError`` naming the file if it is not one)."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: no such recording")
+    rec = Recording(str(path))
+    counts = rec.counts
+    skipped = rec.skipped
+    for line in _lines(path, rec):
+        parts = line.split()
+        if len(parts) < 3:
+            if parts:
+                skipped["short line"] = skipped.get("short line", 0) + 1
+            continue
+        try:
+            t = _float(parts[0])
+        except ValueError:
+            skipped["no time stamp"] = skipped.get("no time stamp", 0) + 1
+            continue
+        obj, typ = parts[1], parts[2]
+        counts[typ] = counts.get(typ, 0) + 1
+        rec.last_t = t
+        try:
+            if typ == "A" and len(parts) >= 9:
+                d = rec.light.setdefault(obj, DeviceLight())
+                d.t.append(t); d.sensor.append(int(parts[3])); d.axis.append(int(parts[4]) & 1)
+                d.timecode.append(int(parts[5])); d.angle.append(_float(parts[7]))
+                d.station.append(int(parts[8])); d.gen.append(1)
+            elif typ == "B" and len(parts) >= 8:
+                d = rec.light.setdefault(obj, DeviceLight())
+                d.t.append(t); d.station.append(int(parts[3])); d.sensor.append(int(parts[4]))
+                d.timecode.append(int(parts[5])); d.axis.append(int(parts[6])); d.angle.append(_float(parts[7]))
+                d.gen.append(2)
+            elif typ == "CONFIG":
+                text = line.split(" CONFIG ", 1)[1] if " CONFIG " in line else ""
+                try:
+                    rec.configs[obj] = json.loads(text)
+                except json.JSONDecodeError as exc:
+                    skipped[f"{obj} CONFIG not valid JSON ({exc.msg})"] = 1
+            elif typ in ("POSE", "EXTERNAL_POSE") and len(parts) >= 10:
+                target = rec.poses if typ == "POSE" else rec.external_poses
+                target.setdefault(obj, []).append([t] + [_float(x) for x in parts[3:10]])
+            elif typ == "LH_POSE" and len(parts) >= 10:
+                rec.lh_poses[int(obj)] = [_float(x) for x in parts[3:10]]
+        except ValueError:
+            skipped[f"malformed {typ} line"] = skipped.get(f"malformed {typ} line", 0) + 1
+    if rec.lines == 0:
+        raise ValueError(f"{path}: empty, or not a libsurvive recording")
+    if not rec.light and not rec.configs and not rec.poses:
+        raise ValueError(f"{path}: no libsurvive CONFIG, A, B or POSE lines in {rec.lines} line(s); "
+                         "not a libsurvive recording?")
+    return rec
+
+
+_KV = re.compile(r'^\s*"([^"]+)"\s*:\s*(.*?)\s*,?\s*$')
+
+
+def read_lighthouse_config(path) -> dict:
+    """libsurvive's config JSON (``<recording>.json``) → ``{index: {pose, mode, calibration, id}}``.
+
+    The file is libsurvive's own dialect (``"key":value`` lines, objects without commas between
+    them); it is made strict by inserting the missing commas. ``ValueError`` naming the file on
+    content it cannot read.
+    """
+    path = Path(path)
+    text = path.read_text(errors="replace")
+    body = text.strip()
+    if not body.startswith("{"):
+        body = "{" + body + "}"
+    # commas between a value/object end and the next key
+    body = re.sub(r'("|\]|\}|\d)\s*\n(\s*")', r"\1,\n\2", body)
+    try:
+        d = json.loads(body)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: cannot read libsurvive config ({exc})") from None
+    out = {}
+    for key, v in d.items():
+        m = re.fullmatch(r"lighthouse(\d+)", key)
+        if not m or not isinstance(v, dict):
+            continue
+        idx = int(m.group(1))
+        try:
+            pose = [float(x) for x in v.get("pose", [])]
+            cal = {k[4:]: [float(x) for x in v[k]] for k in _CAL_KEYS if k in v}
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: {key}: pose / fcal* values must be numbers") from None
+        if pose and len(pose) != 7:
+            raise ValueError(f"{path}: {key}.pose: expected 7 numbers (x y z qw qx qy qz), got {len(pose)}")
+        out[idx] = {"pose": pose or None, "mode": int(v["mode"]) if "mode" in v else None,
+                    "id": str(v.get("id", "")), "calibration": cal,
+                    "position_set": str(v.get("PositionSet", "1")) == "1"}
+    return out
+
+
+def station_rotation_from_quaternion(q) -> np.ndarray:
+    """Station → world rotation of a libsurvive lighthouse pose quaternion ``(qw, qx, qy, qz)``.
+
+    libsurvive: ``p_world = R(q) p_lh + pos``; layoutkit: ``p_st = FLIP p_lh``, so
+    ``p_world = (R(q) FLIP) p_st + pos`` (``FLIP`` has det +1: a proper rotation, 180° about x).
+    """
+    from scipy.spatial.transform import Rotation
+
+    w, x, y, z = (float(v) for v in q)
+    return Rotation.from_quat([x, y, z, w]).as_matrix() @ FLIP
+
+
+def libsurvive_to_theta(angle) -> np.ndarray:
+    """LH1 libsurvive angle (rad, 0 on boresight) → layoutkit sweep angle ``pi/2 + a`` (rad)."""
+    return np.pi / 2 + np.asarray(angle, float)
+
+
+def lh2_to_sweep_angles(a0, a1) -> np.ndarray:
+    """LH2 plane angles of libsurvive (plane 0 tilt +pi/6, plane 1 −pi/6, rad) → ``(…, 2)``
+    layoutkit ``[theta_x, theta_y]`` of the same direction (uncalibrated model).
+
+    With ``u_k = a_k + pi/2 = B ∓ s``, ``B = atan2(D, X)`` and ``s = asin(tan(pi/6) Y / r)``:
+    ``B = (u0 + u1) / 2``, ``s = (u1 - u0) / 2``; the direction has ``X = r cos B``, ``D = r sin B``,
+    ``Y = r sin(s) / tan(pi/6)``; in the station frame ``x = X, y = -Y, z = D``, so
+    ``theta_x = B`` and ``theta_y = atan2(tan(pi/6) sin B, -sin s)``.
+    """
+    u0 = np.asarray(a0, float) + np.pi / 2
+    u1 = np.asarray(a1, float) + np.pi / 2
+    B = 0.5 * (u0 + u1)
+    s = 0.5 * (u1 - u0)
+    return np.stack([B, np.arctan2(np.tan(LH2_TILT) * np.sin(B), -np.sin(s))], -1)
+
+
+def _unwrap32(tc: np.ndarray) -> np.ndarray:
+    """32-bit timecodes in file order → monotone-ish int64 (differences taken mod 2**32, signed)."""
+    tc = np.asarray(tc, np.int64)
+    if tc.size == 0:
+        return tc
+    d = np.diff(tc) % (1 << 32)
+    d = np.where(d >= (1 << 31), d - (1 << 32), d)
+    return np.concatenate([[tc[0]], tc[0] + np.cumsum(d)])
+
+
+def _sweeps(order, tc, st, ax, sensor, gap):
+    """Split events (indices ``order`` in file order) into sweeps: runs of one station and axis,
+    broken at a gap > ``gap`` ticks or a repeated sensor. Returns a list of index arrays."""
+    out = []
+    cur = []
+    key = None
+    seen = set()
+    for i in order:
+        k = (st[i], ax[i])
+        if cur and (k != key or abs(tc[i] - tc[cur[-1]]) > gap or sensor[i] in seen):
+            out.append(cur)
+            cur, seen = [], set()
+        if not cur:
+            key = k
+        cur.append(i)
+        seen.add(sensor[i])
+    if cur:
+        out.append(cur)
+    return out
+
+
+def device_frames(d: DeviceLight, layout_n: int, station_of) -> tuple[Frames, dict]:
+    """Frames of one device's light events.
+
+    station_of : maps an LH1 lighthouse index or an LH2 channel to the station index of the
+    stations JSON. One frame = the sweeps of one station close in time: LH1, an X sweep and the
+    following Y sweep (< 12.5 ms later); LH2, both planes of one rotation (the plane that leads
+    within a rotation is found from the data). A missing axis stays empty (NaN).
+    Returns the frames (``t`` on the device clock mapped to the host time of the recording) and
+    counts of what was dropped, by reason.
+    """
+    tc = _unwrap32(np.asarray(d.timecode, np.int64))
+    host = np.asarray(d.t, float)
+    sensor = np.asarray(d.sensor, int)
+    st = np.asarray(d.station, int)
+    ax = np.asarray(d.axis, int)
+    ang = np.asarray(d.angle, float)
+    gen = np.asarray(d.gen, int)
+    dropped = {}
+
+    def drop(reason, k=1):
+        if k:
+            dropped[reason] = dropped.get(reason, 0) + int(k)
+
+    # device clock → host seconds: one offset, the median (host batching only delays lines)
+    t_of = (tc - tc[0]) / TICK_HZ if tc.size else tc
+    off = float(np.median(host - t_of)) if tc.size else 0.0
+    in_layout = (sensor >= 0) & (sensor < layout_n)
+    ang_ok = np.isfinite(ang) & (np.abs(ang) < np.pi / 2)
+    drop("sensor index not in the device's layout", np.sum(~in_layout))
+    drop("angle not finite or |angle| >= pi/2", np.sum(in_layout & ~ang_ok))
+    good = in_layout & ang_ok
+    rows = []  # (t, station, {sensor: [thx, thy]})
+    gap = _SWEEP_GAP_S * TICK_HZ
+    for g in (1, 2):
+        idx = np.flatnonzero(good & (gen == g))
+        if idx.size == 0:
+            continue
+        for ch in np.unique(st[idx]):
+            sub = idx[st[idx] == ch]
+            sw = _sweeps(sub, tc, st, ax, sensor, gap)
+            starts = np.array([tc[s[0]] for s in sw], float)
+            axes = np.array([ax[s[0]] for s in sw])
+            if g == 1:
+                lead, pair_gap = 0, _LH1_PAIR_S * TICK_HZ
+            else:
+                # the plane that leads within a rotation: the shorter median gap to the other plane
+                dt = np.diff(starts)
+                chg = axes[:-1] != axes[1:]
+                g01 = dt[chg & (axes[:-1] == 0)]
+                g10 = dt[chg & (axes[:-1] == 1)]
+                m01 = np.median(g01) if g01.size else np.inf
+                m10 = np.median(g10) if g10.size else np.inf
+                lead = 0 if m01 <= m10 else 1
+                period = np.median(dt[axes[:-1] == axes[1:]]) if np.any(axes[:-1] == axes[1:]) else 0.02 * TICK_HZ
+                if not np.isfinite(period) or period <= 0:
+                    period = 0.02 * TICK_HZ
+                pair_gap = 0.75 * period
+            k = 0
+            while k < len(sw):
+                group = [sw[k]]
+                if axes[k] == lead and k + 1 < len(sw) and axes[k + 1] != lead and starts[k + 1] - starts[k] < pair_gap:
+                    group.append(sw[k + 1])
+                    k += 2
+                else:
+                    k += 1
+                vals = {}
+                for s in group:
+                    for i in s:
+                        vals.setdefault(sensor[i], [np.nan, np.nan])[ax[i]] = ang[i]
+                first = min(tc[s[0]] for s in group)
+                t = (first - tc[0]) / TICK_HZ + off
+                if g == 1:
+                    th = {s_: [libsurvive_to_theta(a) if np.isfinite(a) else np.nan for a in v] for s_, v in vals.items()}
+                else:
+                    th = {}
+                    for s_, v in vals.items():
+                        if np.isfinite(v[0]) and np.isfinite(v[1]):
+                            th[s_] = list(lh2_to_sweep_angles(v[0], v[1]))
+                        else:
+                            drop("LH2 sensor seen on one plane only (both are needed for its two angles)")
+                rows.append((t, station_of(g, int(ch)), th))
+    rows.sort(key=lambda r: r[0])
+    F = len(rows)
+    A = np.full((F, layout_n, 2), np.nan)
+    for f, (_, _, th) in enumerate(rows):
+        for s_, v in th.items():
+            A[f, s_] = v
+    t = np.array([r[0] for r in rows], float)
+    station = np.array([r[1] for r in rows], int)
+    keep = np.isfinite(A).any((1, 2))
+    drop("frames with no usable angle", int(np.sum(~keep)))
+    return Frames(t[keep], A[keep], tuple(str(i) for i in range(layout_n)), station=station[keep]), dropped
+
+
+def layout_of(rec: Recording, device: str) -> Layout:
+    """The device's layout from its CONFIG line (``ValueError`` if the recording has none)."""
+    if device not in rec.configs:
+        raise ValueError(f"{rec.path}: no CONFIG line for device {device!r} (devices with configs: "
+                         f"{sorted(rec.configs)})")
+    lay = layout_from_config(rec.configs[device], source=f"{rec.path} {device} CONFIG")
+    meta = dict(lay.metadata)
+    meta["source"] = {"format": "libsurvive", "file": rec.path, "device": device}
+    return Layout(lay.positions, lay.normals, lay.ids, meta)
