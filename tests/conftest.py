@@ -26,3 +26,11 @@ nominal_rotvec_deg = [180.0, 0.0, 0.0]
 half_angle_deg = 30.0
 """)
     return str(p)
+
+
+@pytest.fixture(scope="session")
+def libsurvive_dir():
+    """Folder of the two real libsurvive sample recordings (tests/data/libsurvive, MIT)."""
+    from pathlib import Path
+
+    return Path(__file__).parent / "data" / "libsurvive"

@@ -6,7 +6,7 @@ import click
 from ..units import ARCSEC
 from ._common import echo_json, fail
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
-                      registry_choice, rho_option, seed_option, sigma_option)
+                      registry_choice, rho_option, seed_option, sigma_option, stations_option)
 
 
 def _layout(path):
@@ -91,10 +91,18 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, as_jso
 @rho_option
 @sigma_option(allow_zero=True, help="Sweep-angle noise 1-sigma of the frames, arcsec (0: noise-free, no pose ties; "
                                         "paper: 8.28\" = 4.014e-5 rad).")
+@stations_option
+@click.option("--static", is_flag=True,
+              help="The body is at rest: estimate sigma and rho from the angles and compare the pose scatter "
+                   "with the DOP prediction.")
 @json_flag(help="Print a JSON summary.")
 @filter_options
-def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, as_json, filter_settings):
+def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, as_json, filter_settings):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
+
+    Bad frames (too few angles, inf, angles outside (0, pi), all behind) get a status each and the
+    batch goes on; exit 0 when the file could be read and at least one pose is good, 1 when no pose
+    is (with the most common reason). With --stations the pose table is in the world frame.
 
     With --filter ekf the frames (in time order, by their t) also go through the tracking filter
     (X then Y sweep at the frame's t); --out then holds the filtered poses (status 0 ok, 10
@@ -105,13 +113,22 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, as_json, filter
     lay = _layout(layout_path)
     try:
         summary = solve_frame_file(frames_path, lay, out=out, sigma=sigma, rho=rho, method=solver,
-                                   filter_settings=filter_settings)
+                                   filter_settings=filter_settings, stations_path=stations_path, static=static)
     except ValueError as exc:
         fail(str(exc))
     if as_json:
         echo_json(summary)
-        return
-    click.echo(f"solved {summary['solved']} / {summary['frames']} frames; statuses {summary['status_counts']}")
+    else:
+        _print_solve(summary)
+    if summary["solved"] == 0:
+        fail(summary["message"], code=1)
+
+
+def _print_solve(summary: dict) -> None:
+    click.echo(f"solved {summary['solved']} / {summary['frames']} frames; statuses {summary['statuses']}")
+    if summary["residual_rms_median"] is not None:
+        click.echo(f"residual RMS: median {summary['residual_rms_median']:.3g} rad, "
+                   f"90 % {summary['residual_rms_p90']:.3g} rad")
     if "rms_rot_deg" in summary:
         click.echo(f"RMS error vs truth: {summary['rms_rot_deg']:.4f} deg, {summary['rms_trans_m'] * 1e3:.3f} mm "
                    f"over the {summary['solved']} frames with status ok; {summary['gross_failures']} of them "

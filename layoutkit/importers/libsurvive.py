@@ -32,7 +32,6 @@ were seen (:func:`lh2_to_sweep_angles`).
 """
 from __future__ import annotations
 
-import gzip
 import json
 import re
 import zlib
@@ -109,41 +108,75 @@ class Recording:
     last_t: float = float("nan")
 
 
+def _chunks(path: Path, rec: Recording):
+    """Decompressed bytes of a plain or gzip file, streamed; a truncated or corrupt gzip stream
+    yields everything that could be decompressed and records why it ended in ``rec.ended``."""
+    with open(path, "rb") as fh:
+        gz = fh.read(2) == b"\x1f\x8b"
+        fh.seek(0)
+        if not gz:
+            while True:
+                b = fh.read(1 << 20)
+                if not b:
+                    return
+                yield b
+        d = zlib.decompressobj(wbits=31)
+        while True:
+            raw = fh.read(1 << 18)
+            if not raw:
+                if not d.eof:
+                    tail = d.flush()
+                    if tail:
+                        yield tail
+                    rec.ended = "the compressed stream ends early (truncated .gz)"
+                return
+            while raw:
+                try:
+                    out = d.decompress(raw)
+                except zlib.error as exc:
+                    rec.ended = f"corrupt gzip data ({exc})"
+                    return
+                if out:
+                    yield out
+                if not d.eof:
+                    break
+                raw = d.unused_data  # a next gzip member may follow
+                d = zlib.decompressobj(wbits=31)
+                if not raw:
+                    raw = fh.read(1 << 18)
+                    if not raw:
+                        return
+                if raw[:2] != b"\x1f\x8b":
+                    if raw.strip(b"\x00"):
+                        rec.ended = "trailing bytes after the gzip stream"
+                    return
+
+
 def _lines(path: Path, rec: Recording):
     """Text lines of a (possibly gzip-compressed, possibly truncated) recording.
 
-    A truncated or corrupt gzip stream ends the iteration after the last complete line and sets
-    ``rec.ended`` to where it ended (line number, decompressed byte offset, reason).
+    A truncated or corrupt stream ends after the last complete line; ``rec.ended`` then says where
+    (line count, decompressed byte offset, last time stamp) and why.
     """
-    with open(path, "rb") as fh:
-        gz = fh.read(2) == b"\x1f\x8b"
-    opener = gzip.open if gz else open
     pos = 0
     n = 0
     pending = b""
     try:
-        with opener(path, "rb") as fh:
-            while True:
-                try:
-                    chunk = fh.read(1 << 20)
-                except (EOFError, zlib.error, gzip.BadGzipFile, OSError) as exc:
-                    why = "the compressed stream ends early (truncated .gz)" if isinstance(exc, EOFError) else str(exc)
-                    rec.ended = (f"{path}: {why}; imported the {n} complete line(s) before decompressed byte "
-                                 f"{pos} (last time stamp {rec.last_t:.6f} s)")
-                    return
-                if not chunk:
-                    break
-                data = pending + chunk
-                parts = data.split(b"\n")
-                pending = parts.pop()
-                for p in parts:
-                    pos += len(p) + 1
-                    n += 1
-                    yield p.decode("utf-8", "replace")
-        if pending.strip():
-            # a last line without its newline: complete only if the stream ended cleanly
-            n += 1
+        for chunk in _chunks(path, rec):
+            data = pending + chunk
+            parts = data.split(b"\n")
+            pending = parts.pop()
+            for p in parts:
+                pos += len(p) + 1
+                n += 1
+                yield p.decode("utf-8", "replace")
+        if pending.strip() and rec.ended is None:
+            n += 1  # a last line without its newline, in a stream that ended cleanly
             yield pending.decode("utf-8", "replace")
+        if rec.ended is not None:
+            rec.ended = (f"{path}: {rec.ended}; imported the {n} complete line(s) before decompressed byte "
+                         f"{pos} (last time stamp {rec.last_t:.6f} s)"
+                         + (f"; dropped a partial last line of {len(pending)} bytes" if pending else ""))
     finally:
         rec.lines = n
 

@@ -192,7 +192,7 @@ def _read_csv(path):
         bad = ~np.isfinite(s) | (s < 0) | (s != np.round(s))
         if bad.any():
             k = int(np.argmax(bad))
-            raise ValueError(f"{path}: line {k + 2}, column 'station': {s[k]!r} is not a station index "
+            raise ValueError(f"{path}: line {k + 2}, column 'station': {float(s[k])!r} is not a station index "
                              "(an integer >= 0)")
         station = s.astype(int)
     R = T = None

@@ -1,18 +1,38 @@
-"""Frame workflows: simulate sweep-angle frames (``layoutkit simulate``) and solve them
-(``layoutkit solve``). The file format itself is :mod:`layoutkit.io.frames` (THE frame table).
+"""Frame files: simulated sweep-angle frames written and read for ``layoutkit simulate`` /
+``layoutkit solve``.
+
+Format (documented in docs/frames.md): CSV with header
+``t,th_x_<id>,th_y_<id>,...`` (rad, empty/NaN = not lit) and optional truth columns
+``true_rx,true_ry,true_rz,true_tx,true_ty,true_tz`` (rotation vector rad, m); or ``.npz`` with
+arrays ``t (F,)``, ``angles (F, n, 2)``, ``ids (n,)`` and optional ``truth_rotvec``, ``truth_translation``.
 """
 from __future__ import annotations
 
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
-from ..geometry import matrix_to_rotvec
-from ..io.frames import Frames, read_frame_table, write_frame_table
+from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..layout import Layout
 
 __all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames", "solution_table",
            "simulate_frame_file", "solve_frame_file"]
 
 GROSS_DEG = 1.0
+_TRUTH = ["true_rx", "true_ry", "true_rz", "true_tx", "true_ty", "true_tz"]
+
+
+@dataclass(frozen=True)
+class Frames:
+    """t (F,) s; angles (F, n, 2) rad (NaN = not lit); ids; optional truth rotation (F,3,3), translation (F,3)."""
+
+    t: np.ndarray
+    angles: np.ndarray
+    ids: tuple
+    truth_rotation: np.ndarray | None = None
+    truth_translation: np.ndarray | None = None
 
 
 def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho: float,
@@ -40,65 +60,363 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
 
 
 def write_frames(fr: Frames, path) -> None:
-    """Write a frame table (:func:`layoutkit.io.frames.write_frame_table`)."""
-    write_frame_table(fr, path)
+    """Write a frame table (.csv) or .npz atomically: ``path`` is complete or untouched."""
+    from ..io.atomic import atomic_write
+
+    path = Path(path)
+    if path.suffix == ".npz":
+        extra = {}
+        if fr.truth_rotation is not None:
+            extra = {"truth_rotvec": matrix_to_rotvec(fr.truth_rotation), "truth_translation": fr.truth_translation}
+        with atomic_write(path, "wb") as fh:
+            np.savez_compressed(fh, t=fr.t, angles=fr.angles, ids=np.asarray(fr.ids), **extra)
+        return
+    header = ["t"] + [f"th_{ax}_{i}" for i in fr.ids for ax in ("x", "y")]
+    rows = np.column_stack([fr.t, fr.angles.reshape(len(fr.t), -1)])
+    if fr.truth_rotation is not None:
+        header += _TRUTH
+        rows = np.column_stack([rows, matrix_to_rotvec(fr.truth_rotation), fr.truth_translation])
+    with atomic_write(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for r in rows:
+            w.writerow(["" if not np.isfinite(x) else repr(float(x)) for x in r])
 
 
 def read_frames(path, layout: Layout) -> Frames:
-    """Read a frame table in the layout's sensor order (ValueError naming file and column)."""
-    return read_frame_table(path, layout.ids)
+    """Read a frame file; the sensor ids must match the layout's (ValueError otherwise)."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: no such frame file")
+    if path.suffix == ".npz":
+        try:
+            d = np.load(path, allow_pickle=False)
+            need = [k for k in ("t", "angles", "ids") if k not in d.files]
+            if need:
+                raise KeyError(", ".join(need))
+            ids = tuple(str(i) for i in d["ids"])
+            ang = np.asarray(d["angles"], float)
+            R = rotvec_to_matrix(d["truth_rotvec"]) if "truth_rotvec" in d else None
+            T = np.asarray(d["truth_translation"]) if "truth_translation" in d else None
+            t = np.asarray(d["t"], float)
+        except KeyError as exc:
+            raise ValueError(f"{path}: frame .npz lacks {exc.args[0]}; expected arrays t, angles, ids") from None
+        except (OSError, EOFError, ValueError):  # not an .npz (zip of plain arrays) at all
+            raise ValueError(f"{path}: not a readable .npz frame file") from None
+    else:
+        try:
+            with open(path, newline="") as fh:
+                rd = csv.reader(fh)
+                header = next(rd, None)
+                if not header or header[0] != "t":
+                    raise ValueError(f"{path}: expected a CSV header starting with 't'")
+                rows = []
+                for r in rd:
+                    if not r:
+                        continue
+                    if len(r) != len(header):
+                        raise ValueError(f"{path}: line {rd.line_num}: {len(r)} fields, the header has {len(header)}")
+                    try:
+                        rows.append([float(x) if x.strip() else np.nan for x in r])
+                    except ValueError:
+                        bad = next(x for x in r if x.strip() and not _is_number(x))
+                        raise ValueError(f"{path}: line {rd.line_num}: {bad[:40]!r} is not a number") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text (CSV) frame file") from None
+        data = np.asarray(rows, float).reshape(-1, len(header))
+        cols = {h: k for k, h in enumerate(header)}
+        ids = tuple(h[5:] for h in header if h.startswith("th_x_"))
+        ang = np.stack([np.column_stack([data[:, cols[f"th_x_{i}"]], data[:, cols[f"th_y_{i}"]]]) for i in ids], 1)
+        t = data[:, 0]
+        R = T = None
+        if all(h in cols for h in _TRUTH):
+            tr = data[:, [cols[h] for h in _TRUTH]]
+            R, T = rotvec_to_matrix(tr[:, :3]), tr[:, 3:]
+    if len(t) == 0:
+        raise ValueError(f"{path}: no frames")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{path}: frame {int(np.argmin(np.isfinite(t)))}: time t is empty, NaN or infinite")
+    if np.isinf(ang).any():
+        raise ValueError(f"{path}: frame {int(np.isinf(ang).any((1, 2)).argmax())}: infinite angle "
+                         "(use an empty cell or NaN for a sensor that is not lit)")
+    for name, tr in (("truth rotation", R), ("truth translation", T)):
+        if tr is not None and not np.all(np.isfinite(tr)):
+            bad = int(np.argmin(np.isfinite(tr.reshape(len(tr), -1)).all(1)))
+            raise ValueError(f"{path}: frame {bad}: {name} is empty, NaN or infinite")
+    missing = [i for i in ids if i not in layout.ids]
+    if missing:
+        raise ValueError(f"{path}: sensor ids {missing[:5]} are not in the layout")
+    order = [ids.index(i) if i in ids else -1 for i in layout.ids]
+    full = np.full((ang.shape[0], layout.n, 2), np.nan)
+    for j, k in enumerate(order):
+        if k >= 0:
+            full[:, j] = ang[:, k]
+    return Frames(t, full, layout.ids, R, T)
 
 
-def solution_table(res: dict):
-    """The per-frame results of :func:`solve_frames` as a pose table (:mod:`layoutkit.io.poses`)."""
+def _is_number(x: str) -> bool:
+    try:
+        float(x)
+    except ValueError:
+        return False
+    return True
+
+
+def solution_table(res: dict, *, world: bool = False):
+    """The per-frame results of :func:`solve_frames` as a pose table (:mod:`layoutkit.io.poses`):
+    station-frame poses, or world-frame ones (``world=True``, when solved with stations)."""
     from ..io.poses import PoseTable
 
-    return PoseTable(res["t"], res["rotvec"], res["translation"], status=res["status"],
+    rv, tr = (res["world_rotvec"], res["world_translation"]) if world else (res["rotvec"], res["translation"])
+    return PoseTable(res["t"], rv, tr, station=res["station"], status=res["status"],
                      residual_rms=res["residual_rms"])
 
 
-def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0,
-                 method: str = "lm") -> dict:
-    """Solve every frame; summary with statuses, and errors against truth when the file has it.
+def _nearest_initial(t, station, ok, R, T, need):
+    """For the frames ``need``, the pose of the nearest-in-time ok frame of the same station."""
+    R0 = np.full((int(need.sum()), 3, 3), np.nan)
+    T0 = np.full((int(need.sum()), 3), np.nan)
+    idx = np.flatnonzero(need)
+    for s in np.unique(station[idx]):
+        good = np.flatnonzero(ok & (station == s))
+        if good.size == 0:
+            continue
+        mine = np.flatnonzero(station[idx] == s)
+        tg = t[good]
+        order = np.argsort(tg)
+        tg, good = tg[order], good[order]
+        k = np.clip(np.searchsorted(tg, t[idx[mine]]), 1, len(tg)) if len(tg) > 1 else np.zeros(len(mine), int)
+        if len(tg) > 1:
+            left = np.abs(t[idx[mine]] - tg[k - 1]) <= np.abs(tg[np.minimum(k, len(tg) - 1)] - t[idx[mine]])
+            k = np.where(left, k - 1, np.minimum(k, len(tg) - 1))
+        R0[mine], T0[mine] = R[good[k]], T[good[k]]
+    return R0, T0
 
+
+def angle_residuals(layout: Layout, angles, seen, R, T) -> np.ndarray:
+    """Measured minus predicted sweep angles ``(F, n, 2)`` rad of poses ``R (F,3,3), T (F,3)``
+    (NaN where not seen or no pose); wrapped to (-pi, pi]."""
+    from ..geometry import transform_points
+    from ..lighthouse import sweep_angles
+
+    with np.errstate(invalid="ignore"):
+        pred = sweep_angles(transform_points(R, T, layout.positions))
+        r = np.asarray(angles, float) - pred
+    r = (r + np.pi) % (2 * np.pi) - np.pi
+    return np.where(seen, r, np.nan)
+
+
+def sensor_residual_summary(ids, res) -> list[dict]:
+    """Per sensor and axis: count, mean and RMS (rad) of the residuals ``res (F, n, 2)``.
+
+    A calibration bias of one sensor or one station axis shows here first (a mean far from 0).
+    """
+    out = []
+    with np.errstate(invalid="ignore"):
+        cnt = np.sum(np.isfinite(res), 0)
+        mean = np.nanmean(np.where(cnt[None] > 0, res, 0.0), 0) if res.size else np.zeros((len(ids), 2))
+        rms_ = np.sqrt(np.nanmean(np.where(cnt[None] > 0, res * res, 0.0), 0)) if res.size else np.zeros((len(ids), 2))
+    for j, i in enumerate(ids):
+        row = {"id": i}
+        for a, ax in enumerate(("x", "y")):
+            n = int(cnt[j, a])
+            row[f"n_{ax}"] = n
+            row[f"mean_{ax}"] = float(mean[j, a]) if n else None
+            row[f"rms_{ax}"] = float(rms_[j, a]) if n else None
+        out.append(row)
+    return out
+
+
+def static_precision(layout: Layout, angles, seen, R, T, *, min_frames: int = 10) -> dict:
+    """A body at rest: noise estimated from the data and the pose scatter against its DOP prediction.
+
+    sigma : RMS deviation of every seen angle from its own mean over the frames (the true angle is
+    constant at rest), with the ``F / (F - 1)`` correction; rho : the mean product of the
+    deviations of two different sensors on the same axis in the same frame over sigma² (Chen
+    eq. 19's same-rotor correlation). Measured scatter: :func:`layoutkit.dop.precision` of the
+    solved poses (Chen eq. 23). Predicted: ``sqrt(mean ADOP²) sigma`` and ``sqrt(mean PDOP²) sigma``
+    with each frame's own seen angles (Chen eqs. 18–24) at the mean pose.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from ..dop import pose_dop, precision
+    from ..units import RAD2DEG
+
+    F = len(R)
+    if F < min_frames:
+        return {"frames": F, "message": f"fewer than {min_frames} solved frames"}
+    A = np.where(seen, angles, np.nan)
+    cnt = seen.sum(0)
+    use = cnt >= max(min_frames, F // 2)  # sensor-axes seen in at least half the frames
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # sensor-axes never seen: NaN mean, excluded below
+        dev = A - np.nanmean(np.where(use[None], A, np.nan), 0)
+    dev = np.where(use[None] & seen, dev, np.nan)
+    m = np.isfinite(dev)
+    N = m.sum()
+    corr = np.sum(cnt[use] / np.maximum(cnt[use] - 1, 1)) / max(int(use.sum()), 1)
+    sigma = float(np.sqrt(np.nansum(dev * dev) / max(N, 1) * corr))
+    d0 = np.where(m, dev, 0.0)
+    s1 = d0.sum(1)                 # (F, 2) per frame and axis
+    s2 = (d0 * d0).sum(1)
+    k = m.sum(1)
+    pairs = k * (k - 1) / 2
+    rho = float(np.sum((s1 * s1 - s2) / 2) / max(np.sum(pairs), 1) / (sigma * sigma * corr)) if sigma > 0 else 0.0
+    rho_used = float(np.clip(rho, 0.0, 0.999))
+    s_rot, s_t = precision(R, T)
+    Rm = Rotation.from_matrix(R).mean().as_matrix()
+    tm = T.mean(0)
+    d = pose_dop(layout.positions, np.broadcast_to(Rm, (F, 3, 3)), np.broadcast_to(tm, (F, 3)), rho=rho_used,
+                 visible=seen)
+    okd = d.success
+    pred_rot = float(np.sqrt(np.mean(d.adop[okd] ** 2)) * sigma) if okd.any() else None  # deg
+    pred_t = float(np.sqrt(np.mean(d.pdop[okd] ** 2)) * sigma) if okd.any() else None
+    meas_rot = float(s_rot * RAD2DEG)
+    # the frames with the most common set of seen angles: a systematic error that depends on the
+    # lit set (uncalibrated stations) inflates the scatter over all frames but not within one set
+    keys = [m_.tobytes() for m_ in seen.reshape(F, -1)]
+    uniq, inv, cnts = np.unique(keys, return_inverse=True, return_counts=True)
+    same = inv == int(np.argmax(cnts))
+    modal = None
+    if same.sum() >= min_frames:
+        sr, stt = precision(R[same], T[same])
+        dm = pose_dop(layout.positions, Rm, tm, rho=rho_used, visible=seen[same][0])
+        if dm.success:
+            modal = {"frames": int(same.sum()), "measured_sigma_rot_deg": float(sr * RAD2DEG),
+                     "measured_sigma_trans_m": float(stt), "predicted_sigma_rot_deg": float(dm.adop * sigma),
+                     "predicted_sigma_trans_m": float(dm.pdop * sigma)}
+    return {"frames": F, "same_lit_set": modal, "sigma_rad": sigma, "rho": rho, "rho_used": rho_used,
+            "angles_used": int(N), "measured_sigma_rot_deg": meas_rot, "measured_sigma_trans_m": float(s_t),
+            "predicted_sigma_rot_deg": pred_rot, "predicted_sigma_trans_m": pred_t,
+            "ratio_rot": meas_rot / pred_rot if pred_rot else None,
+            "ratio_trans": float(s_t) / pred_t if pred_t else None,
+            "mean_rotvec": Rotation.from_matrix(Rm).as_rotvec().tolist(), "mean_translation": tm.tolist()}
+
+
+def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0,
+                 method: str = "lm", stations: dict | None = None, static: bool = False) -> dict:
+    """Solve every frame; never raises on bad frames (each gets a status).
+
+    Pass 1 solves every frame cold; pass 2 solves the frames that meet the minimum rule but had
+    no cold start (fewer than 4 sensors seen on both axes) from the nearest good pose of the same
+    station. stations : optional ``{index: Station}``; the poses are then also given in the world
+    frame (``world_rotvec``, ``world_translation``) and the per-station mean world poses compared.
+    static : the body is at rest; add :func:`static_precision` per station.
     method : a key of :data:`layoutkit.pnp.PNP_SOLVERS`.
+    Returns a summary dict plus per-frame arrays ``t, station, status, rotvec, translation,
+    residual_rms, success``.
     """
     from ..dop import pose_dop, pose_errors, rms
-    from ..pnp import solve_pnp
+    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES, STATUS_NO_START, STATUS_OK, solve_pnp
 
-    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES
+    seen = ~np.isnan(fr.angles)
+    st = fr.stations()
+    noise = {"method": method, **({} if sigma is None else {"sigma": sigma, "rho": rho})}  # the ambiguity test's noise
+    sol = solve_pnp(layout.positions, fr.angles, seen, **noise)
+    R, T = np.array(sol.rotation), np.array(sol.translation)
+    status, res = np.array(sol.status), np.array(sol.residual_rms)
+    F = len(fr.t)
+    alt_R = np.full((F, 3, 3), np.nan) if sol.alt_rotation is None else np.array(sol.alt_rotation)
+    alt_T = np.full((F, 3), np.nan) if sol.alt_translation is None else np.array(sol.alt_translation)
+    need = status == STATUS_NO_START
+    second = 0
+    if need.any() and (status == STATUS_OK).any():
+        R0, T0 = _nearest_initial(fr.t, st, status == STATUS_OK, R, T, need)
+        has = np.all(np.isfinite(T0), 1)
+        idx = np.flatnonzero(need)[has]
+        if idx.size:
+            s2 = solve_pnp(layout.positions, fr.angles[idx], seen[idx], initial=(R0[has], T0[has]), **noise)
+            R[idx], T[idx], status[idx], res[idx] = s2.rotation, s2.translation, s2.status, s2.residual_rms
+            if s2.alt_rotation is not None:
+                alt_R[idx], alt_T[idx] = s2.alt_rotation, s2.alt_translation
+            second = int(np.sum(s2.success))
+    ok = status == STATUS_OK
+    amb = status == STATUS_AMBIGUOUS
+    names = {int(k): STATUS_NAMES.get(int(k), str(k)) for k in np.unique(status)}
+    counts = {names[int(k)]: int(v) for k, v in zip(*np.unique(status, return_counts=True))}
+    rv = np.full((len(fr.t), 3), np.nan)
+    has_pose = ok | amb  # an ambiguous frame keeps its best candidate (its status says so)
+    if has_pose.any():
+        rv[has_pose] = matrix_to_rotvec(R[has_pose])
+    # what was wrong with the input, by reason
+    a = fr.angles
+    with np.errstate(invalid="ignore"):
+        reasons = {"angles not seen (empty)": int(np.sum(np.isnan(a))),
+                   "infinite angles": int(np.sum(np.isinf(a))),
+                   "angles outside (0, pi) rad": int(np.sum(np.isfinite(a) & ((a <= 0) | (a >= np.pi))))}
+        big = np.isfinite(a) & (a >= np.pi)
+    if big.any() and np.nanmedian(np.where(np.isfinite(a), a, np.nan)) > np.pi:
+        reasons["hint"] = "most angles exceed pi: the file looks like degrees; frame tables are in radians"
+    r = angle_residuals(layout, fr.angles, seen & ok[:, None, None], R, T)
+    out = {"frames": int(len(fr.t)), "solved": int(ok.sum()), "solved_from_neighbour": second,
+           "status_counts": {int(k): int(v) for k, v in zip(*np.unique(status, return_counts=True))},
+           "statuses": counts, "input": reasons,
+           "residual_rms_median": float(np.median(res[ok])) if ok.any() else None,
+           "residual_rms_p90": float(np.percentile(res[ok], 90)) if ok.any() else None,
+           "sensor_residuals": sensor_residual_summary(layout.ids, r),
+           "t": fr.t, "station": st, "rotvec": rv, "translation": np.where(has_pose[:, None], T, np.nan),
+           "success": ok, "status": status, "residual_rms": np.where(has_pose, res, np.nan)}
+    lit_ok = seen.all(-1).sum(1)  # sensors seen on both axes
+    out["frames_with_4_lit"] = int(np.sum(lit_ok >= 4))
+    out["frames_with_4_lit_solved"] = int(np.sum((lit_ok >= 4) & ok))
+    if not ok.any():
+        worst = max(counts, key=counts.get)
+        out["message"] = f"no good pose in {len(fr.t)} frame(s); most common reason: {worst}"
+    else:
+        out["message"] = f"{int(ok.sum())} / {len(fr.t)} frames solved"
+    if stations is not None:
+        from scipy.spatial.transform import Rotation
 
-    vis = np.all(np.isfinite(fr.angles), -1)
-    sol = solve_pnp(layout.positions, fr.angles, vis, method=method,
-                    **({} if sigma is None else {"sigma": sigma, "rho": rho}))
-    out = {"frames": int(len(fr.t)), "solved": int(np.sum(sol.success)),
-           "status_counts": {int(k): int(v) for k, v in zip(*np.unique(sol.status, return_counts=True))},
-           "t": fr.t, "rotvec": matrix_to_rotvec(sol.rotation), "translation": sol.translation,
-           "success": sol.success, "status": sol.status, "residual_rms": sol.residual_rms}
-    if fr.truth_rotation is not None:
-        ok = np.asarray(sol.success)
-        e_r, e_t = pose_errors(sol.rotation[ok], sol.translation[ok], fr.truth_rotation[ok], fr.truth_translation[ok])
+        wr = np.full((len(fr.t), 3), np.nan)
+        wt = np.full((len(fr.t), 3), np.nan)
+        per = {}
+        for s in np.unique(st):
+            if int(s) not in stations:
+                raise ValueError(f"frame table has station {int(s)} but the stations file has {sorted(stations)}")
+            S = stations[int(s)]
+            k = ok & (st == s)
+            if not k.any():
+                continue
+            Rw = np.einsum("ij,fjk->fik", S.rotation, R[k])
+            tw = T[k] @ S.rotation.T + S.translation
+            wr[k], wt[k] = matrix_to_rotvec(Rw), tw
+            per[str(int(s))] = {"frames": int(k.sum()), "mean_rotvec": Rotation.from_matrix(Rw).mean().as_rotvec().tolist(),
+                                "median_translation": np.median(tw, 0).tolist()}
+        out["world_rotvec"], out["world_translation"] = wr, wt
+        out["world_per_station"] = per
+        keys = list(per)
+        if len(keys) >= 2:
+            a_, b_ = per[keys[0]], per[keys[1]]
+            dR = Rotation.from_rotvec(a_["mean_rotvec"]) * Rotation.from_rotvec(b_["mean_rotvec"]).inv()
+            out["world_between_stations"] = {
+                "stations": keys[:2], "translation_m": float(np.linalg.norm(np.subtract(a_["median_translation"], b_["median_translation"]))),
+                "rotation_deg": float(np.degrees(np.linalg.norm(dR.as_rotvec())))}
+    if static:
+        out["static"] = {str(int(s)): static_precision(layout, fr.angles[ok & (st == s)], seen[ok & (st == s)],
+                                                       R[ok & (st == s)], T[ok & (st == s)])
+                         for s in np.unique(st)}
+    if fr.truth_rotation is not None and ok.any():
+        e_r, e_t = pose_errors(R[ok], T[ok], fr.truth_rotation[ok], fr.truth_translation[ok])
         # gross: > 1 deg off — with 4 coplanar lit sensors the planar two-fold ambiguity is
         # undecidable under noise for some poses (docs/pnp.md), so report them apart
         gross = np.degrees(e_r) > GROSS_DEG
         good = ~gross
         out.update(rms_rot_deg=float(np.degrees(rms(e_r))), rms_trans_m=float(rms(e_t)),
-                   max_rot_deg=float(np.degrees(e_r.max())) if ok.any() else None,
+                   max_rot_deg=float(np.degrees(e_r.max())),
                    gross_failures=int(gross.sum()),
                    gross_failures_by_status={STATUS_NAMES[0]: int(gross.sum())},
                    rms_rot_deg_without_gross=float(np.degrees(rms(e_r[good]))),
                    rms_trans_m_without_gross=float(rms(e_t[good])))
-        amb = np.flatnonzero(np.asarray(sol.status) == STATUS_AMBIGUOUS)
-        if amb.size:  # neither candidate is reported as the pose; say how often the truth is among them
-            e1, _ = pose_errors(sol.rotation[amb], sol.translation[amb], fr.truth_rotation[amb], fr.truth_translation[amb])
-            e2, _ = pose_errors(sol.alt_rotation[amb], sol.alt_translation[amb], fr.truth_rotation[amb],
-                                fr.truth_translation[amb])
+        ia = np.flatnonzero(amb)
+        if ia.size:  # neither candidate is reported as the pose; say how often the truth is among them
+            e1, _ = pose_errors(R[ia], T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
+            e2, _ = pose_errors(alt_R[ia], alt_T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
             out["gross_failures_by_status"]["ambiguous (best candidate)"] = int(np.sum(np.degrees(e1) > GROSS_DEG))
-            out["ambiguous"] = {"frames": int(amb.size),
+            out["ambiguous"] = {"frames": int(ia.size),
                                 "truth_within_1deg_of_a_candidate": int(np.sum(np.degrees(np.minimum(e1, e2)) <= GROSS_DEG))}
         if sigma is not None:
             sel = np.flatnonzero(ok)[good]
-            d = pose_dop(layout.positions, fr.truth_rotation[sel], fr.truth_translation[sel], rho=rho, visible=vis[sel])
+            d = pose_dop(layout.positions, fr.truth_rotation[sel], fr.truth_translation[sel], rho=rho, visible=seen[sel])
             out.update(predicted_rms_rot_deg=float(np.sqrt(np.mean(d.adop**2)) * sigma),
                        predicted_rms_trans_m=float(np.sqrt(np.mean(d.pdop**2)) * sigma))
     return out
@@ -117,18 +435,24 @@ def simulate_frame_file(layout: Layout, frames: int, out, *, seed: int, sigma: f
 
 
 def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | None = None, rho: float = 0.0,
-                     method: str = "lm", filter_settings: dict | None = None) -> dict:
+                     method: str = "lm", filter_settings: dict | None = None, stations_path=None,
+                     static: bool = False) -> dict:
     """What ``layoutkit solve`` does: read a frame file, solve every frame, write the pose table to ``out``
     (:mod:`layoutkit.io.poses`: t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m).
 
     filter_settings : None, or keywords of :class:`layoutkit.filter.EkfConfig` (see
     :func:`layoutkit.workflows.filter.filter_config`): the frames also go through the tracking
     filter, ``out`` then holds the filtered poses and the summary a ``filter`` entry.
+    stations_path : a stations JSON; the pose table then holds world-frame poses and the summary
+    compares the stations' mean world poses. static : see :func:`static_precision`.
     Returns the JSON-ready summary of :func:`solve_frames` (without the per-frame arrays).
-    ValueError (naming the file) for an unreadable frame file or filter settings.
+    ValueError (naming the file) for an unreadable frame file, stations file or filter settings.
     """
+    from ..io.stations import read_stations
+
     fr = read_frames(frames_path, layout)
-    res = solve_frames(fr, layout, sigma=sigma, rho=rho, method=method)
+    stations = dict(enumerate(read_stations(stations_path))) if stations_path else None
+    res = solve_frames(fr, layout, sigma=sigma, rho=rho, method=method, stations=stations, static=static)
     fres = None
     if filter_settings is not None:
         from .filter import filter_config, filter_frames
@@ -141,13 +465,15 @@ def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | No
         from ..io.poses import write_poses
 
         if fres is None:
-            write_poses(out, solution_table(res))
+            write_poses(out, solution_table(res, world=stations is not None))
         else:
             from .filter import filter_table
 
             write_poses(out, filter_table(fres))
-    summary = {k: v for k, v in res.items()
-               if k not in ("t", "rotvec", "translation", "success", "status", "residual_rms")}
+    arrays = ("t", "rotvec", "translation", "success", "status", "station", "residual_rms", "world_rotvec",
+              "world_translation")
+    summary = {k: v for k, v in res.items() if k not in arrays}
+    summary["pose_frame"] = "world" if stations is not None else "station"
     if fres is not None:
         summary["filter"] = {k: v for k, v in fres.items()
                              if k not in ("t", "rotvec", "translation", "status", "cov_rot_deg", "cov_pos_m")}

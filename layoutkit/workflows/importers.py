@@ -16,62 +16,22 @@ from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "write_stations_json", "write_pose_table",
-           "STATIONS_FORMAT"]
-
-STATIONS_FORMAT = "layoutkit-stations"
+__all__ = ["import_vive_config", "import_libsurvive", "write_layout", "write_reference"]
 
 
 # ---------------------------------------------------------------- writers of our own formats
-# (thin: they go through layoutkit.io as soon as io/stations.py and io/poses.py exist)
 
 def write_layout(layout: Layout, path) -> None:
     """Layout JSON, atomically."""
     atomic_write_text(path, json.dumps(to_jsonable(layout.to_dict()), indent=2) + "\n")
 
 
-def write_stations_json(path, stations: list[dict]) -> None:
-    """Stations JSON: ``{"format": "layoutkit-stations", "version": 1, "stations": [...]}``, each
-    station ``{"index", "id", "kind", "rotation" (3×3, station → world), "translation" (m),
-    "calibration": {...}, ...}`` with ``p_world = rotation @ p_station + translation``."""
-    try:
-        from ..io import stations as _st  # the owner, once it exists
-        if hasattr(_st, "write_stations"):
-            return _st.write_stations(path, stations)
-    except ImportError:
-        pass
-    doc = {"format": STATIONS_FORMAT, "version": 1, "stations": stations}
-    atomic_write_text(path, json.dumps(to_jsonable(doc), indent=2) + "\n")
-
-
-def write_pose_table(path, t, station, status, rotvec, translation, residual_rms, extra: dict | None = None) -> None:
-    """THE POSE TABLE (CSV): ``t, station, status, rx, ry, rz, tx, ty, tz, residual_rms`` (s, station
-    index as text or ``joint``, status code 0 = ok, rotation vector rad, m, rad), then ``extra``
-    columns."""
-    import csv
-
-    from ..io.atomic import atomic_write
+def write_reference(path, t, rotvec, translation) -> None:
+    """A reference trajectory as a pose table (station ``joint`` = world frame, status 0)."""
+    from ..io.poses import JOINT, PoseTable, write_poses
 
     t = np.asarray(t, float)
-    F = len(t)
-    rv = np.asarray(rotvec, float).reshape(F, 3)
-    tr = np.asarray(translation, float).reshape(F, 3)
-    res = np.asarray(residual_rms, float).reshape(F)
-    st = np.asarray(status).reshape(F)
-    sta = [str(s) for s in (station if station is not None else ["0"] * F)]
-    extra = extra or {}
-    cols = ["t", "station", "status", "rx", "ry", "rz", "tx", "ty", "tz", "residual_rms"] + list(extra)
-
-    def f(x):
-        return "" if not np.isfinite(x) else repr(float(x))
-
-    with atomic_write(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(cols)
-        for k in range(F):
-            row = [repr(float(t[k])), sta[k], str(int(st[k]))] + [f(x) for x in rv[k]] + [f(x) for x in tr[k]] + [f(res[k])]
-            row += [v[k] if isinstance(v[k], str) else f(v[k]) for v in extra.values()]
-            w.writerow(row)
+    write_poses(path, PoseTable(t, rotvec, translation, station=np.full(len(t), JOINT), status=np.zeros(len(t), int)))
 
 
 # ---------------------------------------------------------------- vive-config
@@ -95,56 +55,52 @@ def _quat_rotvec(q_wxyz) -> np.ndarray:
     return Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_rotvec()
 
 
-def _libsurvive_stations(rec, cfg: dict) -> tuple[list[dict], dict, dict]:
-    """Stations of a recording: from the ``.json`` lighthouse config, then ``LH_POSE`` lines.
+def _libsurvive_stations(rec, cfg: dict) -> tuple[list, list[dict], dict, dict]:
+    """Stations of a recording: poses from the ``.json`` lighthouse config (or ``LH_POSE`` lines),
+    factory calibration from its ``fcal*`` values (libsurvive convention, converted by
+    :func:`layoutkit.lighthouse.calibration_from_libsurvive`).
 
-    Returns the station dicts (index order), the LH1 lighthouse-index → station map and the LH2
-    channel → station map.
+    Returns the :class:`~layoutkit.lighthouse.Station` list (the frame table's ``station`` column
+    indexes it), per-station info for the summary, the LH1 lighthouse-index → station map and the
+    LH2 channel → station map. Stations without a known pose get the identity pose and
+    ``pose_known: false`` in the info.
     """
     from ..importers.libsurvive import station_rotation_from_quaternion
+    from ..lighthouse import Station, calibration_from_libsurvive
 
     gens = {g for d in rec.light.values() for g in set(d.gen)}
     kind = "lh2" if gens == {2} else "lh1"
     channels = sorted({c for d in rec.light.values() for c, g in zip(d.station, d.gen) if g == 2})
     lh1_idx = sorted({c for d in rec.light.values() for c, g in zip(d.station, d.gen) if g == 1})
     by_mode = {v["mode"]: k for k, v in cfg.items() if v.get("mode") is not None}
-    ch_map = {}
-    for ch in channels:
-        if ch in by_mode:
-            ch_map[ch] = by_mode[ch]
-    nxt = max(list(cfg) + list(ch_map.values()) + lh1_idx + [-1]) + 1
-    for ch in channels:  # channels the config does not name: new stations in order
-        if ch not in ch_map:
-            ch_map[ch] = nxt
-            nxt += 1
-    idx_map = {i: i for i in lh1_idx}
-    used = sorted(set(idx_map.values()) | set(ch_map.values()) | set(cfg))
-    stations = []
-    for s in used:
-        c = cfg.get(s, {})
-        d = {"index": s, "id": c.get("id") or str(s), "kind": kind}
+    keys = sorted(set(cfg) | set(lh1_idx) | {by_mode[c] for c in channels if c in by_mode})
+    keys += [("ch", c) for c in channels if c not in by_mode]  # channels the config does not name
+    index = {k: i for i, k in enumerate(keys)}
+    idx_map = {i: index[i] for i in lh1_idx}
+    ch_map = {c: index[by_mode[c]] if c in by_mode else index[("ch", c)] for c in channels}
+    stations, info = [], []
+    for k in keys:
+        c = cfg.get(k, {}) if not isinstance(k, tuple) else {}
         mode = c.get("mode")
-        chans = [ch for ch, v in ch_map.items() if v == s]
-        if kind == "lh2":
-            d["channel"] = chans[0] if chans else mode
-        pose = c.get("pose")
-        lhp = rec.lh_poses.get(mode if kind == "lh2" else s) if rec.lh_poses else None
-        source = None
-        if pose is not None and c.get("position_set", True):
-            source = "libsurvive config json"
+        pose = c.get("pose") if c.get("position_set", True) else None
+        source = "libsurvive config json" if pose is not None else None
+        lhp = rec.lh_poses.get(mode if kind == "lh2" else k) if not isinstance(k, tuple) else rec.lh_poses.get(k[1])
         if lhp is not None:
             pose, source = lhp, "LH_POSE line"
+        kw = {}
         if pose is not None:
-            d["rotation"] = station_rotation_from_quaternion(pose[3:]).tolist()
-            d["translation"] = [float(x) for x in pose[:3]]
-            d["pose_source"] = source
-            d["libsurvive_pose"] = [float(x) for x in pose]
+            kw = {"rotation": station_rotation_from_quaternion(pose[3:]), "translation": np.asarray(pose[:3], float)}
         cal = c.get("calibration")
-        if cal:
-            d["calibration"] = {"model": "libsurvive-gen1" if kind == "lh1" else "libsurvive-gen2",
-                                "axis_order": ["x", "y"] if kind == "lh1" else ["plane0", "plane1"], **cal}
-        stations.append(d)
-    return stations, idx_map, ch_map
+        if kind == "lh2":
+            kw["rotor_rpm"] = 3000.0  # ~50 Hz; the exact period depends on the channel
+        st = Station(id=c.get("id") or (f"ch{k[1]}" if isinstance(k, tuple) else str(k)), kind=kind,
+                     calibration=calibration_from_libsurvive(cal, kind) if cal else None, **kw)
+        stations.append(st)
+        info.append({"index": index[k], "id": st.id, "kind": kind, "pose_known": pose is not None,
+                     "pose_source": source, "libsurvive_pose": pose,
+                     "channel": (k[1] if isinstance(k, tuple) else mode) if kind == "lh2" else None,
+                     "calibration_fcal": cal or None})
+    return stations, info, idx_map, ch_map
 
 
 def import_libsurvive(recording, out_dir, *, device: str | None = None, config=None) -> dict:
@@ -169,16 +125,19 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         if device not in devices:
             raise ValueError(f"{recording}: no device {device!r}; the recording has {devices}")
         devices = [device]
-    stations, idx_map, ch_map = _libsurvive_stations(rec, cfg)
+    stations, st_info, idx_map, ch_map = _libsurvive_stations(rec, cfg)
     out.mkdir(parents=True, exist_ok=True)
     summary = {"recording": str(recording), "config": str(cfg_path) if cfg else None, "out": str(out),
                "lines": rec.lines, "line_types": rec.counts, "skipped_lines": rec.skipped,
                "truncated": rec.ended is not None, "ended": rec.ended, "devices": {}}
     if stations:
-        write_stations_json(out / "stations.json", stations)
+        from ..io.stations import write_stations
+
+        write_stations(out / "stations.json", stations)
         summary["stations"] = {"file": str(out / "stations.json"), "count": len(stations),
-                               "with_pose": sum("rotation" in s for s in stations),
-                               "with_calibration": sum("calibration" in s for s in stations)}
+                               "with_pose": sum(i["pose_known"] for i in st_info),
+                               "with_calibration": sum(s.calibration is not None for s in stations),
+                               "stations": st_info}
 
     def station_of(gen, ch):
         return idx_map.get(ch, ch) if gen == 1 else ch_map.get(ch, ch)
@@ -213,8 +172,7 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         for name, src in (("reference.csv", rec.poses.get(dev)), ("reference_external.csv", rec.external_poses.get(dev))):
             if src:
                 a = np.asarray(src, float)
-                write_pose_table(ddir / name, a[:, 0], ["joint"] * len(a), np.zeros(len(a), int),
-                                 _quat_rotvec(a[:, 4:8]), a[:, 1:4], np.full(len(a), np.nan))
+                write_reference(ddir / name, a[:, 0], _quat_rotvec(a[:, 4:8]), a[:, 1:4])
                 info[name.replace(".csv", "")] = {"file": str(ddir / name), "poses": len(a)}
         summary["devices"][dev] = info
     for name, src in rec.external_poses.items():
@@ -223,8 +181,7 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         ddir = out / name
         ddir.mkdir(parents=True, exist_ok=True)
         a = np.asarray(src, float)
-        write_pose_table(ddir / "reference_external.csv", a[:, 0], ["joint"] * len(a), np.zeros(len(a), int),
-                         _quat_rotvec(a[:, 4:8]), a[:, 1:4], np.full(len(a), np.nan))
+        write_reference(ddir / "reference_external.csv", a[:, 0], _quat_rotvec(a[:, 4:8]), a[:, 1:4])
         summary["devices"].setdefault(name, {})["reference_external"] = {
             "file": str(ddir / "reference_external.csv"), "poses": len(a)}
     return summary
