@@ -74,14 +74,14 @@ def test_nan_time_in_frames_csv(tmp_path, frames_csv):
     bad = _edit_cell(frames_csv, tmp_path / "nan_t.csv", 3, 0, "nan")
     r = _run(["solve", bad, "--layout", LAYOUT])
     assert r.exit_code == 2
-    assert _error_lines(r) == [f"error: {bad}: frame 2: time t is empty, NaN or infinite"]
+    assert _error_lines(r) == [f"error: {bad}: frame 2 (line 4), column 't': time is empty, NaN or infinite"]
 
 
 def test_nan_truth_in_frames_csv(tmp_path, frames_csv):
     bad = _edit_cell(frames_csv, tmp_path / "nan_truth.csv", 2, -1, "nan")
     r = _run(["solve", bad, "--layout", LAYOUT])
     assert r.exit_code == 2
-    assert _error_lines(r) == [f"error: {bad}: frame 1: truth translation is empty, NaN or infinite"]
+    assert _error_lines(r) == [f"error: {bad}: frame 1 (line 3): truth translation is empty, NaN or infinite"]
 
 
 def test_nan_angle_means_not_lit(tmp_path, frames_csv):
@@ -93,18 +93,18 @@ def test_nan_angle_means_not_lit(tmp_path, frames_csv):
 
 
 def test_inf_angle_in_frames_csv(tmp_path, frames_csv):
+    """An infinite angle is a frame status (invalid angle), not a lost batch (issue 10)."""
     bad = _edit_cell(frames_csv, tmp_path / "inf.csv", 2, 1, "inf")
     r = _run(["solve", bad, "--layout", LAYOUT])
-    assert r.exit_code == 2
-    assert _error_lines(r) == [
-        f"error: {bad}: frame 1: infinite angle (use an empty cell or NaN for a sensor that is not lit)"]
+    assert r.exit_code == 0, r.output
+    assert "solved 19 / 20 frames" in r.output and "invalid angle" in r.output
 
 
 def test_text_in_frames_csv(tmp_path, frames_csv):
     bad = _edit_cell(frames_csv, tmp_path / "abc.csv", 4, 2, "abc")
     r = _run(["solve", bad, "--layout", LAYOUT])
     assert r.exit_code == 2
-    assert _error_lines(r) == [f"error: {bad}: line 5: 'abc' is not a number"]
+    assert _error_lines(r) == [f"error: {bad}: line 5, column 'th_y_T1': 'abc' is not a number"]
 
 
 def test_short_row_in_frames_csv(tmp_path, frames_csv):
@@ -147,7 +147,7 @@ def test_npz_missing_array(tmp_path):
     np.savez(bad, t=np.zeros(3))
     r = _run(["solve", bad, "--layout", LAYOUT])
     assert r.exit_code == 2
-    assert _error_lines(r) == [f"error: {bad}: frame .npz lacks angles, ids; expected arrays t, angles, ids"]
+    assert _error_lines(r) == [f"error: {bad}: frame .npz lacks array(s) angles, ids; expected t, angles, ids"]
 
 
 # --- replay of something that is not a capture
