@@ -16,8 +16,9 @@ from layoutkit.importers.libsurvive import (FLIP, device_frames, layout_of, lh2_
                                             read_lighthouse_config, read_recording,
                                             station_rotation_from_quaternion)
 from layoutkit.io.frames import read_frame_table
+from layoutkit.io.stations import read_stations
 from layoutkit.layout import load_layout
-from layoutkit.lighthouse import lh2_sweep_angles, sweep_angles
+from layoutkit.lighthouse import CALIBRATION_PARAMS, lh2_sweep_angles, sweep_angles
 from layoutkit.pnp import solve_pnp
 
 
@@ -46,13 +47,15 @@ def test_lh1_import_files_and_columns(lh1):
         assert lay.n == n
         header = (d / dev / "frames.csv").read_text().splitlines()[0].split(",")
         assert header == ["t", "station"] + [f"th_{a}_{i}" for i in lay.ids for a in "xy"]
-    st = json.loads((d / "stations.json").read_text())["stations"]
-    assert [x["index"] for x in st] == [0, 1]
-    assert st[0]["calibration"]["phase"] == [0.058624, 0.062164]
+    st = read_stations(d / "stations.json")
+    assert [x.id for x in st] == ["178605925", "-142728717"] and all(x.kind == "lh1" for x in st)
+    # libsurvive fcalphase (lighthouse_gen1: a = ideal - phase) is layoutkit's phase with the sign flipped
+    phase = CALIBRATION_PARAMS.index("phase")
+    np.testing.assert_allclose(st[0].calibration.params[:, phase], [-0.058624, -0.062164])
+    info = s["stations"]["stations"]
+    assert all(i["pose_known"] for i in info) and info[1]["calibration_fcal"]["gibmag"] == [0.020615, -0.012276]
     for x in st:
-        R = np.asarray(x["rotation"])
-        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-6)
-        assert np.linalg.det(R) > 0
+        np.testing.assert_allclose(x.rotation @ x.rotation.T, np.eye(3), atol=1e-6)
 
 
 @pytest.mark.parametrize("dev", ["HMD", "T20"])
