@@ -1,38 +1,20 @@
-"""Frame files: simulated sweep-angle frames written and read for ``layoutkit simulate`` /
-``layoutkit solve``.
-
-Format (documented in docs/frames.md): CSV with header
-``t,th_x_<id>,th_y_<id>,...`` (rad, empty/NaN = not lit) and optional truth columns
-``true_rx,true_ry,true_rz,true_tx,true_ty,true_tz`` (rotation vector rad, m); or ``.npz`` with
-arrays ``t (F,)``, ``angles (F, n, 2)``, ``ids (n,)`` and optional ``truth_rotvec``, ``truth_translation``.
+"""Frame workflows: simulate sweep-angle frames (``layoutkit simulate``) and solve them
+(``layoutkit solve``). The file format itself is :mod:`layoutkit.io.frames` (THE frame table).
 """
 from __future__ import annotations
 
-import csv
-from dataclasses import dataclass
-from pathlib import Path
+import warnings
 
 import numpy as np
 
-from ..geometry import matrix_to_rotvec, rotvec_to_matrix
+from ..geometry import matrix_to_rotvec
+from ..io.frames import Frames, read_frame_table, write_frame_table
 from ..layout import Layout
 
 __all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames", "solution_table",
-           "simulate_frame_file", "solve_frame_file"]
+           "simulate_frame_file", "solve_frame_file", "static_precision", "sensor_residual_summary"]
 
 GROSS_DEG = 1.0
-_TRUTH = ["true_rx", "true_ry", "true_rz", "true_tx", "true_ty", "true_tz"]
-
-
-@dataclass(frozen=True)
-class Frames:
-    """t (F,) s; angles (F, n, 2) rad (NaN = not lit); ids; optional truth rotation (F,3,3), translation (F,3)."""
-
-    t: np.ndarray
-    angles: np.ndarray
-    ids: tuple
-    truth_rotation: np.ndarray | None = None
-    truth_translation: np.ndarray | None = None
 
 
 def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho: float,
@@ -60,106 +42,13 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
 
 
 def write_frames(fr: Frames, path) -> None:
-    """Write a frame table (.csv) or .npz atomically: ``path`` is complete or untouched."""
-    from ..io.atomic import atomic_write
-
-    path = Path(path)
-    if path.suffix == ".npz":
-        extra = {}
-        if fr.truth_rotation is not None:
-            extra = {"truth_rotvec": matrix_to_rotvec(fr.truth_rotation), "truth_translation": fr.truth_translation}
-        with atomic_write(path, "wb") as fh:
-            np.savez_compressed(fh, t=fr.t, angles=fr.angles, ids=np.asarray(fr.ids), **extra)
-        return
-    header = ["t"] + [f"th_{ax}_{i}" for i in fr.ids for ax in ("x", "y")]
-    rows = np.column_stack([fr.t, fr.angles.reshape(len(fr.t), -1)])
-    if fr.truth_rotation is not None:
-        header += _TRUTH
-        rows = np.column_stack([rows, matrix_to_rotvec(fr.truth_rotation), fr.truth_translation])
-    with atomic_write(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        for r in rows:
-            w.writerow(["" if not np.isfinite(x) else repr(float(x)) for x in r])
+    """Write a frame table (:func:`layoutkit.io.frames.write_frame_table`), atomically."""
+    write_frame_table(fr, path)
 
 
 def read_frames(path, layout: Layout) -> Frames:
-    """Read a frame file; the sensor ids must match the layout's (ValueError otherwise)."""
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"{path}: no such frame file")
-    if path.suffix == ".npz":
-        try:
-            d = np.load(path, allow_pickle=False)
-            need = [k for k in ("t", "angles", "ids") if k not in d.files]
-            if need:
-                raise KeyError(", ".join(need))
-            ids = tuple(str(i) for i in d["ids"])
-            ang = np.asarray(d["angles"], float)
-            R = rotvec_to_matrix(d["truth_rotvec"]) if "truth_rotvec" in d else None
-            T = np.asarray(d["truth_translation"]) if "truth_translation" in d else None
-            t = np.asarray(d["t"], float)
-        except KeyError as exc:
-            raise ValueError(f"{path}: frame .npz lacks {exc.args[0]}; expected arrays t, angles, ids") from None
-        except (OSError, EOFError, ValueError):  # not an .npz (zip of plain arrays) at all
-            raise ValueError(f"{path}: not a readable .npz frame file") from None
-    else:
-        try:
-            with open(path, newline="") as fh:
-                rd = csv.reader(fh)
-                header = next(rd, None)
-                if not header or header[0] != "t":
-                    raise ValueError(f"{path}: expected a CSV header starting with 't'")
-                rows = []
-                for r in rd:
-                    if not r:
-                        continue
-                    if len(r) != len(header):
-                        raise ValueError(f"{path}: line {rd.line_num}: {len(r)} fields, the header has {len(header)}")
-                    try:
-                        rows.append([float(x) if x.strip() else np.nan for x in r])
-                    except ValueError:
-                        bad = next(x for x in r if x.strip() and not _is_number(x))
-                        raise ValueError(f"{path}: line {rd.line_num}: {bad[:40]!r} is not a number") from None
-        except UnicodeDecodeError:
-            raise ValueError(f"{path}: not a text (CSV) frame file") from None
-        data = np.asarray(rows, float).reshape(-1, len(header))
-        cols = {h: k for k, h in enumerate(header)}
-        ids = tuple(h[5:] for h in header if h.startswith("th_x_"))
-        ang = np.stack([np.column_stack([data[:, cols[f"th_x_{i}"]], data[:, cols[f"th_y_{i}"]]]) for i in ids], 1)
-        t = data[:, 0]
-        R = T = None
-        if all(h in cols for h in _TRUTH):
-            tr = data[:, [cols[h] for h in _TRUTH]]
-            R, T = rotvec_to_matrix(tr[:, :3]), tr[:, 3:]
-    if len(t) == 0:
-        raise ValueError(f"{path}: no frames")
-    if not np.all(np.isfinite(t)):
-        raise ValueError(f"{path}: frame {int(np.argmin(np.isfinite(t)))}: time t is empty, NaN or infinite")
-    if np.isinf(ang).any():
-        raise ValueError(f"{path}: frame {int(np.isinf(ang).any((1, 2)).argmax())}: infinite angle "
-                         "(use an empty cell or NaN for a sensor that is not lit)")
-    for name, tr in (("truth rotation", R), ("truth translation", T)):
-        if tr is not None and not np.all(np.isfinite(tr)):
-            bad = int(np.argmin(np.isfinite(tr.reshape(len(tr), -1)).all(1)))
-            raise ValueError(f"{path}: frame {bad}: {name} is empty, NaN or infinite")
-    missing = [i for i in ids if i not in layout.ids]
-    if missing:
-        raise ValueError(f"{path}: sensor ids {missing[:5]} are not in the layout")
-    order = [ids.index(i) if i in ids else -1 for i in layout.ids]
-    full = np.full((ang.shape[0], layout.n, 2), np.nan)
-    for j, k in enumerate(order):
-        if k >= 0:
-            full[:, j] = ang[:, k]
-    return Frames(t, full, layout.ids, R, T)
-
-
-def _is_number(x: str) -> bool:
-    try:
-        float(x)
-    except ValueError:
-        return False
-    return True
+    """Read a frame table in the layout's sensor order (ValueError naming file and column)."""
+    return read_frame_table(path, layout.ids)
 
 
 def solution_table(res: dict, *, world: bool = False):
