@@ -111,14 +111,21 @@ def test_one_spelling_per_quantity(name, cmd):
             assert DEST_FLAG[p.name] in p.opts, f"{name}: parameter {p.name} comes from {p.opts}"
 
 
+#: commands whose ``--out DIR`` is fixed by an external interface (issue 10: users' scripts call
+#: ``layoutkit import libsurvive RECORDING --out DIR`` and ``import cfusdlog LOG --out DIR``)
+OUT_IS_A_FOLDER = {"import libsurvive", "import cfusdlog"}
+
+
 @pytest.mark.parametrize("name,cmd", COMMANDS, ids=[n for n, _ in COMMANDS])
 def test_out_is_a_file_and_out_dir_a_folder(name, cmd):
     """(a) ``--out`` is a file; ``--out-dir``/``--report`` are folders (click.Path file_okay/dir_okay)."""
     for f, p in _visible_flags(cmd):
         if not isinstance(p.type, click.Path):
             continue
-        if f == "--out":
+        if f == "--out" and name not in OUT_IS_A_FOLDER:
             assert p.type.file_okay and not p.type.dir_okay, f"{name}: --out is a folder; use --out-dir"
+        if f == "--out" and name in OUT_IS_A_FOLDER:
+            assert p.type.dir_okay and not p.type.file_okay, f"{name}: --out must be the folder of its interface"
         if f in ("--out-dir", "--report"):
             assert p.type.dir_okay and not p.type.file_okay, f"{name}: {f} is a file; use --out"
 

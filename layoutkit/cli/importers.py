@@ -7,7 +7,7 @@ from ._common import echo_json, fail
 from .options import json_flag, out_file_option, out_folder_option, system_config_option
 
 
-@click.group("import")
+@click.group("import", short_help="Import real recordings and device files.")
 def import_group():
     """Bring in the field's formats: each writes layoutkit's own files (layout JSON, frame table,
     pose table, stations JSON, capture + sidecar) that every other command reads."""
@@ -20,7 +20,7 @@ def _run(fn, *args, **kw):
         fail(str(exc))
 
 
-@import_group.command("vive-config")
+@import_group.command("vive-config", short_help="Vive/Index device JSON to a layout.")
 @click.argument("file", type=click.Path(dir_okay=False))
 @out_file_option(help="Layout JSON to write.")
 @json_flag(help="Print a JSON summary.")
@@ -36,7 +36,7 @@ def vive_config_cmd(file, out, as_json):
         click.echo(f"wrote {s['sensors']} sensors to {out}")
 
 
-@import_group.command("libsurvive")
+@import_group.command("libsurvive", short_help="libsurvive recording to frames.")
 @click.argument("recording", type=click.Path(dir_okay=False))
 @out_folder_option(help="Output folder: <device>/layout.json, <device>/frames.csv, stations.json, ...")
 @click.option("--device", default=None, metavar="NAME", help="Only this device (libsurvive code name: HMD, T20, WM0, ...).")
@@ -71,7 +71,7 @@ def libsurvive_cmd(recording, out, device, config, as_json):
                    f"-> {st['file']}")
 
 
-@import_group.command("cfusdlog")
+@import_group.command("cfusdlog", short_help="Crazyflie microSD log to a capture.")
 @click.argument("log", type=click.Path(dir_okay=False))
 @out_folder_option(help="Output folder: capture.bin (+ .json sidecar), firmware_angles.csv.")
 @system_config_option
@@ -93,7 +93,7 @@ def cfusdlog_cmd(log, out, system_config, as_json):
         click.echo(f"note: {note}")
 
 
-@import_group.command("reference")
+@import_group.command("reference", short_help="Mocap reference to a pose table.")
 @click.argument("file", type=click.Path(dir_okay=False))
 @out_file_option(help="Pose table (CSV) to write.")
 @click.option("--units", type=click.Choice(["m", "cm", "mm", "in"]), default="m", show_default=True,
