@@ -355,9 +355,9 @@ def filter_options(f):
 
 
 def _has_encoder(name, entry) -> bool:
-    """A protocol entry that can be emitted: an ``encode``/``encoder`` attribute that is not None
+    """A protocol entry that can be emitted: an ``encoder``/``encode`` attribute that is not None
     (entries without that attribute at all are taken as symmetric)."""
-    for attr in ("encode", "encoder"):
+    for attr in ("encoder", "encode"):
         if hasattr(entry, attr):
             return getattr(entry, attr) is not None
     return True

@@ -286,7 +286,8 @@ def simulate_stream(layout, *, duration: float, seed: int = 0, protocol: str = "
     chunks : list of ``(t_emit, bytes)``, one per emitted frame, ``t_emit`` = end of the sweep's
     slot (s, device time base), in time order; with ``garbage`` > 0 a random burst of 1-48 bytes
     precedes a frame with that probability. sweeps : :class:`SimulatedSweeps` (the truth).
-    protocol : "layoutkit" or "bitcraze-lh1" (the Lighthouse deck stream, <= 4 sensors, 24 MHz
+    protocol : a registered protocol with an encoder (:data:`layoutkit.live.protocols.PROTOCOLS`):
+    "layoutkit", or "bitcraze-lh1" (the Lighthouse deck stream, <= 4 sensors, 24 MHz
     timestamps: each sweep re-quantised to the deck clock; station 1's sync and angles refer to
     10000 ticks = 0.42 ms after the slot start, while its truth row stays at the slot start).
     Other keyword arguments go to :func:`simulate_sweeps`.
@@ -300,43 +301,21 @@ def simulate_stream(layout, *, duration: float, seed: int = 0, protocol: str = "
     chunks = []
     junk = rng.random(len(frames)) < garbage
     for k in range(len(frames)):
-        if protocol == "layoutkit" and not sw.emitted[k]:
-            continue  # a lost frame; the deck stream keeps the frame's syncs, its hits are gone
         data = frames[k]
+        if data is None:
+            continue  # nothing on the wire (a lost layoutkit frame; the deck stream keeps its syncs)
         if junk[k]:
             data = rng.integers(0, 256, int(rng.integers(1, 49)), dtype=np.uint8).tobytes() + data
         chunks.append((float(sw.t[k] + slot), data))
     return chunks, sw
 
 
-def encode_frames(sw: SimulatedSweeps, protocol: str = "layoutkit") -> list[bytes]:
-    """The wire bytes of every sweep (emitted or not) in ``protocol``."""
-    if protocol == "layoutkit":
-        from .protocols.layoutkit import encode_sweeps
+def encode_frames(sw: SimulatedSweeps, protocol: str = "layoutkit") -> list:
+    """The wire bytes of every sweep in ``protocol`` (None = nothing sent for that sweep), through
+    the protocol's registry entry (:meth:`~layoutkit.live.protocols.ProtocolEntry.encode`)."""
+    from .protocols import protocol_entry
 
-        out = [b""] * len(sw.t)
-        for kind in ("lh1", "lh2"):
-            m = np.array([sw.stations[s].kind == kind for s in sw.station], bool)
-            if m.any():
-                idx = np.flatnonzero(m)
-                for i, f in zip(idx, encode_sweeps(sw.station[m], sw.axis[m], sw.seq[m], sw.sync[m],
-                                                   sw.hits[m], kind)):
-                    out[i] = f
-        return out
-    if protocol == "bitcraze-lh1":
-        from .protocols.bitcraze import DECK_CLOCK_HZ, MAX_DECK_SENSORS, lh1_deck_frames
-
-        n = sw.hits.shape[1]
-        if n > MAX_DECK_SENSORS:
-            raise ValueError(f"protocol bitcraze-lh1: the Lighthouse deck has at most {MAX_DECK_SENSORS} "
-                             f"sensors, the layout has {n}")
-        if any(st.kind != "lh1" or st.rotor_rpm != 3600.0 for st in sw.stations) or len(sw.stations) > 2:
-            raise ValueError("protocol bitcraze-lh1: needs one or two LH1 stations at 3600 rpm")
-        theta = np.where(sw.emitted[:, None], sw.measured_angles(), np.nan)
-        chunks, _, _ = lh1_deck_frames(theta, stations=len(sw.stations),
-                                       t0_ticks=int(round(sw.t[0] * DECK_CLOCK_HZ)))
-        return chunks
-    raise ValueError(f"protocol: the simulator encodes 'layoutkit' or 'bitcraze-lh1', got {protocol!r}")
+    return protocol_entry(protocol).encode(sw)
 
 
 def write_truth(sw: SimulatedSweeps, path) -> None:

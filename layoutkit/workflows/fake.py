@@ -39,7 +39,8 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
     or a :class:`layoutkit.live.simulator.Trajectory`. sigma : sweep-angle noise, rad; rho :
     same-rotor correlation in [0, 1). ValueError (naming the option) for bad input.
     """
-    from ..live.capture import station_to_dict
+    from ..io.stations import station_to_dict
+    from ..live.protocols import protocol_entry
     from ..live.simulator import load_trajectory, simulate_stream
 
     if not duration_s > 0:
@@ -56,8 +57,7 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
     sidecar = {
         "source": "fake-fpga",
         "protocol": protocol,
-        "protocol_options": ({"n_sensors": layout.n, "rotor_rpm": sw.stations[0].rotor_rpm, "clock_hz": sw.clock_hz}
-                             if protocol == "layoutkit" else {"n_sensors": layout.n}),
+        "protocol_options": protocol_entry(protocol).options(sw.stations, layout.n),
         "n_sensors": layout.n,
         "layout": layout.to_dict(),
         "stations": [station_to_dict(s) for s in sw.stations],

@@ -303,21 +303,11 @@ def _protocol_from(sidecar: CaptureSidecar, protocol: str | None):
 
 
 def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | None = None):
-    """Instantiate the registered decoder ``protocol`` for ``n_sensors`` (rotor/clock from station 0)."""
-    import inspect
+    """The registered decoder ``protocol`` for ``n_sensors``: options from the stations (rotor,
+    clock; :meth:`~layoutkit.live.protocols.ProtocolEntry.make_decoder`) overridden by ``options``."""
+    from ..live.protocols import protocol_entry
 
-    from ..live.protocols import get_protocol
-
-    cls = get_protocol(protocol)
-    kw = dict(options or {})
-    params = inspect.signature(cls).parameters
-    if stations:
-        s0 = stations[0]
-        for k, v in (("rotor_rpm", s0.rotor_rpm), ("clock_hz", s0.clock_hz)):
-            if k in params and k not in kw and s0.kind == "lh1":
-                kw[k] = v
-    kw = {k: v for k, v in kw.items() if k in params and k != "n_sensors"}
-    return cls(n_sensors=n_sensors, **kw)
+    return protocol_entry(protocol).make_decoder(n_sensors, stations, options)
 
 
 def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, options: LiveOptions | None = None,

@@ -545,9 +545,8 @@ class BitcrazeLh1Decoder(BitcrazeDecoder):
 
     name = "bitcraze-lh1"
 
-    def __init__(self, n_sensors: int | None = 4, **options):
-        options.setdefault("mode", "lh1")
-        super().__init__(n_sensors, **options)
+    def __init__(self, n_sensors: int | None = 4, *, system_config=None, calibrate: bool = True):
+        super().__init__(n_sensors, mode="lh1", system_config=system_config, calibrate=calibrate)
 
 
 class BitcrazeLh2Decoder(BitcrazeDecoder):
@@ -555,6 +554,34 @@ class BitcrazeLh2Decoder(BitcrazeDecoder):
 
     name = "bitcraze-lh2"
 
-    def __init__(self, n_sensors: int | None = 4, **options):
-        options.setdefault("mode", "lh2")
-        super().__init__(n_sensors, **options)
+    def __init__(self, n_sensors: int | None = 4, *, system_config=None, calibrate: bool = True):
+        super().__init__(n_sensors, mode="lh2", system_config=system_config, calibrate=calibrate)
+
+
+# ------------------------------------------------------------------------------ registry entries
+
+def encode_simulated_lh1(sw) -> list:
+    """The deck's LH1 stream for simulated sweeps (:class:`~layoutkit.live.simulator.SimulatedSweeps`):
+    bytes per sweep, re-quantised to the 24 MHz deck clock; <= 4 sensors, one or two LH1 stations
+    at 3600 rpm (A/B mode)."""
+    n = sw.hits.shape[1]
+    if n > MAX_DECK_SENSORS:
+        raise ValueError(f"protocol bitcraze-lh1: the Lighthouse deck has at most {MAX_DECK_SENSORS} "
+                         f"sensors, the layout has {n}")
+    if any(st.kind != "lh1" or st.rotor_rpm != 3600.0 for st in sw.stations) or len(sw.stations) > 2:
+        raise ValueError("protocol bitcraze-lh1: needs one or two LH1 stations at 3600 rpm")
+    theta = np.where(sw.emitted[:, None], sw.measured_angles(), np.nan)
+    chunks, _, _ = lh1_deck_frames(theta, stations=len(sw.stations), t0_ticks=int(round(sw.t[0] * DECK_CLOCK_HZ)))
+    return chunks
+
+
+def _entries():
+    from .registry import ProtocolEntry
+
+    return (ProtocolEntry("bitcraze-lh1", BitcrazeLh1Decoder, encode_simulated_lh1, None,
+                          "Bitcraze Lighthouse deck UART stream, LH1 stations (docs/live-io.md)"),
+            ProtocolEntry("bitcraze-lh2", BitcrazeLh2Decoder, None, None,
+                          "Bitcraze Lighthouse deck UART stream, LH2 stations (decode only)"))
+
+
+LH1_PROTOCOL, LH2_PROTOCOL = _entries()

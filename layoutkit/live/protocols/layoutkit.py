@@ -284,3 +284,41 @@ class LayoutkitDecoder:
         self._last_seq = seq
         self._last_sync = sync
         return self._t
+
+
+# ------------------------------------------------------------------------------ registry entry
+
+def encode_simulated(sw) -> list:
+    """Wire frames of every simulated sweep (:class:`~layoutkit.live.simulator.SimulatedSweeps`):
+    one frame per sweep in the sweeping station's kind; None for a lost (not emitted) frame."""
+    out = [None] * len(sw.t)
+    for kind in _KINDS:
+        m = np.array([sw.stations[s].kind == kind for s in sw.station], bool)
+        if m.any():
+            for i, f in zip(np.flatnonzero(m), encode_sweeps(sw.station[m], sw.axis[m], sw.seq[m], sw.sync[m],
+                                                             sw.hits[m], kind)):
+                out[i] = f
+    return [f if e else None for f, e in zip(out, sw.emitted)]
+
+
+def station_options(stations, n_sensors=None) -> dict:
+    """Rotor speeds and counter clock of the decoder from the station set-up (first of each kind)."""
+    out = {}
+    lh1 = [s for s in stations if s.kind == "lh1"]
+    lh2 = [s for s in stations if s.kind == "lh2"]
+    if lh1:
+        out.update(rotor_rpm=float(lh1[0].rotor_rpm), clock_hz=float(lh1[0].clock_hz))
+    if lh2:
+        out["lh2_rotor_rpm"] = float(lh2[0].rotor_rpm)
+        out.setdefault("clock_hz", float(lh2[0].clock_hz))
+    return out
+
+
+def _entry():
+    from .registry import ProtocolEntry
+
+    return ProtocolEntry("layoutkit", LayoutkitDecoder, encode_simulated, station_options,
+                         "layoutkit frame protocol for N-sensor timestamp boards (docs/protocol.md)")
+
+
+PROTOCOL = _entry()
