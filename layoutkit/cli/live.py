@@ -48,8 +48,6 @@ def _options(rho, sigma, live: bool, motion_compensation: bool = False, filter_s
     from ..workflows.live import LiveOptions
 
     kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation)
-    if live:
-        kw.update(chunk_frames=1024)  # live: one chunk per port read (see workflows.live.run_live)
     if filter_settings is not None:
         from ..workflows.filter import filter_config
 

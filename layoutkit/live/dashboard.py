@@ -1,6 +1,6 @@
 """Terminal dashboard of a live run (rich): rate, lit sensors, pose, ADOP/PDOP, precision against
 prediction, error counters and the port's reconnect state. Renders the plain snapshot dict of
-:meth:`layoutkit.workflows.live.LiveSession.snapshot`; holds no pipeline state itself.
+:meth:`layoutkit.live.session.LiveSession.snapshot`; holds no pipeline state itself.
 """
 from __future__ import annotations
 

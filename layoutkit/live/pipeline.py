@@ -20,7 +20,7 @@ of the recent poses (``docs/live.md`` "Motion compensation"), otherwise the pose
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -38,6 +38,7 @@ __all__ = [
     "STATUS_JUMP",
     "STATUS_AMBIGUOUS",
     "STATUS_NAMES",
+    "LiveConfig",
     "PipelineConfig",
     "AngleFrame",
     "SweepPairer",
@@ -69,15 +70,21 @@ LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
 
 
 @dataclass(frozen=True)
-class PipelineConfig:
-    """Settings of the pose pipeline.
+class LiveConfig:
+    """The ONE settings class of a live/replay run: pose pipeline and session sinks.
 
-    n_sensors : sensors in the layout (length of ``SweepMeasurement.angles``).
+    (``PipelineConfig`` and ``layoutkit.workflows.live.LiveOptions`` are old names of this class.)
+
+    n_sensors : sensors in the layout (length of ``SweepMeasurement.angles``); None = taken from
+        the layout when the pipeline starts (:meth:`resolved`).
     min_lit : fewest sensors lit on both axes for a pose (PnP needs 4).
     chunk_frames, chunk_seconds : a chunk is solved when it holds ``chunk_frames`` frames or spans
-        ``chunk_seconds`` of frame time, whichever comes first (live: small; replay: large).
+        ``chunk_seconds`` of frame time, whichever comes first. Replay feeds large blocks and gets
+        full chunks; a live session also solves what one port read completed
+        (:meth:`layoutkit.live.session.LiveSession.flush_pending`), so its chunks stay small.
     rotor_rpm : LH1 rotor speed; an X sweep pairs with the next Y sweep of the same station
-        within one rotor period (60 / rotor_rpm s; LH2: one revolution at >= 48 Hz).
+        within one rotor period (60 / rotor_rpm s; LH2: one revolution at >= 48 Hz). None = the
+        first station's (:meth:`resolved`), :data:`~layoutkit.lighthouse.LH1_ROTOR_RPM` without stations.
     sigma_theta : rad, angle noise for predictions (Chen eq. 24); rho : same-rotor correlation (eq. 19).
     max_residual_sigma : a solved pose whose RMS angle residual exceeds this many sigma_theta is
         reported with STATUS_HIGH_RESIDUAL (never as good).
@@ -98,13 +105,18 @@ class PipelineConfig:
         re-acquisition) the frame is not corrected.
     motion_passes : correct-and-re-solve passes (the first estimates the velocity from uncorrected
         poses, the next ones from corrected ones).
+    static_window : frames per static-detection window; static_factor : a window is static when
+        its spread is within this factor of the predicted precision (Chen eq. 23 vs 24).
+    series_capacity : points kept for plots (decimated series).
+    filter : a :class:`layoutkit.filter.EkfConfig` to also run the per-sweep filter
+        (``--filter ekf``; its outputs replace the frame records on ``--json-lines``), or None.
     """
 
-    n_sensors: int
+    n_sensors: int | None = None
     min_lit: int = 4
-    chunk_frames: int = 256
-    chunk_seconds: float = 0.05
-    rotor_rpm: float = LH1_ROTOR_RPM
+    chunk_frames: int = 1024
+    chunk_seconds: float = float("inf")
+    rotor_rpm: float | None = None
     sigma_theta: float = SIGMA_THETA_PAPER
     rho: float = RHO_PAPER
     max_residual_sigma: float = 8.0
@@ -117,9 +129,13 @@ class PipelineConfig:
     motion_window: int = 8
     motion_window_s: float = 0.25
     motion_passes: int = 2
+    static_window: int = 120
+    static_factor: float = 4.0
+    series_capacity: int = 20000
+    filter: object = None
 
     def __post_init__(self):
-        if self.n_sensors < 1:
+        if self.n_sensors is not None and self.n_sensors < 1:
             raise ValueError(f"n_sensors: expected >= 1, got {self.n_sensors}")
         if self.min_lit < 3:
             raise ValueError(f"min_lit: expected >= 3, got {self.min_lit}")
@@ -129,6 +145,24 @@ class PipelineConfig:
             raise ValueError(f"motion_passes: expected >= 1, got {self.motion_passes}")
         if self.motion_window < 3:
             raise ValueError(f"motion_window: expected >= 3, got {self.motion_window}")
+        if self.rotor_rpm is not None and not self.rotor_rpm > 0:
+            raise ValueError(f"rotor_rpm: expected > 0, got {self.rotor_rpm}")
+
+    def resolved(self, n_sensors: int, stations=None) -> "LiveConfig":
+        """This config with ``n_sensors`` and ``rotor_rpm`` filled in from the layout and stations.
+
+        ValueError when ``n_sensors`` was set and differs from the layout's.
+        """
+        if self.n_sensors is not None and self.n_sensors != n_sensors:
+            raise ValueError(f"points_body: expected shape ({self.n_sensors}, 3), got ({n_sensors}, 3)")
+        rpm = self.rotor_rpm
+        if rpm is None:
+            rpm = float(stations[0].rotor_rpm) if stations else LH1_ROTOR_RPM
+        return replace(self, n_sensors=int(n_sensors), rotor_rpm=rpm)
+
+
+#: Old name of :class:`LiveConfig`.
+PipelineConfig = LiveConfig
 
 
 @dataclass(frozen=True)
@@ -599,7 +633,7 @@ class PosePipeline:
 
     Usage::
 
-        pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=12))
+        pipe = PosePipeline(layout.positions, LiveConfig())
         for chunk in pipe.feed(decoder.feed(data)): ...
         for chunk in pipe.flush(): ...
     """
@@ -611,9 +645,7 @@ class PosePipeline:
 
     def __post_init__(self):
         self.points_body = as_array(self.points_body, "points_body", (None, 3))
-        if self.points_body.shape[0] != self.config.n_sensors:
-            raise ValueError(f"points_body: expected shape ({self.config.n_sensors}, 3), "
-                             f"got {self.points_body.shape}")
+        self.config = self.config.resolved(self.points_body.shape[0], self.stations)
         self.pairer = SweepPairer(self.config.n_sensors, self.config.rotor_rpm)
         self.batcher = FrameBatcher(self.config.chunk_frames, self.config.chunk_seconds)
         self.previous: dict = {}

@@ -1,0 +1,224 @@
+"""A live or replay run in memory: decoder set-up, pose pipeline and sinks (JSON lines, the
+poses table, static-group precision, truth errors, decimated series for the report).
+
+:class:`LiveSession` takes bytes and gives :class:`~layoutkit.live.pipeline.PoseChunk` s; it is
+configured by ONE :class:`~layoutkit.live.pipeline.LiveConfig`. :func:`make_decoder` builds the
+registered decoder from the station set-up (:data:`layoutkit.live.protocols.PROTOCOLS`), and
+:func:`session_for` a whole session from a capture sidecar. What a command does with files
+(reading captures, ports, reference files, writing reports) is :mod:`layoutkit.workflows.live`.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import rotvec_to_matrix
+from ..io.poses import POSE_COLUMNS, PoseTable, PoseWriter
+from ..io.sidecar import CaptureSidecar
+from ..layout import Layout
+from .pipeline import STATUS_NAMES, LiveConfig, PoseChunk, PosePipeline
+from .stats import DecimatedSeries, ErrorAccumulator, StaticGroupTracker
+
+__all__ = ["LiveConfig", "LiveSession", "POSES_EXTRAS", "POSES_HEADER", "make_decoder", "session_for"]
+
+#: Extra columns of ``poses.csv`` after the pose table's fixed ones (:mod:`layoutkit.io.poses`).
+POSES_EXTRAS = ("n_lit", "adop_deg_per_rad", "pdop_m_per_rad")
+POSES_HEADER = list(POSE_COLUMNS + POSES_EXTRAS)
+
+
+@dataclass
+class LiveSession:
+    """Decoder + pipeline + sinks for one run. Feed bytes, get pose chunks; ``finish`` summarises.
+
+    layout : the sensor layout; decoder : a protocol decoder (``feed``, ``flush``, ``stats``;
+    :func:`make_decoder`); options : the run's :class:`LiveConfig` (sensor count and rotor speed
+    are filled in from ``layout`` and ``stations``); stations : station set-up (poses in station
+    0's frame when None or a single station); truth : optional
+    :class:`layoutkit.live.reference.PoseTrack` in the pipeline's frame (TRUTH.csv); json_out :
+    text stream receiving one JSON object per solved frame; poses_path : pose table of all frames
+    (:mod:`layoutkit.io.poses`, extras :data:`POSES_EXTRAS`; appears complete at :meth:`finish`);
+    sweep_sink : optional per-sweep consumer (``feed(sweeps)``, ``summary(truth_summary)``; the EKF's
+    :class:`layoutkit.workflows.filter.FilterSink` when ``options.filter`` is set): it sees every
+    decoded sweep, its outputs replace the frame records on ``json_out`` and its summary goes
+    under ``"filter"``.
+    """
+
+    layout: Layout
+    decoder: object
+    options: LiveConfig = field(default_factory=LiveConfig)
+    stations: list | None = None
+    truth: object = None
+    json_out: object = None
+    poses_path: Path | None = None
+    sweep_sink: object = None
+
+    def __post_init__(self):
+        self.options = o = self.options.resolved(self.layout.n, self.stations)
+        self.config = o  # the pipeline runs on the same config
+        multi = self.stations is not None and len(self.stations) > 1
+        self.pipeline = PosePipeline(self.layout.positions, self.config, self.stations if multi else None)
+        self.static = StaticGroupTracker(o.sigma_theta, o.static_window, o.static_factor)
+        self.truth_err = ErrorAccumulator(o.sigma_theta, o.series_capacity) if self.truth is not None else None
+        # decimated good poses (t, rotvec, translation) for reference alignment, and DOP series for plots
+        self.pose_sample = DecimatedSeries(7, o.series_capacity)
+        self.dop_series = DecimatedSeries(4, o.series_capacity)  # t, adop, pdop, n_lit
+        self._poses = None
+        if self.poses_path is not None:
+            self.poses_path = Path(self.poses_path)
+            self.poses_path.parent.mkdir(parents=True, exist_ok=True)
+            self._poses = PoseWriter(self.poses_path, POSES_EXTRAS)
+        self.wall_start = time.monotonic()
+        self.t_first = None
+        self.t_last = None
+        self.last = None  # last good pose record (for the dashboard)
+        self.lit_sum = 0
+        self.frames_in_rate = []  # (wall time, frames) samples over the last few seconds
+        self.finished = None
+        self.filter = self.sweep_sink
+
+    # -- feeding ----------------------------------------------------------------------------
+    def feed_bytes(self, data: bytes) -> list[PoseChunk]:
+        """Decode ``data`` and solve whatever frames complete a chunk (and filter every sweep)."""
+        return self._consume(self.pipeline.feed(self._filtered(self.decoder.feed(data))))
+
+    def _filtered(self, sweeps):
+        if self.filter is None:
+            return sweeps
+        sweeps = list(sweeps)
+        self.filter.feed(sweeps)
+        return sweeps
+
+    def flush_pending(self) -> list[PoseChunk]:
+        """Solve the frames waiting in the current chunk now (live: when the port is quiet)."""
+        return self._consume(self.pipeline.flush())
+
+    def _consume(self, chunks: list[PoseChunk]) -> list[PoseChunk]:
+        for ch in chunks:
+            self._sink(ch)
+        return chunks
+
+    def _sink(self, ch: PoseChunk) -> None:
+        if not len(ch):
+            return
+        if self.t_first is None:
+            self.t_first = float(ch.t[0])
+        self.t_last = float(ch.t[-1])
+        now = time.monotonic()
+        self.frames_in_rate.append((now, len(ch)))
+        while self.frames_in_rate and now - self.frames_in_rate[0][0] > 2.0:
+            self.frames_in_rate.pop(0)
+        self.lit_sum += int(ch.n_lit.sum())
+        if self.json_out is not None and self.filter is None:
+            self.json_out.write("".join(json.dumps(r) + "\n" for r in ch.records()))
+            self.json_out.flush()
+        if self._poses is not None:
+            self._poses.write(PoseTable(ch.t, ch.rotvec, ch.translation, ch.station, ch.status, ch.residual_rms, {
+                "n_lit": ch.n_lit, "adop_deg_per_rad": np.where(np.isfinite(ch.adop), ch.adop, np.nan),
+                "pdop_m_per_rad": np.where(np.isfinite(ch.pdop), ch.pdop, np.nan)}))
+        g = ch.good
+        self.dop_series.extend(np.column_stack([ch.t, np.where(g, ch.adop, np.nan),
+                                                np.where(g, ch.pdop, np.nan), ch.n_lit]))
+        if not g.any():
+            return
+        t, R, tr, a, p = ch.t[g], ch.rotation[g], ch.translation[g], ch.adop[g], ch.pdop[g]
+        self.pose_sample.extend(np.column_stack([t, ch.rotvec[g], tr]))
+        self.static.update(t, R, tr, a, p)
+        if self.truth_err is not None:
+            Rr, trr, v = self.truth.at(t)
+            if v.any():
+                self.truth_err.update(t[v], R[v], tr[v], Rr[v], trr[v], a[v], p[v])
+        j = np.flatnonzero(g)[-1]
+        self.last = {"t": float(ch.t[j]), "rotvec": ch.rotvec[j], "translation": ch.translation[j],
+                     "n_lit": int(ch.n_lit[j]), "adop": float(ch.adop[j]), "pdop": float(ch.pdop[j]),
+                     "residual_rms": float(ch.residual_rms[j])}
+
+    # -- reporting --------------------------------------------------------------------------
+    def rate(self) -> float:
+        """Solved frames per wall second over the last ~2 s."""
+        if len(self.frames_in_rate) < 2:
+            return 0.0
+        dt = self.frames_in_rate[-1][0] - self.frames_in_rate[0][0]
+        n = sum(k for _, k in self.frames_in_rate[1:])
+        return n / dt if dt > 0 else 0.0
+
+    def snapshot(self, source_state: dict | None = None) -> dict:
+        """Plain dict of the current state (dashboard)."""
+        c = self.pipeline.counters
+        grp = self.static.current()
+        return {
+            "wall_s": time.monotonic() - self.wall_start,
+            "rate_fps": self.rate(),
+            "frames": c.frames, "good": c.good, "bad": c.bad, "too_few_lit": c.too_few_lit,
+            "unpaired_sweeps": c.unpaired_sweeps,
+            "decode": self.decoder.stats.as_dict(),
+            "last": self.last,
+            "mean_lit": self.lit_sum / c.frames if c.frames else 0.0,
+            "sigma_theta": self.options.sigma_theta,
+            "static_group": None if grp is None else grp.as_dict(),
+            "static_groups": len(self.static.groups),
+            "truth": None if self.truth_err is None or self.truth_err.n == 0 else self.truth_err.summary().as_dict(),
+            "source": source_state,
+        }
+
+    def finish(self) -> dict:
+        """End of stream: decode and solve what is left, close files, return the run summary."""
+        if self.finished is not None:
+            return self.finished
+        self._consume(self.pipeline.feed(self._filtered(self.decoder.flush())))
+        self._consume(self.pipeline.flush(end_of_stream=True))
+        groups = self.static.finish()
+        if self._poses is not None:
+            self._poses.close()
+        wall = time.monotonic() - self.wall_start
+        c = self.pipeline.counters
+        span = (self.t_last - self.t_first) if self.t_first is not None else 0.0
+        self.finished = {
+            "frames": c.frames, "good": c.good, "bad": c.bad, "too_few_lit": c.too_few_lit,
+            "unpaired_sweeps": c.unpaired_sweeps, "decode": self.decoder.stats.as_dict(),
+            "stream_time_s": span, "wall_s": wall,
+            "speed_x_realtime": span / wall if wall > 0 else None,
+            "frames_per_s": c.frames / wall if wall > 0 else None,
+            "mean_lit": self.lit_sum / c.frames if c.frames else 0.0,
+            "sigma_theta_rad": self.options.sigma_theta, "rho": self.options.rho,
+            "static_groups": [g.as_dict() for g in groups],
+            "truth": None if self.truth_err is None or self.truth_err.n == 0 else self.truth_err.summary().as_dict(),
+            "status_names": STATUS_NAMES,
+        }
+        if self.filter is not None:
+            self.finished["filter"] = self.filter.summary(self.finished["truth"])
+        return self.finished
+
+    def pose_track(self):
+        """The decimated good poses as a :class:`PoseTrack` (for reference alignment), or None."""
+        from ..live.reference import PoseTrack
+
+        a = self.pose_sample.array()
+        if len(a) < 3:
+            return None
+        a = a[np.concatenate([[True], np.diff(a[:, 0]) > 0])]
+        return PoseTrack(a[:, 0], rotvec_to_matrix(a[:, 1:4]), a[:, 4:7])
+
+
+def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | None = None):
+    """The registered decoder ``protocol`` for ``n_sensors``: options from the stations (rotor,
+    clock; :meth:`~layoutkit.live.protocols.ProtocolEntry.make_decoder`) overridden by ``options``."""
+    from .protocols import protocol_entry
+
+    return protocol_entry(protocol).make_decoder(n_sensors, stations, options)
+
+
+def session_for(layout: Layout, sidecar: CaptureSidecar | None = None, *, protocol: str | None = None,
+                options: LiveConfig | None = None, truth=None, json_out=None, poses_path=None,
+                sweep_sink=None) -> LiveSession:
+    """A :class:`LiveSession` for ``layout`` set up from a capture sidecar (protocol + options,
+    stations); ``protocol`` overrides the sidecar's (default ``layoutkit``). truth : a
+    :class:`~layoutkit.live.reference.PoseTrack` or None."""
+    sc = CaptureSidecar.from_dict(sidecar or {})
+    name = protocol or sc.protocol or "layoutkit"
+    stations = list(sc.stations) or None
+    dec = make_decoder(name, layout.n, stations, sc.protocol_options)
+    return LiveSession(layout, dec, options or LiveConfig(), stations, truth, json_out, poses_path, sweep_sink)
