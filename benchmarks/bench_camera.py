@@ -63,13 +63,13 @@ def main():
     from layoutkit.camera.corners import detect_quadrilateral
     from layoutkit.camera.synthetic import SyntheticCamera
     from layoutkit.shapes import zhai_target
-    from layoutkit.workflows.camera import _camera_and_crop, _target_colors, _truth
+    from layoutkit.studies.zhai2014 import camera_and_crop, case_truth, target_colors
 
-    full, crop, _ = _camera_and_crop()
+    full, crop, _ = camera_and_crop()
     mesh = zhai_target()
-    _, Rt = _truth("case1", np.arange(0.0, 50.0, 5.0))
+    _, Rt = case_truth("case1", np.arange(0.0, 50.0, 5.0))
     imgs = []
-    with SyntheticCamera(mesh, crop, face_colors=_target_colors(mesh), supersample=8) as sc:
+    with SyntheticCamera(mesh, crop, face_colors=target_colors(mesh), supersample=8) as sc:
         render_t = interleaved({"render": lambda: imgs.append(sc.render(*pose_paper_to_cv(Rt[len(imgs) % 10],
                                                                                           np.array([-100.0, 0, 0]))))},
                                rounds=7)["render"]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._json import to_jsonable
+from .io.jsonfile import to_jsonable
 from ._validate import as_array, check_finite, read_structured
 from .units import LENGTH_UNITS
 

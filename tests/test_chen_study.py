@@ -2,7 +2,7 @@
 (eq. 24). Proof kind: Monte-Carlo against the predicted covariance; tolerance from the sampling
 error of an RMS over F frames (relative s.e. ≈ 1/sqrt(2 F · dof))."""
 
-from layoutkit.workflows.chen import StudyConfig, dynamic_run, static_groups
+from layoutkit.studies.chen2024 import StudyConfig, dynamic_run, static_groups
 
 
 def test_static_groups_match_prediction():

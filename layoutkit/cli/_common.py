@@ -9,7 +9,7 @@ import click
 
 def echo_json(obj, path=None) -> None:
     """Write ``obj`` as JSON to ``path`` ('-' or None: standard output)."""
-    from .._json import to_jsonable  # numpy, imported when output is written
+    from ..io.jsonfile import to_jsonable  # numpy, imported when output is written
 
     text = json.dumps(to_jsonable(obj), indent=2)
     if path in (None, "-"):

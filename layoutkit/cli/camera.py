@@ -30,7 +30,7 @@ def camera_attitude(input, focal_length_px, principal_point, method, aspect_rati
     """
     if focal_length_px <= 0:
         fail(f"--focal-length-px must be positive, got {focal_length_px}")
-    from ..workflows.camera import camera_attitude as run
+    from ..workflows.attitude import camera_attitude as run
 
     try:
         out = run(input, focal_length_px, principal_point=principal_point, method=method,

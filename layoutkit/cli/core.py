@@ -173,7 +173,7 @@ def study_chen(groups, frames, seed, dynamic_seconds, sensor_error_mm, out_dir, 
     from rich.console import Console
     from rich.progress import Progress
 
-    from ..workflows.chen import StudyConfig, run_chen2024, write_outputs
+    from ..studies.chen2024 import StudyConfig, run_chen2024, write_outputs
 
     cfg = StudyConfig(groups=groups, frames=frames, seed=seed, dynamic_seconds=dynamic_seconds,
                       sensor_error_mm=sensor_error_mm)
@@ -209,7 +209,7 @@ def study_zhai(quick, seed, out_dir, as_json, json_out):
     """Zhai et al. (2014) rectangle-face attitude fly-around (both ground-test cases) with renders."""
     import warnings
 
-    from ..workflows.camera import main as zhai_main
+    from ..studies.zhai2014 import main as zhai_main
 
     quiet = as_json or json_out == "-"
     with warnings.catch_warnings():  # pyvista cannot keep trimesh's 'parts' metadata: harmless, noisy
@@ -243,7 +243,7 @@ def demo_cmd(out_dir, seed):
         click.echo("== layoutkit optimize on the Chen target (bundled model) ==")
         summ = run_demo(out / "optimize", quick=True, seed=seed)
         click.echo(f"{summ['message']}\nlayout {out / 'optimize' / 'layout.json'}, report {out / 'optimize' / 'report'}")
-    from ..workflows.chen import StudyConfig, run_chen2024, write_outputs
+    from ..studies.chen2024 import StudyConfig, run_chen2024, write_outputs
 
     click.echo("== reduced Chen (2024) precision study ==")
     res = run_chen2024(StudyConfig(groups=10, frames=600, dynamic_seconds=20, seed=seed))

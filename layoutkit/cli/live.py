@@ -61,7 +61,7 @@ def _options(rho, sigma, live: bool, motion_compensation: bool = False, filter_s
 
 
 def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
-    from .._json import to_jsonable
+    from ..io.jsonfile import to_jsonable
 
     if as_json:
         import json

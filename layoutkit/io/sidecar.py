@@ -64,7 +64,7 @@ class CaptureSidecar:
 
     def to_dict(self) -> dict:
         """Plain JSON types (stations as dicts); ``extra`` keys merged at the top level."""
-        from .._json import to_jsonable
+        from .jsonfile import to_jsonable
 
         out = {}
         for f in fields(self):

@@ -32,7 +32,7 @@ STATION_KEYS = ("id", "kind", "rotation", "translation", "rotor_rpm", "clock_hz"
 
 def station_to_dict(station) -> dict:
     """A :class:`~layoutkit.lighthouse.Station` as plain JSON types."""
-    from .._json import to_jsonable
+    from .jsonfile import to_jsonable
 
     return {"id": str(station.id), "kind": station.kind, "rotation": np.asarray(station.rotation).tolist(),
             "translation": np.asarray(station.translation).tolist(), "rotor_rpm": float(station.rotor_rpm),

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
 from ..io.atomic import atomic_write_text
 from ..io.figures import integer_ticks, save_figure
+from ..io.jsonfile import to_jsonable
 from ..units import RAD2DEG as DEG, SIGMA_THETA_PAPER
 
 __all__ = ["write_report"]

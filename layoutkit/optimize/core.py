@@ -14,7 +14,7 @@ from .coverage import analyse_coverage
 from .methods import METHODS, Context, Interrupted
 from .objectives import parse_objective
 from .problem import build_problem, exact_dop
-from .relaxation import _fallback_bound
+from .relaxation import fallback_bound
 
 # wall-time budget of the default pipeline when the caller gives none (s); small problems stop
 # much earlier (when random kicks stop improving)
@@ -253,7 +253,7 @@ def _finish(problem, obj, out, method, t0, t1, t2, notes, P):
     elif out.relaxation is not None:
         bound, how = out.relaxation.bound, out.relaxation.certified_by
     else:
-        bound, how = _fallback_bound(problem), "trace"
+        bound, how = fallback_bound(problem), "trace"
     if how == "none":  # no valid bound: say so instead of a meaningless gap (issue 13, item 5)
         gap = float("nan")
         why = out.relaxation.status if out.relaxation is not None else ""

@@ -30,7 +30,7 @@ import numpy as np
 
 from .problem import Problem
 
-__all__ = ["RelaxResult", "relax", "pose_trace_bounds"]
+__all__ = ["RelaxResult", "relax", "pose_trace_bounds", "fallback_bound"]
 
 # relative safety margin on the solver's optimal value (Clarabel's default gap tolerance is 1e-8)
 _SAFETY = 1e-5
@@ -186,7 +186,8 @@ def aggregate_pose_bounds(problem: Problem, L) -> float:
     return float(np.percentile(L, problem.objective.q))
 
 
-def _fallback_bound(problem: Problem) -> float:
+def fallback_bound(problem: Problem) -> float:
+    """The cheap bound (per-pose trace bounds, aggregated) used when the relaxation is not solved."""
     return aggregate_pose_bounds(problem, pose_trace_bounds(problem))
 
 
@@ -336,7 +337,7 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
     zval = None if z.value is None else np.clip(np.asarray(z.value, float), 0, 1)
     if zval is None:
         zval = np.full(N, k / N)
-    fallback = _fallback_bound(problem)
+    fallback = fallback_bound(problem)
     joint = obj.aggregate == "worst" and problem.n_cover >= P
     if status == "optimal" and joint and prob.value is not None and np.isfinite(prob.value):
         b = float(np.sqrt(max(prob.value, 0.0) * cbar * (1 - _SAFETY)))

@@ -173,9 +173,9 @@ def write_report(report_dir, prep, res, summary, render=True, echo=print):
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
 
-    from .._json import to_jsonable
     from ..io.atomic import atomic_write_text
     from ..io.figures import integer_ticks, save_figure
+    from ..io.jsonfile import to_jsonable
 
     d = Path(report_dir)
     d.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from layoutkit._json import to_jsonable
+from layoutkit.io.jsonfile import to_jsonable
 from layoutkit.envelope import load_envelope
 from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 from layoutkit.optimize import optimize_stations

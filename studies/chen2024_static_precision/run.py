@@ -9,7 +9,7 @@ under ``results/``.
 import argparse
 from pathlib import Path
 
-from layoutkit.workflows.chen import StudyConfig, run_chen2024, write_outputs
+from layoutkit.studies.chen2024 import StudyConfig, run_chen2024, write_outputs
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

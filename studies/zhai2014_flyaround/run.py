@@ -4,12 +4,12 @@
 
 Writes case1_tracking.png, case2_tracking.png (Fig. 5/6 analogues), corner_noise_sensitivity.png,
 detector_tilt.png, example_frame.png, results.json and table.md into this folder (or --out).
-The logic lives in layoutkit.workflows.camera.main (also `layoutkit study zhai2014`).
+The logic lives in layoutkit.studies.zhai2014.main (also `layoutkit study zhai2014`).
 """
 import argparse
 from pathlib import Path
 
-from layoutkit.workflows.camera import main
+from layoutkit.studies.zhai2014 import main
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -1,7 +1,9 @@
-"""Camera workflows: attitude from images / corner tables, and the Zhai (2014) fly-around study.
+"""The Zhai et al. (2014) fly-around study: camera attitude of a rectangular face in simulation.
 
-``camera_attitude`` is what ``layoutkit camera-attitude`` does; ``main(out_dir, quick)`` is the
-study ``studies/zhai2014_flyaround`` (wired to ``layoutkit study zhai2014`` by the lead).
+``main(out_dir, quick)`` is the study ``studies/zhai2014_flyaround`` (``layoutkit study zhai2014``).
+A paper study, not a command's file handling: it lives in :mod:`layoutkit.studies`; the
+``camera-attitude`` command's workflow is :func:`layoutkit.workflows.attitude.camera_attitude`.
+Long (~500 lines) because the study's figures and tables are part of it.
 """
 from __future__ import annotations
 
@@ -11,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
 from ..io.atomic import atomic_write, atomic_write_text
 from ..io.figures import save_figure
+from ..io.jsonfile import to_jsonable
 
-__all__ = ["camera_attitude", "flyaround_case", "corner_noise_sensitivity", "detector_tilt_accuracy", "main",
+__all__ = ["flyaround_case", "corner_noise_sensitivity", "detector_tilt_accuracy", "main",
            "PAPER_RESULTS", "CASES"]
 
 #: Zhai et al. (2014) §3: tracking error of the rotated Euler angle (deg).
@@ -29,36 +31,8 @@ DISTANCE_M = 100.0
 FOCAL_M, PIXEL_M, WIDTH, HEIGHT = 8e-3, 3.75e-6, 1292, 964
 
 
-# ----------------------------------------------------------------------------- CLI workflow
-def camera_attitude(source, focal_length_px: float, principal_point=None, method: str = "zhai",
-                    aspect_ratio: float | None = None, fps: float | None = None, max_frames: int | None = None,
-                    threshold: float | None = None) -> dict:
-    """Attitude stream of an image, folder, video, device index or corners CSV → JSON-able dict.
-
-    Angles are reported in degrees (Euler Z→Y→X of Zhai §1) beside the rotation matrices.
-    """
-    from ..camera import euler_zyx
-    from ..camera.stream import attitude_stream
-
-    opts = {"aspect_ratio": aspect_ratio} if (method == "ippe" and aspect_ratio is not None) else {}
-    det = {"threshold": threshold} if threshold is not None else None
-    s = attitude_stream(source, focal_length_px, principal_point=principal_point, method=method, fps=fps,
-                        max_frames=max_frames, detector_options=det, **opts)
-    th = np.degrees(np.stack(euler_zyx(np.where(s.success[:, None, None], s.rotation, np.eye(3))), -1))
-    frames = []
-    for k in range(len(s.t)):
-        frames.append({
-            "t_s": s.t[k], "success": s.success[k], "status": s.status[k],
-            "euler_zyx_deg": th[k] if s.success[k] else None,
-            "rotation": s.rotation[k] if s.success[k] else None,
-            "corners_uv_px": s.corners_uv[k], "line_fit_rms_px": s.rms_px[k],
-        })
-    return {"source": str(source), "method": method, "focal_length_px": focal_length_px,
-            "n_frames": len(s.t), "n_solved": int(s.success.sum()), "frames": frames}
-
-
 # ----------------------------------------------------------------------------- study pieces
-def _camera_and_crop(half: int = 64):
+def camera_and_crop(half: int = 64):
     """Full-sensor intrinsics and an exact sub-window (same pixel grid) around the principal point."""
     from ..camera.synthetic import PinholeCamera
 
@@ -69,7 +43,7 @@ def _camera_and_crop(half: int = 64):
     return full, crop, (x0, y0)
 
 
-def _target_colors(mesh):
+def target_colors(mesh):
     """Face colours: observed +x face of the bus bright, other bus faces grey, wings dark blue."""
     parts = mesh.metadata["parts"]
     col = np.zeros((len(mesh.faces), 3))
@@ -83,7 +57,7 @@ def _target_colors(mesh):
     return col.astype(np.uint8)
 
 
-def _truth(case: str, times):
+def case_truth(case: str, times):
     from ..camera import frame_rotation
 
     c = CASES[case]
@@ -106,8 +80,8 @@ def flyaround_case(case: str, times, rng, blur_sigma_px: float = 0.7, noise_sigm
     from ..shapes import zhai_target
 
     mesh = zhai_target()
-    full, crop, _ = _camera_and_crop()
-    theta, R_true = _truth(case, times)
+    full, crop, _ = camera_and_crop()
+    theta, R_true = case_truth(case, times)
     T = np.array([-DISTANCE_M, 0.0, 0.0])
     P = rectangle_corners(3.0, 3.0, 3.0)
     uv_true = project_paper(np.einsum("tij,nj->tni", R_true, P) + T, full.f)
@@ -115,7 +89,7 @@ def flyaround_case(case: str, times, rng, blur_sigma_px: float = 0.7, noise_sigm
     rms = np.full(len(times), np.nan)
     status = []
     t0 = time.perf_counter()
-    with SyntheticCamera(mesh, crop, face_colors=_target_colors(mesh), lighting="headlight",
+    with SyntheticCamera(mesh, crop, face_colors=target_colors(mesh), lighting="headlight",
                          supersample=supersample) as sc:
         for k in range(len(times)):
             Rc, tc = pose_paper_to_cv(R_true[k], T)
@@ -240,10 +214,10 @@ def corner_noise_sensitivity(sigmas_px, rng, n_repeat: int = 20, step_s: float =
     from ..camera.conventions import project_paper
     from ..geometry import attitude_error
 
-    full, _, _ = _camera_and_crop()
+    full, _, _ = camera_and_crop()
     P = rectangle_corners(3.0, 3.0, 3.0)
     T = np.array([-DISTANCE_M, 0.0, 0.0])
-    Rs = np.concatenate([_truth(c, np.arange(0.0, CASES[c]["duration_s"] + 1e-9, step_s))[1] for c in CASES])
+    Rs = np.concatenate([case_truth(c, np.arange(0.0, CASES[c]["duration_s"] + 1e-9, step_s))[1] for c in CASES])
     uv = project_paper(np.einsum("tij,nj->tni", Rs, P) + T, full.f)
     out = {"sigma_px": list(map(float, sigmas_px)), "n_poses": int(len(Rs)), "n_repeat": n_repeat}
     for m in ("zhai", "ippe"):
@@ -275,10 +249,10 @@ def detector_tilt_accuracy(tilts_deg, rng, distance_m: float = 20.0, supersample
     from ..shapes import zhai_target
 
     mesh = zhai_target()
-    full, _, _ = _camera_and_crop()
+    full, _, _ = camera_and_crop()
     P = rectangle_corners(3.0, 3.0, 3.0)
     errs, rows = [], []
-    with SyntheticCamera(mesh, full, face_colors=_target_colors(mesh), lighting="headlight",
+    with SyntheticCamera(mesh, full, face_colors=target_colors(mesh), lighting="headlight",
                          supersample=supersample) as sc:
         for tilt in tilts_deg:
             ax = rng.normal(size=2)
@@ -398,10 +372,10 @@ def _example_frame(path):
     from ..shapes import zhai_target
 
     mesh = zhai_target()
-    full, _, _ = _camera_and_crop()
-    _, R = _truth("case1", [0.0])
+    full, _, _ = camera_and_crop()
+    _, R = case_truth("case1", [0.0])
     Rc, tc = pose_paper_to_cv(R[0], np.array([-DISTANCE_M, 0, 0]))
-    with SyntheticCamera(mesh, full, face_colors=_target_colors(mesh), supersample=2) as sc:
+    with SyntheticCamera(mesh, full, face_colors=target_colors(mesh), supersample=2) as sc:
         img = sc.render(Rc, tc, blur_sigma_px=0.7, noise_sigma=2.0, rng=np.random.default_rng(0))
     det = detect_quadrilateral(img, threshold=80.0)
     cx, cy = full.principal_point

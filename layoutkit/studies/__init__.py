@@ -1,0 +1,4 @@
+"""The paper studies, reproduced in simulation: :mod:`~layoutkit.studies.chen2024` (Chen et al.
+2024, precision of a photodiode layout, eqs. 23-25) and :mod:`~layoutkit.studies.zhai2014` (Zhai
+et al. 2014, camera attitude fly-around). They use the core and the workflows; nothing imports
+them but the ``layoutkit study`` command and the scripts in ``studies/``."""
