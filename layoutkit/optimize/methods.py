@@ -180,10 +180,10 @@ def relax_until(problem: Problem, deadline: float, active_poses=None) -> RelaxRe
 
 
 def _no_relaxation(problem: Problem, why: str) -> RelaxResult:
-    from .relaxation import _fallback_bound
+    from .relaxation import fallback_bound
 
     return RelaxResult(np.full(problem.N, problem.k / problem.N), float("nan"), "none", why, 0.0,
-                       _fallback_bound(problem))
+                       fallback_bound(problem))
 
 
 def _topk(problem: Problem, z):

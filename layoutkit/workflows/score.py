@@ -153,7 +153,7 @@ def write_score_report(report_dir, res, other, R, t, env):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .._json import to_jsonable
+    from ..io.jsonfile import to_jsonable
     from ..io.atomic import atomic_write_text
 
     d = Path(report_dir)
