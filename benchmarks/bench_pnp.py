@@ -32,15 +32,16 @@ from pathlib import Path
 
 import numpy as np
 
+from layoutkit.dop import gross_failures as dop_gross_failures
 from layoutkit.dop import pose_dop
 from layoutkit.geometry import attitude_error, random_rotations, rotvec_to_matrix, transform_points
 from layoutkit.lighthouse import in_field_of_view, sweep_angles
-from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
+from layoutkit.noise import sample_angle_noise
+from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 from layoutkit.pnp import solve_pnp
 from layoutkit.shapes import chen_target
 
 RESULTS = Path(__file__).resolve().parent / "results"
-GROSS_DEG = 1.0
 FACING_DEG = 60.0
 
 
@@ -151,7 +152,7 @@ def gross_failures(P, R_est, t_est, R, vis):
     e[~bad] = attitude_error(R_est[~bad], R[~bad])
     z = transform_points(np.nan_to_num(R_est), np.nan_to_num(t_est), P)[..., 2]
     behind = np.any((z <= 0) & vis, axis=1)
-    return int(np.sum(bad | (e > np.deg2rad(GROSS_DEG)) | behind))
+    return int(np.sum(dop_gross_failures(e, success=~(bad | behind))))
 
 
 def crlb_ratio(P, R_est, t_est, R, t):

@@ -24,6 +24,9 @@ __all__ = [
     "pose_dop",
     "precision",
     "pose_errors",
+    "predicted_precision",
+    "gross_failures",
+    "GROSS_FAILURE_DEG",
     "rms",
 ]
 
@@ -232,6 +235,36 @@ def precision(rotations, translations):
     tm = t.mean(axis=-2, keepdims=True)
     e_t = np.linalg.norm(t - tm, axis=-1)
     return rms(e_rot, axis=-1), rms(e_t, axis=-1)
+
+
+def predicted_precision(adop, pdop, sigma: float, axis=None):
+    """Predicted RMS precision over poses (Chen eq. 24): ``sqrt(mean(ADOP²)) sigma`` and
+    ``sqrt(mean(PDOP²)) sigma``.
+
+    adop : (...,) deg per rad of angle noise; pdop : (...,) m per rad; sigma : rad (angle noise
+    1-sigma); axis : the axis (or axes) averaged over (None = all). Returns ``(rot_deg, trans_m)``.
+    """
+    a = np.asarray(adop, dtype=float)
+    p = np.asarray(pdop, dtype=float)
+    return np.sqrt(np.mean(a * a, axis=axis)) * sigma, np.sqrt(np.mean(p * p, axis=axis)) * sigma
+
+
+#: Attitude error above which a solve counts as a gross failure (wrong PnP basin, e.g. the planar
+#: two-fold ambiguity of 4 coplanar lit sensors under noise; docs/pnp.md), reported apart.
+GROSS_FAILURE_DEG = 1.0
+
+
+def gross_failures(rotation_error, *, success=None, translation=None, threshold_deg: float = GROSS_FAILURE_DEG):
+    """Frames that are gross failures, ``(...,)`` bool: the solve failed (``success`` False), or its
+    attitude error ``rotation_error`` (rad, Chen eq. 25) exceeds ``threshold_deg``, or its
+    ``translation (..., 3)`` puts the body behind the station (``t_z <= 0``)."""
+    e = np.asarray(rotation_error, dtype=float)
+    bad = ~(e <= np.deg2rad(threshold_deg))  # NaN errors are failures
+    if success is not None:
+        bad |= ~np.asarray(success, dtype=bool)
+    if translation is not None:
+        bad |= ~(np.asarray(translation, dtype=float)[..., 2] > 0)
+    return bad
 
 
 def pose_errors(rotation_est, translation_est, rotation_ref, translation_ref):

@@ -194,3 +194,33 @@ def test_precision_and_errors_closed_form(rng):
     assert s_t == pytest.approx(np.sqrt((2 * 1e-6 + 2 * 4e-6) / 4), rel=1e-9)
     e_rot, e_t = pose_errors(Rs, ts, np.broadcast_to(R0, Rs.shape), np.array([0, 0, 2.0]))
     np.testing.assert_allclose(e_rot, ang, rtol=1e-9)
+
+
+def test_predicted_precision_is_eq24_and_matches_monte_carlo():
+    """Chen eq. (24) in one place: sqrt(mean(ADOP²)) sigma over poses; against a Monte-Carlo of the
+    linearised model (pose noise drawn with covariance sigma² H) at two poses, within 5 %."""
+    from layoutkit.dop import predicted_precision
+    from layoutkit.shapes import chen_target
+
+    lay = chen_target()[1]
+    R = np.stack([rotvec_to_matrix([np.pi, 0, 0]), rotvec_to_matrix([np.pi - 0.3, 0.2, 0])])
+    t = np.array([[0.0, 0.1, 2.0], [0.2, 0.0, 2.5]])
+    d = pose_dop(lay.positions, R, t, rho=0.5)
+    sigma = 4e-5
+    pr, pt = predicted_precision(d.adop, d.pdop, sigma)
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.multivariate_normal(np.zeros(6), sigma**2 * d.cov[k], 20000) for k in range(2)])
+    mc_rot = np.degrees(np.sqrt(np.mean(np.sum(x[:, :3] ** 2, 1))))
+    mc_t = np.sqrt(np.mean(np.sum(x[:, 3:] ** 2, 1)))
+    assert abs(pr / mc_rot - 1) < 0.05 and abs(pt / mc_t - 1) < 0.05
+
+
+def test_gross_failure_rule():
+    """One rule: failed solve, attitude error > 1 deg (NaN counts), or body behind the station."""
+    from layoutkit.dop import gross_failures
+
+    e = np.radians([0.5, 1.5, 0.1, np.nan, 0.2])
+    ok = np.array([True, True, False, True, True])
+    tr = np.array([[0, 0, 2.0]] * 4 + [[0, 0, -1.0]])
+    np.testing.assert_array_equal(gross_failures(e, success=ok, translation=tr), [False, True, True, True, True])
+    np.testing.assert_array_equal(gross_failures(e[:2]), [False, True])

@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..dop import pose_errors, precision
+from ..dop import pose_errors, precision, predicted_precision
 from ..geometry import matrix_to_rotvec, nearest_rotation
 from ..units import DEG, SIGMA_THETA_PAPER
 
@@ -213,8 +213,8 @@ class StaticGroupTracker:
                 self._k = 0
 
     def _tolerances(self):
-        pr = np.sqrt(np.mean(self._a ** 2)) * self.sigma_theta * DEG  # rad
-        pt = np.sqrt(np.mean(self._p ** 2)) * self.sigma_theta
+        pr_deg, pt = predicted_precision(self._a, self._p, self.sigma_theta)  # Chen eq. (24)
+        pr = pr_deg * DEG  # rad
         tr = self.rot_tol if self.rot_tol is not None else self.factor * pr
         tt = self.trans_tol if self.trans_tol is not None else self.factor * pt
         return tr, tt

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dop import pose_dop, pose_errors, precision, rms
+from ..dop import gross_failures, pose_dop, pose_errors, precision, predicted_precision, rms
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..simulate import poses_in_front, simulate_angles
 from ..units import RAD2DEG, RHO_PAPER, SIGMA_THETA_PAPER
@@ -18,7 +18,6 @@ from ..visibility import facing_mask
 
 __all__ = ["StudyConfig", "static_groups", "dynamic_run", "run_chen2024", "write_outputs"]
 
-GROSS_DEG = 1.0
 
 
 @dataclass(frozen=True)
@@ -70,7 +69,7 @@ def static_groups(cfg: StudyConfig, layout=None, progress=None) -> list[dict]:
             sol = solve_pnp(P, ang, np.broadcast_to(v, (cfg.frames, P.shape[0])))
             ok = np.asarray(sol.success)
             e_rot, _ = pose_errors(sol.rotation, sol.translation, Rf, tf)
-            gross = (~ok) | (np.degrees(e_rot) > GROSS_DEG) | (sol.translation[:, 2] <= 0)
+            gross = gross_failures(e_rot, success=ok, translation=sol.translation)
             good = ~gross
             if good.sum() >= 2:
                 s_rot, s_t = precision(sol.rotation[good], sol.translation[good])  # eq. (23)
@@ -84,9 +83,9 @@ def static_groups(cfg: StudyConfig, layout=None, progress=None) -> list[dict]:
                 "translation_m": t.tolist(),
                 "adop_deg_per_rad": float(dop.adop),
                 "pdop_m_per_rad": float(dop.pdop),
-                "predicted_sigma_rot_deg": float(dop.adop * cfg.sigma),  # eq. (24)
+                "predicted_sigma_rot_deg": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[0]),  # eq. (24)
                 "simulated_sigma_rot_deg": float(np.degrees(s_rot)),
-                "predicted_sigma_trans_m": float(dop.pdop * cfg.sigma),
+                "predicted_sigma_trans_m": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[1]),
                 "simulated_sigma_trans_m": float(s_t),
                 "frames": cfg.frames,
                 "gross_failures": int(gross.sum()),
@@ -136,8 +135,8 @@ def dynamic_run(cfg: StudyConfig, layout=None, sensor_error_mm: float = 0.0) -> 
         "max_rot_deg": float(np.degrees(e_rot.max())),
         "rms_trans_m": float(rms(e_t)),
         "max_trans_m": float(e_t.max()),
-        "predicted_rms_rot_deg": float(np.sqrt(np.mean(dop.adop**2)) * cfg.sigma),
-        "predicted_rms_trans_m": float(np.sqrt(np.mean(dop.pdop**2)) * cfg.sigma),
+        "predicted_rms_rot_deg": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[0]),  # eq. (24)
+        "predicted_rms_trans_m": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[1]),
     }
 
 

@@ -14,7 +14,6 @@ from ..layout import Layout
 __all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_frames", "solution_table",
            "simulate_frame_file", "solve_frame_file", "static_precision", "sensor_residual_summary"]
 
-GROSS_DEG = 1.0
 
 
 def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho: float,
@@ -128,7 +127,7 @@ def static_precision(layout: Layout, angles, seen, R, T, *, min_frames: int = 10
     """
     from scipy.spatial.transform import Rotation
 
-    from ..dop import pose_dop, precision
+    from ..dop import pose_dop, precision, predicted_precision
     from ..units import RAD2DEG
 
     F = len(R)
@@ -158,8 +157,9 @@ def static_precision(layout: Layout, angles, seen, R, T, *, min_frames: int = 10
     d = pose_dop(layout.positions, np.broadcast_to(Rm, (F, 3, 3)), np.broadcast_to(tm, (F, 3)), rho=rho_used,
                  visible=seen)
     okd = d.success
-    pred_rot = float(np.sqrt(np.mean(d.adop[okd] ** 2)) * sigma) if okd.any() else None  # deg
-    pred_t = float(np.sqrt(np.mean(d.pdop[okd] ** 2)) * sigma) if okd.any() else None
+    pred_rot = pred_t = None
+    if okd.any():  # Chen eq. (24)
+        pred_rot, pred_t = (float(v) for v in predicted_precision(d.adop[okd], d.pdop[okd], sigma))
     meas_rot = float(s_rot * RAD2DEG)
     # the frames with the most common set of seen angles: a systematic error that depends on the
     # lit set (uncalibrated stations) inflates the scatter over all frames but not within one set
@@ -172,8 +172,8 @@ def static_precision(layout: Layout, angles, seen, R, T, *, min_frames: int = 10
         dm = pose_dop(layout.positions, Rm, tm, rho=rho_used, visible=seen[same][0])
         if dm.success:
             modal = {"frames": int(same.sum()), "measured_sigma_rot_deg": float(sr * RAD2DEG),
-                     "measured_sigma_trans_m": float(stt), "predicted_sigma_rot_deg": float(dm.adop * sigma),
-                     "predicted_sigma_trans_m": float(dm.pdop * sigma)}
+                     "measured_sigma_trans_m": float(stt), "predicted_sigma_rot_deg": float(predicted_precision(dm.adop, dm.pdop, sigma)[0]),
+                     "predicted_sigma_trans_m": float(predicted_precision(dm.adop, dm.pdop, sigma)[1])}
     return {"frames": F, "same_lit_set": modal, "sigma_rad": sigma, "rho": rho, "rho_used": rho_used,
             "angles_used": int(N), "measured_sigma_rot_deg": meas_rot, "measured_sigma_trans_m": float(s_t),
             "predicted_sigma_rot_deg": pred_rot, "predicted_sigma_trans_m": pred_t,
@@ -195,7 +195,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     Returns a summary dict plus per-frame arrays ``t, station, status, rotvec, translation,
     residual_rms, success``.
     """
-    from ..dop import pose_dop, pose_errors, rms
+    from ..dop import GROSS_FAILURE_DEG, gross_failures, pose_dop, pose_errors, predicted_precision, rms
     from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES, STATUS_NO_START, STATUS_OK, solve_pnp
 
     seen = ~np.isnan(fr.angles)
@@ -288,7 +288,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
         e_r, e_t = pose_errors(R[ok], T[ok], fr.truth_rotation[ok], fr.truth_translation[ok])
         # gross: > 1 deg off — with 4 coplanar lit sensors the planar two-fold ambiguity is
         # undecidable under noise for some poses (docs/pnp.md), so report them apart
-        gross = np.degrees(e_r) > GROSS_DEG
+        gross = gross_failures(e_r)
         good = ~gross
         out.update(rms_rot_deg=float(np.degrees(rms(e_r))), rms_trans_m=float(rms(e_t)),
                    max_rot_deg=float(np.degrees(e_r.max())),
@@ -300,14 +300,14 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
         if ia.size:  # neither candidate is reported as the pose; say how often the truth is among them
             e1, _ = pose_errors(R[ia], T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
             e2, _ = pose_errors(alt_R[ia], alt_T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
-            out["gross_failures_by_status"]["ambiguous (best candidate)"] = int(np.sum(np.degrees(e1) > GROSS_DEG))
+            out["gross_failures_by_status"]["ambiguous (best candidate)"] = int(np.sum(np.degrees(e1) > GROSS_FAILURE_DEG))
             out["ambiguous"] = {"frames": int(ia.size),
-                                "truth_within_1deg_of_a_candidate": int(np.sum(np.degrees(np.minimum(e1, e2)) <= GROSS_DEG))}
+                                "truth_within_1deg_of_a_candidate": int(np.sum(np.degrees(np.minimum(e1, e2)) <= GROSS_FAILURE_DEG))}
         if sigma is not None:
             sel = np.flatnonzero(ok)[good]
             d = pose_dop(layout.positions, fr.truth_rotation[sel], fr.truth_translation[sel], rho=rho, visible=seen[sel])
-            out.update(predicted_rms_rot_deg=float(np.sqrt(np.mean(d.adop**2)) * sigma),
-                       predicted_rms_trans_m=float(np.sqrt(np.mean(d.pdop**2)) * sigma))
+            pr, pt = predicted_precision(d.adop, d.pdop, sigma)  # Chen eq. (24)
+            out.update(predicted_rms_rot_deg=float(pr), predicted_rms_trans_m=float(pt))
     return out
 
 
