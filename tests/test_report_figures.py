@@ -101,7 +101,7 @@ def test_optimize_report_figures_mark_worst_pose(tmp_path, saved):
 
 def test_chen_study_figures(tmp_path, saved):
     """The Chen study's fig5/fig7 (a tiny real run)."""
-    from layoutkit.workflows.chen import StudyConfig, run_chen2024, write_outputs
+    from layoutkit.studies.chen2024 import StudyConfig, run_chen2024, write_outputs
 
     res = run_chen2024(StudyConfig(groups=3, frames=40, dynamic_seconds=1.0))
     write_outputs(res, tmp_path)
