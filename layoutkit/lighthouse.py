@@ -1,5 +1,9 @@
 """Lighthouse measurement model: sweep angles, timing, field of view, stations (design §2–§3).
 
+Why one module of ~650 lines: it is the ONE owner of the station conventions (docs/architecture.md):
+the ideal model, the calibration model with its analytic Jacobians, and the libsurvive and
+Crazyflie conventions mapped onto it belong together, so no second copy of a convention appears.
+
 Lighthouse frame: origin at the rotor centre, z = boresight, x and y the two
 sweep directions. For a point ``p = (x, y, z)`` the LH1 sweep angles are
 ``theta_x = atan2(z, x)``, ``theta_y = atan2(z, y)`` (Chen eq. 2), so

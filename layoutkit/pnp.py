@@ -1,5 +1,10 @@
 """Batched perspective-n-point from lighthouse sweep angles (Chen §2, design §4).
 
+Why one module of ~900 lines: the solver is one batched Levenberg–Marquardt over frames-last
+component arrays; its starts (POSIT, IPPE pairs), refinement, Jacobians and the private frame
+container share that layout and are read together; split, each part would import the others'
+private helpers.
+
 Given the body coordinates of n sensors and their LH1 sweep angles in F frames, find per frame
 the pose ``p_lh = R p_body + t`` that minimises the sum of squared **angle** residuals
 ``theta_meas - theta_pred`` over the lit sensors — the maximum-likelihood estimate for the

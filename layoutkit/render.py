@@ -1,5 +1,9 @@
 """Off-screen pictures of targets, layouts, station views and tracking-quality maps.
 
+Why one module of ~640 lines: every picture (target, layout, station view, quality map) shares
+the same scene builders, the camera convention below and the off-screen plumbing; the pictures
+are small functions over them.
+
 Everything renders without a display. pyvista/VTK and matplotlib are imported inside the
 functions; the first call chooses an off-screen OpenGL back end (:func:`offscreen_backend`) by
 setting ``VTK_DEFAULT_OPENGL_WINDOW`` before the first render window exists:

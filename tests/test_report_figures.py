@@ -111,7 +111,7 @@ def test_chen_study_figures(tmp_path, saved):
 def test_zhai_plots(tmp_path, saved):
     """The Zhai study's corner-noise and detector plots (Monte-Carlo on synthetic corners; the
     detector plot from a fixed table) have titles, labels and captions."""
-    from layoutkit.workflows import camera as cam
+    from layoutkit.studies import zhai2014 as cam
 
     sens = {"sigma_px": [0.01, 0.1, 1.0], "zhai": {"median_deg": [0.01, 0.1, 1], "p95_deg": [0.02, 0.2, 2]},
             "ippe": {"median_deg": [0.005, 0.05, 0.5], "p95_deg": [0.01, 0.1, 1]}}
@@ -126,7 +126,7 @@ def test_zhai_plots(tmp_path, saved):
 def test_zhai_example_frame(tmp_path, saved):
     """Regression: zhai2014/example_frame.png was a bare OpenCV image (no title, no axes); now a
     titled matplotlib figure with pixel axes and a caption. Needs off-screen rendering."""
-    from layoutkit.workflows import camera as cam
+    from layoutkit.studies import zhai2014 as cam
 
     try:
         cam._example_frame(tmp_path / "example_frame.png")

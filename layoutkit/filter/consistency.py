@@ -19,7 +19,10 @@ import numpy as np
 __all__ = ["FilterRun", "run_sweeps", "pose_error", "nees", "chi2_band", "ConsistencyResult", "consistency"]
 
 
-class _Sweep:
+class Sweep:
+    """A light sweep record for :meth:`~layoutkit.filter.tracker.Tracker.push` (the fields of
+    :class:`layoutkit.live.frames.SweepMeasurement` without its validation, for long runs)."""
+
     __slots__ = ("t", "station", "axis", "angles", "kind")
 
     def __init__(self, t, station, axis, angles, kind):
@@ -63,7 +66,7 @@ def run_sweeps(tracker, t, station, axis, angles, kind=None) -> FilterRun:
     kinds = [s.kind for s in tracker.stations] if kind is None else list(kind)
     for k in range(K):
         s = int(station[k])
-        o = tracker.push(_Sweep(float(t[k]), s, int(axis[k]), angles[k], kinds[s]))
+        o = tracker.push(Sweep(float(t[k]), s, int(axis[k]), angles[k], kinds[s]))
         if o is None:
             continue
         out["has_output"][k] = True

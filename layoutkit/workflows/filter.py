@@ -143,11 +143,11 @@ def hidden_station_scenario(layout, *, seed: int = 0, duration: float = 20.0, hi
     tr = SweepTracker(layout.positions, sw.stations, config or EkfConfig(**TUMBLE_CONFIG))
     rej_bad, rej_other = [], 0
     # run sweep by sweep to see which angles each update dropped
-    from ..filter.consistency import _Sweep
+    from ..filter.consistency import Sweep
 
     outs = []
     for k in range(len(sw.t)):
-        o = tr.push(_Sweep(float(sw.t[k]), int(sw.station[k]), int(sw.axis[k]), a[k], "lh1"))
+        o = tr.push(Sweep(float(sw.t[k]), int(sw.station[k]), int(sw.axis[k]), a[k], "lh1"))
         outs.append(o)
         if o is None or o.correction is None and not o.sweep_rejected:
             continue
