@@ -29,6 +29,9 @@ class Sweep:
         self.t, self.station, self.axis, self.angles, self.kind = t, station, axis, angles, kind
 
 
+_Sweep = Sweep  # old private name (do not import it from other rooms: tests/test_architecture.py)
+
+
 @dataclass(frozen=True)
 class FilterRun:
     """Per-sweep filter outputs as arrays over the K sweeps given (NaN / False where no output).

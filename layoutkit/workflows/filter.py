@@ -427,7 +427,7 @@ def filter_frames(fr, layout, config: EkfConfig) -> dict:
     """
     from dataclasses import replace
 
-    from ..filter.consistency import _Sweep
+    from ..filter.consistency import Sweep
 
     t = np.asarray(fr.t, float)
     if np.any(np.diff(t) < 0):
@@ -444,7 +444,7 @@ def filter_frames(fr, layout, config: EkfConfig) -> dict:
     for k in range(F):
         o = None
         for ax in (0, 1):
-            o = trk.push(_Sweep(float(t[k]), 0, ax, fr.angles[k, :, ax], "lh1")) or o
+            o = trk.push(Sweep(float(t[k]), 0, ax, fr.angles[k, :, ax], "lh1")) or o
         if o is None:
             continue
         rv[k], tr[k], status[k] = o.rotvec, o.translation, FILTER_STATUS_CODES[o.status]
