@@ -15,6 +15,10 @@ Then the deprecated aliases: each still works, prints one deprecation line on st
 the same parsed value as the new spelling (with the unit conversion where the unit changed), and
 one end-to-end run on an old spelling produces byte-identical output to the new one.
 Kind of proof: structural walk of the real click tree plus real parses and runs of the commands.
+
+A new command complies by taking its quantities from ``layoutkit/cli/options.py``; where another
+issue spells an output folder ``--out DIR``, use ``out_dir_option(out_alias=True)`` (visible
+``--out-dir``, ``--out`` accepted quietly).
 """
 from __future__ import annotations
 
@@ -319,3 +323,20 @@ def test_dop_old_sigma_spelling_end_to_end():
     assert ja["n_lit"] >= 4
     assert math.isclose(ja["predicted_sigma_rot_deg"], jb["predicted_sigma_rot_deg"], rel_tol=1e-12)
     assert math.isclose(ja["predicted_sigma_rot_deg"], ja["adop_deg_per_rad"] * 4.014e-5, rel_tol=1e-12)
+
+
+def test_silent_out_alias_for_fixed_interfaces():
+    """``out_dir_option(out_alias=True)``: visible ``--out-dir``, and ``--out DIR`` (an interface
+    fixed by another issue, e.g. ``import libsurvive --out DIR``) accepted quietly, same value."""
+    from layoutkit.cli.options import out_dir_option
+
+    @click.command()
+    @out_dir_option(out_alias=True)
+    def cmd(out_dir):
+        click.echo(out_dir)
+
+    runner = CliRunner()
+    a, b = runner.invoke(cmd, ["--out", "D"]), runner.invoke(cmd, ["--out-dir", "D"])
+    assert a.exit_code == b.exit_code == 0 and a.stdout == b.stdout == "D\n" and a.stderr == ""
+    assert "--out " not in runner.invoke(cmd, ["--help"]).output
+    assert "Missing option '--out-dir'" in runner.invoke(cmd, []).output

@@ -49,11 +49,12 @@ SIGMA_RANGE_SIMULATION = click.FloatRange(min=0.0)
 _META = "layoutkit.alias."
 
 
-def _alias_callback(dest: str, old: str, new: str, convert: Callable | None):
+def _alias_callback(dest: str, old: str, new: str, convert: Callable | None, note: bool = True):
     def cb(ctx, param, value):
         if value is None or ctx.get_parameter_source(param.name) in (ParameterSource.DEFAULT, None):
             return None
-        click.echo(f"note: {old} is deprecated; use {new}", err=True)
+        if note:
+            click.echo(f"note: {old} is deprecated; use {new}", err=True)
         ctx.meta[_META + dest] = convert(value) if convert is not None else value
         return None
     return cb
@@ -72,27 +73,30 @@ def _main_callback(dest: str, user_callback: Callable | None, required: bool = F
     return cb
 
 
-def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]] = (), callback=None, **kw):
+def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]] = (), callback=None,
+           silent_aliases: Iterable[str] = (), **kw):
     """A click option ``flag`` delivering parameter ``dest``, with hidden deprecated ``aliases``.
 
     Each alias is a flag or ``(flag, convert)`` where ``convert`` maps the old spelling's value to
     the new one's (e.g. radians to arcseconds). Other keywords go to :func:`click.option`;
-    ``required=True`` is checked after the aliases (an alias satisfies it).
+    ``required=True`` is checked after the aliases (an alias satisfies it). ``silent_aliases``:
+    hidden spellings that are not deprecated and print nothing (an interface fixed elsewhere,
+    e.g. ``import libsurvive --out DIR`` in issue 10, next to the visible ``--out-dir``).
     """
     required = bool(kw.pop("required", False))
-    aliases = tuple(aliases)
+    aliases = tuple((a, True) for a in aliases) + tuple((a, False) for a in silent_aliases)
     alias_type = kw.get("type")
     alias_flag = kw.get("is_flag", False)
     alias_nargs = kw.get("nargs", 1)
 
     def deco(f):
-        for a in aliases:
+        for a, note in aliases:
             old, convert = (a, None) if isinstance(a, str) else a
             name = "_alias_" + old.lstrip("-").replace("-", "_")
             extra = {"is_flag": True} if alias_flag else {"type": alias_type if convert is None else float,
                                                           "nargs": alias_nargs}
             f = click.option(old, name, hidden=True, expose_value=False, is_eager=True, default=None,
-                             callback=_alias_callback(dest, old, flag, convert), **extra)(f)
+                             callback=_alias_callback(dest, old, flag, convert, note), **extra)(f)
         return click.option(flag, dest, callback=_main_callback(dest, callback, required and bool(aliases)),
                             required=required and not aliases, **kw)(f)
     return deco
@@ -209,13 +213,16 @@ def out_file_option(f=None, *, required: bool = True, help: str = "Output file."
 
 
 def out_dir_option(f=None, *, required: bool = True, help: str = "Output folder.", default=None,
-                   aliases: Iterable = ()):
+                   aliases: Iterable = (), out_alias: bool = False):
     """``--out-dir DIR``: the command's output folder. The command receives ``out_dir``.
 
-    ``aliases``: old spellings (``("--out",)`` where a command used ``--out`` for a folder).
+    ``aliases``: deprecated old spellings (``("--out",)`` where a command used ``--out`` for a
+    folder: a note on stderr). ``out_alias``: also accept ``--out DIR`` silently (hidden, no note)
+    where another issue's interface spells the folder ``--out`` (``import libsurvive``, ``sweep``).
     """
     deco = option("--out-dir", "out_dir", type=click.Path(file_okay=False), required=required,
-                  default=default, show_default=default is not None, help=help, aliases=aliases)
+                  default=default, show_default=default is not None, help=help, aliases=aliases,
+                  silent_aliases=("--out",) if out_alias else ())
     return deco(f) if f is not None else deco
 
 
