@@ -115,21 +115,14 @@ def test_one_spelling_per_quantity(name, cmd):
             assert DEST_FLAG[p.name] in p.opts, f"{name}: parameter {p.name} comes from {p.opts}"
 
 
-#: commands whose ``--out DIR`` is fixed by an external interface (issue 10: users' scripts call
-#: ``layoutkit import libsurvive RECORDING --out DIR`` and ``import cfusdlog LOG --out DIR``)
-OUT_IS_A_FOLDER = {"import libsurvive", "import cfusdlog"}
-
-
 @pytest.mark.parametrize("name,cmd", COMMANDS, ids=[n for n, _ in COMMANDS])
 def test_out_is_a_file_and_out_dir_a_folder(name, cmd):
     """(a) ``--out`` is a file; ``--out-dir``/``--report`` are folders (click.Path file_okay/dir_okay)."""
     for f, p in _visible_flags(cmd):
         if not isinstance(p.type, click.Path):
             continue
-        if f == "--out" and name not in OUT_IS_A_FOLDER:
+        if f == "--out":
             assert p.type.file_okay and not p.type.dir_okay, f"{name}: --out is a folder; use --out-dir"
-        if f == "--out" and name in OUT_IS_A_FOLDER:
-            assert p.type.dir_okay and not p.type.file_okay, f"{name}: --out must be the folder of its interface"
         if f in ("--out-dir", "--report"):
             assert p.type.dir_okay and not p.type.file_okay, f"{name}: {f} is a file; use --out"
 
@@ -323,6 +316,16 @@ def test_dop_old_sigma_spelling_end_to_end():
     assert ja["n_lit"] >= 4
     assert math.isclose(ja["predicted_sigma_rot_deg"], jb["predicted_sigma_rot_deg"], rel_tol=1e-12)
     assert math.isclose(ja["predicted_sigma_rot_deg"], ja["adop_deg_per_rad"] * 4.014e-5, rel_tol=1e-12)
+
+
+@pytest.mark.parametrize("path", ["import libsurvive", "import cfusdlog"])
+def test_issue10_out_dir_interface_still_parses(path, capsys):
+    """Issue 10 fixes ``import libsurvive|cfusdlog ... --out DIR``: it parses to the same folder as
+    the visible ``--out-dir DIR``, with no deprecation note (a silent alias, not an exception to
+    the convention)."""
+    p_old, err = _parse(path, ["input.rec", "--out", "D"], capsys)
+    p_new, _ = _parse(path, ["input.rec", "--out-dir", "D"], capsys)
+    assert p_old == p_new and p_new["out_dir"] == "D" and err == ""
 
 
 def test_silent_out_alias_for_fixed_interfaces():

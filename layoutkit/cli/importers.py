@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import json_flag, out_file_option, out_folder_option, system_config_option
+from .options import json_flag, out_dir_option, out_file_option, system_config_option, units_option
 
 
 @click.group("import", short_help="Import real recordings and device files.")
@@ -38,12 +38,13 @@ def vive_config_cmd(file, out, as_json):
 
 @import_group.command("libsurvive", short_help="libsurvive recording to frames.")
 @click.argument("recording", type=click.Path(dir_okay=False))
-@out_folder_option(help="Output folder: <device>/layout.json, <device>/frames.csv, stations.json, ...")
+@out_dir_option(out_alias=True, help="Output folder: <device>/layout.json, <device>/frames.csv, stations.json, ... "
+                                     "(--out DIR works too).")
 @click.option("--device", default=None, metavar="NAME", help="Only this device (libsurvive code name: HMD, T20, WM0, ...).")
 @click.option("--config", "config", type=click.Path(dir_okay=False), default=None, metavar="JSON",
               help="libsurvive lighthouse config (default: <recording>.json beside it).")
 @json_flag(help="Print the JSON summary.")
-def libsurvive_cmd(recording, out, device, config, as_json):
+def libsurvive_cmd(recording, out_dir, device, config, as_json):
     """A libsurvive .rec / .rec.gz recording → per-device layout, frame table and reference poses,
     and the stations (poses + factory calibration) from the recording's .json.
 
@@ -53,6 +54,7 @@ def libsurvive_cmd(recording, out, device, config, as_json):
     """
     from ..workflows.importers import import_libsurvive
 
+    out = out_dir
     s = _run(import_libsurvive, recording, out, device=device, config=config)
     if as_json:
         echo_json(s)
@@ -73,15 +75,16 @@ def libsurvive_cmd(recording, out, device, config, as_json):
 
 @import_group.command("cfusdlog", short_help="Crazyflie microSD log to a capture.")
 @click.argument("log", type=click.Path(dir_okay=False))
-@out_folder_option(help="Output folder: capture.bin (+ .json sidecar), firmware_angles.csv.")
+@out_dir_option(out_alias=True, help="Output folder: capture.bin (+ .json sidecar), firmware_angles.csv "
+                                     "(--out DIR works too).")
 @system_config_option
 @json_flag(help="Print the JSON summary.")
-def cfusdlog_cmd(log, out, system_config, as_json):
+def cfusdlog_cmd(log, out_dir, system_config, as_json):
     """A Crazyflie microSD event log (cfusdlog) → a deck capture + sidecar for `layoutkit replay`
     (lhUartFrame events) and the firmware's own angles (lhAngle events) as a table."""
     from ..workflows.importers import import_cfusdlog
 
-    s = _run(import_cfusdlog, log, out, system_config=system_config)
+    s = _run(import_cfusdlog, log, out_dir, system_config=system_config)
     if as_json:
         echo_json(s)
         return
@@ -96,8 +99,7 @@ def cfusdlog_cmd(log, out, system_config, as_json):
 @import_group.command("reference", short_help="Mocap reference to a pose table.")
 @click.argument("file", type=click.Path(dir_okay=False))
 @out_file_option(help="Pose table (CSV) to write.")
-@click.option("--units", type=click.Choice(["m", "cm", "mm", "in"]), default="m", show_default=True,
-              help="Length unit of the positions in FILE.")
+@units_option(what="the positions in FILE")
 @json_flag(help="Print a JSON summary.")
 def reference_cmd(file, out, units, as_json):
     """A motion-capture reference (CSV or .npy): t plus attitude and position, or position only

@@ -32,7 +32,7 @@ __all__ = [
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION",
-    "out_folder_option", "system_config_option", "stations_option",
+    "system_config_option", "stations_option",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
@@ -284,14 +284,6 @@ def min_visible_option(f=None, *, default: int = 4, help: str = "Lit sensors nee
     ``aliases``: old spellings (``("--min-lit",)`` in ``visibility``)."""
     deco = option("--min-visible", "min_visible", type=click.IntRange(min=1), default=default,
                   show_default=True, help=help, aliases=aliases)
-    return deco(f) if f is not None else deco
-
-
-def out_folder_option(f=None, *, required: bool = True, help: str = "Output folder."):
-    """``--out DIR`` where a command's interface fixes ``--out`` as a folder (``layoutkit import
-    libsurvive|cfusdlog``, issue 10). The command receives ``out``."""
-    deco = click.option("--out", "out", type=click.Path(file_okay=False), required=required, metavar="DIR",
-                        help=help)
     return deco(f) if f is not None else deco
 
 
