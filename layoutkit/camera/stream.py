@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .._validate import as_array
-from ..geometry import attitude_error, nearest_rotation
+from ..rotations import fit_rotation_pair
 from .corners import corners_to_paper, detect_quadrilateral
 from .rectangle import resolve_labelling, solve_rectangle
 
@@ -244,10 +244,6 @@ class RotationAlignment:
         return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
 
-def _chordal_mean(Ms):
-    return nearest_rotation(np.sum(Ms, axis=0))
-
-
 def align_rotation_streams(t_a, R_a, t_b, R_b, max_dt: float | None = None, body_offset: bool = False,
                            outlier_factor: float = 5.0, iterations: int = 20) -> RotationAlignment:
     """Estimate the fixed rotation between two attitude streams and the per-frame disagreement.
@@ -293,32 +289,8 @@ def align_rotation_streams(t_a, R_a, t_b, R_b, max_dt: float | None = None, body
     if m.sum() < 1:
         return _fail("no_overlap", "no time-matched pairs (check clocks and max_dt)")
     Rbi = Slerp(tbv, Rotation.from_matrix(Rbv))(ta[m]).as_matrix()
-    Ram = Ra[m]
-    inl = np.ones(len(Ram), bool)
-    X, Y = eye, eye
-    if body_offset:
-        # start X from the relative motions (hand-eye): log(R_a,i R_a,j^T) = X log(R_b,i R_b,j^T),
-        # Y cancels; Wahba/Kabsch on the rotation-vector pairs
-        from ..geometry import matrix_to_rotvec
-        s = max(1, len(Ram) // 10)
-        if len(Ram) > s:
-            a = matrix_to_rotvec(Ram[s:] @ np.swapaxes(Ram[:-s], 1, 2))
-            b = matrix_to_rotvec(Rbi[s:] @ np.swapaxes(Rbi[:-s], 1, 2))
-            X = nearest_rotation(a.T @ b)
-            Y = _chordal_mean(np.swapaxes(Rbi, 1, 2) @ X.T @ Ram)
-    for rnd in range(2):
-        for _ in range(iterations if body_offset else 1):
-            X = _chordal_mean(Ram[inl] @ Y.T @ np.swapaxes(Rbi[inl], 1, 2))
-            if body_offset:
-                Y_new = _chordal_mean(np.swapaxes(Rbi[inl], 1, 2) @ X.T @ Ram[inl])
-                if attitude_error(Y_new, Y) < 1e-12:
-                    Y = Y_new
-                    break
-                Y = Y_new
-        d = attitude_error(Ram, X @ Rbi @ Y)
-        if rnd == 0:
-            med = float(np.median(d))
-            inl = d <= max(outlier_factor * med, 1e-9)
-    n_out = int((~inl).sum())
-    return RotationAlignment(X, Y, ta[m], d, inl, True, "ok",
-                             f"{int(m.sum())} matched pairs, {n_out} outliers, rms {np.degrees(np.sqrt(np.mean(d[inl] ** 2))):.3g} deg")
+    fit = fit_rotation_pair(Ra[m], Rbi, body_offset=body_offset, outlier_factor=outlier_factor,
+                            iterations=iterations, require_motion=False)
+    return RotationAlignment(fit.X, fit.Y, ta[m], fit.residual_rad, fit.inlier, fit.success, fit.status,
+                             f"{int(m.sum())} matched pairs, {int((~fit.inlier).sum())} outliers, "
+                             f"rms {np.degrees(fit.rms_rad):.3g} deg")

@@ -14,8 +14,8 @@ lighthouse time + tau)::
 Estimation (:func:`align_reference`): ``tau`` by cross-correlating the angular speed of both
 streams (invariant to X and Y), refined by minimising the rotation residual; ``R_x`` from the
 relative rotations, whose rotation vectors satisfy ``log(R_l,j R_l,i^T) = R_x log(R_m,j R_m,i^T)``
-(Kabsch / Wahba, ``scipy Rotation.align_vectors``); ``R_y`` as the chordal mean of
-``(R_x R_m)^T R_l``; then ``(t_y, t_x)`` by linear least squares. A camera attitude stream is the
+then alternating chordal means for ``R_x`` and ``R_y`` — both by the one rotation-averaging core,
+:func:`layoutkit.rotations.fit_rotation_pair`, that the camera cross-check uses too; then ``(t_y, t_x)`` by linear least squares. A camera attitude stream is the
 rotation-only case (no translation). The simulator's TRUTH.csv is already in the station frame and
 needs none of this.
 """
@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec, nearest_rotation, rotvec_to_matrix
+from ..rotations import fit_rotation_pair
 from ..units import LENGTH_UNITS
 
 __all__ = [
@@ -316,32 +317,12 @@ def estimate_alignment(R_l, R_m, t_l=None, t_m=None, *, min_pair_angle: float = 
     if N < 3:
         return Alignment(tau, eye, eye, None, None, np.nan, np.nan, N, False, "too_few_samples",
                          f"need >= 3 time-matched samples, got {N}")
-    # relative rotations over several index lags (cheap, covers slow and fast motion)
-    al, am = [], []
-    for lag in np.unique(np.clip(np.geomspace(1, max(N // 2, 1), 6).astype(int), 1, N - 1)):
-        a_m = matrix_to_rotvec(R_m[lag:] @ np.swapaxes(R_m[:-lag], -1, -2))
-        a_l = matrix_to_rotvec(R_l[lag:] @ np.swapaxes(R_l[:-lag], -1, -2))
-        ang = np.linalg.norm(a_m, axis=-1)
-        ok = (ang >= min_pair_angle) & (ang <= np.deg2rad(170.0))
-        al.append(a_l[ok])
-        am.append(a_m[ok])
-    al = np.concatenate(al)
-    am = np.concatenate(am)
-    if len(al) >= 2:
-        sv = np.linalg.svd(am, compute_uv=False)
-        two_axes = sv[1] > 1e-3 * sv[0]
-    else:
-        two_axes = False
-    if not two_axes:
-        return Alignment(tau, eye, eye, None, None, np.nan, np.nan, N, False, "degenerate_rotation",
-                         "the reference rotates about fewer than two axes: R_x is not observable")
-    rot, _ = Rotation.align_vectors(al, am)  # a_l ≈ R_x a_m (Wahba)
-    R_x = rot.as_matrix()
-    R_y = nearest_rotation(np.mean(np.swapaxes(R_x @ R_m, -1, -2) @ R_l, axis=0))
-    # one refinement round: R_x from the absolute attitudes given R_y (chordal mean)
-    R_x = nearest_rotation(np.mean(R_l @ np.swapaxes(R_m @ R_y, -1, -2), axis=0))
-    R_y = nearest_rotation(np.mean(np.swapaxes(R_x @ R_m, -1, -2) @ R_l, axis=0))
-    e_rot = np.linalg.norm(matrix_to_rotvec(R_l @ np.swapaxes(R_x @ R_m @ R_y, -1, -2)), axis=-1)
+    fit = fit_rotation_pair(R_l, R_m, body_offset=True, outlier_factor=None, min_pair_angle=min_pair_angle)
+    if not fit.success:
+        return Alignment(tau, eye, eye, None, None, np.nan, np.nan, N, False, fit.status,
+                         "the reference rotates about fewer than two axes: R_x is not observable"
+                         if fit.status == "degenerate_rotation" else fit.message)
+    R_x, R_y, e_rot = fit.X, fit.Y, fit.residual_rad
     t_x = t_y = None
     rms_t = np.nan
     if t_l is not None and t_m is not None:

@@ -1,0 +1,143 @@
+"""Rotation averaging and the fixed rotations between two attitude streams (one core for every
+alignment in layoutkit: motion-capture references, camera cross-checks, calibration).
+
+Two streams observe the same rigid target: ``R_a(t) ≈ X R_b(t) Y`` with fixed ``X`` (frame of
+stream a ← frame of stream b, e.g. camera ← lighthouse) and ``Y`` (target frame of b ← target
+frame of a, e.g. body ← camera face). Estimation, after the hand-eye literature:
+
+1. ``X`` from relative motions (``Y`` cancels): ``log(R_a,j R_a,i^T) = X log(R_b,j R_b,i^T)``,
+   a Wahba problem on rotation-vector pairs (Kabsch / :func:`wahba`); needs motion about at least
+   two axes, else ``X`` is not observable (status ``"degenerate_rotation"``).
+2. Alternating chordal L2 means (:func:`chordal_mean`): ``X = mean(R_a Y^T R_b^T)``,
+   ``Y = mean(R_b^T X^T R_a)`` until ``Y`` stops changing.
+3. Optional outlier round: pairs whose residual exceeds ``outlier_factor`` × the median are
+   dropped and the means recomputed once.
+
+Without a body offset (``Y = I``) step 2 alone is the chordal mean, and no motion is needed.
+Failures are statuses, never exceptions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import attitude_error, matrix_to_rotvec, nearest_rotation
+
+__all__ = ["chordal_mean", "wahba", "relative_rotvec_pairs", "RotationPairFit", "fit_rotation_pair"]
+
+
+def chordal_mean(rotations, weights=None) -> np.ndarray:
+    """Chordal L2 mean of rotations ``(N, 3, 3)``: the rotation nearest their (weighted) sum."""
+    M = np.asarray(rotations, float)
+    if weights is not None:
+        M = M * np.asarray(weights, float)[:, None, None]
+    return nearest_rotation(np.sum(M, axis=0))
+
+
+def wahba(a, b) -> np.ndarray:
+    """Rotation ``X`` minimising ``sum |a_i - X b_i|^2`` for vectors ``a, b (N, 3)`` (Kabsch)."""
+    H = np.asarray(a, float).T @ np.asarray(b, float)
+    return nearest_rotation(H)
+
+
+def relative_rotvec_pairs(R_a, R_b, *, min_angle: float = np.deg2rad(5.0), max_angle: float = np.deg2rad(170.0),
+                          lags=None):
+    """Rotation vectors of relative motions ``R_j R_i^T`` of both streams over several index lags.
+
+    Returns ``(a (M, 3), b (M, 3))`` with the pairs whose stream-b angle lies in
+    ``[min_angle, max_angle]`` (small motions are noise, near-180° ones are ill-conditioned).
+    """
+    N = len(R_a)
+    if lags is None:
+        lags = np.unique(np.clip(np.geomspace(1, max(N // 2, 1), 6).astype(int), 1, max(N - 1, 1)))
+    aa, bb = [], []
+    for lag in lags:
+        if lag >= N:
+            continue
+        a = matrix_to_rotvec(R_a[lag:] @ np.swapaxes(R_a[:-lag], -1, -2))
+        b = matrix_to_rotvec(R_b[lag:] @ np.swapaxes(R_b[:-lag], -1, -2))
+        ang = np.linalg.norm(b, axis=-1)
+        ok = (ang >= min_angle) & (ang <= max_angle)
+        aa.append(a[ok])
+        bb.append(b[ok])
+    if not aa:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.concatenate(aa), np.concatenate(bb)
+
+
+@dataclass(frozen=True)
+class RotationPairFit:
+    """Result of :func:`fit_rotation_pair`: ``R_a ≈ X R_b Y``.
+
+    X, Y : (3, 3). residual_rad : (N,) attitude error of ``R_a`` vs ``X R_b Y`` per pair.
+    inlier : (N,) bool, pairs used in the final means. success, status ("ok", "too_few_samples",
+    "degenerate_rotation"), message.
+    """
+
+    X: np.ndarray
+    Y: np.ndarray
+    residual_rad: np.ndarray
+    inlier: np.ndarray
+    success: bool
+    status: str
+    message: str
+
+    @property
+    def rms_rad(self) -> float:
+        d = self.residual_rad[self.inlier]
+        return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
+
+
+def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: float | None = 5.0,
+                      iterations: int = 50, min_pair_angle: float = np.deg2rad(5.0),
+                      require_motion: bool | None = None) -> RotationPairFit:
+    """Fixed rotations between time-matched attitude pairs ``R_a, R_b (N, 3, 3)`` (module docstring).
+
+    body_offset : also estimate ``Y`` (else ``Y = I``). outlier_factor : None = no outlier round.
+    require_motion : insist on relative motion about two axes before fitting (default: when
+    ``body_offset``); without it and without motion, ``X`` starts from the chordal mean.
+    """
+    Ra = np.asarray(R_a, float)
+    Rb = np.asarray(R_b, float)
+    eye = np.eye(3)
+    N = len(Ra)
+
+    def fail(status, msg):
+        return RotationPairFit(eye, eye, np.zeros(N), np.zeros(N, bool), False, status, msg)
+
+    if N < (3 if body_offset else 1):
+        return fail("too_few_samples", f"need >= {3 if body_offset else 1} time-matched pairs, got {N}")
+    require_motion = body_offset if require_motion is None else require_motion
+    X, Y = eye, eye
+    if body_offset or require_motion:
+        a, b = relative_rotvec_pairs(Ra, Rb, min_angle=min_pair_angle)
+        two_axes = False
+        if len(b) >= 2:
+            sv = np.linalg.svd(b, compute_uv=False)
+            two_axes = sv[1] > 1e-3 * sv[0]
+        if two_axes:
+            X = wahba(a, b)  # a ≈ X b
+        elif require_motion:
+            return fail("degenerate_rotation",
+                        "the motion turns about fewer than two axes: the fixed rotations are not observable")
+    if body_offset:
+        Y = chordal_mean(np.swapaxes(Rb, -1, -2) @ X.T @ Ra)
+    inl = np.ones(N, bool)
+    rounds = 2 if outlier_factor is not None else 1
+    for rnd in range(rounds):
+        for _ in range(iterations if body_offset else 1):
+            X = chordal_mean(Ra[inl] @ Y.T @ np.swapaxes(Rb[inl], -1, -2))
+            if not body_offset:
+                break
+            Y_new = chordal_mean(np.swapaxes(Rb[inl], -1, -2) @ X.T @ Ra[inl])
+            done = attitude_error(Y_new, Y) < 1e-12
+            Y = Y_new
+            if done:
+                break
+        d = attitude_error(Ra, X @ Rb @ Y)
+        if rnd == 0 and rounds == 2:
+            inl = d <= max(outlier_factor * float(np.median(d)), 1e-9)
+    n_out = int((~inl).sum())
+    return RotationPairFit(X, Y, d, inl, True, "ok",
+                           f"{N} pairs, {n_out} outliers, rms {np.degrees(np.sqrt(np.mean(d[inl] ** 2))):.3g} deg")
