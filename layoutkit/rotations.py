@@ -8,8 +8,10 @@ frame of a, e.g. body ← camera face). Estimation, after the hand-eye literatur
 1. ``X`` from relative motions (``Y`` cancels): ``log(R_a,j R_a,i^T) = X log(R_b,j R_b,i^T)``,
    a Wahba problem on rotation-vector pairs (Kabsch / :func:`wahba`); needs motion about at least
    two axes, else ``X`` is not observable (status ``"degenerate_rotation"``).
-2. Alternating chordal L2 means (:func:`chordal_mean`): ``X = mean(R_a Y^T R_b^T)``,
-   ``Y = mean(R_b^T X^T R_a)`` until ``Y`` stops changing.
+2. ``Y`` as the chordal L2 mean (:func:`chordal_mean`) of ``R_b^T X^T R_a``, then Gauss-Newton on
+   the geodesic residuals ``log(R_a^T X R_b Y)`` over both (minimum-norm steps: with too little
+   motion the split between X and Y is a gauge the data cannot see, and the residual is still
+   minimised).
 3. Optional outlier round: pairs whose residual exceeds ``outlier_factor`` × the median are
    dropped and the means recomputed once.
 
@@ -89,8 +91,34 @@ class RotationPairFit:
         return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
 
+def _gauss_newton(Ra, Rb, X, Y, body_offset: bool, iterations: int):
+    """Minimise ``sum |log(Ra_i^T X Rb_i Y)|^2`` over X (and Y) from a start, by Gauss-Newton.
+
+    With ``X <- exp([dx]) X`` and ``Y <- Y exp([dy])`` the residual is, to first order,
+    ``e_i + Ra_i^T dx + dy`` (``e_i = log(Ra_i^T X Rb_i Y)``): a linear least-squares step in
+    ``(dx, dy)``; the minimum-norm step handles the gauge that too little motion leaves free.
+    """
+    from .geometry import rotvec_to_matrix
+
+    N = len(Ra)
+    RaT = np.swapaxes(Ra, -1, -2)
+    for _ in range(max(iterations, 1)):
+        e = matrix_to_rotvec(RaT @ X @ Rb @ Y)  # (N, 3)
+        if body_offset:
+            J = np.concatenate([RaT, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=-1).reshape(3 * N, 6)
+        else:
+            J = RaT.reshape(3 * N, 3)
+        step, *_ = np.linalg.lstsq(J, -e.reshape(3 * N), rcond=1e-9)
+        X = rotvec_to_matrix(step[:3]) @ X
+        if body_offset:
+            Y = Y @ rotvec_to_matrix(step[3:])
+        if np.linalg.norm(step) < 1e-12:
+            break
+    return X, Y
+
+
 def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: float | None = 5.0,
-                      iterations: int = 50, min_pair_angle: float = np.deg2rad(5.0),
+                      iterations: int = 10, min_pair_angle: float = np.deg2rad(5.0),
                       require_motion: bool | None = None) -> RotationPairFit:
     """Fixed rotations between time-matched attitude pairs ``R_a, R_b (N, 3, 3)`` (module docstring).
 
@@ -121,20 +149,16 @@ def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: flo
         elif require_motion:
             return fail("degenerate_rotation",
                         "the motion turns about fewer than two axes: the fixed rotations are not observable")
+        elif body_offset:
+            # too little motion to separate X from Y: start from Y = I (X takes the whole offset;
+            # the pair is then determined up to the gauge the data cannot see)
+            X = chordal_mean(Ra @ np.swapaxes(Rb, -1, -2))
     if body_offset:
         Y = chordal_mean(np.swapaxes(Rb, -1, -2) @ X.T @ Ra)
     inl = np.ones(N, bool)
     rounds = 2 if outlier_factor is not None else 1
     for rnd in range(rounds):
-        for _ in range(iterations if body_offset else 1):
-            X = chordal_mean(Ra[inl] @ Y.T @ np.swapaxes(Rb[inl], -1, -2))
-            if not body_offset:
-                break
-            Y_new = chordal_mean(np.swapaxes(Rb[inl], -1, -2) @ X.T @ Ra[inl])
-            done = attitude_error(Y_new, Y) < 1e-12
-            Y = Y_new
-            if done:
-                break
+        X, Y = _gauss_newton(Ra[inl], Rb[inl], X, Y, body_offset, iterations)
         d = attitude_error(Ra, X @ Rb @ Y)
         if rnd == 0 and rounds == 2:
             inl = d <= max(outlier_factor * float(np.median(d)), 1e-9)

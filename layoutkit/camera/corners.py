@@ -29,7 +29,7 @@ from .._validate import as_array
 from .conventions import pixels_to_paper_uv
 from .rectangle import order_corners
 
-__all__ = ["QuadDetection", "detect_quadrilateral", "corners_to_paper"]
+__all__ = ["QuadDetection", "detect_quadrilateral", "corners_to_paper", "line_corner_covariance"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,11 @@ class QuadDetection:
     success, status ("ok", "no_contour", "not_quadrilateral", "touches_border", "refine_failed"),
     message; rms_px : RMS edge-point distance to the fitted side lines (px);
     n_points : (4,) edge points used per side; initial_px : (4, 2) contour-based corners.
+    corner_cov_px : (8, 8) predicted covariance (px²) of ``corners_px`` flattened (x1, y1, ..., y4):
+        each side's line fit has offset variance ``s²/n_eff`` and angle variance
+        ``s²/sum((t - t̄)²)`` (s the side's residual RMS, one independent edge sample per pixel
+        of side length: the 0.5 px profiles share pixels), propagated through the corner
+        intersections (:func:`line_corner_covariance`).
     """
 
     corners_px: np.ndarray
@@ -50,6 +55,7 @@ class QuadDetection:
     rms_px: float = float("nan")
     n_points: tuple = (0, 0, 0, 0)
     initial_px: np.ndarray | None = None
+    corner_cov_px: np.ndarray | None = None
 
 
 def _fail(status, message, initial=None):
@@ -81,12 +87,40 @@ def _line_intersections(points, dirs):
     return out
 
 
+def line_corner_covariance(points, dirs, var_offset, var_angle, h: float = 1e-4) -> np.ndarray:
+    """Covariance ``(8, 8)`` of the corners of four lines with independent offset / angle errors.
+
+    points, dirs : (4, 2) a point (the fit's centroid) and unit direction per side; var_offset,
+    var_angle : (4,) px² and rad². Corners as :func:`_line_intersections`; Jacobian by central
+    differences in (offset along the normal, rotation about the point) of each line.
+    """
+    P = np.asarray(points, float)
+    D = np.asarray(dirs, float)
+    J = np.zeros((8, 8))
+    for i in range(4):
+        n = np.array([D[i, 1], -D[i, 0]])
+        for k, (dp, da) in enumerate(((h * n, 0.0), (np.zeros(2), h))):
+            out = []
+            for sgn in (1.0, -1.0):
+                Pp, Dp = P.copy(), D.copy()
+                Pp[i] = P[i] + sgn * dp
+                a = sgn * da
+                c, s_ = np.cos(a), np.sin(a)
+                Dp[i] = np.array([c * D[i, 0] - s_ * D[i, 1], s_ * D[i, 0] + c * D[i, 1]])
+                out.append(_line_intersections(Pp, Dp).ravel())
+            J[:, 2 * i + k] = (out[0] - out[1]) / (2 * h)
+    var = np.empty(8)
+    var[0::2] = var_offset
+    var[1::2] = var_angle
+    return (J * var) @ J.T
+
+
 def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
     import cv2
     from scipy.ndimage import map_coordinates
 
     cen = quad.mean(0)
-    pts_all, dirs, nps, resid = [], [], [], []
+    pts_all, dirs, nps, resid, var_off, var_ang = [], [], [], [], [], []
     offs = np.arange(-half, half + 1e-9, 0.25)
     for i in range(4):
         p0, p1 = quad[i], quad[(i + 1) % 4]
@@ -130,6 +164,11 @@ def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
         dl = np.array([vx, vy], float)
         pl = np.array([x0, y0], float)
         r = (pts - pl) @ np.array([dl[1], -dl[0]])
+        tpos = (pts - pl) @ dl
+        n_eff = max(len(pts) * step_px, 2.0)  # one independent edge sample per pixel of side
+        s2 = float(np.sum(r ** 2) / max(len(pts) - 2, 1))
+        var_off.append(s2 / n_eff)
+        var_ang.append(s2 / max(np.sum((tpos - tpos.mean()) ** 2) * step_px, 1e-12))
         pts_all.append(pl)
         dirs.append(dl)
         nps.append(len(pts))
@@ -139,7 +178,8 @@ def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
     except np.linalg.LinAlgError:
         return None
     rms = float(np.sqrt(np.mean(np.concatenate(resid) ** 2)))
-    return corners, rms, tuple(nps)
+    cov = line_corner_covariance(np.array(pts_all), np.array(dirs), np.array(var_off), np.array(var_ang))
+    return corners, rms, tuple(nps), cov
 
 
 def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, invert: bool = False,
@@ -199,17 +239,17 @@ def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, in
     if quad0 is None:
         return _fail("not_quadrilateral", "the region's outline is not four-sided")
     quad = quad0
-    rms, nps = float("nan"), (0, 0, 0, 0)
+    rms, nps, cov = float("nan"), (0, 0, 0, 0), None
     for _ in range(2):
         out = _refine(img, quad, corner_margin, profile_half_px, 0.5, min_contrast, outer_px)
         if out is None:
             return _fail("refine_failed", "too few edge points on a side", quad0)
-        quad, rms, nps = out
+        quad, rms, nps, cov = out
     if max_shift_px is None:
         max_shift_px = 3.0 + 0.03 * float(np.mean(np.linalg.norm(quad0 - np.roll(quad0, 1, axis=0), axis=1)))
     if np.max(np.linalg.norm(quad - quad0, axis=1)) > max_shift_px:
         return _fail("refine_failed", "refined corners moved too far from the contour corners", quad0)
-    return QuadDetection(quad, True, "ok", "ok", rms, nps, quad0)
+    return QuadDetection(quad, True, "ok", "ok", rms, nps, quad0, cov)
 
 
 def corners_to_paper(corners_px, principal_point, first: int | None = None) -> np.ndarray:

@@ -27,6 +27,7 @@ from .rectangle import resolve_labelling, solve_rectangle
 
 __all__ = [
     "AttitudeStream",
+    "CornerTracker",
     "track_corners",
     "read_corners_csv",
     "iter_frames",
@@ -54,12 +55,72 @@ class AttitudeStream:
     corners_uv: np.ndarray
     rms_px: np.ndarray
     meta: dict = field(default_factory=dict)
+    message: str = ""
 
 
 def _label_folds(method: str, aspect_ratio) -> int:
     if method == "ippe" and aspect_ratio is not None and not np.isclose(float(aspect_ratio), 1.0):
         return 2
     return 4
+
+
+_SHIFT_ONE = np.array([1, 3, 0, 2])  # P1..P4 relabelled one corner further round the face
+
+
+class CornerTracker:
+    """Incremental form of :func:`track_corners`: feed one corner set at a time (live mode).
+
+    ``update(t, corners_uv (4, 2)) -> (rotation (3, 3) or None, status, solution)``; the state is
+    the last ``predict_window`` solutions (the reference for labelling / IPPE branch choice).
+    ``last_corners`` holds the corners in the order the last solve used (IPPE on a non-square
+    face may relabel them one corner round).
+    """
+
+    def __init__(self, focal_length, method: str = "zhai", initial=None, n_fold: int | None = None,
+                 predict_window: int = 10, **options):
+        self.focal_length = float(focal_length)
+        self.method = method
+        self.options = options
+        self.n_fold = _label_folds(method, options.get("aspect_ratio")) if n_fold is None else n_fold
+        self.ref = None if initial is None else as_array(initial, "initial", (3, 3))
+        self.predict_window = predict_window
+        self.last = []  # (t, R) of the last predict_window solutions
+        self.last_corners = None
+
+    def update(self, t: float, corners_uv):
+        from ..geometry import matrix_to_rotvec, rotvec_to_matrix
+
+        c = np.asarray(corners_uv, float)
+        if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+            return None, "no_corners", None
+        last, ref = self.last, self.ref
+        if self.predict_window > 1 and len(last) >= 2 and last[-1][0] > last[0][0]:
+            w = matrix_to_rotvec(last[-1][1] @ last[0][1].T) / (last[-1][0] - last[0][0])
+            ref = rotvec_to_matrix(w * (t - last[-1][0])) @ last[-1][1]
+        opts = dict(self.options)
+        if self.method == "ippe" and ref is not None:
+            opts["reference"] = ref
+        sol = solve_rectangle(c, self.focal_length, method=self.method, **opts)
+        if self.n_fold == 2 and self.method == "ippe":
+            # a non-square face: which pair of sides is the long one is data, not labelling —
+            # the corner order shifted by one round the face (P1 P2 P4 P3 → P2 P4 P3 P1) is
+            # tried too and the lower reprojection error wins
+            alt = solve_rectangle(c[_SHIFT_ONE], self.focal_length, method=self.method, **opts)
+            e0 = sol.extra["reprojection_px"][0] if bool(sol.success) else np.inf
+            e1 = alt.extra["reprojection_px"][0] if bool(alt.success) else np.inf
+            if e1 < e0:
+                sol, c = alt, c[_SHIFT_ONE]
+        status = str(sol.status)
+        self.last_corners = c
+        if not bool(sol.success):
+            self.ref = ref
+            return None, status, sol
+        Rk = sol.rotation  # for IPPE the solver already chose the branch (data first, then reference)
+        if ref is not None:
+            Rk = resolve_labelling(Rk, ref, self.n_fold)
+        self.ref = Rk
+        self.last = (last + [(t, Rk)])[-max(self.predict_window, 1):]
+        return Rk, status, sol
 
 
 def track_corners(times, corners_uv, focal_length, method: str = "zhai", initial=None,
@@ -75,37 +136,21 @@ def track_corners(times, corners_uv, focal_length, method: str = "zhai", initial
         previous" cannot tell which one continues.
     options : passed to the solver (e.g. ``aspect_ratio`` for "ippe").
     """
-    from ..geometry import matrix_to_rotvec, rotvec_to_matrix
-
     t = as_array(times, "times", (None,))
     c = as_array(corners_uv, "corners_uv", (None, 4, 2))
     if len(t) != len(c):
         raise ValueError(f"times: expected {len(c)} values (one per corner set), got {len(t)}")
-    n_fold = _label_folds(method, options.get("aspect_ratio")) if n_fold is None else n_fold
-    ref = None if initial is None else as_array(initial, "initial", (3, 3))
+    tracker = CornerTracker(focal_length, method, initial, n_fold, predict_window, **options)
     R = np.full((len(t), 3, 3), np.nan)
     ok = np.zeros(len(t), bool)
     status = np.full(len(t), "no_corners", dtype=object)
-    last = []  # (t, R) of the last predict_window solutions
     for k in range(len(t)):
-        if not np.all(np.isfinite(c[k])):
-            continue
-        if predict_window > 1 and len(last) >= 2 and last[-1][0] > last[0][0]:
-            w = matrix_to_rotvec(last[-1][1] @ last[0][1].T) / (last[-1][0] - last[0][0])
-            ref = rotvec_to_matrix(w * (t[k] - last[-1][0])) @ last[-1][1]
-        opts = dict(options)
-        if method == "ippe" and ref is not None:
-            opts["reference"] = ref
-        sol = solve_rectangle(c[k], focal_length, method=method, **opts)
-        status[k] = str(sol.status)
-        if not bool(sol.success):
-            continue
-        Rk = sol.rotation  # for IPPE the solver already chose the branch (data first, then reference)
-        if ref is not None:
-            Rk = resolve_labelling(Rk, ref, n_fold)
-        R[k], ok[k], ref = Rk, True, Rk
-        last = (last + [(t[k], Rk)])[-max(predict_window, 1):]
-    return AttitudeStream(t, R, ok, status.astype(str), c, np.full(len(t), np.nan), {"method": method})
+        Rk, status[k], _ = tracker.update(t[k], c[k])
+        if Rk is not None:
+            R[k], ok[k] = Rk, True
+    n_ok = int(ok.sum())
+    return AttitudeStream(t, R, ok, status.astype(str), c, np.full(len(t), np.nan), {"method": method},
+                          message=f"{n_ok} of {len(t)} frames solved")
 
 
 def read_corners_csv(path, principal_point=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -215,7 +260,8 @@ def attitude_stream(source, focal_length_px: float, principal_point=None, method
         raise ValueError(f"{source}: no frames")
     s = track_corners(np.array(ts), np.array(qs), focal_length_px, method=method, initial=initial, **solver_options)
     status = np.where(np.array(st) == "ok", s.status, np.array(st))
-    return AttitudeStream(s.t, s.rotation, s.success, status, s.corners_uv, np.array(rms), s.meta)
+    return AttitudeStream(s.t, s.rotation, s.success, status, s.corners_uv, np.array(rms), s.meta,
+                          message=f"{int(s.success.sum())} of {len(ts)} frames solved")
 
 
 # ----------------------------------------------------------------------------- alignment

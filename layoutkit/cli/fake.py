@@ -38,9 +38,24 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
               help="Real-time speed factor.")
 @click.option("--wait-reader", "wait_reader_s", type=float, default=None,
               help="With a pty: give up when no reader opened it within this many seconds [default: wait].")
+@click.option("--tumble-rate-deg-s", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Largest angular rate of --motion tumble, deg/s [default: 0.5, a slow static-like tumble].")
+@click.option("--camera-out", "camera_out", type=click.Path(file_okay=False), default=None,
+              help="Also render the bench camera's view of the same trajectory into this folder "
+                   "(frames + index.csv + camera.json with the truth); the focal length used is printed.")
+@click.option("--focal-length-px", "focal_length_px", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Bench camera focal length, px [default: the face spans ~1/5 of the image].")
+@click.option("--camera-fps", type=click.FloatRange(min=0.0, min_open=True), default=30.0, show_default=True,
+              help="Bench camera frame rate, frames per camera second.")
+@click.option("--camera-size", default="640x480", show_default=True, metavar="WxH", help="Bench camera image size, px.")
+@click.option("--camera-clock-offset-s", type=float, default=0.37, show_default=True,
+              help="Camera clock minus device clock at device time 0, s.")
+@click.option("--camera-clock-drift-ppm", type=float, default=50.0, show_default=True,
+              help="Camera clock rate error, ppm (t_cam = (1 + drift) t_dev + offset).")
 @json_flag(help="Print the summary as JSON.")
 def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s, seed, protocol, motion, dropout,
-              frame_loss, garbage, sigma, rho, realtime, speed, wait_reader_s, as_json):
+              frame_loss, garbage, sigma, rho, realtime, speed, wait_reader_s, tumble_rate_deg_s, camera_out,
+              focal_length_px, camera_fps, camera_size, camera_clock_offset_s, camera_clock_drift_ppm, as_json):
     """Hardware simulator: emit an FPGA board's exact bytes for a layout in motion.
 
     Without --out a pseudo-terminal is opened and its device path printed (first line,
@@ -60,12 +75,28 @@ def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s
         click.echo(f"device: {path}")
         sys.stdout.flush()
 
+    camera = None
+    if camera_out is not None:
+        try:
+            w, h = (int(v) for v in camera_size.lower().split("x"))
+        except ValueError:
+            fail(f"--camera-size: expected WxH in pixels, got {camera_size!r}")
+        camera = dict(folder=camera_out, focal_length_px=focal_length_px, fps=camera_fps, size=(w, h),
+                      clock_offset_s=camera_clock_offset_s, clock_drift=camera_clock_drift_ppm * 1e-6)
+
+    def camera_done(cs):
+        click.echo(f"camera: {cs['frames']} frames in {cs['folder']}, focal length {cs['focal_length_px']:g} px, "
+                   f"face aspect ratio {cs['aspect_ratio']:.4g}", err=as_json)
+
     try:
         layout = load_layout(layout_path)
         summary = run_fake(layout, out=out, link=link, truth_path=truth_path, realtime=realtime, speed=speed,
                            wait_reader_s=wait_reader_s, overwrite=overwrite, on_ready=ready, duration_s=duration_s, seed=seed,
                            protocol=protocol, motion=motion, dropout=dropout, frame_loss=frame_loss,
-                           garbage=garbage, sigma=sigma, rho=rho)
+                           garbage=garbage, sigma=sigma, rho=rho, tumble_rate_deg_s=tumble_rate_deg_s,
+                           camera=camera, on_camera=camera_done)
+    except FileExistsError as exc:
+        fail(str(exc))
     except (ValueError, TimeoutError, ReaderGone) as exc:
         fail(str(exc))
     except OSError as exc:

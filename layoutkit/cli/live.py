@@ -6,7 +6,7 @@ import sys
 
 import click
 
-from .options import (filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
+from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, units_option)
 
 _common_options = [
@@ -34,6 +34,53 @@ _common_options = [
                       "poses (LH1; for fast motion: RMS 2.1x -> 1.0x the DOP prediction at 20 deg/s; costs speed)."),
     json_flag(help="Print the run summary as JSON."),
 ]
+
+
+def _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
+                   corner_sigma_px, folder=None):
+    """A :class:`CameraConfig` from the camera flags (None without a camera), with the capture
+    folder's ``camera.json`` filling what the flags leave out."""
+    from pathlib import Path
+
+    from ._common import fail
+
+    src = camera_device if camera_device is not None else folder
+    if src is None:
+        return None
+    from ..io.camera import read_camera_meta
+    from ..live.camera import CameraConfig
+
+    meta = read_camera_meta(src) if Path(str(src)).is_dir() else None
+    f = focal_length_px or (meta.focal_length_px if meta else None)
+    if f is None:
+        if camera_device is None:
+            return None
+        fail("--focal-length-px: required with --camera-device (no camera.json beside the frames names one)")
+    ar = aspect_ratio if aspect_ratio is not None else (meta.aspect_ratio if meta else None)
+    try:
+        return CameraConfig(float(f), principal_point_px or (meta.principal_point_px if meta else None),
+                            camera_method, ar, corner_sigma_px)
+    except ValueError as exc:
+        fail(str(exc))
+
+
+def _print_camera(summary: dict, err: bool) -> None:
+    c = summary.get("camera")
+    if not isinstance(c, dict) or "frames" not in c:
+        return
+    lines = [f"camera: {c.get('frames')} frames, {c.get('solved')} solved"
+             + (f"  ({', '.join(f'{k} {v}' for k, v in (c.get('by_status') or {}).items() if k != 'ok')})"
+                if c.get("by_status") and len(c["by_status"]) > 1 else "")]
+    clk = c.get("clock") or {}
+    if clk.get("message"):
+        lines.append(f"camera clock: {clk['message']}")
+    if c.get("disagreement_rms_deg") is not None:
+        lines.append(f"lighthouse vs camera: {c.get('message')} (ratio {c.get('ratio') or float('nan'):.3f}); "
+                     f"{c.get('face_on_frames')} face-on frames, {c.get('mirror_branch_frames')} on the mirror branch")
+    elif c.get("message"):
+        lines.append(f"lighthouse vs camera: {c['message']}")
+    for ln in lines:
+        click.echo(ln, err=err)
 
 
 def _add(options):
@@ -91,7 +138,7 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
                          f"{e['max_trans_m'] * 1e3:.2f} mm over {e['n']} frames")
     for name in ("reference", "camera"):
         r = summary.get(name)
-        if r:
+        if r and not (name == "camera" and "frames" in r):  # the live camera stream: _print_camera
             e = r.get("errors")
             a = r.get("alignment") or {}
             if e:
@@ -130,29 +177,38 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @click.argument("capture", type=click.Path(dir_okay=False))
 @_add(_common_options)
 @filter_options
+@camera_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
-               report_dir, rho, sigma, motion_compensation, as_json, filter_settings):
+               report_dir, rho, sigma, motion_compensation, as_json, filter_settings, camera_device,
+               focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
     present. Poses are body poses in the station frame (m, rad); t is the device time base of
-    the simulator's TRUTH.csv.
+    the simulator's TRUTH.csv. With --camera-device DIR (or a CAPTURE.camera/ folder beside the
+    capture) the camera frames are solved too and compared with the poses (summary "camera").
     """
-    from ..workflows.live import replay_capture
+    from ..workflows.live import camera_folder_for, replay_capture
     from ._common import fail
 
     opts = _options(rho, sigma, live=False, motion_compensation=motion_compensation,
                     filter_settings=filter_settings)
+    beside = camera_folder_for(capture)
+    cam_cfg = _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
+                             corner_sigma_px, folder=beside if beside.is_dir() else None)
     try:
         summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
                                  reference=reference, reference_units=reference_units,
                                  reference_offset=reference_offset, camera=camera,
-                                 json_out=sys.stdout if json_lines else None, report_dir=report_dir)
+                                 json_out=sys.stdout if json_lines else None, report_dir=report_dir,
+                                 camera_device=camera_device, camera_config=cam_cfg)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
+    if not as_json:
+        _print_camera(summary, err=json_lines)
     dec = summary.get("decode") or {}
     if not dec.get("good"):  # nothing decodable: not a capture, or another protocol
         n_in = dec.get("bytes_in", 0)

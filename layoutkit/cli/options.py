@@ -31,7 +31,7 @@ __all__ = [
     "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
-    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION",
+    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options",
     "system_config_option", "stations_option",
 ]
 
@@ -385,3 +385,28 @@ def time_limit_option(f=None, *, help: str = "Wall-time budget, s."):
     deco = click.option("--time-limit-s", "time_limit_s", type=click.FloatRange(min=0.0, min_open=True),
                         default=None, help=help)
     return deco(f) if f is not None else deco
+
+
+def camera_options(f):
+    """The live camera stream: ``--camera-device``, ``--focal-length-px``, ``--principal-point-px``,
+    ``--camera-method``, ``--aspect-ratio``, ``--corner-sigma-px`` (used by ``live`` and ``replay``).
+    The command receives ``camera_device, focal_length_px, principal_point_px, camera_method,
+    aspect_ratio, corner_sigma_px``."""
+    opts = [
+        click.option("--camera-device", "camera_device", default=None, metavar="INDEX|URL|FILE|DIR",
+                     help="Camera stream beside the serial stream: an OpenCV device index, a stream URL, a video "
+                          "file or an image folder (a camera capture folder plays at its recorded timing)."),
+        click.option("--focal-length-px", "focal_length_px", type=click.FloatRange(min=0.0, min_open=True),
+                     default=None, help="Camera focal length, px [default: the capture folder's camera.json]."),
+        click.option("--principal-point-px", "principal_point_px", type=(float, float), default=None,
+                     metavar="CX CY", help="Principal point, px [default: the image centre]."),
+        click.option("--camera-method", "camera_method", type=registry_choice("layoutkit.camera.rectangle:RECTANGLE_SOLVERS"), default="ippe",
+                     show_default=True, help="Rectangle-face attitude solver."),
+        click.option("--aspect-ratio", "aspect_ratio", type=click.FloatRange(min=0.0, min_open=True), default=None,
+                     help="Face aspect ratio L/W [default: the capture folder's camera.json, else 1]."),
+        click.option("--corner-sigma-px", "corner_sigma_px", type=click.FloatRange(min=0.0, min_open=True),
+                     default=None, help="Corner noise per coordinate, px [default: estimated from the residuals]."),
+    ]
+    for o in reversed(opts):
+        f = o(f)
+    return f

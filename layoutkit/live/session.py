@@ -64,7 +64,7 @@ class LiveSession:
         self.static = StaticGroupTracker(o.sigma_theta, o.static_window, o.static_factor)
         self.truth_err = ErrorAccumulator(o.sigma_theta, o.series_capacity) if self.truth is not None else None
         # decimated good poses (t, rotvec, translation) for reference alignment, and DOP series for plots
-        self.pose_sample = DecimatedSeries(7, o.series_capacity)
+        self.pose_sample = DecimatedSeries(8, o.series_capacity)  # t, rotvec, translation, adop
         self.dop_series = DecimatedSeries(4, o.series_capacity)  # t, adop, pdop, n_lit
         self._poses = None
         if self.poses_path is not None:
@@ -125,7 +125,7 @@ class LiveSession:
         if not g.any():
             return
         t, R, tr, a, p = ch.t[g], ch.rotation[g], ch.translation[g], ch.adop[g], ch.pdop[g]
-        self.pose_sample.extend(np.column_stack([t, ch.rotvec[g], tr]))
+        self.pose_sample.extend(np.column_stack([t, ch.rotvec[g], tr, a]))
         self.static.update(t, R, tr, a, p)
         if self.truth_err is not None:
             Rr, trr, v = self.truth.at(t)

@@ -12,7 +12,7 @@ from pathlib import Path
 from ..layout import Layout
 from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 
-__all__ = ["FakeStream", "fake_fpga_stream", "run_fake"]
+__all__ = ["FakeStream", "fake_fpga_stream", "run_fake", "render_camera"]
 
 
 @dataclass(frozen=True)
@@ -32,12 +32,14 @@ def _check_probability(name: str, p: float) -> None:
 
 def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protocol: str = "layoutkit",
                      motion="tumble", dropout: float = 0.0, frame_loss: float = 0.0, garbage: float = 0.0,
-                     sigma: float = SIGMA_THETA_PAPER, rho: float = RHO_PAPER) -> FakeStream:
+                     sigma: float = SIGMA_THETA_PAPER, rho: float = RHO_PAPER,
+                     tumble_rate_deg_s: float | None = None) -> FakeStream:
     """The simulated device output for ``layout`` over ``duration_s`` seconds.
 
     motion : ``"tumble"``, ``"static"``, a trajectory pose table path (:mod:`layoutkit.io.poses`)
     or a :class:`layoutkit.live.simulator.Trajectory`. sigma : sweep-angle noise, rad; rho :
-    same-rotor correlation in [0, 1). ValueError (naming the option) for bad input.
+    same-rotor correlation in [0, 1). tumble_rate_deg_s : largest angular rate of the tumble (default
+    0.5°/s). ValueError (naming the option) for bad input.
     """
     from ..io.stations import station_to_dict
     from ..live.protocols import protocol_entry
@@ -52,6 +54,15 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
         if not Path(motion).is_file():
             raise ValueError(f"--motion: expected tumble, static or a trajectory CSV file, got {str(motion)!r}")
         motion = load_trajectory(motion)
+    if tumble_rate_deg_s is not None:
+        if motion_name != "tumble":
+            raise ValueError("--tumble-rate-deg-s: only with --motion tumble")
+        import numpy as np
+
+        from ..live.simulator import tumble_trajectory
+
+        motion = tumble_trajectory(layout, duration_s, np.random.default_rng(seed),
+                                   max_rate=np.deg2rad(tumble_rate_deg_s))
     chunks, sw = simulate_stream(layout, duration=duration_s, seed=seed, protocol=protocol, motion=motion,
                                  dropout=dropout, frame_loss=frame_loss, garbage=garbage, sigma=sigma, rho=rho)
     sidecar = {
@@ -62,14 +73,15 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
         "layout": layout.to_dict(),
         "stations": [station_to_dict(s) for s in sw.stations],
         "port": {"url": None, "baudrate": None},
-        "simulator": {"seed": seed, "duration_s": duration_s, "motion": motion_name, **sw.info},
+        "simulator": {"seed": seed, "duration_s": duration_s, "motion": motion_name,
+                      "tumble_rate_deg_s": tumble_rate_deg_s, **sw.info},
     }
     return FakeStream(chunks, sw, sidecar)
 
 
 def run_fake(layout: Layout, *, out=None, link=None, truth_path=None, realtime: bool | None = None,
              speed: float = 1.0, wait_reader_s: float | None = None, overwrite: bool = False, on_ready=None,
-             **stream_kw) -> dict:
+             camera: dict | None = None, on_camera=None, **stream_kw) -> dict:
     """Simulate (:func:`fake_fpga_stream` with ``stream_kw``), write the truth, emit the bytes.
 
     out : capture file (+ ``.idx`` and ``.json`` sidecar); None: a pseudo-terminal, whose path is
@@ -78,14 +90,40 @@ def run_fake(layout: Layout, *, out=None, link=None, truth_path=None, realtime: 
     one row per sweep). Returns the emit summary with
     ``sweeps``, ``frames_sent``, ``truth`` and ``protocol``. Raises ValueError (bad input),
     TimeoutError / :class:`layoutkit.live.simulator.ReaderGone` (pty reader) and OSError.
+    camera : render the bench camera's view of the same trajectory first (:func:`render_camera`
+    keywords: ``folder``, ``focal_length_px``, ``fps``, ``size``, ``clock_offset_s``, ``clock_drift``);
+    ``on_camera(summary)`` is told when it is written (before streaming starts).
     """
     from ..live.simulator import run_fake_fpga, write_truth
 
     st = fake_fpga_stream(layout, **stream_kw)
     if truth_path:
         write_truth(st.sweeps, truth_path)
+    cam = None
+    if camera is not None:
+        cam = render_camera(st.sweeps, seed=stream_kw.get("seed", 0), duration_s=stream_kw["duration_s"], **camera)
+        if on_camera is not None:
+            on_camera(cam)
     summary = run_fake_fpga(st.chunks, out=out, realtime=realtime, link=link, on_ready=on_ready, speed=speed,
                             sidecar=st.sidecar, wait_reader=wait_reader_s, overwrite=overwrite)
     summary.update({"sweeps": int(len(st.sweeps.t)), "frames_sent": int(st.sweeps.emitted.sum()),
-                    "truth": None if truth_path is None else str(truth_path), "protocol": st.sidecar["protocol"]})
+                    "truth": None if truth_path is None else str(truth_path), "protocol": st.sidecar["protocol"],
+                    "camera": cam})
     return summary
+
+
+def render_camera(sweeps, *, folder, duration_s: float, seed: int = 0, focal_length_px: float | None = None,
+                  fps: float = 30.0, size=(640, 480), clock_offset_s: float = 0.37, clock_drift: float = 50e-6) -> dict:
+    """Render the bench camera stream (:mod:`layoutkit.live.camera_sim`) for simulated ``sweeps``
+    into the camera capture folder ``folder`` (refused if one is there). Returns its summary."""
+    import numpy as np
+
+    from ..live.camera_sim import bench_camera_for, render_camera_stream
+    from ..live.simulator import Trajectory
+
+    traj = Trajectory(sweeps.t, sweeps.rotvec, sweeps.translation)
+    R0, t0 = traj(np.array([sweeps.t[0]]))
+    cam = bench_camera_for(R0[0], t0[0], focal_length_px=focal_length_px, width=int(size[0]), height=int(size[1]),
+                           fps=fps, rng=np.random.default_rng(seed), clock_offset_s=clock_offset_s,
+                           clock_drift=clock_drift)
+    return render_camera_stream(cam, traj, duration_s, folder, seed=seed, t_start=float(sweeps.t[0]))

@@ -123,7 +123,7 @@ def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, option
 
 
 def _finish_run(session: LiveSession, summary: dict, *, reference=None, reference_units="m", camera=None,
-                report_dir=None, reference_offset=None) -> dict:
+                report_dir=None, reference_offset=None, camera_frames=None) -> dict:
     from ..live.reference import read_pose_csv
 
     sample = session.pose_track()
@@ -139,6 +139,21 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
                                  tau=tau)
         extra_series[key] = res.pop("series", None)
         summary[key] = res
+    if camera_frames is not None:
+        from ..live.crosscheck import camera_crosscheck
+        from ..live.camera_report import write_camera_plots
+
+        frames, info = camera_frames
+        a = session.pose_sample.array()
+        cc = camera_crosscheck(a[:, 0], rotvec_to_matrix(a[:, 1:4]), a[:, 7], session.options.sigma_theta,
+                               frames.arrays(), truth=info.get("truth"), camera_counts=frames.counts(),
+                               clock=info.get("clock"), alignment=info.get("alignment"),
+                               corner_sigma_px=info.get("corner_sigma_px"))
+        cam = dict(cc.summary)
+        cam.update({k: v for k, v in info.items() if k not in ("truth", "clock", "alignment")})
+        summary["camera"] = cam
+        if report_dir is not None and cc.series:
+            summary.setdefault("camera_report", write_camera_plots(report_dir, cc))
     if session.truth_err is not None:
         extra_series["truth"] = session.truth_err.series.array()
     if report_dir is not None:
@@ -151,14 +166,19 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
 
 def replay_capture(capture, layout=None, *, protocol: str | None = None, options: LiveConfig | None = None,
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
-                   camera=None, json_out=None, report_dir=None, on_progress=None) -> dict:
+                   camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
+                   camera_config=None) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
     layout : path or :class:`Layout` (default: from the sidecar). truth : TRUTH.csv (station frame,
     no alignment); reference : motion-capture CSV; camera : camera attitude CSV (both aligned in
     time and frame from the data; ``reference_offset`` s fixes the clock offset instead). json_out : stream for ``--json-lines``. report_dir : write
-    ``report.json``, plots and ``poses.csv`` there.
+    ``report.json``, plots and ``poses.csv`` there. camera_device : a camera capture folder
+    (``fake-fpga --camera-out`` or a live session's ``CAPTURE.camera/``) solved with
+    ``camera_config`` (:class:`layoutkit.live.camera.CameraConfig`) and compared with the poses
+    (:func:`layoutkit.live.crosscheck.camera_crosscheck`); default: ``CAPTURE.camera/`` when it exists
+    and a config is given.
     """
     from ..io.sidecar import read_sidecar
 
@@ -187,8 +207,31 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
         summary = s.finish()
         summary["capture"] = str(capture)
         summary["protocol"] = _protocol_from(sidecar, protocol)[0]
+        cam = _camera_from_folder(capture, camera_device, camera_config)
         return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
-                           report_dir=report_dir, reference_offset=reference_offset)
+                           report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
+
+
+def camera_folder_for(capture) -> Path:
+    """Where a live session keeps the camera frames of capture ``capture``: ``CAPTURE.camera/``."""
+    capture = Path(capture)
+    return capture.with_name(capture.name + ".camera")
+
+
+def _camera_from_folder(capture, camera_device, camera_config):
+    """Solve a camera capture folder for replay: ``(CameraFrames, info)`` or None."""
+    from ..io.camera import read_camera_meta
+    from ..live.camera import process_camera_folder
+
+    folder = Path(camera_device) if camera_device is not None else camera_folder_for(capture)
+    if camera_config is None or not folder.is_dir():
+        if camera_device is not None and not folder.is_dir():
+            raise ValueError(f"{folder}: no camera capture folder")
+        return None
+    meta = read_camera_meta(folder)
+    frames, info = process_camera_folder(folder, camera_config)
+    info.update(truth=meta.truth, source=meta.source, clock_kind=meta.clock)
+    return frames, info
 
 
 def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveConfig | None = None,
