@@ -74,7 +74,9 @@ class RotationPairFit:
 
     X, Y : (3, 3). residual_rad : (N,) attitude error of ``R_a`` vs ``X R_b Y`` per pair.
     inlier : (N,) bool, pairs used in the final means. success, status ("ok", "too_few_samples",
-    "degenerate_rotation"), message.
+    "degenerate_rotation"), message. cov : (6, 6) (or (3, 3) without a body offset) covariance of
+    the small-angle errors of (X, Y), rad², from the Gauss-Newton normal matrix and the residual
+    scatter — large where the motion does not separate X from Y.
     """
 
     X: np.ndarray
@@ -84,6 +86,19 @@ class RotationPairFit:
     success: bool
     status: str
     message: str
+    cov: np.ndarray | None = None
+
+    @property
+    def X_sigma_rad(self) -> float:
+        """1-sigma attitude uncertainty of X, rad (sqrt of the trace of its block)."""
+        return float(np.sqrt(np.trace(self.cov[:3, :3]))) if self.cov is not None else float("nan")
+
+    @property
+    def Y_sigma_rad(self) -> float:
+        """1-sigma attitude uncertainty of Y, rad (NaN without a body offset)."""
+        if self.cov is None or self.cov.shape[0] < 6:
+            return float("nan")
+        return float(np.sqrt(np.trace(self.cov[3:, 3:])))
 
     @property
     def rms_rad(self) -> float:
@@ -163,5 +178,19 @@ def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: flo
         if rnd == 0 and rounds == 2:
             inl = d <= max(outlier_factor * float(np.median(d)), 1e-9)
     n_out = int((~inl).sum())
+    cov = _fit_covariance(Ra[inl], Rb[inl], X, Y, body_offset)
     return RotationPairFit(X, Y, d, inl, True, "ok",
-                           f"{N} pairs, {n_out} outliers, rms {np.degrees(np.sqrt(np.mean(d[inl] ** 2))):.3g} deg")
+                           f"{N} pairs, {n_out} outliers, rms {np.degrees(np.sqrt(np.mean(d[inl] ** 2))):.3g} deg",
+                           cov)
+
+
+def _fit_covariance(Ra, Rb, X, Y, body_offset):
+    N = len(Ra)
+    RaT = np.swapaxes(Ra, -1, -2)
+    e = matrix_to_rotvec(RaT @ X @ Rb @ Y)
+    p = 6 if body_offset else 3
+    if 3 * N <= p:
+        return None
+    J = (np.concatenate([RaT, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=-1) if body_offset else RaT).reshape(3 * N, p)
+    s2 = float(np.sum(e ** 2)) / (3 * N - p)
+    return s2 * np.linalg.pinv(J.T @ J, rcond=1e-12)

@@ -238,9 +238,11 @@ def _quiet_exit():
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
 @filter_options
+@camera_options
 def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
-             as_json, filter_settings):
+             as_json, filter_settings, camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
+             corner_sigma_px):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
@@ -249,6 +251,8 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
     could not be written (disk full: the capture keeps what was written, the report is still made).
     Without a dashboard the waiting state is printed to stderr while the port is not connected.
     A reconnect reads only the device first opened (same path and device identity), else refuses.
+    With --camera-device the camera stream runs beside the serial stream (own threads; frames kept
+    raw in RECORD.camera/ before solving) and the dashboard shows their disagreement.
     """
     from ..workflows.live import run_live
     from ._common import fail
@@ -262,7 +266,9 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
-              idle_timeout=idle_timeout, overwrite=overwrite)
+              idle_timeout=idle_timeout, overwrite=overwrite, camera_device=camera_device,
+              camera_config=_camera_config(camera_device, focal_length_px, principal_point_px, camera_method,
+                                           aspect_ratio, corner_sigma_px))
     try:
         if json_lines or no_dashboard or not sys.stderr.isatty():
             summary = run_live(port, layout_path, on_status=lambda m: click.echo(m, err=True), **kw)
@@ -276,6 +282,8 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
     _print_summary(summary, as_json, err=json_lines)
+    if not as_json:
+        _print_camera(summary, err=json_lines)
     src = summary.get("source") or {}
     if summary.get("capture_error"):  # disk full: the capture holds a valid prefix, the report was written
         fail(f"{summary['capture_error']} (the capture keeps the {summary.get('capture_bytes') or 0} bytes "

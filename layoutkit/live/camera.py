@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CameraConfig", "CameraFrames", "CameraProcessor", "CameraReader", "process_camera_folder",
-           "open_camera_source"]
+__all__ = ["CameraConfig", "CameraFrames", "CameraProcessor", "CameraReader", "LiveCrossCheck",
+           "process_camera_folder", "open_camera_source"]
 
 
 @dataclass(frozen=True)
@@ -407,3 +407,87 @@ class CameraReader:
                 "by_status": c["by_status"], "stalls": self.stalls, "write_errors": self.write_errors,
                 "ended": self.ended, "error": self.error, "backlog": self.backlog,
                 "recorded_to": None if self.writer is None else str(self.writer.folder)}
+
+
+class LiveCrossCheck:
+    """The running lighthouse-vs-camera disagreement for the dashboard.
+
+    Once ``align_after_s`` s of camera frames exist, the clock and the alignment are estimated
+    once (:func:`layoutkit.live.crosscheck.camera_crosscheck`, on a background thread so the serial
+    side never waits); after that each new camera frame's disagreement is computed against the
+    lighthouse pose at its time. The report's figures come from the whole session at the end
+    (the same computation ``replay`` makes), not from this running view.
+    """
+
+    def __init__(self, sigma_theta: float, align_after_s: float = 10.0, face_on_deg: float = 10.0):
+        self.sigma_theta = sigma_theta
+        self.align_after_s = align_after_s
+        self.face_on_deg = face_on_deg
+        self._est = None
+        self._thread = None
+        self._done = 0
+        self._sq, self._psq, self._n = 0.0, 0.0, 0
+        self.last = None
+
+    def _estimate(self, lh, cam):
+        from ..geometry import rotvec_to_matrix
+        from .crosscheck import camera_crosscheck
+
+        try:
+            cc = camera_crosscheck(lh[:, 0], rotvec_to_matrix(lh[:, 1:4]), lh[:, 7], self.sigma_theta, cam,
+                                   face_on_deg=self.face_on_deg)
+            s = cc.summary
+            if s.get("status") == "ok" and s.get("clock", {}).get("status") == "ok":
+                X = rotvec_to_matrix(np.radians(s["alignment"]["camera_from_lighthouse_rotvec_deg"]))
+                Y = rotvec_to_matrix(np.radians(s["alignment"]["body_from_face_rotvec_deg"]))
+                self._est = (s["clock"]["offset_s"], s["clock"]["drift_ppm"] * 1e-6, X, Y,
+                             s.get("camera_variance_factor") or 1.0)
+            else:
+                self._est = ("failed", s.get("message"))
+        except Exception as exc:  # the dashboard must never take the session down
+            self._est = ("failed", str(exc))
+
+    def update(self, lh_sample: np.ndarray, frames: CameraFrames) -> dict:
+        """Snapshot dict for the dashboard from the session's pose sample and the camera frames."""
+        from ..geometry import attitude_error, rotvec_to_matrix
+        from ..units import RAD2DEG
+        from .crosscheck import lh_at
+
+        n = len(frames)
+        out = {"frames": n, "solved": frames.status.count("ok") if n else 0}
+        if self._est is None:
+            if self._thread is None and n and frames.t[-1] - frames.t[0] >= self.align_after_s and len(lh_sample) >= 10:
+                cam = frames.arrays()
+                self._thread = threading.Thread(target=self._estimate, args=(lh_sample.copy(), cam), daemon=True)
+                self._thread.start()
+            out["state"] = "estimating clock and alignment" if self._thread is not None else "collecting frames"
+            return out
+        if self._est[0] == "failed":
+            out["state"] = f"alignment failed: {self._est[1]}"
+            return out
+        off, drift, X, Y, vf = self._est
+        new = range(self._done, n)
+        self._done = n
+        if len(lh_sample) >= 2:
+            order = np.argsort(lh_sample[:, 0])
+            lh = lh_sample[order]
+            for k in new:
+                if frames.status[k] != "ok":
+                    continue
+                td = (frames.t[k] - off) / (1.0 + drift)
+                R, a, w, ok = lh_at(lh[:, 0], rotvec_to_matrix(lh[:, 1:4]), lh[:, 7], np.array([td]))
+                if not ok[0]:
+                    continue
+                d = float(attitude_error(frames.rotation[k], X @ R[0] @ Y))
+                p2 = vf * frames.pred_var[k] + w[0] * (a[0] * self.sigma_theta / RAD2DEG) ** 2
+                face_on = frames.tilt[k] < np.radians(self.face_on_deg)
+                self.last = {"disagreement_deg": np.degrees(d), "predicted_deg": float(np.degrees(np.sqrt(p2))),
+                             "face_on": bool(face_on), "mirror_branch": bool(face_on and d * d > 25 * p2)}
+                if not face_on:
+                    self._sq += d * d
+                    self._psq += p2
+                    self._n += 1
+        out.update(state="tracking", clock_offset_s=off, last=self.last,
+                   disagreement_rms_deg=float(np.degrees(np.sqrt(self._sq / self._n))) if self._n else None,
+                   predicted_rms_deg=float(np.degrees(np.sqrt(self._psq / self._n))) if self._n else None)
+        return out

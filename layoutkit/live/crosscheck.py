@@ -341,7 +341,9 @@ def camera_crosscheck(lh_t, lh_R, lh_adop, sigma_theta, cam: dict, *, clock: tup
         fit = fit_rotation_pair(R_cam[use], R_l[use], body_offset=True, outlier_factor=5.0,
                                 require_motion=False)
         X, Y = fit.X, fit.Y
-        out["alignment"] = {"status": fit.status, "message": fit.message, "estimated": True}
+        out["alignment"] = {"status": fit.status, "message": fit.message, "estimated": True,
+                            "camera_from_lighthouse_sigma_deg": float(np.degrees(fit.X_sigma_rad)),
+                            "body_from_face_sigma_deg": float(np.degrees(fit.Y_sigma_rad))}
     else:
         X, Y = (np.asarray(v, float) for v in alignment)
         out["alignment"] = {"status": "given", "message": "alignment given", "estimated": False}

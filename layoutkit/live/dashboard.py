@@ -62,6 +62,21 @@ def render_snapshot(snap: dict):
         t.add_row("error vs truth", f"RMS {_fmt(e['rms_rot_deg'], '.3f')}° / {_fmt(e['rms_trans_m'] * 1e3, '.2f')} mm "
                                     f"(pred {_fmt(e['predicted_rot_deg'], '.3f')}° / "
                                     f"{_fmt(e['predicted_trans_m'] * 1e3, '.2f')} mm, n={e['n']})")
+    cam = snap.get("camera")
+    if cam:
+        t.add_row("camera", f"frames {cam.get('frames', 0)}   solved {cam.get('solved', 0)}   "
+                            f"{cam.get('state', '')}" + (f"   error: {cam['error']}" if cam.get("error") else ""))
+        last_c = cam.get("last")
+        if cam.get("disagreement_rms_deg") is not None:
+            flag = ""
+            if last_c and last_c.get("mirror_branch"):
+                flag = "   [red]mirror branch?[/]"
+            elif last_c and last_c.get("face_on"):
+                flag = "   [yellow]face-on (tilt sign weak)[/]"
+            t.add_row("LH vs camera", f"last {_fmt(last_c and last_c['disagreement_deg'], '.3f')}° "
+                                      f"(pred {_fmt(last_c and last_c['predicted_deg'], '.3f')}°)   RMS "
+                                      f"{_fmt(cam['disagreement_rms_deg'], '.3f')}° (pred "
+                                      f"{_fmt(cam.get('predicted_rms_deg'), '.3f')}°){flag}")
     src = snap.get("source")
     if src:
         state = "[green]connected[/]" if src.get("connected") else "[red]disconnected[/] (retrying)"

@@ -238,7 +238,8 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
              record=None, duration: float | None = None, truth=None, reference=None, reference_units: str = "m",
              reference_offset: float | None = None, camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
              on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None,
-             overwrite: bool = False, on_status=None, status_interval: float = 10.0) -> dict:
+             overwrite: bool = False, on_status=None, status_interval: float = 10.0, camera_device=None,
+             camera_config=None) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
     port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar);
@@ -247,7 +248,11 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     SIGHUP). idle_timeout : stop when no byte arrived for this many seconds after the first byte
     (None: never). on_update(snapshot) is called every ``update_interval`` s (dashboard).
     on_status(text) (no dashboard) is told once, then every ``status_interval`` s, while the port
-    is not connected and why (never a silent wait).
+    is not connected and why (never a silent wait). camera_device + camera_config : a camera stream
+    beside the serial one (:class:`layoutkit.live.camera.CameraReader`: own threads, host-clock
+    stamps, frames kept raw in ``RECORD.camera/`` before they are solved); a camera that stops,
+    stalls or sends corrupt frames never stops the serial side; the summary's ``camera`` object
+    compares both streams (the same computation as ``replay``).
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, the capture is fsynced and
     closed with everything received, the pending frames are solved and the report is written;
@@ -278,6 +283,19 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
             if writer is not None:
                 writer.close()
             raise
+        cam_reader = cam_live = None
+        if camera_device is not None and camera_config is not None:
+            from ..live.camera import CameraReader, LiveCrossCheck
+
+            try:
+                cam_reader = CameraReader(camera_device, camera_config,
+                                          camera_folder_for(record) if record is not None else None).start()
+            except (OSError, ValueError):
+                src.close()
+                if writer is not None:
+                    writer.close()
+                raise
+            cam_live = LiveCrossCheck(options.sigma_theta)
         t_start = time.monotonic()
         t_end = None if duration is None else t_start + duration
         last_update = 0.0
@@ -314,23 +332,33 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
                 elif src.connected:
                     last_status = None
                 if on_update is not None and now - last_update >= update_interval:
-                    on_update(s.snapshot(src.state))
+                    snap = s.snapshot(src.state)
+                    if cam_reader is not None:
+                        snap["camera"] = {**cam_live.update(s.pose_sample.array(), cam_reader.processor.frames),
+                                          "error": cam_reader.error}
+                    on_update(snap)
                     last_update = now
         except KeyboardInterrupt:
             interrupted = True
         finally:
             src.close()
+            if cam_reader is not None:
+                cam_reader.stop()
             if writer is not None:
                 writer.close(decode=s.decoder.stats.as_dict(),
                              **({"stopped_by": stop.name} if stop.requested else {}))
         summary = s.finish()
+        cam_frames = None
+        if cam_reader is not None:
+            info = {k: v for k, v in cam_reader.stats().items() if k not in ("processed", "solved", "by_status")}
+            cam_frames = (cam_reader.processor.frames, info)
         stopped_by = stop.name or ("SIGINT" if interrupted else None)
         summary.update(port=port, protocol=protocol, interrupted=interrupted or stop.requested, source=src.state,
                        capture=None if record is None else str(record), stopped_by=stopped_by,
                        capture_error=capture_error,
                        capture_bytes=None if writer is None else writer.bytes_written)
         out = _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
-                          report_dir=report_dir, reference_offset=reference_offset)
+                          report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam_frames)
         if on_update is not None:
             on_update(s.snapshot(src.state))
         return out
