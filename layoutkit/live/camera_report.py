@@ -21,6 +21,8 @@ def write_camera_plots(directory, cc) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..io.figures import save_figure
+
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     s = cc.series
@@ -33,12 +35,11 @@ def write_camera_plots(directory, cc) -> dict:
     ax[-1].set_xlabel("device time (s)")
     ax[0].legend(loc="best", fontsize=8)
     fig.suptitle("Attitude streams: lighthouse vs camera (camera mapped into the lighthouse frame)")
-    fig.text(0.01, 0.005, "Rotation-vector components of the body attitude; camera aligned by the estimated "
-             "clock and rotations.", fontsize=7)
-    fig.tight_layout(rect=(0, 0.02, 1, 0.96))
-    paths["camera_attitude"] = str(d / "camera_attitude.png")
-    fig.savefig(paths["camera_attitude"], dpi=110)
-    plt.close(fig)
+    fig.tight_layout(rect=(0, 0.03, 1, 0.96))
+    paths["camera_attitude"] = str(save_figure(
+        fig, d / "camera_attitude.png",
+        caption="Rotation-vector components (deg) of the body attitude over device time; the camera stream is "
+                "mapped by the estimated clock and rotations."))
     fig, ax = plt.subplots(figsize=(9, 3.8))
     fo = s["face_on"]
     ax.plot(s["t_dev"][~fo], s["disagreement_deg"][~fo], ".", ms=2, label="disagreement")
@@ -51,11 +52,9 @@ def write_camera_plots(directory, cc) -> dict:
     ax.set_title("Lighthouse vs camera attitude disagreement and its prediction")
     ax.legend(loc="best", fontsize=8)
     summ = cc.summary
-    fig.text(0.01, 0.01, f"RMS {summ.get('disagreement_rms_deg') or float('nan'):.4g} deg vs predicted "
-             f"{summ.get('predicted_disagreement_rms_deg') or float('nan'):.4g} deg outside the face-on band",
-             fontsize=7)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    paths["camera_disagreement"] = str(d / "camera_disagreement.png")
-    fig.savefig(paths["camera_disagreement"], dpi=110)
-    plt.close(fig)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    paths["camera_disagreement"] = str(save_figure(
+        fig, d / "camera_disagreement.png",
+        caption=f"Per camera frame; RMS {summ.get('disagreement_rms_deg') or float('nan'):.4g} deg vs predicted "
+                f"{summ.get('predicted_disagreement_rms_deg') or float('nan'):.4g} deg outside the face-on band."))
     return paths
