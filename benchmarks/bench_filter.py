@@ -66,7 +66,7 @@ def main(argv=None):
     out["static"] = wf.static_scenario(lay, runs=30 if q else 200, duration=10.0)
     print(f"static: {out['static']}", flush=True)
     out["throughput"] = wf.throughput_scenario(lay, duration=10.0 if q else 30.0, rounds=3 if q else 5)
-    print(f"throughput: {out['throughput']['sweeps_per_s_median']:.0f} sweeps/s "
+    print(f"throughput: {out['throughput']['sweeps_per_s_median']:.0f} sweeps/s wall, {out['throughput']['sweeps_per_cpu_s_median']:.0f} per CPU s "
           f"({out['throughput']['x_real_time']:.0f}x real time)", flush=True)
     try:
         out["replay"] = wf.replay_throughput(lay, duration=10.0 if q else 30.0, rounds=3 if q else 5)

@@ -12,7 +12,8 @@ Life cycle (docs/filter.md):
    has 4 lit sensors, a few consecutive sweeps do). With >= 4 of them
    :func:`layoutkit.pnp.solve_pnp` solves it (angles of a calibrated station first undistorted,
    LH2 plane angles converted to LH1 angles — for the start only). A
-   pose with status ok and an RMS residual below ``init_max_residual_sigma`` sigma starts the
+   pose with status ok (or "ambiguous": the two planar solutions are used in turn, the wrong one
+   is rejected by the innovations) and an RMS residual below ``init_max_residual_sigma`` sigma starts the
    filter at the sweep's time with the PnP covariance (the sandwich ``A^-1 J^T R J A^-1`` of Chen
    eq. 18) times ``init_inflation``, plus the motion the velocity prior allows over the age of the
    oldest angle used (``(init_sigma_rate · age)²``, ``(init_sigma_speed · age)²``), and zero velocities.
@@ -142,7 +143,8 @@ class SweepTracker:
     points_body : (n, 3) m; stations : list of :class:`Station` in the world frame (default one LH1
     station at the origin); config : :class:`EkfConfig`; model : optional forward model;
     init_max_residual_sigma : PnP starts whose RMS angle residual exceeds this many sigma are refused;
-    init_window_s : s, oldest angle used for a PnP start; confirm_sweeps : after a (re-)start the
+    init_window_s : s, oldest angle used for a PnP start (a failed start with the same lit set is
+    retried after half of it, with fresh angles); confirm_sweeps : after a (re-)start the
     status stays "uncertain" until this many sweeps were accepted (a PnP start from a wrong basin
     or from mixed data is not reported as ok).
     """
@@ -156,8 +158,10 @@ class SweepTracker:
         self.ekf = ErrorStateEKF(self.points_body, self.stations, self.config, model)
         self.init_max_residual_sigma = float(init_max_residual_sigma)
         self.init_window_s = float(init_window_s)
+        self.init_retry_s = 0.5 * float(init_window_s)
         self.confirm_sweeps = int(confirm_sweeps)
         self._confirm = 0
+        self._ambiguous = 0
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
@@ -193,7 +197,7 @@ class SweepTracker:
 
     def _try_init(self, s: int, t: float, st: Station) -> bool:
         """PnP on the recent angles of station ``s`` (see the module docstring); True when started."""
-        from ..pnp import solve_pnp
+        from ..pnp import STATUS_AMBIGUOUS, solve_pnp
 
         rec = self._recent.get(s)
         if rec is None:
@@ -203,9 +207,10 @@ class SweepTracker:
         if lit.sum() < 4:
             return False
         key = lit.tobytes()
-        if self._tried.get(s) == key:
-            return False  # the same lit set failed on the previous sweep: wait for new sensors
-        self._tried[s] = key
+        prev = self._tried.get(s)
+        if prev is not None and prev[0] == key and t - prev[1] < self.init_retry_s:
+            return False  # the same lit set failed moments ago: wait for new sensors or fresh angles
+        self._tried[s] = (key, t)
         ang = ang.copy()
         if st.calibration is not None:  # the start only; the updates go through the forward model
             ang[lit] = undistort(ang[lit], st.calibration, max_iterations=20, tol=1e-9)
@@ -214,9 +219,16 @@ class SweepTracker:
         self.counters.pnp_tries += 1
         a = np.where(lit[:, None], ang, np.pi / 2)
         sol = solve_pnp(self.points_body, a[None], lit[None])
-        if not sol.success[0] or not sol.residual_rms[0] <= self.init_max_residual_sigma * self.config.sigma_theta:
+        Rs, ts, res = sol.rotation[0], sol.translation[0], sol.residual_rms[0]
+        if sol.status[0] == STATUS_AMBIGUOUS and sol.alt_rotation is not None:
+            # two poses fit equally well: start from each in turn; the innovations reject the wrong one
+            self._ambiguous += 1
+            if self._ambiguous % 2 == 0:
+                Rs, ts, res = sol.alt_rotation[0], sol.alt_translation[0], sol.alt_residual_rms[0]
+        elif not sol.success[0]:
             return False
-        Rs, ts = sol.rotation[0], sol.translation[0]
+        if not res <= self.init_max_residual_sigma * self.config.sigma_theta:
+            return False
         R = st.rotation @ Rs
         p = st.rotation @ ts + st.translation
         Jm = self.ekf.model.jacobian(self.points_body[lit], R, p, st)

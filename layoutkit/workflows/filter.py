@@ -142,6 +142,8 @@ def hidden_station_scenario(layout, *, seed: int = 0, duration: float = 20.0, hi
     a[bad, j] += rng.choice([-1.0, 1.0], bad.size) * rng.uniform(*reflect_mrad, bad.size) * 1e-3
     tr = SweepTracker(layout.positions, sw.stations, config or EkfConfig(**TUMBLE_CONFIG))
     rej_bad, rej_other = [], 0
+    bad_set = set(bad.tolist())
+    missed_untracked = 0
     # run sweep by sweep to see which angles each update dropped
     from ..filter.consistency import Sweep
 
@@ -150,8 +152,10 @@ def hidden_station_scenario(layout, *, seed: int = 0, duration: float = 20.0, hi
         o = tr.push(Sweep(float(sw.t[k]), int(sw.station[k]), int(sw.axis[k]), a[k], "lh1"))
         outs.append(o)
         if o is None or o.correction is None and not o.sweep_rejected:
+            if k in bad_set:
+                missed_untracked += 1  # the filter was not tracking yet: nothing to reject
             continue
-        if k in set(bad.tolist()):
+        if k in bad_set:
             rej_bad.append(o.rejected > 0 or o.sweep_rejected)
             rej_other += max(o.rejected - 1, 0)
         else:
@@ -185,7 +189,8 @@ def hidden_station_scenario(layout, *, seed: int = 0, duration: float = 20.0, hi
         "sigma_pos_m_max_hidden": float(np.nanmax(sig[during, 3:])),
         "rms_rot_deg": _rms(np.linalg.norm(e[ok, :3], axis=1) * RAD2DEG),
         "rms_pos_m": _rms(np.linalg.norm(e[ok, 3:], axis=1)),
-        "outliers_injected": int(bad.size), "outliers_rejected": int(np.sum(rej_bad)),
+        "outliers_injected": int(bad.size), "outliers_while_tracking": int(len(rej_bad)),
+        "outliers_before_first_start": missed_untracked, "outliers_rejected": int(np.sum(rej_bad)),
         "good_angles_rejected": int(rej_other), "angles_used": tr.counters.angles_used,
         "counters": tr.counters.as_dict(),
     }
@@ -283,14 +288,19 @@ def throughput_scenario(layout, *, duration: float = 30.0, rounds: int = 5, seed
     from ..live.simulator import simulate_sweeps
 
     sw = simulate_sweeps(layout, duration=duration, seed=seed)
-    rates = []
+    rates, cpu = [], []
     for _ in range(rounds):
+        c0 = time.process_time()
         _, wall = track(layout, sw)
+        cpu.append(len(sw.t) / (time.process_time() - c0))
         rates.append(len(sw.t) / wall)
     sweep_rate = 1.0 / sw.info["slot_s"]
     med = float(np.median(rates))
+    medc = float(np.median(cpu))
     return {"sweeps": int(len(sw.t)), "rounds": rounds, "sweeps_per_s_median": med,
-            "sweeps_per_s_all": rates, "live_sweeps_per_s": sweep_rate, "x_real_time": med / sweep_rate}
+            "sweeps_per_s_all": rates, "live_sweeps_per_s": sweep_rate, "x_real_time": med / sweep_rate,
+            "sweeps_per_cpu_s_median": medc, "x_real_time_per_cpu_s": medc / sweep_rate,
+            "load_average_1min": _loadavg()}
 
 
 # ------------------------------------------------------------------------------ live / replay glue
@@ -327,6 +337,7 @@ class FilterSink:
         self.truth = truth
         self.json_out = json_out
         self.seconds = 0.0
+        self.cpu_seconds = 0.0
         self.sweeps = 0
         self._acc = {"n": 0, "e_rot2": 0.0, "e_pos2": 0.0, "s_rot2": 0.0, "s_pos2": 0.0, "nees": 0.0,
                      "max_z": 0.0, "within3": 0}
@@ -335,7 +346,7 @@ class FilterSink:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
         import json
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         outs = []
         push = self.tracker.push
         for m in sweeps:
@@ -347,6 +358,7 @@ class FilterSink:
             if o is not None:
                 outs.append(o)
         self.seconds += time.perf_counter() - t0
+        self.cpu_seconds += time.process_time() - c0
         if outs and self.json_out is not None:
             self.json_out.write("".join(json.dumps(o.record()) + "\n" for o in outs))
             self.json_out.flush()
@@ -388,7 +400,9 @@ class FilterSink:
         vs the frame-by-frame DOP prediction (``frame_truth``: the pipeline's truth summary)."""
         c = self.tracker.counters.as_dict()
         out = {"counters": c, "share_ok": c["ok"] / c["sweeps"] if c["sweeps"] else 0.0,
-               "filter_seconds": self.seconds, "sweeps_per_s": self.sweeps / self.seconds if self.seconds else None,
+               "filter_seconds": self.seconds, "filter_cpu_seconds": self.cpu_seconds,
+               "sweeps_per_s": self.sweeps / self.seconds if self.seconds else None,
+               "sweeps_per_cpu_s": self.sweeps / self.cpu_seconds if self.cpu_seconds else None,
                "config": {k: getattr(self.tracker.config, k) for k in (
                    "psd_rot", "psd_pos", "constant_acceleration", "gate_angle_p", "gate_sweep_p", "zupt",
                    "hit_timing", "model", "sigma_theta", "rho")}}
@@ -475,3 +489,48 @@ def filter_table(res: dict):
         for i, ax in enumerate("xyz"):
             ex[f"{name}_{ax}"] = res[key][:, i]
     return PoseTable(res["t"], res["rotvec"], res["translation"], status=res["status"], extras=ex)
+
+
+def replay_throughput(layout, *, duration: float = 30.0, rounds: int = 5, seed: int = 3) -> dict:
+    """``replay`` of a simulated capture with ``--filter ekf`` vs ``none`` (same run, interleaved
+    rounds, medians): wall time of the whole replay and the filter's own share (sweeps/s)."""
+    import tempfile
+    from pathlib import Path
+
+    from ..live.simulator import run_fake_fpga, simulate_stream
+    from .live import LiveOptions, replay_capture
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cap = Path(tmp) / "cap.bin"
+        chunks, sw = simulate_stream(layout, duration=duration, seed=seed)
+        run_fake_fpga(chunks, out=cap, sidecar={"protocol": "layoutkit", "layout": layout.to_dict()})
+        walls = {"none": [], "ekf": []}
+        fsec, fcpu, fsweeps = [], [], 0
+        for _ in range(rounds):
+            for name in ("none", "ekf"):
+                opts = LiveOptions(filter=EkfConfig(**TUMBLE_CONFIG) if name == "ekf" else None)
+                t0 = time.perf_counter()
+                s = replay_capture(cap, layout, options=opts)
+                walls[name].append(time.perf_counter() - t0)
+                if name == "ekf":
+                    fsec.append(s["filter"]["filter_seconds"])
+                    fcpu.append(s["filter"]["filter_cpu_seconds"])
+                    fsweeps = s["filter"]["counters"]["sweeps"]
+    med = {k: float(np.median(v)) for k, v in walls.items()}
+    rate = 1.0 / sw.info["slot_s"]
+    return {"capture_s": duration, "sweeps": fsweeps, "rounds": rounds, "wall_s_median": med,
+            "replay_x_real_time": {k: duration / v for k, v in med.items()},
+            "filter_sweeps_per_s_in_replay": fsweeps / float(np.median(fsec)),
+            "filter_x_real_time_in_replay": fsweeps / float(np.median(fsec)) / rate,
+            "filter_sweeps_per_cpu_s_in_replay": fsweeps / float(np.median(fcpu)),
+            "filter_x_real_time_per_cpu_s": fsweeps / float(np.median(fcpu)) / rate,
+            "load_average_1min": _loadavg()}
+
+
+def _loadavg():
+    import os
+
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
