@@ -183,6 +183,14 @@ class ErrorStateEKF:
                 q1[i1 + k, i1 + k] = q
         self._q_cv = (q3, q2, q1)
         self._pose_idx = np.r_[0:3, 6:9]
+        # entries of F equal to dt (and dt²/2 with the CA model): attitude/rate, position/velocity, ...
+        pairs = [(k, 3 + k) for k in range(3)] + [(6 + k, 9 + k) for k in range(3)]
+        hpairs = []
+        if self.config.constant_acceleration:
+            pairs += [(3 + k, 12 + k) for k in range(3)] + [(9 + k, 15 + k) for k in range(3)]
+            hpairs = [(k, 12 + k) for k in range(3)] + [(6 + k, 15 + k) for k in range(3)]
+        self._dt_idx = tuple(np.array(pairs).T)
+        self._h_idx = tuple(np.array(hpairs).T) if hpairs else None
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -247,16 +255,10 @@ class ErrorStateEKF:
         Phi = quat_to_matrix(dq)
         F = self._eye.copy()
         F[0:3, 0:3] = Phi
-        for k in range(3):
-            F[k, 3 + k] = dt
-            F[6 + k, 9 + k] = dt
+        F[self._dt_idx] = dt
         if ca:
             h = 0.5 * dt * dt
-            for k in range(3):
-                F[k, 12 + k] = h
-                F[3 + k, 12 + k] = dt
-                F[6 + k, 15 + k] = h
-                F[9 + k, 15 + k] = dt
+            F[self._h_idx] = h
             self.p = self.p + self.v * dt + self.a * h
             self.v = self.v + self.a * dt
             self.w = self.w + self.alpha * dt

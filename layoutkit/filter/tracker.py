@@ -42,6 +42,7 @@ import numpy as np
 from ..lighthouse import Station, lh2_to_lh1_angles, undistort
 from ..units import RAD2DEG
 from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile
+from .so3 import quat_to_rotvec
 
 __all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance"]
 
@@ -54,23 +55,24 @@ class FilterOutput:
     """The filter state after one sweep.
 
     t : s (the sweep's sync time); station, axis : of the sweep; status : one of :data:`STATUSES`;
-    rotvec : (3,) rad, translation : (3,) m — body pose in the world (stations') frame;
-    cov_rot_deg : (3,) deg, cov_pos_m : (3,) m — 1-sigma per world axis; used, rejected : angles
-    of this sweep used / dropped by the gate; sweep_rejected : the sweep failed the NIS gate;
-    nis, dof : its NIS and degrees of freedom; static : the static detector's verdict;
-    event : "init" on the sweep that (re-)initialised the filter, else "";
-    state_cov : (d, d) error-state covariance (``pose_cov`` its pose block); correction : (6,) pose correction applied
-    by this sweep's update and prior_sigma : (6,) the pose 1-sigma before it (None without update).
+    quaternion : (4,) ``[x, y, z, w]`` body-to-world attitude (``rotvec`` (3,) rad its rotation
+    vector); translation : (3,) m — body position in the world (stations') frame;
+    state_cov : (d, d) error-state covariance; ``pose_cov`` (6, 6) its ``(dphi rad, dp m)`` block,
+    ``cov_rot_deg`` (3,) deg and ``cov_pos_m`` (3,) m the 1-sigma per world axis;
+    used, rejected : angles of this sweep used / dropped by the gate; sweep_rejected : the sweep
+    failed the NIS gate; nis, dof : its NIS and degrees of freedom; static : the static detector's
+    verdict; event : "init" on the sweep that (re-)initialised the filter, else "";
+    correction : (6,) pose correction applied by this sweep's update and prior_sigma : (6,) the
+    pose 1-sigma before it (None without update).
     """
 
     t: float
     station: int
     axis: int
     status: str
-    rotvec: np.ndarray
+    quaternion: np.ndarray
     translation: np.ndarray
-    cov_rot_deg: np.ndarray
-    cov_pos_m: np.ndarray
+    state_cov: np.ndarray
     used: int = 0
     rejected: int = 0
     sweep_rejected: bool = False
@@ -78,7 +80,6 @@ class FilterOutput:
     dof: int = 0
     static: bool = False
     event: str = ""
-    state_cov: np.ndarray | None = None
     correction: np.ndarray | None = None
     prior_sigma: np.ndarray | None = None
 
@@ -87,10 +88,25 @@ class FilterOutput:
         return self.status == "ok"
 
     @property
+    def rotvec(self) -> np.ndarray:
+        """(3,) rad rotation vector of the attitude."""
+        return quat_to_rotvec(self.quaternion)
+
+    @property
     def pose_cov(self) -> np.ndarray:
         """(6, 6) covariance of ``(dphi rad, dp m)`` (from the full error-state covariance)."""
         i = np.r_[0:3, 6:9]
         return self.state_cov[np.ix_(i, i)]
+
+    @property
+    def cov_rot_deg(self) -> np.ndarray:
+        """(3,) deg, 1-sigma attitude error per world axis."""
+        return np.sqrt(np.diagonal(self.state_cov)[0:3]) * RAD2DEG
+
+    @property
+    def cov_pos_m(self) -> np.ndarray:
+        """(3,) m, 1-sigma position error per world axis."""
+        return np.sqrt(np.diagonal(self.state_cov)[6:9])
 
     def record(self) -> dict:
         """The JSON-lines object (``--filter ekf --json-lines``)."""
@@ -346,9 +362,9 @@ class SweepTracker:
         c = self.config
         ekf = self.ekf
         P = ekf.P  # never modified in place by the filter: safe to hand out
-        sig = np.sqrt(np.diagonal(P)[ekf._pose_idx])
-        srot, spos = sig[:3] * RAD2DEG, sig[3:]
-        big = max(float(srot.max()) / c.max_sigma_rot_deg, float(spos.max()) / c.max_sigma_pos_m)
+        d = np.diagonal(P)
+        big = max(math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg,
+                  math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m)
         if big > c.lost_factor and not self._lost:
             self._declare_lost()
         if self._lost:
@@ -359,8 +375,6 @@ class SweepTracker:
         cnt.outputs += 1
         cnt.ok += status == "ok"
         if upd is None:
-            return FilterOutput(t, s, axis, status, ekf.rotvec, ekf.p, srot, spos,
-                                static=self.static, event=event, state_cov=P)
-        return FilterOutput(t, s, axis, status, ekf.rotvec, ekf.p, srot, spos, upd.used, upd.rejected,
-                            upd.sweep_rejected, upd.nis, upd.dof, self.static, event, P, upd.correction,
-                            upd.prior_sigma)
+            return FilterOutput(t, s, axis, status, ekf.q, ekf.p, P, static=self.static, event=event)
+        return FilterOutput(t, s, axis, status, ekf.q, ekf.p, P, upd.used, upd.rejected, upd.sweep_rejected,
+                            upd.nis, upd.dof, self.static, event, upd.correction, upd.prior_sigma)
