@@ -320,11 +320,13 @@ class FilterSink:
     points_body : (n, 3) m; stations : the run's stations (None → one ideal LH1 station; a single
     station is used with an identity pose, so poses are in its frame as the pipeline's are);
     config : :class:`EkfConfig`; truth : optional :class:`layoutkit.live.reference.PoseTrack` in the
-    same frame; json_out : text stream or None.
+    same frame; json_out : text stream or None; poses_path : write every output to this pose table
+    (status 0 ok / 10 uncertain / 11 lost, extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
+    atomically, complete when :meth:`close` / :meth:`summary` runs).
     Memory is flat: outputs are written as they come and only sums are kept.
     """
 
-    def __init__(self, points_body, stations, config: EkfConfig, truth=None, json_out=None):
+    def __init__(self, points_body, stations, config: EkfConfig, truth=None, json_out=None, poses_path=None):
         if not stations:
             sts = [Station()]
         elif len(stations) == 1:
@@ -339,6 +341,11 @@ class FilterSink:
         self.seconds = 0.0
         self.cpu_seconds = 0.0
         self.sweeps = 0
+        self._poses = None
+        if poses_path is not None:
+            from ..io.poses import PoseWriter
+
+            self._poses = PoseWriter(poses_path, [f"{k}_{a}" for k in ("cov_rot_deg", "cov_pos_m") for a in "xyz"])
         self._acc = {"n": 0, "e_rot2": 0.0, "e_pos2": 0.0, "s_rot2": 0.0, "s_pos2": 0.0, "nees": 0.0,
                      "max_z": 0.0, "within3": 0}
 
@@ -364,7 +371,20 @@ class FilterSink:
             self.json_out.flush()
         if outs and self.truth is not None:
             self._compare(outs)
+        if outs and self._poses is not None:
+            self._poses.write(filter_table({
+                "t": np.array([o.t for o in outs]), "rotvec": np.array([o.rotvec for o in outs]),
+                "translation": np.array([o.translation for o in outs]),
+                "status": np.array([FILTER_STATUS_CODES[o.status] for o in outs]),
+                "cov_rot_deg": np.array([o.cov_rot_deg for o in outs]),
+                "cov_pos_m": np.array([o.cov_pos_m for o in outs]), "station": np.array([o.station for o in outs])}))
         return outs
+
+    def close(self) -> None:
+        """Finish the pose table (if any)."""
+        if self._poses is not None:
+            self._poses.close()
+            self._poses = None
 
     def _compare(self, outs) -> None:
         ok = [o for o in outs if o.ok]
@@ -398,6 +418,7 @@ class FilterSink:
     def summary(self, frame_truth: dict | None = None) -> dict:
         """Counters, throughput, and (with a truth) the filtered error vs the filter's covariance and
         vs the frame-by-frame DOP prediction (``frame_truth``: the pipeline's truth summary)."""
+        self.close()
         c = self.tracker.counters.as_dict()
         out = {"counters": c, "share_ok": c["ok"] / c["sweeps"] if c["sweeps"] else 0.0,
                "filter_seconds": self.seconds, "filter_cpu_seconds": self.cpu_seconds,
@@ -488,7 +509,8 @@ def filter_table(res: dict):
     for name, key in (("cov_rot_deg", "cov_rot_deg"), ("cov_pos_m", "cov_pos_m")):
         for i, ax in enumerate("xyz"):
             ex[f"{name}_{ax}"] = res[key][:, i]
-    return PoseTable(res["t"], res["rotvec"], res["translation"], status=res["status"], extras=ex)
+    return PoseTable(res["t"], res["rotvec"], res["translation"], station=res.get("station"), status=res["status"],
+                     extras=ex)
 
 
 def replay_throughput(layout, *, duration: float = 30.0, rounds: int = 5, seed: int = 3) -> dict:

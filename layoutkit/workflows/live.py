@@ -117,7 +117,8 @@ def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, option
     if options is not None and options.filter is not None:  # the per-sweep EKF beside the frames
         from .filter import FilterSink
 
-        sink = FilterSink(lay.positions, list(sidecar.stations) or None, options.filter, tr, json_out)
+        fp = None if poses_path is None else Path(poses_path).with_name("filter_poses.csv")
+        sink = FilterSink(lay.positions, list(sidecar.stations) or None, options.filter, tr, json_out, fp)
     return session_for(lay, sidecar, protocol=protocol, options=options, truth=tr, json_out=json_out,
                        poses_path=poses_path, sweep_sink=sink)
 
