@@ -450,8 +450,12 @@ class FilterSink:
 FILTER_STATUS_CODES = {"ok": 0, "uncertain": 10, "lost": 11}
 
 
-def filter_frames(fr, layout, config: EkfConfig) -> dict:
-    """The filter over a frame table (:class:`layoutkit.workflows.frames.Frames`, one station).
+def filter_frames(fr, layout, config: EkfConfig, stations=None) -> dict:
+    """The filter over a frame table (:class:`layoutkit.workflows.frames.Frames`).
+
+    stations : the set-up's :class:`Station` list (world poses, kinds, calibrations) when the
+    table has a ``station`` column of several stations; None = one ideal LH1 station (poses in its
+    frame, like the frame-by-frame solve).
 
     Each frame becomes its X and then its Y sweep, both at the frame's time stamp ``t`` (a frame
     table has no sub-frame timing, so ``hit_timing`` is off); the pose reported for the frame is
@@ -468,7 +472,18 @@ def filter_frames(fr, layout, config: EkfConfig) -> dict:
     if np.any(np.diff(t) < 0):
         raise ValueError("frames: time stamps t must be non-decreasing for --filter ekf")
     cfg = replace(config, hit_timing=False)
-    trk = SweepTracker(layout.positions, [Station()], cfg)
+    st_idx = getattr(fr, "station", None)
+    st_idx = np.zeros(len(t), int) if st_idx is None else np.asarray(st_idx, int)
+    if stations is None:
+        if np.any(st_idx != 0):
+            raise ValueError("frames of several stations: the filter needs the stations' poses (--stations)")
+        stations = [Station()]
+    # a frame table holds LH1 angles [theta_x, theta_y] for every station (LH2 planes converted by the
+    # importer): the LH1 model, with the station's calibration only where it is an LH1 one
+    stations = [Station(st.id, st.rotation, st.translation, "lh1", st.rotor_rpm, st.clock_hz, st.fov_deg,
+                        st.calibration if st.kind == "lh1" else None) for st in stations]
+    trk = SweepTracker(layout.positions, stations, cfg)
+    kinds = [st.kind for st in trk.stations]
     F = len(t)
     rv = np.full((F, 3), np.nan)
     tr = np.full((F, 3), np.nan)
@@ -479,7 +494,7 @@ def filter_frames(fr, layout, config: EkfConfig) -> dict:
     for k in range(F):
         o = None
         for ax in (0, 1):
-            o = trk.push(Sweep(float(t[k]), 0, ax, fr.angles[k, :, ax], "lh1")) or o
+            o = trk.push(Sweep(float(t[k]), int(st_idx[k]), ax, fr.angles[k, :, ax], kinds[st_idx[k]])) or o
         if o is None:
             continue
         rv[k], tr[k], status[k] = o.rotvec, o.translation, FILTER_STATUS_CODES[o.status]
