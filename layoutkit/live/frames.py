@@ -3,7 +3,7 @@ protocol decoders and the pose pipeline).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,6 +43,15 @@ class DecodeStats:
     skipped_bytes: int = 0
     resets: int = 0  # device restarts seen (sequence restarted)
     errors: int = 0  # internal decoder errors caught by the never-raise guard (should stay 0)
+    reasons: dict = field(default_factory=dict)  # what could not be placed, by reason → count
+
+    def drop(self, reason: str, k: int = 1) -> None:
+        """Count ``k`` pulses / sweeps the decoder could not place, under ``reason``."""
+        if k:
+            self.dropped += int(k)
+            self.reasons[reason] = self.reasons.get(reason, 0) + int(k)
 
     def as_dict(self) -> dict:
-        return dict(self.__dict__)
+        d = dict(self.__dict__)
+        d["reasons"] = dict(self.reasons)
+        return d

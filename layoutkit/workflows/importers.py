@@ -16,7 +16,7 @@ from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "write_layout", "write_reference"]
+__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "write_layout", "write_reference"]
 
 
 # ---------------------------------------------------------------- writers of our own formats
@@ -185,3 +185,99 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         summary["devices"].setdefault(name, {})["reference_external"] = {
             "file": str(ddir / "reference_external.csv"), "poses": len(a)}
     return summary
+
+
+# ---------------------------------------------------------------- cfusdlog
+
+DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
+
+
+def _deck_layout() -> Layout:
+    """The Lighthouse deck's 4 sensors (``models/crazyflie_lighthouse_deck.layout.json``; the
+    firmware's ``sensorDeckPositions``)."""
+    from ..layout import load_layout
+
+    if DECK_LAYOUT.exists():
+        return load_layout(DECK_LAYOUT)
+    L, W = 0.015, 0.0075  # installed without the models folder: the same numbers
+    P = np.array([[-L, W, 0.0], [-L, -W, 0.0], [L, W, 0.0], [L, -W, 0.0]])
+    return Layout(P, np.tile([0.0, 0.0, 1.0], (4, 1)), ("0", "1", "2", "3"))
+
+
+def _unwrap24(ts) -> np.ndarray:
+    ts = np.asarray(ts, np.int64) & 0xFFFFFF
+    if ts.size == 0:
+        return ts
+    d = np.diff(ts) % (1 << 24)
+    d = np.where(d >= (1 << 23), d - (1 << 24), d)
+    return np.concatenate([[ts[0]], ts[0] + np.cumsum(d)])
+
+
+def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
+    """A Crazyflie microSD log → ``out_dir/capture.bin`` (the deck's UART bytes re-encoded from the
+    ``lhUartFrame`` events) with its sidecar ``capture.bin.json`` (protocol ``bitcraze-lh2``, the
+    deck layout, the system config's stations and calibration, the deck-to-log clock offset), and
+    ``out_dir/firmware_angles.csv`` (the firmware's own ``lhAngle`` raw and calibrated angles).
+
+    The replay's ``t`` is the log's event clock: ``t = deck ticks / 24 MHz + offset`` with the
+    offset the median of (event time − unwrapped FPGA time) over the events.
+    """
+    import csv
+
+    from ..importers.cfusdlog import deck_bytes, read_cfusdlog
+    from ..io.atomic import atomic_write, atomic_write_bytes
+    from ..io.sidecar import CaptureSidecar, sidecar_path, write_sidecar
+    from ..live.protocols.bitcraze import DECK_CLOCK_HZ, load_system_config
+
+    log = Path(log)
+    out = Path(out_dir)
+    ul = read_cfusdlog(log)
+    if "lhUartFrame" not in ul.events or len(ul.events["lhUartFrame"]["t"]) == 0:
+        raise ValueError(f"{log}: no lhUartFrame events (event types: {sorted(ul.events)}); enable the "
+                         "lighthouse deck's UART frame event trigger when logging")
+    ev = ul.events["lhUartFrame"]
+    cfg = load_system_config(system_config) if system_config else None
+    cap = out / "capture.bin"
+    if cap.exists():
+        raise ValueError(f"{cap}: exists; captures are never overwritten (choose another --out)")
+    out.mkdir(parents=True, exist_ok=True)
+    data, notes = deck_bytes(ev)
+    atomic_write_bytes(cap, data)
+    deck_t = _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ
+    offset = float(np.median(ev["t"] - deck_t))
+    stations = ()
+    note_list = [f"{k}: {v}" for k, v in notes.items()]
+    if cfg is not None:
+        ids = sorted(cfg.stations)
+        if ids and ids == list(range(len(ids))):
+            stations = tuple(cfg.stations[i] for i in ids)
+        elif ids:
+            note_list.append(f"system config station ids {ids} are not 0..k-1: stations left out of the sidecar")
+    lay = _deck_layout()
+    opts = {"time_offset_s": offset}
+    if system_config:
+        opts["system_config"] = str(Path(system_config).resolve())
+    sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options=opts, stations=stations, layout=lay.to_dict(),
+                        source="layoutkit import cfusdlog", n_sensors=4, bytes=len(data),
+                        extra={"imported_from": str(log), "clock": {"log_minus_deck_s": offset,
+                                                                    "deck_clock_hz": DECK_CLOCK_HZ},
+                               "import_notes": note_list})
+    write_sidecar(cap, sc)
+    ang = ul.events.get("lhAngle")
+    rows = 0
+    fa = out / "firmware_angles.csv"
+    with atomic_write(fa, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "station", "sensor", "sweep", "angle", "corrected_angle"])
+        if ang is not None and len(ang["t"]):
+            for k in range(len(ang["t"])):
+                w.writerow([repr(float(ang["t"][k])), int(ang.get("basestation", [0] * len(ang["t"]))[k]),
+                            int(ang["sensor"][k]), int(ang.get("sweep", [0] * len(ang["t"]))[k]),
+                            repr(float(ang["angle"][k])),
+                            repr(float(ang["correctedAngle"][k])) if "correctedAngle" in ang else ""])
+                rows += 1
+    return {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "ended": ul.ended,
+            "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()},
+            "uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
+            "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
+            "stations": len(stations), "notes": note_list}

@@ -21,8 +21,11 @@ Pulse processing follows the firmware (``pulse_processor_v1.c``, ``pulse_process
   otherwise station 0's. Sweep pulses (width < 512) after the active (non-skip) sync give
   ``angle = (delta - P/4) * 2 pi / P`` with ``delta`` ticks after that sync and ``P`` the measured
   time between two syncs of the same station and axis (accepted in 395000-405000 ticks).
-- **LH2**: pulses within 10000 ticks form a block (one light plane crossing all sensors);
-  ``timestamp0 = timestamp - 4 * offset`` is the rotor's zero; two blocks of one channel whose
+- **LH2**: pulses within 10000 ticks form a workspace, cut into blocks of at most one pulse per
+  sensor (one light plane crossing the sensors); the FPGA sends the sync offset on only some
+  pulses, so each pulse's offset is derived from the block's first pulse with one,
+  ``offset_s = offset_ref - (ts_ref - ts_s)`` (``processWorkspaceBlock``), and
+  ``timestamp0 = ts_ref - 4 * offset6_ref`` is the rotor's zero; two blocks of one channel whose
   timestamp0 agree within 100 ticks are the two planes of one rotation:
   ``a0 = 4 offset0 * 2 pi / P - pi + pi/3``, ``a1 = 4 offset1 * 2 pi / P - pi - pi/3`` with
   ``P`` the channel's cycle period (24 MHz).
@@ -311,6 +314,7 @@ class BitcrazeDecoder:
 
     mode : "lh1" or "lh2". n_sensors : 1-4 (angles of sensors 0..n-1). system_config : path,
     dict or :class:`SystemConfig`; its calibrations are applied (``calibrate=True``).
+    time_offset_s : added to every sweep time (t = unwrapped 24 MHz deck clock / 24e6 + offset).
     stats: good = sweeps emitted, bad = invalid frames (padding set), resyncs, skipped bytes,
     dropped = sweeps discarded by the pulse processor (incomplete/ambiguous).
     ``pulses`` counts valid pulse frames.
@@ -319,7 +323,7 @@ class BitcrazeDecoder:
     name = "bitcraze"
 
     def __init__(self, n_sensors: int | None = 4, *, mode: str = "lh2", system_config=None,
-                 calibrate: bool = True):
+                 calibrate: bool = True, time_offset_s: float = 0.0):
         if mode not in ("lh1", "lh2"):
             raise ValueError(f"mode: expected 'lh1' or 'lh2', got {mode!r}")
         n = 4 if n_sensors is None else int(n_sensors)
@@ -327,6 +331,8 @@ class BitcrazeDecoder:
             raise ValueError(f"n_sensors: the Lighthouse deck has 1-{MAX_DECK_SENSORS} sensors, got {n_sensors}")
         self.mode = mode
         self.n = n
+        # added to every emitted t: an imported log puts the deck clock onto its own event clock
+        self.time_offset_s = float(time_offset_s)
         cfg = system_config
         if cfg is not None and not isinstance(cfg, SystemConfig):
             cfg = load_system_config(cfg)
@@ -468,7 +474,8 @@ class BitcrazeDecoder:
         self._active = None
         hits, self._hits = self._hits, {}
         if period is None or not LH1_FRAME_WIDTH_MIN <= period <= LH1_FRAME_WIDTH_MAX:
-            self.stats.dropped += 1
+            self.stats.drop("LH1 sweep without a measured period (first sync of its station and axis, "
+                            "or a period outside 395000-405000 ticks)")
             return
         a = np.full(self.n, np.nan)
         for s, ts in hits.items():
@@ -481,11 +488,11 @@ class BitcrazeDecoder:
             return
         if axis == 0:
             if station in self._held:
-                self.stats.dropped += 1  # an X sweep without its Y
+                self.stats.drop("LH1 X sweep without its Y sweep (calibration needs both)")
             self._held[station] = (t, a)
             return
         if station not in self._held:
-            self.stats.dropped += 1
+            self.stats.drop("LH1 Y sweep without its X sweep (calibration needs both)")
             return
         tx, ax = self._held.pop(station)
         ideal = calibrate_lh1(np.stack([ax, a], -1), cal)  # NaN where either axis is missing
@@ -494,41 +501,79 @@ class BitcrazeDecoder:
 
     def _emit(self, out, t, station, axis, angles, kind):
         self.stats.good += 1
-        out.append(SweepMeasurement(float(t), int(station), int(axis), np.asarray(angles, float), None, kind))
+        out.append(SweepMeasurement(float(t) + self.time_offset_s, int(station), int(axis), np.asarray(angles, float),
+                                    None, kind))
 
     # -- LH2 -----------------------------------------------------------------------------------
+    # As the firmware (pulse_processor_v2.c): pulses closer than 10000 ticks form a workspace; the
+    # workspace is cut into blocks of at most one pulse per sensor (one light plane crossing the
+    # sensors); the FPGA reports the sync offset on only some pulses of a block, so every pulse's
+    # offset is derived from the block's reference pulse (the first with an offset):
+    # ``offset_s = offset_ref - (ts_ref - ts_s)``; the rotor zero is ``timestamp0 = ts_ref - offset_ref``.
+    # A pulse without a channel takes the channel of a later pulse of its workspace (the FPGA
+    # needs a second sensor to decode the bit stream). Deviation: the firmware discards blocks
+    # without all 4 sensors; here a block with fewer gives angles for the sensors it has.
     def _lh2(self, sensor: int, ts: int, offset: int, channel, out: list) -> None:
-        b = self._block
-        if b is not None and abs(ts - b["last"]) > LH2_MAX_TICKS_SENSOR_TO_SENSOR:
+        w = self._block
+        if w is not None and abs(ts - w["last"]) > LH2_MAX_TICKS_SENSOR_TO_SENSOR:
             self._close_block(out)
-            b = None
-        if b is None:
-            b = self._block = {"last": ts, "channels": set(), "offsets": {}, "t0": None}
-        b["last"] = ts
-        if channel is not None:
-            b["channels"].add(channel)
-        if offset and sensor < self.n and sensor not in b["offsets"]:
-            b["offsets"][sensor] = offset
-            if b["t0"] is None:
-                b["t0"] = ts - offset
+            w = None
+        if w is None:
+            w = self._block = {"last": ts, "pulses": []}
+        w["last"] = ts
+        if sensor >= self.n:
+            self.stats.drop("LH2 pulse of a sensor outside the layout")
+            return
+        w["pulses"].append((sensor, ts, offset, channel))
 
     def _close_block(self, out: list) -> None:
-        b, self._block = self._block, None
-        if b is None:
+        w, self._block = self._block, None
+        if w is None or not w["pulses"]:
             return
-        if len(b["channels"]) != 1 or b["t0"] is None:
-            self.stats.dropped += 1  # no or several channels, or no offset: the firmware discards it
+        pulses = w["pulses"]
+        # channel of later pulses back-filled onto earlier ones (firmware augmentFramesInWorkspace)
+        known = None
+        filled = []
+        for sensor, ts, off, ch in reversed(pulses):
+            if ch is not None:
+                known = ch
+            filled.append((sensor, ts, off, ch if ch is not None else known))
+        filled.reverse()
+        blocks, cur = [], []
+        for p in filled:  # one pulse per sensor in a block
+            if any(q[0] == p[0] for q in cur):
+                blocks.append(cur)
+                cur = []
+            cur.append(p)
+        if cur:
+            blocks.append(cur)
+        for blk in blocks:
+            self._lh2_block(blk, out)
+
+    def _lh2_block(self, blk: list, out: list) -> None:
+        chans = {p[3] for p in blk if p[3] is not None}
+        if not chans:
+            self.stats.drop("LH2 block without a channel (no pulse decoded its bit stream)", len(blk))
             return
-        ch = next(iter(b["channels"]))
+        if len(chans) > 1:
+            self.stats.drop("LH2 block with several channels", len(blk))
+            return
+        ref = next((p for p in blk if p[2]), None)
+        if ref is None:
+            self.stats.drop("no pulse of the LH2 block carried a sync offset", len(blk))
+            return
+        ch = next(iter(chans))
+        _, ts_ref, off_ref, _ = ref
+        b = {"t0": ts_ref - off_ref, "offsets": {s: off_ref - (ts_ref - ts) for s, ts, _, _ in blk}}
         prev = self._prev_block.get(ch)
         if prev is not None and abs(b["t0"] - prev["t0"]) <= LH2_MAX_TICKS_BETWEEN_BLOCKS:
             del self._prev_block[ch]
             P = LH2_CYCLE_PERIODS[ch]
             raw = np.full((self.n, 2), np.nan)
-            for s, off in prev["offsets"].items():
-                raw[s, 0] = off * 2 * np.pi / P - np.pi + np.pi / 3
-            for s, off in b["offsets"].items():
-                raw[s, 1] = off * 2 * np.pi / P - np.pi - np.pi / 3
+            for s_, off in prev["offsets"].items():
+                raw[s_, 0] = off * 2 * np.pi / P - np.pi + np.pi / 3
+            for s_, off in b["offsets"].items():
+                raw[s_, 1] = off * 2 * np.pi / P - np.pi - np.pi / 3
             cal = self.calibs.get(ch)
             ang = calibrate_lh2(raw, cal) if cal is not None else raw
             t = prev["t0"] / DECK_CLOCK_HZ
@@ -536,7 +581,8 @@ class BitcrazeDecoder:
             self._emit(out, t, ch, 1, ang[:, 1], "lh2")
         else:
             if prev is not None:
-                self.stats.dropped += 1  # an unpaired first plane
+                self.stats.drop("LH2 first plane without its second (no block of the channel within "
+                                "100 ticks of its rotor zero)", len(prev["offsets"]))
             self._prev_block[ch] = b
 
 
@@ -554,8 +600,10 @@ class BitcrazeLh2Decoder(BitcrazeDecoder):
 
     name = "bitcraze-lh2"
 
-    def __init__(self, n_sensors: int | None = 4, *, system_config=None, calibrate: bool = True):
-        super().__init__(n_sensors, mode="lh2", system_config=system_config, calibrate=calibrate)
+    def __init__(self, n_sensors: int | None = 4, *, system_config=None, calibrate: bool = True,
+                 time_offset_s: float = 0.0):
+        super().__init__(n_sensors, mode="lh2", system_config=system_config, calibrate=calibrate,
+                         time_offset_s=time_offset_s)
 
 
 # ------------------------------------------------------------------------------ registry entries
