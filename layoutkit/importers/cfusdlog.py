@@ -15,7 +15,7 @@ where and why. Event times are returned in seconds on the log's own clock.
 ``lhUartFrame`` events carry what the Lighthouse deck's FPGA sent for one pulse: ``sensor``,
 ``basestation`` (the channel), ``offset`` (24 MHz ticks, the firmware's value = 4 × the deck's
 6 MHz field; 0 = none) and ``timestampFPGA`` (24 MHz, 24 bits). The pulse width, the beam word and
-the slow bit are not logged: :func:`deck_bytes` re-encodes each event as the deck's 12-byte frame
+the slow bit are not logged: ``layoutkit.workflows.importers.deck_bytes`` re-encodes each event as the deck's 12-byte frame
 with width 0, beam word 0 and slow bit 0, which is what the firmware's LH2 angle path uses of
 them (nothing: it reads sensor, channel, offset and timestamp only). LH1 needs the sync pulse
 widths, so an LH1 session cannot be replayed from ``lhUartFrame`` events.
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAGIC", "UsdLog", "read_cfusdlog", "deck_bytes"]
+__all__ = ["MAGIC", "UsdLog", "read_cfusdlog"]
 
 MAGIC = 0xBC
 
@@ -130,28 +130,3 @@ def read_cfusdlog(path) -> UsdLog:
         ev["t"] = np.asarray(times[name], float)
         log.events[name] = ev
     return log
-
-
-def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
-    """``lhUartFrame`` events → the deck's UART byte stream (12-byte frames; a sync frame first and
-    every ``sync_every`` frames). Returns the bytes and notes on what was filled in."""
-    from ..live.protocols.bitcraze import SYNC_FRAME, DeckPulse, encode_pulse
-
-    need = ("sensor", "basestation", "offset", "timestampFPGA")
-    miss = [k for k in need if k not in ev]
-    if miss:
-        raise ValueError(f"lhUartFrame events lack variable(s) {miss} (have {sorted(k for k in ev if k != 't')})")
-    n = len(ev["t"])
-    out = [SYNC_FRAME]
-    for k in range(n):
-        if k and k % sync_every == 0:
-            out.append(SYNC_FRAME)
-        off24 = int(ev["offset"][k])
-        ch = int(ev["basestation"][k])
-        out.append(encode_pulse(DeckPulse(int(ev["sensor"][k]) & 3, int(ev["timestampFPGA"][k]) & 0xFFFFFF, 0,
-                                          off24 // 4, 0, ch if 0 <= ch < 16 else None, 0)))
-    notes = {"width": "not in the log; 0 (the LH2 angle path does not use it)",
-             "beam_word": "not in the log; 0 (not used for angles)",
-             "slow_bit": "not in the log; 0 (OOTX calibration data cannot be decoded: give --system-config)",
-             "offset": "logged in 24 MHz ticks; written as the deck's 6 MHz field (offset / 4)"}
-    return b"".join(out), notes

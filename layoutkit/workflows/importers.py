@@ -213,6 +213,31 @@ def _unwrap24(ts) -> np.ndarray:
     return np.concatenate([[ts[0]], ts[0] + np.cumsum(d)])
 
 
+def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
+    """``lhUartFrame`` events → the deck's UART byte stream (12-byte frames; a sync frame first and
+    every ``sync_every`` frames). Returns the bytes and notes on what was filled in."""
+    from ..live.protocols.bitcraze import SYNC_FRAME, DeckPulse, encode_pulse
+
+    need = ("sensor", "basestation", "offset", "timestampFPGA")
+    miss = [k for k in need if k not in ev]
+    if miss:
+        raise ValueError(f"lhUartFrame events lack variable(s) {miss} (have {sorted(k for k in ev if k != 't')})")
+    n = len(ev["t"])
+    out = [SYNC_FRAME]
+    for k in range(n):
+        if k and k % sync_every == 0:
+            out.append(SYNC_FRAME)
+        off24 = int(ev["offset"][k])
+        ch = int(ev["basestation"][k])
+        out.append(encode_pulse(DeckPulse(int(ev["sensor"][k]) & 3, int(ev["timestampFPGA"][k]) & 0xFFFFFF, 0,
+                                          off24 // 4, 0, ch if 0 <= ch < 16 else None, 0)))
+    notes = {"width": "not in the log; 0 (the LH2 angle path does not use it)",
+             "beam_word": "not in the log; 0 (not used for angles)",
+             "slow_bit": "not in the log; 0 (OOTX calibration data cannot be decoded: give --system-config)",
+             "offset": "logged in 24 MHz ticks; written as the deck's 6 MHz field (offset / 4)"}
+    return b"".join(out), notes
+
+
 def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     """A Crazyflie microSD log → ``out_dir/capture.bin`` (the deck's UART bytes re-encoded from the
     ``lhUartFrame`` events) with its sidecar ``capture.bin.json`` (protocol ``bitcraze-lh2``, the
@@ -224,7 +249,7 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     """
     import csv
 
-    from ..importers.cfusdlog import deck_bytes, read_cfusdlog
+    from ..importers.cfusdlog import read_cfusdlog
     from ..io.atomic import atomic_write, atomic_write_bytes
     from ..io.sidecar import CaptureSidecar, sidecar_path, write_sidecar
     from ..live.protocols.bitcraze import DECK_CLOCK_HZ, load_system_config

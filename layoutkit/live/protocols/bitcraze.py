@@ -43,6 +43,9 @@ station frame has x forward, so ``x_bc = z, y_bc = x, z_bc = y`` (as in
 LH2: the firmware's angles are already the ``lh2_sweep_angles`` light-plane angles
 (plane 0: t = -30°, plane 1: t = +30°). ``SweepMeasurement.t`` is the sync (LH1) or rotor-zero
 (LH2) time in s, deck clock unwrapped; ``station`` is the LH1 station (0/1) or LH2 channel (0-15).
+
+Length (~640 lines): one module per wire protocol — frame layout, both pulse processors, the
+reference encoders and the system-config reader belong together and share the frame constants.
 """
 from __future__ import annotations
 
