@@ -1,9 +1,64 @@
-"""One small helper for shape checks at the public boundary."""
+"""Small helpers for checks at the public boundary: shapes, finite values, structured files,
+fixed-length number lists, unknown keys, plausible sizes (one wording everywhere)."""
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
-__all__ = ["as_array", "check_finite", "read_structured"]
+__all__ = ["as_array", "check_finite", "read_structured", "number_list", "unknown_keys", "check_extent",
+           "ValidationWarning", "OddSizeWarning", "MIN_PLAUSIBLE_EXTENT_M", "MAX_PLAUSIBLE_EXTENT_M"]
+
+#: Smallest / largest plausible extent of a spacecraft (mesh or sensor layout) in metres; outside
+#: this the length unit of the file is suspect.
+MIN_PLAUSIBLE_EXTENT_M = 0.01
+MAX_PLAUSIBLE_EXTENT_M = 100.0
+
+
+class ValidationWarning(UserWarning):
+    """Input that is accepted but probably not what was meant (unknown key, missing id)."""
+
+
+class OddSizeWarning(UserWarning):
+    """A size is implausible for a spacecraft in the stated unit (probably the wrong unit). The
+    CLI turns it into an error unless ``--allow-odd-size``."""
+
+
+def number_list(x, name: str, n: int = 3) -> list:
+    """``x`` as a list of ``n`` finite floats; ValueError ``"<name>: expected n numbers [x, y, z], got ..."``."""
+    want = "[x, y, z]" if n == 3 else f"{n} numbers"
+    if isinstance(x, (str, bytes)) or not hasattr(x, "__len__"):
+        raise ValueError(f"{name}: expected {n} numbers {want}, got {x!r}")
+    if len(x) != n:
+        raise ValueError(f"{name}: expected {n} numbers {want}, got {len(x)}: {list(x)!r}")
+    try:
+        v = [float(c) for c in x]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected {n} numbers {want}, got {list(x)!r}") from None
+    if not all(np.isfinite(v)):
+        raise ValueError(f"{name}: NaN or infinite value in {v}")
+    return v
+
+
+def unknown_keys(d: dict, known, where: str) -> list:
+    """Warn (:class:`ValidationWarning`) once per key of ``d`` not in ``known`` (a typo, most
+    often); keys starting with ``x-`` are the user's own and pass. Returns the unknown keys."""
+    bad = [k for k in d if k not in known and not str(k).startswith("x-")]
+    for k in bad:
+        warnings.warn(ValidationWarning(f"{where}: unknown key {k!r} (kept; known: {', '.join(sorted(known))}; "
+                                        "prefix your own keys with 'x-')"), stacklevel=3)
+    return bad
+
+
+def check_extent(extent_m: float, what: str, units: str, lo: float = MIN_PLAUSIBLE_EXTENT_M,
+                 hi: float = MAX_PLAUSIBLE_EXTENT_M) -> None:
+    """Warn (:class:`OddSizeWarning`) when a spacecraft extent of ``extent_m`` metres (read in
+    ``units``) is outside [lo, hi]: the numbers are probably in another unit."""
+    if not (lo <= extent_m <= hi):
+        side = "smaller" if extent_m < lo else "larger"
+        warnings.warn(OddSizeWarning(f"{what} span {extent_m:.4g} m read as {units!r}, {side} than any plausible "
+                                     f"spacecraft ({lo:g}-{hi:g} m): the numbers are probably in another unit"),
+                      stacklevel=3)
 
 
 def as_array(x, name: str, shape: tuple, dtype=float) -> np.ndarray:

@@ -145,6 +145,9 @@ class Envelope:
         """
         if not isinstance(d, dict):
             raise ValueError("envelope: expected a table of keys")
+        if not d:
+            raise ValueError("envelope: the file sets nothing (empty); give at least range_m, boresight_cone_deg and "
+                             "an [attitude] table (docs/envelope.md) rather than run on silent defaults")
         _reject_unknown(d, _TOP_KEYS, "envelope")
         att = d.get("attitude", {"kind": "uniform"})
         if not isinstance(att, dict):
@@ -262,6 +265,12 @@ def _station_from_dict(s, k: int) -> Station:
     else:
         R = rotvec_to_matrix(np.deg2rad(_vec3(s.get("rotvec_deg", (0.0, 0.0, 0.0)), f"{where}.rotvec_deg")))
     kw = {key: float(s[key]) for key in ("fov_deg", "rotor_rpm", "clock_hz") if key in s}
+    if "fov_deg" in kw and not 0.0 < kw["fov_deg"] <= 180.0:
+        raise ValueError(f"{where}.fov_deg: expected a full field of view in (0, 180] deg, got {kw['fov_deg']:g} "
+                         "(0 would leave every sensor unlit)")
+    for key in ("rotor_rpm", "clock_hz"):
+        if key in kw and not kw[key] > 0:
+            raise ValueError(f"{where}.{key}: expected a positive number, got {kw[key]:g}")
     try:
         return Station(id=str(s.get("id", chr(ord("A") + k))), rotation=R, translation=pos,
                        kind=str(s.get("kind", "lh1")), **kw)

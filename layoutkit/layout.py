@@ -7,16 +7,27 @@ A layout file is JSON ``{"units": "m", "sensors": [{"id": str, "position": [x, y
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .io.jsonfile import to_jsonable
-from ._validate import as_array, check_finite, read_structured
+from ._validate import as_array, check_extent, check_finite, number_list, read_structured, unknown_keys
+from ._validate import ValidationWarning
 from .units import LENGTH_UNITS
 
-__all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout"]
+__all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout", "KNOWN_KEYS", "KNOWN_SENSOR_KEYS"]
+
+#: Top-level keys layoutkit reads or writes (docs/layout-format.md); others warn (typos).
+KNOWN_KEYS = frozenset({"units", "sensors", "name", "note", "mesh", "mesh_sha256", "kind", "spacing_m", "flat_only",
+                        "keepout", "objective", "units_source", "rho", "value", "bound", "gap", "certified_by",
+                        "method", "min_visible", "candidate_ids", "dop_stats", "envelope"})
+#: Per-sensor keys layoutkit reads or writes.
+KNOWN_SENSOR_KEYS = frozenset({"id", "position", "normal", "face", "part"})
+#: Two sensors closer than this (m) are the same place: an error.
+DUPLICATE_TOL_M = 1e-9
 
 #: Back-compat name of :data:`layoutkit.units.LENGTH_UNITS` (metres per unit).
 UNIT_SCALE = LENGTH_UNITS
@@ -77,17 +88,28 @@ class Layout:
         sensors = d.get("sensors")
         if not isinstance(sensors, list) or not sensors:
             raise ValueError("layout: 'sensors' must be a non-empty list")
+        unknown_keys(d, KNOWN_KEYS, "layout")
         pos, nor, ids, extra = [], [], [], []
         for k, s in enumerate(sensors):
-            try:
-                pos.append([float(x) for x in s["position"]])
-                nor.append([float(x) for x in s["normal"]])
-            except (KeyError, TypeError, ValueError) as exc:
-                raise ValueError(f"layout sensor {k}: needs numeric 'position' and 'normal' ({exc})") from None
+            if not isinstance(s, dict):
+                raise ValueError(f"layout sensor {k}: expected an object with 'id', 'position', 'normal', got {s!r}")
+            where = f"layout sensor {k}" + (f" (id {s['id']!r})" if "id" in s else "")
+            missing = [key for key in ("position", "normal") if key not in s]
+            if missing:
+                raise ValueError(f"{where}: needs numeric 'position' and 'normal' (missing {', '.join(missing)})")
+            pos.append(number_list(s["position"], f"{where}: 'position'"))
+            nor.append(number_list(s["normal"], f"{where}: 'normal'"))
+            if "id" not in s:
+                warnings.warn(ValidationWarning(f"{where}: no 'id'; named {str(k)!r} after its index"), stacklevel=2)
             ids.append(str(s.get("id", k)))
+            unknown_keys(s, KNOWN_SENSOR_KEYS, where)
             extra.append({key: val for key, val in s.items() if key not in ("id", "position", "normal")})
+        P = np.asarray(pos) * scale
+        _check_duplicate_positions(P, ids)
+        if len(P) > 1:
+            check_extent(float(np.max(P.max(0) - P.min(0))), "layout: the sensors", units)
         meta = {key: val for key, val in d.items() if key not in ("units", "sensors")}
-        return cls(np.asarray(pos) * scale, np.asarray(nor), tuple(ids), meta, tuple(extra))
+        return cls(P, np.asarray(nor), tuple(ids), meta, tuple(extra))
 
     def to_dict(self) -> dict:
         sensors = [
@@ -97,14 +119,32 @@ class Layout:
         return {"units": "m", "sensors": sensors, **self.metadata}
 
 
+def _check_duplicate_positions(P: np.ndarray, ids) -> None:
+    """ValueError naming the first two sensors at the same position (within DUPLICATE_TOL_M)."""
+    if len(P) < 2:
+        return
+    order = np.lexsort(P.T[::-1])
+    Q = P[order]
+    close = np.flatnonzero(np.all(np.abs(np.diff(Q, axis=0)) <= DUPLICATE_TOL_M, axis=1))
+    if close.size:
+        a, b = sorted((int(order[close[0]]), int(order[close[0] + 1])))
+        raise ValueError(f"layout sensors {a} (id {ids[a]!r}) and {b} (id {ids[b]!r}) have the same position "
+                         f"{P[a].tolist()} m; each sensor needs its own place")
+
+
 def load_layout(path) -> Layout:
     """Read a layout JSON file; raises ``ValueError`` with the file name on bad content."""
     path = Path(path)
     d = read_structured(path, "layout", "JSON", json.loads, json.JSONDecodeError)
-    try:
-        return Layout.from_dict(d)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            lay = Layout.from_dict(d)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    for w in caught:  # again, naming the file, under the caller's filters
+        warnings.warn(w.category(f"{path}: {w.message}"), stacklevel=2)
+    return lay
 
 
 def save_layout(layout: Layout, path) -> None:

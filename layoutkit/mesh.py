@@ -25,16 +25,14 @@ __all__ = ["MESH_FORMATS", "MeshWarning", "load_mesh", "mesh_hash", "describe_me
 #: File suffixes :func:`load_mesh` reads (trimesh loaders).
 MESH_FORMATS = ("stl", "obj", "ply", "off", "glb", "gltf")
 
-#: Largest / smallest plausible spacecraft extent in metres; outside this the unit is suspect.
-MAX_PLAUSIBLE_EXTENT_M = 100.0
-MIN_PLAUSIBLE_EXTENT_M = 0.01
+from ._validate import MAX_PLAUSIBLE_EXTENT_M, MIN_PLAUSIBLE_EXTENT_M, OddSizeWarning  # noqa: E402  (one limit)
 
 
 class MeshWarning(UserWarning):
     """A mesh loaded but looks suspicious (wrong unit, open surface, degenerate faces)."""
 
 
-class MeshUnitsWarning(MeshWarning):
+class MeshUnitsWarning(MeshWarning, OddSizeWarning):
     """The mesh's size is implausible for a spacecraft in the given unit (probably the wrong --units)."""
 
 

@@ -35,9 +35,12 @@ def test_units_are_converted_to_metres(tmp_path):
     ("{", "not valid JSON"),
     ('{"units": "furlong", "sensors": []}', "layout units: expected one of \\['cm', 'in', 'm', 'mm'\\], got 'furlong'"),
     ('{"units": "m", "sensors": []}', "'sensors' must be a non-empty list"),
-    ('{"sensors": [{"id": "a", "position": [0, 0], "normal": [0, 0, 1]}]}', r"positions: expected shape \(\*, 3\), got \(1, 2\)"),
-    ('{"sensors": [{"id": "a", "position": [0, 0, "x"], "normal": [0, 0, 1]}]}', "layout sensor 0: needs numeric"),
-    ('{"sensors": [{"id": "a", "position": [0, 0, NaN], "normal": [0, 0, 1]}]}', "positions: 1 non-finite"),
+    ('{"sensors": [{"id": "a", "position": [0, 0], "normal": [0, 0, 1]}]}',
+     r"layout sensor 0 \(id 'a'\): 'position': expected 3 numbers \[x, y, z\], got 2: \[0, 0\]"),
+    ('{"sensors": [{"id": "a", "position": [0, 0, "x"], "normal": [0, 0, 1]}]}',
+     r"layout sensor 0 \(id 'a'\): 'position': expected 3 numbers"),
+    ('{"sensors": [{"id": "a", "position": [0, 0, NaN], "normal": [0, 0, 1]}]}', "'position': NaN or infinite"),
+    ('{"sensors": [{"id": "a", "normal": [0, 0, 1]}]}', "layout sensor 0 \\(id 'a'\\): needs numeric 'position'"),
     ('{"sensors": [{"id": "a", "position": [0, 0, 0], "normal": [0, 0, 1]}, {"id": "a", "position": [1, 0, 0], "normal": [0, 0, 1]}]}', "ids must be unique"),
 ])
 def test_bad_files_give_clear_messages(tmp_path, content, message):

@@ -7,6 +7,7 @@ libraries inside the command bodies. Commands parse, call one workflow, print.
 from __future__ import annotations
 
 import errno
+import warnings
 
 import click
 
@@ -14,23 +15,63 @@ from . import camera, core, fake, importers, live, mesh, optimize, render, score
 from ._common import fail
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None, _default=warnings.showwarning):
+    """Input warnings (unknown keys, odd sizes, mesh checks) as one ``warning:`` line on stderr."""
+    from .._validate import OddSizeWarning, ValidationWarning
+
+    if issubclass(category, (ValidationWarning, OddSizeWarning)) or category.__name__.startswith("Mesh"):
+        click.secho(f"warning: {message}", fg="yellow", err=True)
+    else:
+        _default(message, category, filename, lineno, file, line)
+
+
+def _allow_odd_size(ctx, param, value):
+    from .._validate import OddSizeWarning
+
+    if value:  # inside the group's warnings context: only this run
+        warnings.simplefilter("default", OddSizeWarning)
+    return value
+
+
+def _add_allow_odd_size(cmd) -> None:
+    """Every command (recursively) gets ``--allow-odd-size``: a size that says the length unit is
+    wrong (a layout or mesh far smaller than 1 cm or larger than 100 m) stops the command with an
+    error unless it is given; commands that declare the flag themselves keep theirs."""
+    if isinstance(cmd, click.Group):
+        for sub in cmd.commands.values():
+            _add_allow_odd_size(sub)
+        return
+    if any("--allow-odd-size" in getattr(p, "opts", ()) for p in cmd.params):
+        return
+    cmd.params.append(click.Option(["--allow-odd-size"], is_flag=True, expose_value=False, callback=_allow_odd_size,
+                                   help="Go on although a layout's or mesh's size says its length unit is wrong."))
+
+
 class _Group(click.Group):
     """The command group; a file that cannot be read or written (missing folder, permissions, disk
-    full) ends with one ``error:`` line naming the file instead of a traceback."""
+    full) ends with one ``error:`` line naming the file instead of a traceback. A layout or mesh
+    whose size says its unit is wrong ends with one ``error:`` line unless ``--allow-odd-size``."""
 
     def invoke(self, ctx):
+        from .._validate import OddSizeWarning
+
         argv = [*getattr(ctx, "_protected_args", ()), *ctx.args]
-        try:
-            return super().invoke(ctx)
-        except click.UsageError as exc:
-            if "--json" in argv and "extra argument" in exc.message:  # the old `--json PATH` form
-                exc.message += " (--json is a flag that prints JSON; write a file with --json-out FILE)"
-            raise
-        except OSError as exc:
-            if isinstance(exc, BrokenPipeError) or exc.errno == errno.EPIPE:
-                raise  # click ends quietly on a closed pipe
-            what = exc.strerror or str(exc)
-            fail(f"{exc.filename}: {what}" if exc.filename else what)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            warnings.simplefilter("error", OddSizeWarning)
+            try:
+                return super().invoke(ctx)
+            except OddSizeWarning as exc:
+                fail(f"{exc}; give the right unit (the file's \"units\" / --units), or --allow-odd-size to go on")
+            except click.UsageError as exc:
+                if "--json" in argv and "extra argument" in exc.message:  # the old `--json PATH` form
+                    exc.message += " (--json is a flag that prints JSON; write a file with --json-out FILE)"
+                raise
+            except OSError as exc:
+                if isinstance(exc, BrokenPipeError) or exc.errno == errno.EPIPE:
+                    raise  # click ends quietly on a closed pipe
+                what = exc.strerror or str(exc)
+                fail(f"{exc.filename}: {what}" if exc.filename else what)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -44,4 +85,5 @@ def main():
 
 for _mod in (core, mesh, render, optimize, score, live, fake, camera, importers):
     for _cmd in _mod.commands:
+        _add_allow_odd_size(_cmd)
         main.add_command(_cmd)

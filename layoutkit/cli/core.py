@@ -41,10 +41,13 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
                              sigma=sigma)
     except ValueError as exc:
         fail(str(exc))
+    under = out["status"] == "underdetermined"
     if as_json:
         echo_json(out)
+        if under:
+            raise SystemExit(1)
         return
-    if not out["success"]:
+    if not out["success"] and not under:
         lit_ids = ", ".join(out["lit"]) or "none"
         why = ("singular geometry" if out["n_lit"] >= 3 else "fewer than 3 sensors lit; the body may face away "
                "from the station (try another --rotvec-deg, or --lit all)")
@@ -53,6 +56,8 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
     click.echo(f"ADOP = {out['adop_deg_per_rad']:.2f} deg/rad   PDOP = {out['pdop_m_per_rad']:.3f} m/rad   (rho = {rho})")
     click.echo(f"predicted precision at sigma = {sigma / ARCSEC:.4g}\": {out['predicted_sigma_rot_deg']:.4f} deg, "
                f"{out['predicted_sigma_trans_mm']:.3f} mm")
+    if under:
+        fail(out["message"], code=1)
 
 
 @click.command("simulate", short_help="Simulate noisy sweep-angle frames at random poses.")

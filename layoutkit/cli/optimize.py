@@ -68,6 +68,8 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
         warnings.showwarning = lambda msg, *a, **k: click.secho(f"warning: {msg}", fg="yellow", err=True)
         if not allow_odd_size:  # an optimisation at the wrong scale is minutes of nonsense: stop now
             warnings.simplefilter("error", MeshUnitsWarning)
+        else:  # asked for: one warning line (the command group makes odd sizes errors by default)
+            warnings.simplefilter("default", MeshUnitsWarning)
         try:
             s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                           spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
@@ -93,6 +95,9 @@ def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, 
         from ..optimize import parse_objective
 
         w = None
+        if objective.strip().lower().endswith("weighted") and not weights:
+            fail(f"--objective {objective}: needs --weights A,B (weights of ADOP² in deg² and PDOP² in m²); "
+                 "no silent default")
         if weights:
             w = tuple(float(x) for x in weights.split(","))
         parse_objective(objective, w)

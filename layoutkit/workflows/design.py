@@ -43,12 +43,16 @@ class DesignInputs:
                                    self.stations, **kw)
 
 
-def load_design_inputs(mesh_path, units: str = "m", envelope_path=None, layout_path=None) -> DesignInputs:
+def load_design_inputs(mesh_path, units: str = "m", envelope_path=None, layout_path=None,
+                       check_size: bool = True) -> DesignInputs:
     """Load a mesh (``units`` of the file), optionally an envelope TOML and a layout JSON.
 
     Raises ``ValueError`` with a file-naming message on bad input; mesh warnings are returned in
-    ``.warnings`` (and not re-emitted).
+    ``.warnings`` (and not re-emitted), except a size that says ``units`` is wrong
+    (:class:`layoutkit._validate.OddSizeWarning`), which is re-emitted when ``check_size`` (the
+    CLI stops on it unless ``--allow-odd-size``).
     """
+    from .._validate import OddSizeWarning
     from ..envelope import load_envelope
     from ..layout import load_layout
     from ..mesh import load_mesh
@@ -58,7 +62,10 @@ def load_design_inputs(mesh_path, units: str = "m", envelope_path=None, layout_p
         mesh = load_mesh(mesh_path, units=units)
     env = load_envelope(envelope_path) if envelope_path is not None else None
     layout = load_layout(layout_path) if layout_path is not None else None
-    msgs = tuple(str(w.message) for w in caught)
+    odd = [w for w in caught if check_size and issubclass(w.category, OddSizeWarning)]
+    for w in odd:
+        warnings.warn(w.message, stacklevel=2)
+    msgs = tuple(str(w.message) for w in caught if w not in odd)
     if layout is not None:
         from ..mesh import mesh_hash
 
@@ -75,7 +82,7 @@ def mesh_info(mesh_path, units: str = "m") -> dict:
     """``describe_mesh`` of the file plus the load warnings (``"warnings": [...]``)."""
     from ..mesh import describe_mesh
 
-    inp = load_design_inputs(mesh_path, units)
+    inp = load_design_inputs(mesh_path, units, check_size=False)  # reports the size warning, never stops
     return {"file": str(mesh_path), "units": units, **describe_mesh(inp.mesh), "warnings": list(inp.warnings)}
 
 

@@ -43,13 +43,25 @@ def pose_precision(layout: Layout, rotvec_deg, translation_m, *, lit: str = "fac
     rotvec_deg (3,): body attitude in the station frame, rotation vector in degrees;
     translation_m (3,): body position, m (z = boresight); rho: same-rotor correlation in [0, 1);
     sigma: sweep-angle noise 1-sigma, rad. Returns a JSON-ready dict with ``status``/``message``
-    from :class:`layoutkit.dop.DopResult` and ``success``.
+    from :class:`layoutkit.dop.DopResult` and ``success`` — or status ``"underdetermined"``
+    (success False) with fewer than 4 lit sensors. ValueError for a non-finite pose.
     """
+    for flag, val in (("--rotvec-deg", rotvec_deg), ("--translation-m", translation_m)):
+        if not np.all(np.isfinite(np.asarray(val, float))):
+            raise ValueError(f"{flag}: expected 3 finite numbers, got {' '.join(str(x) for x in val)}")
     R = rotvec_to_matrix(np.radians(np.asarray(rotvec_deg, float)))
     t = np.asarray(translation_m, float)
     v = lit_at_pose(layout, R, t, lit, half_angle_deg=half_angle_deg)
     r = pose_dop(layout.positions, R, t, rho=rho, visible=v)
-    return {"lit": [i for i, b in zip(layout.ids, v) if b], "n_lit": int(v.sum()), "rho": rho,
-            "sigma_rad": sigma, "success": bool(r.success), "status": int(r.status), "message": r.message,
-            "adop_deg_per_rad": float(r.adop), "pdop_m_per_rad": float(r.pdop),
-            "predicted_sigma_rot_deg": float(r.adop * sigma), "predicted_sigma_trans_mm": float(r.pdop * sigma * 1e3)}
+    out = {"lit": [i for i, b in zip(layout.ids, v) if b], "n_lit": int(v.sum()), "rho": rho,
+           "sigma_rad": sigma, "success": bool(r.success), "status": int(r.status), "message": r.message,
+           "adop_deg_per_rad": float(r.adop), "pdop_m_per_rad": float(r.pdop),
+           "predicted_sigma_rot_deg": float(r.adop * sigma), "predicted_sigma_trans_mm": float(r.pdop * sigma * 1e3)}
+    if r.success and out["n_lit"] < 4:
+        # 3 lit sensors: 6 angles for 6 unknowns — the DOP is finite, but the pose is not unique
+        # (P3P has up to 4 solutions) and PnP needs 4: not "ok"
+        out.update(success=False, status="underdetermined",
+                   message=f"underdetermined: {out['n_lit']} lit sensors give {2 * out['n_lit']} angles for 6 pose "
+                           "unknowns; the pose is not unique (P3P: up to 4 solutions) — at least 4 lit sensors are "
+                           "needed; the DOP shown is of the true pose only")
+    return out
