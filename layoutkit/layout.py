@@ -25,7 +25,7 @@ KNOWN_KEYS = frozenset({"units", "sensors", "name", "note", "mesh", "mesh_sha256
                         "keepout", "objective", "units_source", "rho", "value", "bound", "gap", "certified_by",
                         "method", "min_visible", "candidate_ids", "dop_stats", "envelope"})
 #: Per-sensor keys layoutkit reads or writes.
-KNOWN_SENSOR_KEYS = frozenset({"id", "position", "normal", "face", "part"})
+KNOWN_SENSOR_KEYS = frozenset({"id", "position", "normal", "face", "part", "candidate"})
 #: Two sensors closer than this (m) are the same place: an error.
 DUPLICATE_TOL_M = 1e-9
 

@@ -4,7 +4,8 @@
 
 Outputs (metres, body frame): chen_target.stl + chen_target.layout.json (the 12-sensor
 reconstruction, with the mesh hash), zhai_target.glb/.stl, cubesat_3u.glb/.ply,
-docking_target.glb/.stl. GLB files keep the named parts as scene nodes. Deterministic: running it
+docking_target.glb/.stl, camera_frames/ (three synthetic 1292 x 964 camera frames of the Zhai
+target for `layoutkit camera-attitude`, with truth.csv). GLB files keep the named parts as scene nodes. Deterministic: running it
 again gives the same files.
 """
 from __future__ import annotations
@@ -36,6 +37,12 @@ def main(out: Path = OUT) -> list:
         for fmt in formats:
             save_mesh(mesh, out / f"{name}.{fmt}")
             written.append(f"{name}.{fmt}")
+    try:  # a few synthetic camera frames for `layoutkit camera-attitude` (needs off-screen rendering)
+        from layoutkit.workflows.camera import write_example_frames
+
+        written += [str(p.relative_to(out)) for p in write_example_frames(out / "camera_frames")]
+    except Exception as exc:  # noqa: BLE001 - no EGL/OSMesa here: the meshes are still written
+        print(f"note: camera frames skipped ({type(exc).__name__}: {exc})", file=sys.stderr)
     return written
 
 

@@ -33,6 +33,9 @@ def atomic_write(path, mode: str = "w", *, newline=None, encoding: str | None = 
             exc.filename = str(path)
         raise
     try:
+        umask = os.umask(0o022)  # mkstemp makes 0600: give the file the permissions open() would
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
         if mode == "wb":
             fh = os.fdopen(fd, "wb")
         else:
