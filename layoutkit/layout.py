@@ -20,7 +20,8 @@ from .units import LENGTH_UNITS
 
 __all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout", "KNOWN_KEYS", "KNOWN_SENSOR_KEYS"]
 
-#: Top-level keys layoutkit reads or writes (docs/layout-format.md); others warn (typos).
+#: Top-level keys layoutkit itself reads or writes (docs/layout-format.md). Other top-level keys are
+#: metadata (importers add their own) and pass; unknown per-sensor keys warn (typos such as 'postion').
 KNOWN_KEYS = frozenset({"units", "sensors", "name", "note", "mesh", "mesh_sha256", "kind", "spacing_m", "flat_only",
                         "keepout", "objective", "units_source", "rho", "value", "bound", "gap", "certified_by",
                         "method", "min_visible", "candidate_ids", "dop_stats", "envelope"})
@@ -88,7 +89,6 @@ class Layout:
         sensors = d.get("sensors")
         if not isinstance(sensors, list) or not sensors:
             raise ValueError("layout: 'sensors' must be a non-empty list")
-        unknown_keys(d, KNOWN_KEYS, "layout")
         pos, nor, ids, extra = [], [], [], []
         for k, s in enumerate(sensors):
             if not isinstance(s, dict):
