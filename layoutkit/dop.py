@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import status as _status
 from ._validate import as_array, check_finite
 from .geometry import attitude_error, nearest_rotation
 from .lighthouse import Station, measure_jacobian
@@ -41,7 +42,8 @@ class DopResult:
     adop : (...,) float, deg of attitude per rad of angle noise (Chen eq. 22); inf where singular.
     pdop : (...,) float, m of position per rad of angle noise; inf where singular.
     cov : (..., 6, 6) float, H of eq. (18) in (dphi rad, dt m) per rad², rotation block first.
-    success : (...,) bool; status : (...,) int (0 ok, 1 too few lit sensors, 2 singular geometry).
+    success : (...,) bool; status : (...,) int codes of :mod:`layoutkit.status` (0 ok, 1 too few lit
+    sensors, 2 degenerate = singular geometry).
     n_visible : (...,) int, angle pairs used.
     """
 
@@ -141,7 +143,7 @@ def dop_from_jacobian(jac, rho: float = 0.0, visible=None) -> DopResult:
     Ainv = np.linalg.inv(Asafe)
     H = Ainv @ M @ Ainv  # Chen eq. (18)
     H = 0.5 * (H + np.swapaxes(H, -1, -2))
-    status = np.where(n_angles < 6, 1, np.where(singular, 2, 0))
+    status = np.where(n_angles < 6, _status.TOO_FEW_LIT, np.where(singular, _status.DEGENERATE, _status.OK))
     ok = status == 0
     tr_rot = np.trace(H[..., :3, :3], axis1=-2, axis2=-1)
     tr_t = np.trace(H[..., 3:, 3:], axis1=-2, axis2=-1)

@@ -42,6 +42,7 @@ from typing import Protocol
 
 import numpy as np
 
+from . import status as _status
 from ._validate import as_array
 from .geometry import nearest_rotation
 from .units import RHO_PAPER, SIGMA_THETA_PAPER
@@ -75,24 +76,18 @@ MIN_ANGLES = 6
 MIN_SENSORS = 3
 MIN_START_SENSORS = 4
 
-STATUS_OK = 0
-STATUS_TOO_FEW = 1          # below the minimum rule: < 6 angles or < 3 sensors seen
-STATUS_DEGENERATE = 2       # lit sensors (nearly) collinear, singular normal equations, or range unobservable
-STATUS_NOT_CONVERGED = 3    # refinement hit max_iterations without meeting the tolerance
-STATUS_BEHIND = 4           # best pose puts a lit sensor at z <= 0 (behind the station)
-STATUS_AMBIGUOUS = 5        # two distinct poses fit the angles equally well at the noise level
-STATUS_INVALID_ANGLE = 6    # a seen angle is infinite or outside (0, pi) rad: garbage or wrong units
-STATUS_NO_START = 7         # meets the rule, but < 4 sensors seen on both axes and no initial pose
-STATUS_NAMES = {
-    STATUS_OK: "ok",
-    STATUS_TOO_FEW: "too few angles (< 6 angles or < 3 sensors seen)",
-    STATUS_DEGENERATE: "degenerate geometry (collinear sensors, singular normal equations or unobservable range)",
-    STATUS_NOT_CONVERGED: "not converged",
-    STATUS_BEHIND: "behind the station (a lit sensor at z <= 0)",
-    STATUS_AMBIGUOUS: "ambiguous (two poses fit equally well at the noise level; both returned)",
-    STATUS_INVALID_ANGLE: "invalid angle (infinite or outside (0, pi) rad; degrees?)",
-    STATUS_NO_START: "no start (fewer than 4 sensors seen on both axes and no initial pose)",
-}
+STATUS_OK = _status.OK
+STATUS_TOO_FEW = _status.TOO_FEW_LIT          # below the minimum rule: < 6 angles or < 3 sensors seen
+STATUS_DEGENERATE = _status.DEGENERATE        # lit sensors (nearly) collinear, singular normal equations, or range unobservable
+STATUS_NOT_CONVERGED = _status.NOT_CONVERGED  # refinement hit max_iterations without meeting the tolerance
+STATUS_BEHIND = _status.BEHIND                # best pose puts a lit sensor at z <= 0 (behind the station)
+STATUS_AMBIGUOUS = _status.AMBIGUOUS          # two distinct poses fit the angles equally well at the noise level
+STATUS_INVALID_ANGLE = _status.INVALID_ANGLE  # a seen angle is infinite or outside (0, pi) rad: garbage or wrong units
+STATUS_NO_START = _status.NO_START            # meets the rule, but < 4 sensors seen on both axes and no initial pose
+#: PnP statuses: codes of the one table (:mod:`layoutkit.status`) → description.
+STATUS_NAMES = {c: _status.DESCRIPTIONS[c] for c in (STATUS_OK, STATUS_TOO_FEW, STATUS_DEGENERATE, STATUS_NOT_CONVERGED,
+                                                      STATUS_BEHIND, STATUS_AMBIGUOUS, STATUS_INVALID_ANGLE,
+                                                      STATUS_NO_START)}
 
 DEFAULT_CHUNK = 4096
 #: Lit sets with sqrt(lambda_min / lambda_max) of their centred body points below this get the two

@@ -16,7 +16,7 @@ PKG = Path(__file__).resolve().parents[1] / "layoutkit"
 #: (tier 1) rooms may import each other (no cycles: Python would fail); the data rooms (2.x) are
 #: ordered among themselves.
 TIERS = {
-    "units": 0, "_validate": 0,
+    "units": 0, "_validate": 0, "status": 0,
     "geometry": 1, "lighthouse": 1, "noise": 1, "joint": 1, "pnp": 1, "dop": 1, "dop_batch": 1,
     "simulate": 1, "visibility": 1, "quality": 1, "coverage_rule": 1, "filter": 1,
     "io": 2.0, "_json": 2.1, "layout": 2.2, "shapes": 2.3, "envelope": 2.3, "mesh": 2.4, "candidates": 2.5,

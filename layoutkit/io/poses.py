@@ -9,8 +9,9 @@ is this one table. Columns, in this order::
 - ``t`` : s.
 - ``station`` : the station index as text (``0``, ``1``, ...) or ``joint`` for a pose solved
   from several stations at once (:data:`JOINT`, -1 in memory).
-- ``status`` : int, 0 = ok; other values are the producer's status codes (``PnPResult.status``,
-  the live pipeline's ``STATUS_*``).
+- ``status`` : int, 0 = ok; other values are the codes of the one status table,
+  :mod:`layoutkit.status` (PnP and the live pipeline share it, so a code means the same in
+  every pose file).
 - ``rx, ry, rz`` : rotation vector, **radians**; ``tx, ty, tz`` : translation, **metres**. The pose
   maps body points into the frame of the file (station or world): ``p = R(r) p_body + t``.
 - ``residual_rms`` : rad, RMS sweep-angle residual of the fit (NaN when not applicable).

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .. import status as _status
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec
 from ..lighthouse import LH1_ROTOR_RPM, Station, lh2_to_lh1_angles  # noqa: F401  (re-export)
@@ -55,20 +56,15 @@ __all__ = [
 ]
 
 # Pose status codes (per frame). Only STATUS_OK poses are "good"; the others are counted as bad.
-STATUS_OK = 0
-STATUS_TOO_FEW_LIT = 1
-STATUS_SOLVER_FAILED = 2
-STATUS_HIGH_RESIDUAL = 3
-STATUS_JUMP = 4
-STATUS_AMBIGUOUS = 5  # two poses fit the angles equally well (planar ambiguity, layoutkit.pnp)
-STATUS_NAMES = {
-    STATUS_OK: "ok",
-    STATUS_TOO_FEW_LIT: "too_few_lit",
-    STATUS_SOLVER_FAILED: "solver_failed",
-    STATUS_HIGH_RESIDUAL: "high_residual",
-    STATUS_JUMP: "jump",
-    STATUS_AMBIGUOUS: "ambiguous",
-}
+STATUS_OK = _status.OK
+STATUS_TOO_FEW_LIT = _status.TOO_FEW_LIT
+STATUS_SOLVER_FAILED = _status.SOLVER_FAILED
+STATUS_HIGH_RESIDUAL = _status.HIGH_RESIDUAL
+STATUS_JUMP = _status.JUMP
+STATUS_AMBIGUOUS = _status.AMBIGUOUS  # two poses fit the angles equally well (planar ambiguity, layoutkit.pnp)
+#: The pipeline's statuses by name: the codes and names of the one table, :mod:`layoutkit.status`.
+STATUS_NAMES = {c: _status.NAMES[c] for c in (STATUS_OK, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED,
+                                               STATUS_HIGH_RESIDUAL, STATUS_JUMP, STATUS_AMBIGUOUS)}
 
 LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
 
@@ -288,6 +284,16 @@ class PoseChunk:
     def good(self) -> np.ndarray:
         """(F,) bool, frames with a trusted pose."""
         return self.status == STATUS_OK
+
+    @property
+    def success(self) -> np.ndarray:
+        """(F,) bool, same as :attr:`good` (the layoutkit.status convention's name)."""
+        return self.good
+
+    @property
+    def message(self) -> str:
+        """One line: statuses of the chunk's frames by name (:mod:`layoutkit.status`)."""
+        return _status.summarize(self.status, STATUS_NAMES)
 
     def records(self):
         """Yield one plain dict per frame with a pose (the ``--json-lines`` contract)."""

@@ -23,7 +23,8 @@ class CoverageReport:
 
     feasible : whether k sensors can keep m lit at the required poses; min_k : smallest k that can
     (None if no k can); uncoverable : (U,) pose indices with fewer than m lit candidates at all;
-    status : "ok" | "infeasible" | "uncoverable"; message : plain-language explanation.
+    status : "ok" | "infeasible" | "uncoverable"; success : ``status == "ok"``; message :
+    plain-language explanation.
     """
 
     feasible: bool
@@ -31,6 +32,11 @@ class CoverageReport:
     uncoverable: np.ndarray
     status: str
     message: str
+
+    @property
+    def success(self) -> bool:
+        """The request can be met (``status == "ok"``; layoutkit.status convention)."""
+        return self.status == "ok"
 
 
 def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0):
