@@ -57,18 +57,6 @@ class AttitudeStream:
     meta: dict = field(default_factory=dict)
     message: str = ""
 
-    @property
-    def message(self) -> str:
-        """One line: how many frames were solved, and the other statuses by count."""
-        st = np.asarray(self.status).reshape(-1)
-        if st.size == 0:
-            return "no frames"
-        if np.all(np.asarray(self.success)):
-            return f"all {st.size} frames ok"
-        names, counts = np.unique(st, return_counts=True)
-        return f"{int(np.sum(self.success))} of {st.size} frames solved; " + ", ".join(
-            f"{int(n)} {name}" for name, n in zip(names, counts))
-
 
 def _label_folds(method: str, aspect_ratio) -> int:
     if method == "ippe" and aspect_ratio is not None and not np.isclose(float(aspect_ratio), 1.0):
