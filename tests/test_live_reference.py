@@ -144,3 +144,17 @@ def test_csv_errors(tmp_path):
         read_pose_csv(path, units="inch")
     with pytest.raises(ValueError, match=r"^PoseTrack: times must be strictly increasing$"):
         PoseTrack(np.array([0.0, 0.0]), np.stack([np.eye(3)] * 2))
+
+
+def test_clock_offset_of_hours(setup):
+    """A mocap clock 2,712.4 s (45 min) away from the lighthouse's (the case that failed with the old
+    ±5 s search): the offset and the frames are recovered as for a small offset (construction)."""
+    L, _, (_, Rx, tx, Ry, ty) = setup
+    tau = 2712.4
+    tm = np.arange(tau - 1, tau + 42, 1 / 100)
+    Rm, pm = mocap_of(tm, tau, Rx, tx, Ry, ty)
+    M = PoseTrack(tm, Rm, pm)
+    assert abs(estimate_time_offset(L, M) - tau) < 0.1
+    a = align_reference(L, M)
+    assert a.success and abs(a.tau - tau) < 3e-3
+    assert np.linalg.norm(a.t_x - tx) < 1e-3

@@ -194,13 +194,16 @@ def angular_speed(track: PoseTrack, times, baseline: float) -> np.ndarray:
     return w
 
 
-def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_offset: float = 5.0,
+def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_offset: float | None = None,
                          step: float = 0.01, baseline: float = 0.1, return_peak: bool = False):
     """Clock offset ``tau`` (s) with reference time = lighthouse time + tau.
 
     Pearson correlation of both streams' angular speeds (:func:`angular_speed`) on a common
     grid of ``step`` s for every lag within ``± max_offset`` whose overlap covers at least half
     of the shorter stream, with a parabolic peak refinement. Returns NaN when the streams do not overlap or hold no rotation.
+    max_offset None (default): any clock origin (a motion-capture clock hours away from the
+    lighthouse's); the grids start at each stream's own first sample, so the cost does not grow
+    with the offset.
     """
     from scipy.signal import correlate
 
@@ -239,7 +242,8 @@ def estimate_time_offset(lighthouse: PoseTrack, reference: PoseTrack, *, max_off
     c = cov / np.sqrt(var)
     # lag L in samples: gr[0] + (i + L) step ~ g[0] + i step + tau
     tau = gr[0] - g[0] + lags * step
-    c[(np.abs(tau) > max_offset) | (n < 0.5 * min(na, nb))] = -np.inf
+    far = np.zeros(tau.shape, bool) if max_offset is None else np.abs(tau) > max_offset
+    c[far | (n < 0.5 * min(na, nb))] = -np.inf
     k = int(np.argmax(c))
     if not np.isfinite(c[k]):
         return (float("nan"), float("nan")) if return_peak else float("nan")
@@ -339,7 +343,7 @@ def estimate_alignment(R_l, R_m, t_l=None, t_m=None, *, min_pair_angle: float = 
 
 
 def align_reference(lighthouse: PoseTrack, reference: PoseTrack, *, tau: float | None = None,
-                    max_offset: float = 5.0, max_samples: int = 4000) -> Alignment:
+                    max_offset: float | None = None, max_samples: int = 4000) -> Alignment:
     """Estimate clock offset and fixed frames of ``reference`` against lighthouse poses.
 
     lighthouse : good poses of the pipeline (a decimated sample suffices); reference : the

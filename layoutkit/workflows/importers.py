@@ -16,7 +16,8 @@ from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "write_layout", "write_reference"]
+__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "import_reference", "write_layout",
+           "write_reference"]
 
 
 # ---------------------------------------------------------------- writers of our own formats
@@ -306,3 +307,20 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
             "uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
             "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
             "stations": len(stations), "notes": note_list}
+
+
+# ---------------------------------------------------------------- motion capture
+
+def import_reference(path, out, *, units: str = "m") -> dict:
+    """A motion-capture reference (pose or position only; CSV or .npy) → a pose table ``out``
+    (station ``joint`` = the reference's own world frame; position-only rows have an empty
+    rotation). Any clock origin is kept as it is: the replay's offset search handles hours."""
+    from ..importers.mocap import read_reference
+    from ..io.poses import JOINT, PoseTable, write_poses
+
+    ref = read_reference(path, units)
+    n = len(ref.t)
+    rv = np.full((n, 3), np.nan) if ref.rotvec is None else ref.rotvec
+    write_poses(out, PoseTable(ref.t, rv, ref.position, station=np.full(n, JOINT), status=np.zeros(n, int)))
+    return {"file": str(path), "out": str(out), "rows": n, "dropped_rows": ref.dropped,
+            "position_only": ref.rotvec is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}

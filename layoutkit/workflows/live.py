@@ -43,7 +43,7 @@ LiveOptions = LiveConfig
 # ----------------------------------------------------------------------------------- helpers
 
 def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA_PAPER, tau: float | None = None,
-                       max_offset: float = 5.0, series_capacity: int = 20000, sample=None) -> dict:
+                       max_offset: float | None = None, series_capacity: int = 20000, sample=None) -> dict:
     """Accuracy of the poses in ``poses_csv`` against a reference stream (Chen eq. 25).
 
     reference : :class:`PoseTrack` in its own frames (motion capture, or a camera attitude stream
