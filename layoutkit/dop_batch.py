@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validate import as_array, check_finite
+from .units import RAD2DEG
 
 __all__ = ["BatchDop", "batch_dop", "DEFAULT_CHUNK"]
 
-RAD2DEG = 180.0 / np.pi
 #: poses per kernel call (bounded working memory: the outputs of one chunk)
 DEFAULT_CHUNK = 65536
 _PIVOT = 1e-12
@@ -254,7 +254,7 @@ def _dop_kernel(pos, R, t, vis, Rs, ts, rotate, rho, adop, pdop, nvis, status): 
                 tr_r += rho * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
                 tr_t += rho * (u[3] * u[3] + u[4] * u[4] + u[5] * u[5])
         status[p] = 0
-        adop[p] = 180.0 / np.pi * np.sqrt(max(tr_r, 0.0))
+        adop[p] = RAD2DEG * np.sqrt(max(tr_r, 0.0))  # a module constant: numba freezes it at compile time
         pdop[p] = np.sqrt(max(tr_t, 0.0))
 
 

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..units import RHO_PAPER
+
 __all__ = ["envelope_set", "layout_visibility", "score_arrays", "score_layout", "write_score_report"]
 
 
@@ -99,7 +101,7 @@ def score_arrays(positions, vis, R, t, stations, *, rho, min_visible=4, coverage
     return out
 
 
-def score_layout(layout, envelope, *, mesh=None, units="m", rho=0.8717, half_angle_deg=60.0,
+def score_layout(layout, envelope, *, mesh=None, units="m", rho=RHO_PAPER, half_angle_deg=60.0,
                  min_visible=4, coverage="any-station", poses=None, seed=None, compare=None,
                  report=None):
     """Score ``layout`` (path or Layout) over ``envelope`` (path or Envelope).
