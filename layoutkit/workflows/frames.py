@@ -347,7 +347,8 @@ def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | No
         from .filter import filter_config, filter_frames
 
         try:
-            fres = filter_frames(fr, layout, filter_config(filter_settings, sigma, rho))
+            fres = filter_frames(fr, layout, filter_config(filter_settings, sigma, rho),
+                                 stations=None if stations is None else [stations[i] for i in sorted(stations)])
         except ValueError as exc:
             raise ValueError(f"{frames_path}: {exc}") from None
     if out:
