@@ -353,22 +353,12 @@ def filter_options(f):
     return wrapper
 
 
-def _has_encoder(name, entry) -> bool:
-    """A protocol entry that can be emitted: an ``encoder``/``encode`` attribute that is not None
-    (entries without that attribute at all are taken as symmetric)."""
-    for attr in ("encoder", "encode"):
-        if hasattr(entry, attr):
-            return getattr(entry, attr) is not None
-    return True
-
-
 def protocol_option(f=None, *, default: str | None = "layoutkit", encodable: bool = False,
                     help: str = "Wire protocol (the registry in layoutkit.live.protocols)."):
-    """``--protocol NAME``: a name of the protocol registry (``encodable``: only protocols that the
-    simulator can emit). The command receives ``protocol``."""
-    deco = click.option("--protocol", "protocol",
-                        type=registry_choice("layoutkit.live.protocols:PROTOCOLS",
-                                             where=_has_encoder if encodable else None),
+    """``--protocol NAME``: a name of the protocol registry ``PROTOCOLS`` (``encodable``: of
+    ``ENCODERS``, the entries layoutkit can emit). The command receives ``protocol``."""
+    reg = "layoutkit.live.protocols:ENCODERS" if encodable else "layoutkit.live.protocols:PROTOCOLS"
+    deco = click.option("--protocol", "protocol", type=registry_choice(reg),
                         default=default, show_default=default is not None, help=help)
     return deco(f) if f is not None else deco
 

@@ -18,11 +18,11 @@ __all__ = ["FakeStream", "fake_fpga_stream", "run_fake", "render_camera"]
 @dataclass(frozen=True)
 class FakeStream:
     """chunks : list of ``(t_emit s, bytes)``; sweeps : :class:`layoutkit.live.simulator.SimulatedSweeps`
-    (the truth); sidecar : the capture's ``.json`` sidecar (dict)."""
+    (the truth); sidecar : the capture's ``.json`` sidecar (:class:`layoutkit.io.sidecar.CaptureSidecar`)."""
 
     chunks: list
     sweeps: object
-    sidecar: dict
+    sidecar: object
 
 
 def _check_probability(name: str, p: float) -> None:
@@ -41,7 +41,7 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
     same-rotor correlation in [0, 1). tumble_rate_deg_s : largest angular rate of the tumble (default
     0.5°/s). ValueError (naming the option) for bad input.
     """
-    from ..io.stations import station_to_dict
+    from ..io.sidecar import CaptureSidecar
     from ..live.protocols import protocol_entry
     from ..live.simulator import load_trajectory, simulate_stream
 
@@ -65,17 +65,11 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
                                    max_rate=np.deg2rad(tumble_rate_deg_s))
     chunks, sw = simulate_stream(layout, duration=duration_s, seed=seed, protocol=protocol, motion=motion,
                                  dropout=dropout, frame_loss=frame_loss, garbage=garbage, sigma=sigma, rho=rho)
-    sidecar = {
-        "source": "fake-fpga",
-        "protocol": protocol,
-        "protocol_options": protocol_entry(protocol).options(sw.stations, layout.n),
-        "n_sensors": layout.n,
-        "layout": layout.to_dict(),
-        "stations": [station_to_dict(s) for s in sw.stations],
-        "port": {"url": None, "baudrate": None},
-        "simulator": {"seed": seed, "duration_s": duration_s, "motion": motion_name,
-                      "tumble_rate_deg_s": tumble_rate_deg_s, **sw.info},
-    }
+    sidecar = CaptureSidecar(
+        source="fake-fpga", protocol=protocol, protocol_options=protocol_entry(protocol).options(sw.stations, layout.n),
+        n_sensors=layout.n, layout=layout.to_dict(), stations=tuple(sw.stations), port={"url": None, "baudrate": None},
+        simulator={"seed": seed, "duration_s": duration_s, "motion": motion_name, "tumble_rate_deg_s": tumble_rate_deg_s,
+                   **sw.info})
     return FakeStream(chunks, sw, sidecar)
 
 
@@ -107,7 +101,7 @@ def run_fake(layout: Layout, *, out=None, link=None, truth_path=None, realtime: 
     summary = run_fake_fpga(st.chunks, out=out, realtime=realtime, link=link, on_ready=on_ready, speed=speed,
                             sidecar=st.sidecar, wait_reader=wait_reader_s, overwrite=overwrite)
     summary.update({"sweeps": int(len(st.sweeps.t)), "frames_sent": int(st.sweeps.emitted.sum()),
-                    "truth": None if truth_path is None else str(truth_path), "protocol": st.sidecar["protocol"],
+                    "truth": None if truth_path is None else str(truth_path), "protocol": st.sidecar.protocol,
                     "camera": cam})
     return summary
 
