@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import (allow_odd_size_option, envelope_option, half_angle_option, json_flag, min_visible_option,
+from .options import (allow_odd_size_option, coverage_option, envelope_option, half_angle_option, json_flag, min_visible_option,
                       out_file_option, registry_choice, report_option, rho_option, seed_option, time_limit_option,
                       units_option)
 
@@ -55,9 +55,16 @@ def _k_range(ctx, param, value):
 @allow_odd_size_option
 @click.option("--no-render", is_flag=True, help="Plots only, no pyvista renders.")
 @json_flag(help="Print the summary as JSON.")
+@coverage_option
+@click.option("--max-tilt-deg", type=click.FloatRange(0.0, 90.0, max_open=True), default=0.0, show_default=True,
+              help="Sensors may be tilted from the surface normal up to this angle (one orientation per site).")
+@click.option("--dense-poses", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Adaptive pose generation against N extra envelope poses (dense set); report with a "
+                   "held-out set. --time-limit-s is then the budget of all rounds.")
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                 half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json):
+                 half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json,
+                 coverage, max_tilt_deg, dense_poses):
     """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
     import warnings
 
@@ -73,7 +80,8 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
         try:
             s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                           spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                          half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize)
+                          half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize,
+                          dict(coverage=coverage, max_tilt_deg=max_tilt_deg, dense_poses=dense_poses))
         except MeshUnitsWarning as exc:
             fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")
     if as_json:
@@ -90,7 +98,7 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
 
 def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
               spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-              half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize):
+              half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize, extra):
     try:
         from ..optimize import parse_objective
 
@@ -117,7 +125,7 @@ def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, 
                                  fixed_ids=fixed_ids, min_visible=min_visible, k_range=k_range, seed=seed,
                                  units=units, min_spacing=min_spacing_mm * 1e-3, coverage_fraction=coverage_fraction,
                                  time_limit=time_limit_s, progress=prog, sensor_half_angle_deg=half_angle_deg,
-                                 render=not no_render, echo=lambda m: click.echo(m, err=True))
+                                 render=not no_render, echo=lambda m: click.echo(m, err=True), **extra)
             except Interrupted as exc:
                 click.secho(f"error: interrupted by {exc.signame} before any layout was found; nothing written",
                             fg="red", err=True)
@@ -147,6 +155,11 @@ def _print_summary(s):
         click.echo(f"  k={row['k']:>3}  {row['status']:<10} value {row['value']:.5g}  gap {gtxt}"
                    if row["stats"] else f"  k={row['k']:>3}  {row['status']}")
     click.echo(f"  layout -> {s.get('out')}" + (f"   report -> {s['report']['dir']}" if s.get("report") else ""))
+    sets = s.get("envelope_sets") or {}
+    if "dense" in sets:
+        click.echo("  worst/median ADOP by pose set (deg/rad):  " + "   ".join(
+            f"{nm} ({v['poses']} poses) {v['worst_adop']:.5g} / {v['median_adop']:.5g}"
+            for nm, v in sets.items() if v.get("worst_adop") is not None))
     click.echo(f"  {s['timings_s']['total_s']:.1f} s")
 
 

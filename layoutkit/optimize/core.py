@@ -154,19 +154,47 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
 
 def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_visible=4,
                       method="pipeline", rng=None, fixed=(), conflict=None, coverage_fraction=1.0,
-                      weights=None, time_limit=None, progress=None, ctx_options=None) -> OptimizeResult:
+                      weights=None, time_limit=None, progress=None, ctx_options=None,
+                      coverage="any-station") -> OptimizeResult:
     """Multi-station core of :func:`optimize_layout`.
 
     jac : (P, S, N, 2, 6) per-candidate angle Jacobians; visible : (P, S, N) bool.
-    A sensor counts as lit at a pose if any station sees it. Other arguments as in optimize_layout;
-    conflict : (N, N) bool spacing conflicts or None.
+    coverage : what "m lit" means with several stations (:mod:`layoutkit.coverage_rule`):
+    "any-station" (a sensor lit by any station counts once), "each-station" (every station alone
+    sees m; implemented by one copy of the pose per station carrying that station's lit counts —
+    worst, mean and percentiles are unchanged by the copies; ``coverage_fraction`` then counts
+    (pose, station) pairs), "joint" (lit station-sensor pairs). The DOP is always the joint solve.
+    Other arguments as in optimize_layout; conflict : (N, N) bool spacing conflicts or None.
     """
-    t0 = time.perf_counter()
+    from ..coverage_rule import check_rule
+
+    check_rule(coverage)
     jac = as_array(jac, "jac", (None, None, None, 2, 6))
     P, S, N = jac.shape[:3]
     visible = np.asarray(visible, bool)
     if visible.shape != (P, S, N):
         raise ValueError(f"visible: expected shape ({P}, {S}, {N}), got {visible.shape}")
+    if coverage == "each-station" and S > 1:
+        r = _optimize_core(np.repeat(jac, S, axis=0), np.repeat(visible, S, axis=0), k, objective, rho,
+                           min_visible, method, rng, fixed, conflict, coverage_fraction, weights, time_limit,
+                           progress, ctx_options, "_rows")
+        n_lit = r.n_lit.reshape(P, S).min(axis=1) if len(r.n_lit) == P * S else r.n_lit
+        return dataclasses.replace(r, adop=r.adop[::S], pdop=r.pdop[::S], n_lit=n_lit,
+                                   uncoverable=np.unique(r.uncoverable // S))
+    return _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fixed, conflict,
+                          coverage_fraction, weights, time_limit, progress, ctx_options, coverage)
+
+
+def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fixed, conflict,
+                   coverage_fraction, weights, time_limit, progress, ctx_options, coverage):
+    t0 = time.perf_counter()
+    P, S, N = jac.shape[:3]
+    if coverage == "_rows":  # pose copies p*S + s of each-station: station s's lit sensors
+        lit = visible[np.arange(P), np.arange(P) % S]
+    elif coverage == "joint":
+        lit = visible.sum(axis=1).astype(np.int8)
+    else:
+        lit = None
     if method not in METHODS:
         raise ValueError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
     obj = parse_objective(objective, weights)
@@ -184,7 +212,7 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
         raise ValueError(f"fixed: {len(fixed)} fixed sensors exceed k = {k}")
     n_cover = int(math.ceil(coverage_fraction * P - 1e-9))
     rng = np.random.default_rng(rng)
-    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover)
+    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover, lit)
     empty = np.zeros(0, int)
     nan_p = np.full(P, np.inf)
 
@@ -267,10 +295,13 @@ def _finish(problem, obj, out, method, t0, t1, t2, notes, P):
     if notes:
         msg += "; " + "; ".join(notes)
     timings = {"total_s": time.perf_counter() - t0, "method_s": t2 - t1}
+    info = dict(out.info)
     if out.relaxation is not None:
         timings["relaxation_s"] = out.relaxation.time_s
+        if out.relaxation.active is not None and len(out.relaxation.active):
+            info["active_poses"] = np.asarray(out.relaxation.active, int)
     return OptimizeResult(sel, value, float(bound), float(gap), True, status, msg, adop, pdop, n_lit,
-                          method, obj.name, how, None, empty, timings, dict(out.info))
+                          method, obj.name, how, None, empty, timings, info)
 
 
 def sweep_k(positions, normals, visible, rotations, translations, ks, **kwargs):

@@ -39,6 +39,12 @@ class CoverageReport:
         return self.status == "ok"
 
 
+def _counts(lit):
+    """(P, N) coverage counts: bool (lit) or small non-negative ints (joint rule), kept as given."""
+    lit = np.asarray(lit)
+    return lit if lit.dtype == bool else lit.astype(np.int16)
+
+
 def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0):
     """Smallest number of sensors keeping ``m`` lit at ``n_cover`` poses (exact MILP).
 
@@ -49,7 +55,7 @@ def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0):
     from scipy.optimize import Bounds, LinearConstraint, milp
     from scipy.sparse import csr_matrix, hstack, vstack, identity, coo_matrix
 
-    lit = np.asarray(lit, bool)
+    lit = _counts(lit)
     P, N = lit.shape
     n_cover = P if n_cover is None else int(n_cover)
     full = n_cover >= P
@@ -96,7 +102,7 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None) -> Covera
     lit : (P, N) bool. Poses with fewer than m lit candidates in total are ``uncoverable``; the
     smallest workable k comes from :func:`minimum_k`.
     """
-    lit = np.asarray(lit, bool)
+    lit = _counts(lit)
     P, N = lit.shape
     n_cover = P if n_cover is None else int(n_cover)
     counts = lit.sum(axis=1)

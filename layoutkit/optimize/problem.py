@@ -56,14 +56,17 @@ class Problem:
         return self.jac.shape[1]
 
 
-def build_problem(jac, vis, rho, k, m, objective, fixed=(), conflict=None, n_cover=None) -> Problem:
-    """Assemble a :class:`Problem` from Jacobians ``(P, S, N, 2, 6)`` and visibility ``(P, S, N)``."""
+def build_problem(jac, vis, rho, k, m, objective, fixed=(), conflict=None, n_cover=None, lit=None) -> Problem:
+    """Assemble a :class:`Problem` from Jacobians ``(P, S, N, 2, 6)`` and visibility ``(P, S, N)``.
+
+    lit : optional (P, N) coverage counts (bool or small ints) replacing "lit by any station"
+    (the coverage rule, :mod:`layoutkit.coverage_rule`)."""
     jac = np.asarray(jac, float)
     vis = np.asarray(vis, bool)
     P, S, N = vis.shape
     U = (jac * vis[..., None, None]).transpose(0, 2, 1, 3, 4).reshape(P, N, 2 * S, 6)
     G = np.einsum("pnci,pncj->pnij", U, U)
-    lit = vis.any(axis=1)
+    lit = vis.any(axis=1) if lit is None else np.asarray(lit)
     fixed = np.unique(np.asarray(fixed, int)).astype(int)
     return Problem(jac, vis, float(rho), int(k), int(m), fixed, conflict,
                    P if n_cover is None else int(n_cover), objective, U, G, lit)

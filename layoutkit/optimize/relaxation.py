@@ -137,16 +137,19 @@ def pose_relaxation_bounds(problem: Problem, poses=None, batch=16, use_rho=True,
     for s0 in range(0, len(poses), batch):
         if deadline is not None and time.perf_counter() > deadline:
             break
-        chunk = [p for p in poses[s0:s0 + batch] if problem.lit[p].sum() >= max(problem.m, 3)]
+        chunk = [p for p in poses[s0:s0 + batch] if problem.lit[p].sum() >= problem.m
+                 and problem.vis[p].any(axis=0).sum() >= 3]
         if not chunk:
             continue
         Ds, cs = _whitening(problem, chunk, E)
         t = cp.Variable(len(chunk))
         cons = []
         for q, p in enumerate(chunk):
-            idx = np.flatnonzero(problem.lit[p])
+            idx = np.flatnonzero(problem.vis[p].any(axis=0))  # information: lit by any station
             zp = cp.Variable(len(idx))
-            cons += [zp >= 0, zp <= 1, cp.sum(zp) <= problem.k, cp.sum(zp) >= problem.m]
+            # coverage cut in the rule's counts (lit by a given station / station-sensor pairs)
+            cons += [zp >= 0, zp <= 1, cp.sum(zp) <= problem.k,
+                     problem.lit[p, idx].astype(float) @ zp >= problem.m]
             fx = [j for j, i in enumerate(idx) if i in fixed]
             if fx:
                 cons.append(zp[fx] == 1)
@@ -308,7 +311,7 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
     Ds, cs = _whitening(problem, poses, E)
     cbar = float(np.median(cs))
     for q, p in enumerate(poses):
-        idx = np.flatnonzero(problem.lit[p])
+        idx = np.flatnonzero(problem.vis[p].any(axis=0))  # information: lit by any station
         if len(idx) == 0:
             continue
         D, c = Ds[q], cs[q]

@@ -83,8 +83,11 @@ def _swap_feasible(problem: Problem, st: SearchState, adds):
     lit = problem.lit
     r = st.n[None, :] - lit[:, st.sel].T  # (k, P) counts after removal
     base = (r >= problem.m).sum(axis=1)  # (k,)
-    edge = (r == problem.m - 1).astype(np.int32)  # (k, P)
-    cov = base[:, None] + edge @ lit[:, adds].astype(np.int32)  # (k, M)
+    la = lit[:, adds]
+    cov = base[:, None]
+    for dlt in range(1, int(la.max(initial=1)) + 1):  # lit counts may exceed 1 (joint coverage rule)
+        edge = (r == problem.m - dlt).astype(np.int32)  # (k, P): short by dlt after removal
+        cov = cov + edge @ (la >= dlt).astype(np.int32)  # (k, M)
     ok = cov >= problem.n_cover
     ok &= ~np.isin(st.sel, problem.fixed)[:, None]
     _, sp = _allowed_adds(problem, st.sel)

@@ -19,13 +19,16 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=(), units="m",
-                    sensor_half_angle_deg=60.0, seed=0, max_candidates=None):
+                    sensor_half_angle_deg=60.0, seed=0, max_candidates=None, max_tilt_deg=0.0,
+                    tilt_directions=4):
     """Load/sample everything the optimiser needs.
 
     mesh : path or ``trimesh.Trimesh`` (m); envelope : path or :class:`layoutkit.envelope.Envelope`;
     candidates : layout JSON path or :class:`Layout` of candidate sites, else ``spacing`` (m) sampling.
     Returns a dict: mesh, envelope, candidates (Layout), rotations (P,3,3), translations (P,3) (world),
-    stations, visible (P, S, N) bool, jac (P, S, N, 2, 6).
+    stations, visible (P, S, N) bool, jac (P, S, N, 2, 6), site (N,) site index of each candidate
+    and tilt_deg (N,) (``max_tilt_deg > 0``: every site also carries its normal tilted by that angle
+    towards ``tilt_directions`` azimuths, :mod:`layoutkit.optimize.tilt`; ids ``<site>~t<j>``).
     """
     from ..candidates import sample_candidates
     from ..envelope import Envelope, load_envelope
@@ -45,13 +48,23 @@ def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=()
         cand = candidates
     else:
         cand = load_layout(candidates)
+    site = np.arange(cand.n)
+    tilt = np.zeros(cand.n)
+    if max_tilt_deg and max_tilt_deg > 0:
+        from ..optimize.tilt import tilt_orientations
+
+        pos, axes, site, tilt = tilt_orientations(cand.positions, cand.normals, float(max_tilt_deg),
+                                                  int(tilt_directions))
+        ids = tuple(cand.ids[s] if i < cand.n else f"{cand.ids[s]}~t{i // cand.n}" for i, s in enumerate(site))
+        cand = Layout(pos, axes, ids, dict(cand.metadata),
+                      tuple({"site": cand.ids[s], "tilt_deg": float(tt)} for s, tt in zip(site, tilt)))
     R, t = env.poses()
     vis = envelope_visibility(mesh, cand.positions, cand.normals, R, t, env.stations,
                               sensor_half_angle_deg=sensor_half_angle_deg)
     jac = candidate_jacobians(cand.positions, R, t, env.stations)
     return {"mesh": mesh, "envelope": env, "candidates": cand, "rotations": R, "translations": t,
             "stations": env.stations, "visible": vis, "jac": jac,
-            "sensor_half_angle_deg": sensor_half_angle_deg}
+            "sensor_half_angle_deg": sensor_half_angle_deg, "site": site, "tilt_deg": tilt}
 
 
 def evaluate_layout(prep, positions, normals, rho, min_visible=4):
@@ -85,11 +98,17 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                  method="pipeline", candidates=None, spacing=None, keepout=(), fixed_ids=(),
                  min_visible=4, k_range=None, seed=0, units="m", min_spacing=0.0,
                  coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
-                 max_candidates=None, render=True, echo=print):
+                 max_candidates=None, render=True, echo=print, coverage="any-station", max_tilt_deg=0.0,
+                 tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=6):
     """Optimise a k-sensor layout on ``mesh`` over ``envelope``; write layout JSON and a report.
 
     k_range : optional (k_min, k_max) — also the best layout for every k in the range (DOP vs k).
-    fixed_ids : candidate ids placed in advance. Returns a summary dict (JSON-able)."""
+    fixed_ids : candidate ids placed in advance. coverage : coverage rule (:mod:`layoutkit.coverage_rule`).
+    max_tilt_deg : sensors may be tilted from the surface normal up to this angle (one orientation
+    per site; :mod:`layoutkit.optimize.tilt`). dense_poses : adaptive pose generation against a
+    dense set of the envelope (:mod:`layoutkit.workflows.dense`; ``time_limit`` is then the budget of
+    all rounds), reported with design-set, dense-set and held-out (``heldout_poses``, fresh seed)
+    statistics. Returns a summary dict (JSON-able)."""
     from ..layout import Layout, save_layout
     from ..mesh import mesh_hash
     from ..optimize import optimize_stations, spacing_conflicts
@@ -100,20 +119,40 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
 
     prep = prepare_problem(mesh, envelope, candidates=candidates, spacing=spacing, keepout=keepout,
                            units=units, sensor_half_angle_deg=sensor_half_angle_deg, seed=seed,
-                           max_candidates=max_candidates)
+                           max_candidates=max_candidates, max_tilt_deg=max_tilt_deg,
+                           tilt_directions=tilt_directions)
     cand = prep["candidates"]
     idmap = {c: i for i, c in enumerate(cand.ids)}
     missing = [f for f in fixed_ids if f not in idmap]
     if missing:
         raise ValueError(f"fixed: unknown candidate id(s) {missing}; ids look like {cand.ids[0]!r}")
     fixed = [idmap[f] for f in fixed_ids]
+    conflict = spacing_conflicts(cand.positions, min_spacing)
+    if max_tilt_deg and max_tilt_deg > 0:
+        from ..optimize.tilt import site_conflicts
+
+        conflict = site_conflicts(prep["site"], conflict)
     kw = dict(objective=objective, rho=rho, min_visible=min_visible, method=method, fixed=fixed,
-              conflict=spacing_conflicts(cand.positions, min_spacing),
-              coverage_fraction=coverage_fraction, time_limit=time_limit, progress=progress)
+              conflict=conflict, coverage_fraction=coverage_fraction, time_limit=time_limit, progress=progress)
     interrupted = None
+    dense_info = None
+
+    def solve(kk):
+        nonlocal dense_info
+        if dense_poses:
+            from .dense import dense_optimize
+
+            kd = {x: v for x, v in kw.items() if x != "time_limit"}
+            r, inf = dense_optimize(prep, kk, kd, dense_poses=dense_poses, seed=seed, coverage=coverage,
+                                    rounds=dense_rounds, time_limit=time_limit, echo=None)
+            if kk == k:
+                dense_info = inf
+            return r
+        return optimize_stations(prep["jac"], prep["visible"], kk, rng=seed, coverage=coverage, **kw)
+
     with interruptible():
         try:
-            res = optimize_stations(prep["jac"], prep["visible"], k, rng=seed, **kw)
+            res = solve(k)
         except Interrupted as exc:  # outside the method (coverage analysis): nothing to write
             raise Interrupted(exc.signame) from None
         interrupted = res.info.get("interrupted")
@@ -125,7 +164,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                                   "gap": None, "stats": None, "selected": []})
                     continue
                 try:
-                    r = res if kk == k else optimize_stations(prep["jac"], prep["visible"], kk, rng=seed, **kw)
+                    r = res if kk == k else solve(kk)
                 except Interrupted as exc:
                     interrupted = exc.signame
                     sweep.append({"k": kk, "status": "interrupted", "value": None, "bound": None, "gap": None,
@@ -146,8 +185,12 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
         "timings_s": {**res.timings, "total_s": time.perf_counter() - t0},
         "selected_ids": [cand.ids[i] for i in res.selected],
         "stats": res.stats() if res.success else None, "k_sweep": sweep,
-        "interrupted": interrupted,
+        "interrupted": interrupted, "coverage_rule": coverage, "max_tilt_deg": float(max_tilt_deg or 0.0),
     }
+    if res.success:
+        summary["tilted_sensors"] = int(np.sum(prep["tilt_deg"][res.selected] > 0))
+        summary["envelope_sets"] = _set_stats(prep, res, rho, min_visible, coverage, dense_info, heldout_poses,
+                                              objective)
     if res.success and out is not None:
         lay = Layout(cand.positions[res.selected], cand.normals[res.selected],
                      tuple(f"S{i + 1:02d}" for i in range(len(res.selected))),
@@ -156,13 +199,40 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                       "certified_by": res.certified_by, "method": method, "min_visible": min_visible,
                       "candidate_ids": summary["selected_ids"], "dop_stats": summary["stats"],
                       "envelope": summary["envelope"] if isinstance(summary["envelope"], str) else str(summary["envelope"])},
-                     tuple({"candidate": cand.ids[i]} for i in res.selected))
+                     tuple({"candidate": cand.ids[i], "site": cand.ids[prep["site"][i]],
+                            "tilt_deg": float(prep["tilt_deg"][i])} for i in res.selected))
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         save_layout(lay, out)
         summary["out"] = str(out)
     if report is not None:
         summary["report"] = write_report(report, prep, res, summary, render=render, echo=echo)
     return summary
+
+
+def _set_stats(prep, res, rho, min_visible, coverage, dense_info, heldout_poses, objective):
+    """Design-set, dense-set and held-out statistics of the chosen layout side by side."""
+    from .dense import evaluate_selection
+    from .score import envelope_set
+
+    def stats(a, p, cov):
+        x, y = a[cov], p[cov]
+        ok = len(x) > 0
+        return {"poses": int(len(a)), "covered_fraction": float(cov.mean()),
+                "worst_adop": float(x.max()) if ok else None, "median_adop": float(np.median(x)) if ok else None,
+                "p95_adop": float(np.percentile(x, 95)) if ok else None, "p99_adop": float(np.percentile(x, 99)) if ok else None,
+                "worst_pdop": float(y.max()) if ok else None}
+
+    env = prep["envelope"]
+    out = {"design": stats(*evaluate_selection(prep, res.selected, prep["rotations"], prep["translations"], rho,
+                                               min_visible, coverage))}
+    if dense_info is not None:
+        out["dense"] = stats(dense_info["dense_adop"], dense_info["dense_pdop"], dense_info["dense_covered"])
+        out["dense"].update({"value": dense_info["dense_value"], "gap_to_bound": dense_info["dense_gap"],
+                             "working_set_poses": dense_info["working_set_poses"], "rounds": dense_info["rounds"]})
+        _, Rh, th = envelope_set(env, count=int(heldout_poses), seed=env.seed + 2)
+        out["heldout"] = stats(*evaluate_selection(prep, res.selected, Rh, th, rho, min_visible, coverage))
+        out["heldout"]["seed"] = env.seed + 2
+    return out
 
 
 def write_report(report_dir, prep, res, summary, render=True, echo=print):

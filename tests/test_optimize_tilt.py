@@ -1,0 +1,65 @@
+"""Sensor tilt as a design variable: against exhaustive search over (site, orientation) choices.
+
+Proof kind: exhaustive search — every k-subset of the oriented candidates with at most one
+orientation per site (the optimiser's `exhaustive` method, itself checked against a plain loop over
+pose_dop in test_optimize.py), plus an explicit brute-force over orientation assignments.
+"""
+import itertools
+
+import numpy as np
+import pytest
+
+from layoutkit.dop import pose_dop
+from layoutkit.optimize.core import candidate_jacobians, optimize_stations
+from layoutkit.optimize.instances import cone_visibility
+from layoutkit.optimize.tilt import site_conflicts, tilt_orientations
+from layoutkit.optimize.tilt_instance import leaning_instance
+
+
+def _solve(tilt, method, k=4):
+    pos, nor, R, t = leaning_instance()
+    p2, a2, site, tl = tilt_orientations(pos, nor, tilt, 2)
+    vis = cone_visibility(p2, a2, R, t, half_angle_deg=60)
+    jac = candidate_jacobians(p2, R, t)
+    r = optimize_stations(jac, vis[:, None], k, rho=0.8717, method=method, conflict=site_conflicts(site),
+                          min_visible=4, rng=0, time_limit=20)
+    return r, site, tl, (p2, a2, R, t)
+
+
+def test_tilt_lowers_worst_adop_and_pipeline_finds_exhaustive_optimum():
+    r0, *_ = _solve(0.0, "exhaustive")
+    ex, site, tl, _ = _solve(30.0, "exhaustive")
+    pl, site_p, _, _ = _solve(30.0, "pipeline")
+    assert ex.success and pl.success
+    assert ex.value < 0.5 * r0.value  # normals lean away: tilting pays
+    assert pl.value == pytest.approx(ex.value, rel=1e-9)
+    assert len(set(site[ex.selected])) == len(ex.selected)  # one orientation per site
+    assert len(set(site_p[pl.selected])) == len(pl.selected)
+    assert (tl[ex.selected] > 0).any()
+
+
+def test_exhaustive_with_tilt_equals_brute_force_over_orientations():
+    """Independent brute force: every 4 sites x every orientation of each, pose_dop directly."""
+    ex, site, tl, (p2, a2, R, t) = _solve(30.0, "exhaustive")
+    n_sites = site.max() + 1
+    orient = [np.flatnonzero(site == s) for s in range(n_sites)]
+    best = np.inf
+    for sites in itertools.combinations(range(n_sites), 4):
+        for choice in itertools.product(*[orient[s] for s in sites]):
+            c = np.array(choice)
+            vis = cone_visibility(p2[c], a2[c], R, t, half_angle_deg=60)
+            if (vis.sum(1) < 4).any():
+                continue
+            d = pose_dop(p2[c], R, t, rho=0.8717, visible=vis)
+            best = min(best, float(d.adop.max()))
+    assert ex.value == pytest.approx(best, rel=1e-9)
+
+
+def test_tilt_orientations_geometry():
+    pos, nor, _, _ = leaning_instance()
+    p2, a2, site, tl = tilt_orientations(pos, nor, 30.0, 4)
+    ang = np.degrees(np.arccos(np.clip(np.sum(a2 * nor[site], axis=1), -1, 1)))
+    np.testing.assert_allclose(ang, tl, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(a2, axis=1), 1.0)
+    with pytest.raises(ValueError, match="max_tilt_deg"):
+        tilt_orientations(pos, nor, 95.0)
