@@ -257,8 +257,12 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
         if not cov.feasible:
             return fail(cov.status, cov.message, cov)
         why = ("; ".join(ctx.notes) + "; ") if ctx.notes else ""
+        from .coverage import minimum_k
+
+        kmin = cov.min_k if cov.min_k is not None else minimum_k(problem.lit, problem.m, n_cover, fixed, conflict)[0]
+        cov = dataclasses.replace(cov, min_k=kmin)
         return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout although one "
-                    f"exists (smallest k = {cov.min_k}); try method 'pipeline'", cov)
+                    f"exists (smallest k = {kmin}); try method 'pipeline'", cov)
     res = _finish(problem, obj, out, method, t0, t1, t2, ctx.notes, P)
     if ctx.interrupted:
         res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": ctx.interrupted},

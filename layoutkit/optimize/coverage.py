@@ -113,6 +113,10 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None) -> Covera
                               f"{len(unc)} pose(s) have fewer than {m} lit candidate sites at all, so no "
                               f"layout covers them: poses {show}. Add candidate sites that these poses "
                               f"see, lower --min-visible, or drop these poses from the envelope.")
+    if n_cover >= P and conflict is None:
+        g = greedy_cover_size(lit, m, fixed)
+        if g is not None and g <= k:  # a greedy cover fits: feasible without the exact MILP (fast path)
+            return CoverageReport(True, None, unc, "ok", f"coverage feasible (a greedy cover uses {g} sensors)")
     kmin, _ = minimum_k(lit, m, n_cover, fixed, conflict)
     if kmin is None:
         return CoverageReport(False, None, unc, "infeasible",
@@ -127,6 +131,27 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None) -> Covera
                           f"{k} sensors cannot keep {m} lit at every required pose: the smallest k "
                           f"that works is {kmin}. Poses left with fewer than {m} lit by the best "
                           f"{k}-sensor cover: {show} ({len(short)} pose(s)).")
+
+
+def greedy_cover_size(lit, m, fixed=()):
+    """Sensors a greedy set multicover needs to give every pose ``m`` (lit counts ``(P, N)``); None if
+    the candidates cannot. An upper bound on the smallest k (the exact one is :func:`minimum_k`)."""
+    lit = _counts(lit).astype(np.int32)
+    P, N = lit.shape
+    need = np.full(P, int(m), np.int32)
+    chosen = np.zeros(N, bool)
+    for i in np.asarray(fixed, int):
+        chosen[i] = True
+        need -= lit[:, i]
+    while (need > 0).any():
+        gain = (np.minimum(lit, np.maximum(need, 0)[:, None])).sum(axis=0)
+        gain[chosen] = -1
+        j = int(np.argmax(gain))
+        if gain[j] <= 0:
+            return None
+        chosen[j] = True
+        need -= lit[:, j]
+    return int(chosen.sum())
 
 
 def _poses_short_with_k(lit, k, m, fixed):

@@ -146,9 +146,16 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     short, dval = _dense_value(obj, a, p, cov, need_all, uncoverable)
     if short:
         dval = math.inf
+    # every round's working set is a subset of the dense set: the largest round bound holds for it
+    bounds = [h["bound"] for h in hist if h["bound"] is not None and np.isfinite(h["bound"])]
+    if bounds and not (np.isfinite(res.bound) and res.bound >= max(bounds)):
+        src = int(np.argmax(bounds))
+        res = dataclasses.replace(res, bound=float(max(bounds)), certified_by="relaxation (dense round "
+                                  f"{[h['round'] for h in hist if h['bound'] is not None and np.isfinite(h['bound'])][src]})",
+                                  gap=res.value / max(bounds) - 1)
     gap = dval / res.bound - 1 if np.isfinite(res.bound) and res.bound > 0 else float("nan")
     info = {"rounds": hist, "dense_set_poses": int(len(RD)), "working_set_poses": int(in_work.sum()),
             "dense_value": dval, "dense_gap": gap, "dense_adop": a, "dense_pdop": p, "dense_covered": cov,
             "time_s": time.perf_counter() - t0, "uncoverable_dense_poses": int(uncoverable.sum()), "uncovered_dense_poses": int(short),
             "note": note}
-    return dataclasses.replace(res), info
+    return res, info

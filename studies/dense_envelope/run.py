@@ -32,8 +32,8 @@ def device(spacing):
     from layoutkit.candidates import sample_candidates
 
     sph = trimesh.creation.icosphere(subdivisions=4)
-    v = sph.vertices * np.array([0.095, 0.06, 0.05])
-    v = v[v[:, 2] >= -0.03]
+    v = sph.vertices * np.array([0.095, 0.06, 0.06])
+    v = v[v[:, 2] >= -0.04]
     hull = trimesh.Trimesh(v).convex_hull
     cand = sample_candidates(hull, spacing=spacing, rng=0)
     return hull, cand
@@ -93,7 +93,7 @@ def main():
     k = args.k
     rho = 0.8717
     _, Rh, th = envelope_set(env, count=2000, seed=env.seed + 2)
-    res = {"device": {"candidates": N, "k": k, "mesh": "convex hull of a half ellipsoid 0.19 x 0.12 x 0.10 m",
+    res = {"device": {"candidates": N, "k": k, "mesh": "convex hull of a ellipsoid 0.19 x 0.12 x 0.12 m cut at z = -0.04 m",
                       "envelope": "±90° front, 1–3 m, 200 design poses"}, "layouts": {}}
 
     def stats(sel, R, t):
