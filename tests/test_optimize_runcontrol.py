@@ -137,7 +137,7 @@ def test_cli_dense_tilt_coverage_flags_and_heldout_matches_score(tmp_path):
     else:
         assert s["bound"] <= sets["dense"]["worst_adop"] * (1 + 1e-9)
     lay = json.loads(out.read_text())
-    assert all("tilt_deg" in x for x in lay["sensors"])
+    assert all("x-tilt-deg" in x for x in lay["sensors"])
     r2 = CliRunner().invoke(main, ["score", str(out), "--envelope", str(env), "--mesh", "models/chen_target.stl",
                                    "--poses", "2000", "--seed", str(2024 + 2), "--json"])
     assert r2.exit_code == 0, r2.output

@@ -57,7 +57,7 @@ def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=()
                                                   int(tilt_directions))
         ids = tuple(cand.ids[s] if i < cand.n else f"{cand.ids[s]}~t{i // cand.n}" for i, s in enumerate(site))
         cand = Layout(pos, axes, ids, dict(cand.metadata),
-                      tuple({"site": cand.ids[s], "tilt_deg": float(tt)} for s, tt in zip(site, tilt)))
+                      tuple({"x-site": cand.ids[s], "x-tilt-deg": float(tt)} for s, tt in zip(site, tilt)))
     R, t = env.poses()
     vis = envelope_visibility(mesh, cand.positions, cand.normals, R, t, env.stations,
                               sensor_half_angle_deg=sensor_half_angle_deg)
@@ -199,8 +199,8 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                       "certified_by": res.certified_by, "method": method, "min_visible": min_visible,
                       "candidate_ids": summary["selected_ids"], "dop_stats": summary["stats"],
                       "envelope": summary["envelope"] if isinstance(summary["envelope"], str) else str(summary["envelope"])},
-                     tuple({"candidate": cand.ids[i], "site": cand.ids[prep["site"][i]],
-                            "tilt_deg": float(prep["tilt_deg"][i])} for i in res.selected))
+                     tuple({"candidate": cand.ids[i], "x-site": cand.ids[prep["site"][i]],
+                            "x-tilt-deg": float(prep["tilt_deg"][i])} for i in res.selected))
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         save_layout(lay, out)
         summary["out"] = str(out)
