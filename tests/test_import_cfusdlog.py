@@ -107,3 +107,53 @@ def test_not_a_log(tmp_path):
     p.write_bytes(b"hello")
     r = CliRunner().invoke(main, ["import", "cfusdlog", str(p), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "not a Crazyflie microSD log" in r.output
+
+
+def _system_config(path):
+    path.write_text("""type: lighthouse_system_configuration
+version: '1'
+systemType: 2
+geos:
+  0:
+    origin: [0.0, 0.0, 2.0]
+    rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+calibs:
+  0:
+    uid: 1234
+    sweeps:
+    - {phase: 0.0, tilt: 0.0, curve: 0.0, gibmag: 0.0, gibphase: 0.0, ogeemag: 0.0, ogeephase: 0.0}
+    - {phase: 0.0, tilt: 0.0, curve: 0.0, gibmag: 0.0, gibphase: 0.0, ogeemag: 0.0, ogeephase: 0.0}
+""")
+    return path
+
+
+def test_import_with_system_config_and_replay(session, tmp_path):
+    """--system-config: its station goes into the sidecar (and replay --system-config takes it too);
+    per-station poses carry their station."""
+    d, log, alpha, *_ = session
+    yml = _system_config(tmp_path / "sys.yaml")
+    imp = tmp_path / "imp"
+    r = CliRunner().invoke(main, ["import", "cfusdlog", str(log), "--out", str(imp), "--system-config", str(yml),
+                                  "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["stations"] == 1 and len(read_sidecar(imp / "capture.bin").stations) == 1
+    r = CliRunner().invoke(main, ["replay", str(imp / "capture.bin"), "--layout", DECK, "--json-lines",
+                                  "--system-config", str(yml)])
+    assert r.exit_code == 0, r.output[-1500:]
+    lines = [json.loads(x) for x in r.output.splitlines() if x.startswith("{")]
+    assert lines and all(str(x["station"]) == "0" for x in lines)
+
+
+def test_replay_without_good_pose_says_why(session, tmp_path):
+    """Only sensor 0 logged: no frame can be solved; replay exits 1 naming the most common reason."""
+    d, log, alpha, *_ = session
+    ul = read_cfusdlog(log)
+    ev = ul.events["lhUartFrame"]
+    keep = ev["sensor"] == 0
+    rows = list(zip(*(ev[k][keep].tolist() for k in ("sensor", "basestation", "offset", "timestampFPGA",
+                                                     "timestamp2FPGA"))))
+    one = tmp_path / "one"
+    write_cfusdlog(one, {"lhUartFrame": (ev["t"][keep], rows)})
+    assert CliRunner().invoke(main, ["import", "cfusdlog", str(one), "--out", str(tmp_path / "o")]).exit_code == 0
+    r = CliRunner().invoke(main, ["replay", str(tmp_path / "o" / "capture.bin"), "--layout", DECK])
+    assert r.exit_code != 0 and "most common reason" in r.output, r.output[-800:]

@@ -7,7 +7,7 @@ import sys
 import click
 
 from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
-                      rho_option, sigma_option, units_option)
+                      rho_option, sigma_option, stations_option, system_config_option, units_option)
 
 _common_options = [
     layout_option(required=False, help="Layout JSON (sensor positions, m, body frame)."),
@@ -33,6 +33,8 @@ _common_options = [
                  help="Move each frame's Y-sweep angles to its X-sweep time with the velocity of the recent "
                       "poses (LH1; for fast motion: RMS 2.1x -> 1.0x the DOP prediction at 20 deg/s; costs speed)."),
     json_flag(help="Print the run summary as JSON."),
+    system_config_option,
+    stations_option,
 ]
 
 
@@ -179,8 +181,8 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @filter_options
 @camera_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
-               report_dir, rho, sigma, motion_compensation, as_json, filter_settings, camera_device,
-               focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px):
+               report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
+               camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -201,7 +203,8 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  reference=reference, reference_units=reference_units,
                                  reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir,
-                                 camera_device=camera_device, camera_config=cam_cfg)
+                                 camera_device=camera_device, camera_config=cam_cfg, stations=stations_path,
+                                 system_config=system_config)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
@@ -212,9 +215,32 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     dec = summary.get("decode") or {}
     if not dec.get("good"):  # nothing decodable: not a capture, or another protocol
         n_in = dec.get("bytes_in", 0)
+        reasons = dec.get("reasons") or {}
+        why = f"; most common reason: {max(reasons, key=reasons.get)}" if reasons else ""
         fail(f"{capture}: empty capture (0 bytes)" if not n_in else
              f"{capture}: no valid {summary.get('protocol')} frame in {n_in} byte(s); not a capture file, "
-             "or recorded with another --protocol?")
+             "or recorded with another --protocol?" + why)
+    if not summary.get("good"):  # frames decoded but no good pose: say why, exit 1
+        fail(f"{capture}: no good pose in {summary.get('frames', 0)} frame(s); most common reason: "
+             f"{_most_common_reason(summary)}", code=1)
+
+
+def _most_common_reason(summary: dict) -> str:
+    """The most common reason a run produced no good pose, from the run and decode counters."""
+    cands = {"at most 3 sensors lit per frame (too few)": summary.get("too_few_lit") or 0,
+             "sweeps without their partner (unpaired)": summary.get("unpaired_sweeps") or 0,
+             "frames solved with a status other than ok": summary.get("bad") or 0}
+    for k, v in ((summary.get("decode") or {}).get("reasons") or {}).items():
+        cands[k] = v
+    best = max(cands, key=cands.get)
+    return best if cands[best] else "no frame was formed from the decoded sweeps"
+
+
+def _stations_arg(stations_path, system_config):
+    """Stations for a live run: a stations JSON, else the system config's stations, else None."""
+    from ..workflows.live import stations_from_files
+
+    return stations_from_files(stations_path, system_config)
 
 
 def _quiet_exit():
@@ -241,8 +267,8 @@ def _quiet_exit():
 @camera_options
 def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
-             as_json, filter_settings, camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
-             corner_sigma_px):
+             as_json, system_config, stations_path, filter_settings, camera_device, focal_length_px, principal_point_px,
+             camera_method, aspect_ratio, corner_sigma_px):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
@@ -267,6 +293,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
               idle_timeout=idle_timeout, overwrite=overwrite, camera_device=camera_device,
+              stations=_stations_arg(stations_path, system_config), system_config=system_config,
               camera_config=_camera_config(camera_device, focal_length_px, principal_point_px, camera_method,
                                            aspect_ratio, corner_sigma_px))
     try:

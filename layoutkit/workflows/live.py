@@ -165,10 +165,28 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
     return summary
 
 
+def stations_from_files(stations_path=None, system_config=None):
+    """Stations given on the command line: a stations JSON (:mod:`layoutkit.io.stations`), else the
+    stations of a Crazyflie system config (base-station ids 0..k-1), else None."""
+    if stations_path:
+        from ..io.stations import read_stations
+
+        return list(read_stations(stations_path))
+    if system_config:
+        from ..live.protocols.bitcraze import load_system_config
+
+        cfg = load_system_config(system_config)
+        ids = sorted(cfg.stations)
+        if ids != list(range(len(ids))):
+            raise ValueError(f"{system_config}: base-station ids {ids} are not 0..k-1; give --stations")
+        return [cfg.stations[i] for i in ids] or None
+    return None
+
+
 def replay_capture(capture, layout=None, *, protocol: str | None = None, options: LiveConfig | None = None,
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
-                   camera_config=None) -> dict:
+                   camera_config=None, stations=None, system_config=None) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -179,7 +197,9 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     (``fake-fpga --camera-out`` or a live session's ``CAPTURE.camera/``) solved with
     ``camera_config`` (:class:`layoutkit.live.camera.CameraConfig`) and compared with the poses
     (:func:`layoutkit.live.crosscheck.camera_crosscheck`); default: ``CAPTURE.camera/`` when it exists
-    and a config is given.
+    and a config is given. stations : a stations JSON path replacing the sidecar's stations;
+    system_config : a Crazyflie system config YAML (calibration for the Bitcraze decoders, and the
+    stations when no stations file is given).
     """
     from ..io.sidecar import read_sidecar
 
@@ -187,6 +207,12 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     if not capture.is_file():
         raise ValueError(f"{capture}: no such capture file")
     sidecar = read_sidecar(capture)
+    if stations is not None or system_config is not None:
+        st = stations_from_files(stations, system_config)
+        opts = dict(sidecar.protocol_options)
+        if system_config is not None:
+            opts["system_config"] = str(system_config)
+        sidecar = sidecar.updated(stations=tuple(st) if st else sidecar.stations, protocol_options=opts)
     with tempfile.TemporaryDirectory() as tmp:
         poses = None
         if report_dir is not None:
@@ -240,7 +266,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
              reference_offset: float | None = None, camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
              on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None,
              overwrite: bool = False, on_status=None, status_interval: float = 10.0, camera_device=None,
-             camera_config=None) -> dict:
+             camera_config=None, system_config=None) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
     port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar);
@@ -270,7 +296,8 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     baudrate = baudrate or DEFAULT_BAUDRATE
     settings = {"url": port, "baudrate": baudrate, "timeout": 0.05, "reconnect": True}
     sidecar = CaptureSidecar(protocol=protocol, layout=lay.to_dict(), port=settings, stations=tuple(stations or ()),
-                             source="live")
+                             source="live",
+                             protocol_options={"system_config": str(system_config)} if system_config else {})
     # the capture first: an existing one is refused before the port is touched
     writer = CaptureWriter(record, sidecar, overwrite=overwrite) if record is not None else None
     with tempfile.TemporaryDirectory() as tmp, stop_on_signals() as stop:
@@ -278,7 +305,8 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
             src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
             poses = Path(report_dir) / "poses.csv" if report_dir is not None else (
                 Path(tmp) / "poses.csv" if (reference is not None or camera is not None) else None)
-            s = session_from_sidecar(lay, CaptureSidecar(stations=sidecar.stations), protocol=protocol, options=options,
+            s = session_from_sidecar(lay, CaptureSidecar(stations=sidecar.stations, protocol_options=sidecar.protocol_options),
+                                     protocol=protocol, options=options,
                                      truth=truth, json_out=json_out, poses_path=poses)
         except BaseException:
             if writer is not None:
