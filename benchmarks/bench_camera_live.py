@@ -97,8 +97,9 @@ def main(argv=None):
                                   "predicted_rms_deg": float(np.degrees(np.sqrt(vf * np.mean(a["pred_var"][ok])))),
                                   "max_deg": float(np.degrees(e.max()))}
         if not args.no_live:
+            sim_err = open(d / "sim.stderr", "w")
             sim = subprocess.Popen([sys.executable, "-m", "layoutkit", "fake-fpga", *map(str, common)],
-                                   stdout=subprocess.PIPE, text=True)
+                                   stdout=subprocess.PIPE, stderr=sim_err, text=True)
             port = sim.stdout.readline().split()[1]
             t0 = time.perf_counter()
             r = subprocess.run([sys.executable, "-m", "layoutkit", "live", "--port", port, "--layout", str(LAYOUT),
@@ -107,8 +108,10 @@ def main(argv=None):
                                 "--motion-compensation", "--json"], capture_output=True, text=True)
             live_wall = time.perf_counter() - t0
             sim.wait(timeout=60)
+            sim_err.close()
             if r.returncode != 0:
-                raise SystemExit(r.stderr)
+                raise SystemExit(f"live failed (exit {r.returncode}):\n{r.stderr}\nsimulator (exit {sim.returncode}):\n"
+                                 f"{(d / 'sim.stderr').read_text()}")
             ls = json.loads(r.stdout)
             lc = ls["camera"]
             rr, _ = lk("replay", d / "live.lkcap", "--motion-compensation", "--json")

@@ -4,7 +4,8 @@
 device index, a stream URL, a video file) or plays an image folder at its frame rate (a camera
 capture folder's ``index.csv`` timing, else ``--fps``). :class:`CameraReader` runs two threads:
 
-- the **grabber** takes each frame, stamps it with the host's monotonic clock at grab time, and
+- the **grabber** takes each frame, stamps it with the host's monotonic clock at grab time (an
+  image folder is a virtual camera: its frames are stamped at their scheduled playback times), and
   writes it raw to the capture folder (:class:`layoutkit.io.camera.CameraIndexWriter`) *before*
   anything else touches it; a folder source's file bytes are copied unchanged;
 - the **solver** runs :class:`CameraProcessor` (quadrilateral detection → rectangle solve with
@@ -322,6 +323,7 @@ class CameraReader:
         self.error = None
         self.ended = False
         self._t_last = None
+        self._virtual = Path(str(source)).is_dir()
         self._grabber = threading.Thread(target=self._grab, name="camera-grab", daemon=True)
         self._solver = threading.Thread(target=self._solve, name="camera-solve", daemon=True)
 
@@ -348,6 +350,10 @@ class CameraReader:
                 t = self.clock()
                 if t_next is None:
                     t_next = t
+                if self._virtual:
+                    # an image folder is a virtual camera: its frame is exposed at the scheduled
+                    # playback time, whatever the load delayed the read by
+                    t = t_next
                 if self._t_last is not None and t - self._t_last > self.stall_s:
                     self.stalls += 1
                 self._t_last = t
