@@ -35,7 +35,7 @@ __all__ = ["solve_joint", "model_angles_jacobian", "MIN_ANGLES", "DEFAULT_CHUNK"
 #: Fewest angles for a pose (6 unknowns); fewer gives ``STATUS_TOO_FEW``.
 MIN_ANGLES = 6
 DEFAULT_CHUNK = 2048
-_RTOL = 1e-10     # converged when an accepted step lowers the cost by less than this fraction
+_RTOL = 1e-8      # converged when an accepted step lowers the cost by less than this fraction
 _ATOL = 1e-26     # ... or by less than this (rad², per angle)
 
 
@@ -145,7 +145,7 @@ def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
         its[idx] += 1
         gain = cost[act] - cn
         conv = better & ((gain <= _RTOL * cost[act]) | (gain <= _ATOL * np.maximum(m[act], 1)))
-        tiny = np.linalg.norm(step, axis=1) < 1e-14
+        tiny = better & (np.linalg.norm(step, axis=1) < 1e-9)     # rad / m: far below any noise
         acc = idx[better]
         R[acc], t[acc], cost[acc], r[acc], J[acc], ps[acc] = Rn[better], tn[better], cn[better], rn[better], Jn[better], psn[better]
         lam[idx] = np.where(better, np.maximum(lam[idx] / 10.0, 1e-9), lam[idx] * 10.0)

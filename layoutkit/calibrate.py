@@ -1,0 +1,670 @@
+"""Self-calibration: bundle adjustment of station poses, station calibration and sensor offsets.
+
+Unknowns (``scipy.optimize.least_squares``, trust-region reflective, ``lsmr`` on the sparse
+Jacobian, robust ``soft_l1`` loss on the normalised angle residuals):
+
+- the body pose of every sample ``k`` (``p_world = R_k (p_i + o_i) + t_k``), 6 each;
+- the pose of every station but the gauge station (default: the first station's pose is held as
+  given, which fixes the world frame; with a reference pose table all stations are free and the
+  reference fixes frame and scale), 6 each;
+- each station's calibration parameters (:data:`layoutkit.lighthouse.MODEL_PARAMS` of its kind,
+  both axes) with a weak Gaussian prior around the starting values (``calibration_prior`` rad);
+- optionally per-sensor position offsets ``o_i`` (m), bounded by ``offset_bound`` with a
+  Gaussian prior ``offset_prior`` (the positions a user measured by hand).
+
+Poses are parametrised as left increments from the start, ``R = exp([x]x) R_0``; the analytic
+Jacobian (:func:`layoutkit.lighthouse.measure_jacobian` chained through the poses, the SO(3) left
+Jacobian for ``x``) fills a fixed sparsity pattern (:func:`jacobian_sparsity`); ``jacobian="2-point"``
+instead lets scipy difference the model over that pattern (``jac_sparsity``), a cross-check.
+
+Uncertainty: the covariance of the global parameters is the inverse of the Schur complement of the
+per-sample pose blocks in ``J^T J`` (J the loss-weighted Jacobian at the solution), scaled by the
+residual variance. A parameter whose posterior standard deviation exceeds ``0.5 x`` its prior's is
+determined by the prior, not by the data: it is reported ``unobservable``, held at its starting
+value and the problem re-solved without it (it is never returned as a fitted value).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .geometry import right_jacobian_so3, rotvec_to_matrix
+from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, Station, measure_jacobian
+
+__all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "jacobian_sparsity", "to_ba", "from_ba",
+           "station_to_ba", "station_from_ba"]
+
+UNOBSERVABLE_RATIO = 0.5
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One global parameter: ``name`` (e.g. ``station 1 axis 0 phase``), ``value``, ``std`` (None when
+    unobservable), ``start``, ``unit``, ``status`` ("ok", "unobservable" or "fixed")."""
+
+    name: str
+    value: float
+    std: float | None
+    start: float
+    unit: str
+    status: str
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """Result of :func:`bundle_adjust`.
+
+    stations : adjusted :class:`Station` list; points_body : (n, 3) adjusted sensor positions;
+    rotation (K, 3, 3), translation (K, 3): sample poses (world); parameters : list of
+    :class:`ParameterEstimate`; residual_before / residual_after : (K, S, n, 2) rad (NaN = no
+    angle), before = with the starting parameters and each sample's best pose under them;
+    success, status ("ok", "not_converged", "too_few"), message; nfev; sigma_scale: sqrt of the
+    residual variance in units of the given sigma.
+    """
+
+    stations: list
+    points_body: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    parameters: list
+    residual_before: np.ndarray
+    residual_after: np.ndarray
+    success: bool
+    status: str
+    message: str
+    nfev: int = 0
+    sigma_scale: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+
+def _wrap(a):
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+#: Calibration columns as adjusted: the gib and ogee sinusoids as linear cos/sin components
+#: (``g sin(xi + gamma) = g cos(gamma) sin(xi) + g sin(gamma) cos(xi)``) — no sign/phase ambiguity
+#: and no singular phase at zero magnitude, so their uncertainties are Gaussian.
+BA_PARAMS = ("phase", "tilt", "curve", "gib_cos", "gib_sin", "ogee_cos", "ogee_sin")
+_MIN_MAG = 1e-15
+
+
+def to_ba(params):
+    """Model parameters ``(..., 7)`` → adjusted columns :data:`BA_PARAMS`."""
+    p = np.asarray(params, float)
+    out = p.copy()
+    out[..., 3], out[..., 4] = p[..., 4] * np.cos(p[..., 3]), p[..., 4] * np.sin(p[..., 3])
+    out[..., 5], out[..., 6] = p[..., 6] * np.cos(p[..., 5]), p[..., 6] * np.sin(p[..., 5])
+    return out
+
+
+def from_ba(cols):
+    """Adjusted columns → model parameters (magnitudes >= 0, phases in (-pi, pi])."""
+    c = np.asarray(cols, float)
+    out = c.copy()
+    out[..., 4], out[..., 3] = np.maximum(np.hypot(c[..., 3], c[..., 4]), _MIN_MAG), np.arctan2(c[..., 4], c[..., 3])
+    out[..., 6], out[..., 5] = np.maximum(np.hypot(c[..., 5], c[..., 6]), _MIN_MAG), np.arctan2(c[..., 6], c[..., 5])
+    return out
+
+
+def station_to_ba(params, kind):
+    """A station's model parameters ``(2, 7)`` → adjusted columns; for LH2 the phase column holds
+    ``phase_common = (phase_0 + phase_1) / 2`` (axis 0 row) and ``phase_diff = (phase_1 - phase_0) / 2``
+    (axis 1 row): a common LH2 phase is exactly a rotation of the station about its y axis."""
+    out = to_ba(params)
+    if kind == "lh2":
+        p = np.asarray(params, float)
+        out[0, 0], out[1, 0] = 0.5 * (p[0, 0] + p[1, 0]), 0.5 * (p[1, 0] - p[0, 0])
+    return out
+
+
+def station_from_ba(cols, kind):
+    """Inverse of :func:`station_to_ba`."""
+    out = from_ba(cols)
+    if kind == "lh2":
+        c = np.asarray(cols, float)
+        out[0, 0], out[1, 0] = c[0, 0] - c[1, 0], c[0, 0] + c[1, 0]
+    return out
+
+
+def _ba_names(kind):
+    names = [list(BA_PARAMS), list(BA_PARAMS)]
+    if kind == "lh2":
+        names[0][0], names[1][0] = "phase_common", "phase_diff"
+    return names
+
+
+def _dc_to_ba(dc, model):
+    """Chain rule: d angle / d model params ``(m, 7)`` → d angle / d :data:`BA_PARAMS`."""
+    out = dc.copy()
+    for ip, im in ((3, 4), (5, 6)):
+        ph, mag = model[ip], model[im]
+        f_ph_over_mag = dc[:, ip] / mag
+        out[:, ip] = dc[:, im] * np.cos(ph) - f_ph_over_mag * np.sin(ph)
+        out[:, im] = dc[:, im] * np.sin(ph) + f_ph_over_mag * np.cos(ph)
+    return out
+
+
+class _Problem:
+    """Index bookkeeping and the residual/Jacobian of one bundle adjustment (private)."""
+
+    def __init__(self, P, ang, stations, *, sigma, free_cal, free_station, offsets, offset_prior,
+                 calibration_prior, cal_start, reference, reference_sigma):
+        self.P0 = P
+        self.n = P.shape[0]
+        self.ang = ang
+        self.K, self.S = ang.shape[:2]
+        self.stations = stations
+        self.sigma = sigma
+        mask = np.isfinite(ang)
+        self.obs = np.nonzero(mask)                               # (k, s, i, ax)
+        self.meas = ang[mask]
+        self.free_station = list(free_station)                   # station indices with free pose
+        self.free_cal = free_cal                                  # list of (s, ax, j)
+        self.offsets = offsets
+        self.offset_prior = offset_prior
+        self.calibration_prior = calibration_prior
+        self.cal_start = cal_start                                # (S, 2, 7)
+        self.reference = reference
+        self.reference_sigma = reference_sigma
+        # column layout
+        self.c_pose = 0
+        self.c_st = 6 * self.K
+        self.c_cal = self.c_st + 6 * len(self.free_station)
+        self.c_off = self.c_cal + len(free_cal)
+        self.N = self.c_off + (3 * self.n if offsets else 0)
+        self.st_col = {s: self.c_st + 6 * q for q, s in enumerate(self.free_station)}
+        self.cal_col = {key: self.c_cal + q for q, key in enumerate(free_cal)}
+        self.m_data = len(self.meas)
+        self.m_cal = len(free_cal)
+        self.m_off = 3 * self.n if offsets else 0
+        self.m_ref = 0
+        if reference is not None:
+            self.ref_k = np.flatnonzero(reference[2])
+            self.m_ref = 6 * len(self.ref_k)
+        self.M = self.m_data + self.m_cal + self.m_off + self.m_ref
+
+    # ---------------------------------------------------------------- unpack
+    def unpack(self, x, R0, t0, RS0, TS0):
+        K = self.K
+        xp = x[: 6 * K].reshape(K, 6)
+        R = rotvec_to_matrix(xp[:, :3]) @ R0
+        t = t0 + xp[:, 3:]
+        RS, TS = RS0.copy(), TS0.copy()
+        for s, c in self.st_col.items():
+            RS[s] = rotvec_to_matrix(x[c:c + 3]) @ RS0[s]
+            TS[s] = TS0[s] + x[c + 3:c + 6]
+        cal = self.cal_start.copy()
+        for (s, ax, j), c in self.cal_col.items():
+            cal[s, ax, j] = x[c]
+        off = x[self.c_off:].reshape(self.n, 3) if self.offsets else np.zeros((self.n, 3))
+        return R, t, RS, TS, cal, off
+
+    def predict(self, R, t, RS, TS, cal, off, jacobian):
+        """Predicted angle per observation and (optionally) the Jacobian pieces."""
+        k, s, i, ax = self.obs
+        P = self.P0 + off
+        pw = np.einsum("mij,mj->mi", R[k], P[i]) + t[k]
+        pred = np.empty(len(k))
+        parts = {} if jacobian else None
+        for q, st in enumerate(self.stations):
+            sel = np.flatnonzero(s == q)
+            if sel.size == 0:
+                continue
+            ps = np.einsum("ji,mj->mi", RS[q], pw[sel] - TS[q])  # R_s^T (p_w - T_s)
+            model = station_from_ba(cal[q], st.kind)              # (2, 7) model parameters
+            c = Calibration(model, st.kind, st.calibration.gib_argument if st.calibration else "ideal")
+            a, dp, dc = measure_jacobian(ps[:, None, :], c, jacobian=jacobian)
+            axs = ax[sel]
+            pred[sel] = a[np.arange(sel.size), 0, axs]
+            if jacobian:
+                aps = dp[np.arange(sel.size), 0, axs]             # (m, 3) d angle / d p_s
+                aw = aps @ RS[q].T                                 # d angle / d p_world
+                own = dc[np.arange(sel.size), 0, axs]
+                dcs = np.zeros((sel.size, 2, own.shape[-1]))      # d angle / d column (axis row, j)
+                for k_ax in (0, 1):
+                    m_ax = axs == k_ax
+                    dcs[m_ax, k_ax] = _dc_to_ba(own[m_ax], model[k_ax])
+                if st.kind == "lh2":                               # phase_common / phase_diff
+                    dphi = own[:, 0]
+                    dcs[:, 0, 0] = dphi
+                    dcs[:, 1, 0] = np.where(axs == 0, -dphi, dphi)
+                parts[q] = (sel, aw, pw[sel] - TS[q], dcs)
+        return pred, pw, parts
+
+    # ---------------------------------------------------------------- residual & Jacobian
+    def residual(self, x, base):
+        R, t, RS, TS, cal, off = self.unpack(x, *base)
+        pred, _, _ = self.predict(R, t, RS, TS, cal, off, False)
+        return self._stack(x, pred, R, t, cal, off)
+
+    def _stack(self, x, pred, R, t, cal, off):
+        r = [_wrap(self.meas - pred) / self.sigma]
+        if self.m_cal:
+            r.append(np.array([(cal[s, ax, j] - self.cal_start[s, ax, j]) / self.calibration_prior[j]
+                               for (s, ax, j) in self.free_cal]))
+        if self.m_off:
+            r.append(off.ravel() / self.offset_prior)
+        if self.m_ref:
+            Rr, tr = self.reference[0][self.ref_k], self.reference[1][self.ref_k]
+            from .geometry import matrix_to_rotvec
+            e_rot = matrix_to_rotvec(R[self.ref_k] @ np.swapaxes(Rr, 1, 2))
+            e_t = t[self.ref_k] - tr
+            r.append(np.column_stack([e_rot / self.reference_sigma[0], e_t / self.reference_sigma[1]]).ravel())
+        return np.concatenate(r)
+
+    def pattern(self):
+        """(rows, cols) of the nonzeros: the ``jac_sparsity`` structure."""
+        k, s, i, ax = self.obs
+        m = np.arange(self.m_data)
+        rows, cols = [], []
+        for c in range(6):
+            rows.append(m)
+            cols.append(6 * k + c)
+        for q, c0 in self.st_col.items():
+            sel = np.flatnonzero(s == q)
+            for c in range(6):
+                rows.append(sel)
+                cols.append(np.full(sel.size, c0 + c))
+        for (q, a, j), c0 in self.cal_col.items():
+            both = self.stations[q].kind == "lh2" and j == 0
+            sel = np.flatnonzero((s == q) & ((ax == a) | both))
+            rows.append(sel)
+            cols.append(np.full(sel.size, c0))
+        if self.offsets:
+            for c in range(3):
+                rows.append(m)
+                cols.append(self.c_off + 3 * i + c)
+        r0 = self.m_data
+        if self.m_cal:
+            rows.append(r0 + np.arange(self.m_cal))
+            cols.append(self.c_cal + np.arange(self.m_cal))
+            r0 += self.m_cal
+        if self.m_off:
+            rows.append(r0 + np.arange(self.m_off))
+            cols.append(self.c_off + np.arange(self.m_off))
+            r0 += self.m_off
+        if self.m_ref:
+            for q, kk in enumerate(self.ref_k):
+                for a in range(6):
+                    for b in range(6):
+                        rows.append(np.array([r0 + 6 * q + a]))
+                        cols.append(np.array([6 * kk + b]))
+        return np.concatenate(rows), np.concatenate(cols)
+
+    def jacobian(self, x, base):
+        from scipy.sparse import coo_matrix
+
+        R, t, RS, TS, cal, off = self.unpack(x, *base)
+        _, pw, parts = self.predict(R, t, RS, TS, cal, off, True)
+        k, s, i, ax = self.obs
+        K = self.K
+        Jl = right_jacobian_so3(-x[: 6 * K].reshape(K, 6)[:, :3])  # left Jacobian J_l(x) = J_r(-x)
+        rows, cols, vals = [], [], []
+        aw_all = np.zeros((self.m_data, 3))
+        for q, (sel, aw, qv, dc) in parts.items():
+            aw_all[sel] = aw
+            if q in self.st_col:
+                c0 = self.st_col[q]
+                xs = x[c0:c0 + 3]
+                Js = np.cross(aw, qv) @ right_jacobian_so3(-xs)
+                for c in range(3):
+                    rows.append(sel); cols.append(np.full(sel.size, c0 + c)); vals.append(-Js[:, c])
+                for c in range(3):
+                    rows.append(sel); cols.append(np.full(sel.size, c0 + 3 + c)); vals.append(aw[:, c])
+            for (qq, a, j), c0 in self.cal_col.items():
+                if qq != q:
+                    continue
+                m = (ax[sel] == a) | (self.stations[q].kind == "lh2" and j == 0)
+                rows.append(sel[m]); cols.append(np.full(int(m.sum()), c0)); vals.append(-dc[m, a, j])
+        lever = pw - t[k]
+        Jr = np.einsum("mi,mij->mj", np.cross(lever, aw_all), Jl[k])
+        m_idx = np.arange(self.m_data)
+        for c in range(3):
+            rows.append(m_idx); cols.append(6 * k + c); vals.append(-Jr[:, c])
+        for c in range(3):
+            rows.append(m_idx); cols.append(6 * k + 3 + c); vals.append(-aw_all[:, c])
+        if self.offsets:
+            Jo = np.einsum("mi,mij->mj", aw_all, R[k])
+            for c in range(3):
+                rows.append(m_idx); cols.append(self.c_off + 3 * i + c); vals.append(-Jo[:, c])
+        vals = [v / self.sigma for v in vals]                    # residual = (meas - pred) / sigma
+        r0 = self.m_data
+        if self.m_cal:
+            rows.append(r0 + np.arange(self.m_cal)); cols.append(self.c_cal + np.arange(self.m_cal))
+            vals.append(np.array([1.0 / self.calibration_prior[j] for (_, _, j) in self.free_cal]))
+            r0 += self.m_cal
+        if self.m_off:
+            rows.append(r0 + np.arange(self.m_off)); cols.append(self.c_off + np.arange(self.m_off))
+            vals.append(np.full(self.m_off, 1.0 / self.offset_prior))
+            r0 += self.m_off
+        if self.m_ref:
+            Rr = self.reference[0][self.ref_k]
+            from .geometry import matrix_to_rotvec
+            e = matrix_to_rotvec(R[self.ref_k] @ np.swapaxes(Rr, 1, 2))
+            # d log(exp(x) R0 Rr^T) / dx = J_l(e)^-1 J_l(x), J_l(v) = J_r(-v)
+            Jref = np.linalg.solve(right_jacobian_so3(-e), Jl[self.ref_k])
+            for q, kk in enumerate(self.ref_k):
+                Jk = Jref[q]
+                for a in range(3):
+                    for b in range(3):
+                        rows.append(np.array([r0 + 6 * q + a])); cols.append(np.array([6 * kk + b]))
+                        vals.append(np.array([Jk[a, b] / self.reference_sigma[0]]))
+                for a in range(3):
+                    rows.append(np.array([r0 + 6 * q + 3 + a])); cols.append(np.array([6 * kk + 3 + a]))
+                    vals.append(np.array([1.0 / self.reference_sigma[1]]))
+        return coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(self.M, self.N)).tocsr()
+
+
+def jacobian_sparsity(problem: _Problem):
+    """The sparsity pattern (``scipy.sparse`` 0/1 matrix) passed to ``least_squares(jac_sparsity=...)``."""
+    from scipy.sparse import coo_matrix
+
+    r, c = problem.pattern()
+    return coo_matrix((np.ones(r.size), (r, c)), shape=(problem.M, problem.N)).tocsr()
+
+
+def _global_covariance(J, K):
+    """Covariance (up to the residual variance) of the global columns: inverse Schur complement of
+    the per-sample 6 × 6 pose blocks of ``J^T J``."""
+    Jc = J.tocsc()
+    Jp, Jg = Jc[:, : 6 * K], Jc[:, 6 * K:]
+    Hgg = (Jg.T @ Jg).toarray()
+    Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], K, 6)
+    Hpp = (Jp.T @ Jp).tocsr()
+    blocks = np.zeros((K, 6, 6))
+    for a in range(6):
+        for b in range(6):
+            blocks[:, a, b] = np.asarray(Hpp[np.arange(K) * 6 + a, np.arange(K) * 6 + b]).ravel()
+    inv = np.linalg.pinv(blocks)
+    red = Hgg - np.einsum("gki,kij,hkj->gh", Hgp, inv, Hgp)
+    red = 0.5 * (red + red.T)
+    d = np.sqrt(np.maximum(np.diag(red), 1e-300))
+    w, V = np.linalg.eigh(red / np.outer(d, d))
+    keep = w > 1e-12 * max(w.max(), 1e-300)
+    cov_n = (V[:, keep] / w[keep]) @ V[:, keep].T
+    null = np.zeros(len(d), bool)
+    if np.any(~keep):
+        null = np.any(np.abs(V[:, ~keep]) > 0.1, axis=1)
+    return cov_n / np.outer(d, d), null
+
+
+def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses, fit_calibration: bool = True,
+                  sensor_offsets: bool = False, offset_prior: float = 1e-3, offset_bound: float = 5e-3,
+                  calibration_prior: float = 0.1, reference=None, reference_sigma=(1e-3, 1e-3),
+                  gauge_station: int = 0, loss: str = "soft_l1", f_scale: float = 3.0, max_nfev: int = 200,
+                  solver: str = "schur", jacobian: str = "analytic", before=None) -> BundleResult:
+    """Bundle adjustment of K samples seen by S stations (module docstring).
+
+    points_body : (n, 3) m, the layout as measured; angles : (K, S, n, 2) rad, measured (distorted)
+    angles in each station's convention, NaN = not seen; stations : S :class:`Station` (start
+    poses in the world frame, kind, start calibration or None = zero); sigma : angle noise (rad),
+    the residual scale; initial_poses : ``(R (K, 3, 3), t (K, 3))`` world-frame start of every sample
+    (e.g. :func:`layoutkit.joint.solve_joint` with the starting stations). reference : optional
+    ``(R (K, 3, 3), t (K, 3), have (K,))`` reference poses in the world frame (then no station is
+    held fixed); reference_sigma : (rad, m). calibration_prior : prior sd of each calibration
+    parameter around its start (rad); gib and ogee phases get pi. ``before`` : optional (K, S, n, 2)
+    residuals to report as "before" (default: the residuals at the start).
+    solver : "schur" (default: Levenberg–Marquardt whose step eliminates the 6 × 6 sample-pose
+    blocks exactly — the Schur complement; robust loss by iterative reweighting) or
+    "least_squares" (``scipy.optimize.least_squares``, trf + lsmr over the sparse problem;
+    ``jacobian="2-point"`` differences it over :func:`jacobian_sparsity`). Both minimise the same cost
+    (``loss`` on the angle residuals in units of sigma, ``f_scale`` sigmas); the tests check they agree.
+    """
+    from scipy.optimize import least_squares
+
+    P = np.asarray(points_body, float)
+    ang = np.asarray(angles, float)
+    K, S, n = ang.shape[:3]
+    stations = list(stations)
+    R0 = np.asarray(initial_poses[0], float).copy()
+    t0 = np.asarray(initial_poses[1], float).copy()
+    good = np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1)
+    ang = np.where(good[:, None, None, None], ang, np.nan)
+    R0[~good], t0[~good] = np.eye(3), 0.0
+    if np.sum(np.isfinite(ang)) < 6 * max(int(good.sum()), 1) + 20 or good.sum() < 2:
+        z = np.full(ang.shape, np.nan)
+        return BundleResult(stations, P, R0, t0, [], z, z, False, "too_few",
+                            f"too few samples with a start pose ({int(good.sum())} of {K})")
+    RS0 = np.stack([st.rotation for st in stations])
+    TS0 = np.stack([st.translation for st in stations])
+    cal_start = np.stack([station_to_ba(st.calibration.params if st.calibration is not None
+                                        else np.zeros((2, len(CALIBRATION_PARAMS))), st.kind) for st in stations])
+    prior = np.full(len(BA_PARAMS), float(calibration_prior))
+    free_station = [s for s in range(S) if reference is not None or s != gauge_station]
+    free_cal = []
+    if fit_calibration:
+        for s, st in enumerate(stations):
+            names = MODEL_PARAMS[st.kind]
+            for ax in (0, 1):
+                for j, name in enumerate(CALIBRATION_PARAMS):
+                    if name in names and not (st.kind == "lh2" and ax == 0 and j == 0):
+                        free_cal.append((s, ax, j))   # (LH2 phase_common is the station's yaw: never free)
+    fixed: set = set()
+    base = (R0, t0, RS0, TS0)
+    x0_full = None
+    before_res = before
+    for attempt in range(3):
+        cal_list = [c for c in free_cal if c not in fixed]
+        pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
+                      offsets=sensor_offsets, offset_prior=offset_prior, calibration_prior=prior,
+                      cal_start=cal_start, reference=reference, reference_sigma=reference_sigma)
+        x0 = np.zeros(pb.N)
+        for (s, ax, j), c in pb.cal_col.items():
+            x0[c] = cal_start[s, ax, j]
+        if x0_full is not None:                               # warm start from the previous pass
+            x0[: pb.c_cal] = x0_full[: pb.c_cal]
+            if sensor_offsets:
+                x0[pb.c_off:] = x0_full[-3 * n:]
+        if before_res is None:
+            before_res = _residual_grid(pb, x0, base)
+        lo = np.full(pb.N, -np.inf)
+        hi = np.full(pb.N, np.inf)
+        if sensor_offsets:
+            lo[pb.c_off:], hi[pb.c_off:] = -offset_bound, offset_bound
+        if solver == "schur":
+            sol = _schur_lm(pb, x0, base, lo, hi, loss, f_scale, max_nfev)
+        else:
+            kw = dict(jac=(lambda x: pb.jacobian(x, base)) if jacobian == "analytic" else "2-point",
+                      x_scale="jac", loss=loss, f_scale=f_scale, method="trf", tr_solver="lsmr",
+                      max_nfev=max_nfev, bounds=(lo, hi))
+            if jacobian != "analytic":
+                kw["jac_sparsity"] = jacobian_sparsity(pb)
+            sol = least_squares(lambda x: pb.residual(x, base), x0, **kw)
+        J = pb.jacobian(sol.x, base)
+        # loss weighting as least_squares does (rho'(z) for z = (r / f_scale)^2), for the covariance
+        r = pb.residual(sol.x, base)
+        z = (r / f_scale) ** 2
+        wts = _loss_weights(r, pb.m_data, loss, f_scale)
+        from scipy.sparse import diags
+        Jw = diags(np.sqrt(wts)) @ J
+        cov, null = _global_covariance(Jw, K)
+        rd = r[: pb.m_data]
+        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off), 1)
+        s2 = float(np.sum(wts[: pb.m_data] * rd * rd) / dof)
+        std = np.sqrt(np.maximum(np.diag(cov), 0) * s2)
+        newly = set()
+        for (s, ax, j), c in pb.cal_col.items():
+            gi = c - 6 * K
+            if null[gi] or std[gi] > UNOBSERVABLE_RATIO * prior[j]:
+                newly.add((s, ax, j))
+        x0_full = sol.x
+        if not newly:
+            break
+        fixed |= newly
+    R, t, RS, TS, cal, off = pb.unpack(sol.x, *base)
+    after = _residual_grid(pb, sol.x, base)
+    params = []
+    names_st = ("d_rx", "d_ry", "d_rz", "tx", "ty", "tz")  # rotation: change from the start
+    for s in range(S):
+        c0 = pb.st_col.get(s)
+        for q in range(6):
+            if c0 is None:
+                val = (0.0 if q < 3 else TS0[s, q - 3])
+                params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val), None,
+                                                float(val), "rad" if q < 3 else "m", "fixed"))
+            else:
+                gi = c0 + q - 6 * K
+                val = sol.x[c0 + q] if q < 3 else TS[s, q - 3]
+                st0 = 0.0 if q < 3 else TS0[s, q - 3]
+                bad = bool(null[gi])
+                params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val),
+                                                None if bad else float(std[gi]), float(st0), "rad" if q < 3 else "m",
+                                                "unobservable" if bad else "ok"))
+    scov = cov * s2
+    for s, st in enumerate(stations):
+        for ax in (0, 1):
+            for j, name in enumerate(_ba_names(st.kind)[ax]):
+                if CALIBRATION_PARAMS[j] not in MODEL_PARAMS[st.kind]:
+                    continue
+                key = (s, ax, j)
+                nm = f"station {st.id} axis {ax} {name}"
+                if key in pb.cal_col:
+                    gi = pb.cal_col[key] - 6 * K
+                    params.append(ParameterEstimate(nm, float(cal[s, ax, j]), float(std[gi]),
+                                                    float(cal_start[s, ax, j]), "rad", "ok"))
+                else:
+                    params.append(ParameterEstimate(nm, float(cal[s, ax, j]), None, float(cal_start[s, ax, j]),
+                                                    "rad", "unobservable" if (key in fixed or (st.kind == "lh2" and ax == 0 and j == 0))
+                                                    else "fixed"))
+            # derived magnitude/phase of the two sinusoids, std by first-order propagation
+            for ia, ib, mname, pname in ((3, 4, "gib_mag", "gib_phase"), (5, 6, "ogee_mag", "ogee_phase")):
+                if CALIBRATION_PARAMS[ib] not in MODEL_PARAMS[st.kind]:
+                    continue
+                a_, b_ = cal[s, ax, ia], cal[s, ax, ib]
+                mag, ph = float(np.hypot(a_, b_)), float(np.arctan2(b_, a_))
+                m0 = station_from_ba(cal_start[s], st.kind)[ax]
+                ka, kb = pb.cal_col.get((s, ax, ia)), pb.cal_col.get((s, ax, ib))
+                if ka is None or kb is None:
+                    st_ = "unobservable" if ((s, ax, ia) in fixed or (s, ax, ib) in fixed) else "fixed"
+                    params.append(ParameterEstimate(f"station {st.id} axis {ax} {mname}", mag, None, float(m0[ib]), "rad", st_))
+                    params.append(ParameterEstimate(f"station {st.id} axis {ax} {pname}", ph, None, float(m0[ia]), "rad", st_))
+                    continue
+                g = np.array([ka, kb]) - 6 * K
+                C2 = scov[np.ix_(g, g)]
+                u = np.array([a_, b_]) / max(mag, 1e-300)
+                sd_mag = float(np.sqrt(max(u @ C2 @ u, 0.0)))
+                v = np.array([-b_, a_]) / max(mag, 1e-300) ** 2
+                sd_ph = float(np.sqrt(max(v @ C2 @ v, 0.0)))
+                ok_ph = mag > 3.0 * sd_mag
+                params.append(ParameterEstimate(f"station {st.id} axis {ax} {mname}", mag, sd_mag, float(m0[ib]), "rad", "ok"))
+                params.append(ParameterEstimate(f"station {st.id} axis {ax} {pname}", ph, sd_ph if ok_ph else None,
+                                                float(m0[ia]), "rad", "ok" if ok_ph else "unobservable"))
+    if sensor_offsets:
+        for i in range(n):
+            for c in range(3):
+                gi = pb.c_off + 3 * i + c - 6 * K
+                bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * offset_prior
+                params.append(ParameterEstimate(f"sensor {i} offset {'xyz'[c]}", float(off[i, c]),
+                                                None if bad else float(std[gi]), 0.0, "m",
+                                                "unobservable" if bad else "ok"))
+    new_st = []
+    for s, st in enumerate(stations):
+        c = Calibration(station_from_ba(cal[s], st.kind), st.kind, st.calibration.gib_argument if st.calibration else "ideal")
+        new_st.append(Station(id=st.id, rotation=RS[s], translation=TS[s], kind=st.kind, rotor_rpm=st.rotor_rpm,
+                              clock_hz=st.clock_hz, fov_deg=st.fov_deg, calibration=c))
+    R = np.where(good[:, None, None], R, np.nan)
+    t = np.where(good[:, None], t, np.nan)
+    status = "ok" if sol.status > 0 else "not_converged"
+    msg = (f"{sol.message.strip()} ({sol.nfev} evaluations); residual scale {np.sqrt(s2):.3g} sigma; "
+           f"{sum(p.status == 'unobservable' for p in params)} parameter(s) unobservable")
+    return BundleResult(new_st, P + off, R, t, params, before_res, after, sol.status > 0, status, msg,
+                        int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost)})
+
+
+def _loss_weights(r, m_data, loss, f_scale):
+    """IRLS weights ``rho'(z)``, ``z = (r / f_scale)²`` on the data rows (priors: 1)."""
+    w = np.ones_like(r)
+    z = (r[:m_data] / f_scale) ** 2
+    if loss == "soft_l1":
+        w[:m_data] = 1.0 / np.sqrt(1.0 + z)
+    elif loss == "huber":
+        w[:m_data] = np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1e-300)))
+    elif loss != "linear":
+        raise ValueError(f"loss: expected 'linear', 'soft_l1' or 'huber', got {loss!r}")
+    return w
+
+
+def _robust_cost(r, m_data, loss, f_scale):
+    z = (r[:m_data] / f_scale) ** 2
+    if loss == "soft_l1":
+        data = f_scale ** 2 * np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0))
+    elif loss == "huber":
+        data = f_scale ** 2 * np.sum(np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0))
+    else:
+        data = np.sum(r[:m_data] ** 2)
+    return 0.5 * (data + np.sum(r[m_data:] ** 2))
+
+
+def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
+    """Levenberg–Marquardt with the sample-pose blocks eliminated exactly (Schur complement).
+
+    Normal equations ``H = J^T W J``, ``b = J^T W r`` (W the IRLS weights); with pose blocks
+    ``H_pp`` (K 6 × 6), ``H_pg``, ``H_gg``: ``S = H_gg - H_gp H_pp^-1 H_pg``,
+    ``S dg = -(b_g - H_gp H_pp^-1 b_p)``, ``dp = -H_pp^-1 (b_p + H_pg dg)``; damping
+    ``lambda diag(H)``. Stops when a step lowers the cost by less than 1e-10 of it.
+    Returns a namespace like ``least_squares``'s result (x, status, nfev, message, cost).
+    """
+    from types import SimpleNamespace
+
+    K = pb.K
+    x = np.clip(x0, lo, hi)
+    r = pb.residual(x, base)
+    cost = _robust_cost(r, pb.m_data, loss, f_scale)
+    lam = 1e-4
+    nfev, status, msg = 1, 0, "iteration limit reached"
+    idx = np.arange(K) * 6
+    for it in range(max_iter):
+        J = pb.jacobian(x, base).tocsc()
+        w = _loss_weights(r, pb.m_data, loss, f_scale)
+        Jw = J.multiply(np.sqrt(w)[:, None]).tocsc()
+        rw = np.sqrt(w) * r
+        H = (Jw.T @ Jw).tocsr()
+        b = Jw.T @ rw
+        Hpp = np.zeros((K, 6, 6))
+        for a in range(6):
+            for c in range(6):
+                Hpp[:, a, c] = np.asarray(H[idx + a, idx + c]).ravel()
+        Hpg = H[: 6 * K, 6 * K:].toarray().reshape(K, 6, -1)
+        Hgg = H[6 * K:, 6 * K:].toarray()
+        bp, bg = b[: 6 * K].reshape(K, 6), b[6 * K:]
+        improved = False
+        for _ in range(12):
+            Dp = np.einsum("kii->ki", Hpp) * lam + 1e-12
+            Hd = Hpp + Dp[:, :, None] * np.eye(6)
+            Hinv = np.linalg.inv(Hd)
+            Sg = Hgg + np.diag(np.diag(Hgg) * lam + 1e-12) - np.einsum("kag,kab,kbh->gh", Hpg, Hinv, Hpg)
+            rhs = bg - np.einsum("kag,kab,kb->g", Hpg, Hinv, bp)
+            try:
+                dg = -np.linalg.solve(Sg, rhs)
+            except np.linalg.LinAlgError:
+                dg = -np.linalg.lstsq(Sg, rhs, rcond=None)[0]
+            dp = -np.einsum("kab,kb->ka", Hinv, bp + np.einsum("kag,g->ka", Hpg, dg))
+            xn = np.clip(x + np.concatenate([dp.ravel(), dg]), lo, hi)
+            rn = pb.residual(xn, base)
+            nfev += 1
+            cn = _robust_cost(rn, pb.m_data, loss, f_scale)
+            if cn < cost:
+                gain = cost - cn
+                x, r, cost = xn, rn, cn
+                lam = max(lam / 10.0, 1e-12)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved:
+            status, msg = 2, "no step lowers the cost (converged to working precision)"
+            break
+        if gain <= 1e-10 * cost:
+            status, msg = 1, f"converged (relative cost change {gain / max(cost, 1e-300):.1e})"
+            break
+    return SimpleNamespace(x=x, status=status, nfev=nfev, message=msg, cost=cost)
+
+
+def _residual_grid(pb: _Problem, x, base) -> np.ndarray:
+    """Angle residuals (rad) at ``x`` on the (K, S, n, 2) grid, NaN where no angle."""
+    R, t, RS, TS, cal, off = pb.unpack(x, *base)
+    pred, _, _ = pb.predict(R, t, RS, TS, cal, off, False)
+    out = np.full(pb.ang.shape, np.nan)
+    out[pb.obs] = _wrap(pb.meas - pred)
+    return out
