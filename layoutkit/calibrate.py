@@ -466,11 +466,16 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         if solver == "schur":
             sol = _schur_lm(pb, x0, base, lo, hi, loss, f_scale, max_nfev)
         else:
-            kw = dict(jac=(lambda x: pb.jacobian(x, base)) if jacobian == "analytic" else "2-point",
-                      x_scale="jac", loss=loss, f_scale=f_scale, method="trf", tr_solver="lsmr",
-                      max_nfev=max_nfev, bounds=(lo, hi))
+            # dense exact trust-region steps while J fits in ~100 MB, else lsmr (slow to converge
+            # on this problem: the sample poses couple to every global parameter)
+            small = pb.M * pb.N <= 12_000_000
+            jac = (lambda x: pb.jacobian(x, base).toarray()) if small else (lambda x: pb.jacobian(x, base))
+            kw = dict(jac=jac if jacobian == "analytic" else "2-point",
+                      x_scale="jac", loss=loss, f_scale=f_scale, method="trf",
+                      tr_solver="exact" if small else "lsmr", max_nfev=max_nfev, bounds=(lo, hi))
             if jacobian != "analytic":
                 kw["jac_sparsity"] = jacobian_sparsity(pb)
+                kw["tr_solver"] = "lsmr"
             sol = least_squares(lambda x: pb.residual(x, base), x0, **kw)
         J = pb.jacobian(sol.x, base)
         # loss weighting as least_squares does (rho'(z) for z = (r / f_scale)^2), for the covariance

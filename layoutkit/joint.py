@@ -30,7 +30,8 @@ from .lighthouse import Station, lh2_to_lh1_angles, measure_jacobian, undistort
 from .pnp import (PnPResult, STATUS_AMBIGUOUS, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_NOT_CONVERGED, STATUS_OK,
                   STATUS_TOO_FEW, solve_pnp)
 
-__all__ = ["solve_joint", "model_angles_jacobian", "MIN_ANGLES", "DEFAULT_CHUNK"]
+__all__ = ["solve_joint", "model_angles_jacobian", "group_windows", "window_angles", "MIN_ANGLES", "DEFAULT_CHUNK",
+           "WINDOW_S"]
 
 #: Fewest angles for a pose (6 unknowns); fewer gives ``STATUS_TOO_FEW``.
 MIN_ANGLES = 6
@@ -90,7 +91,8 @@ def model_angles_jacobian(points_body, rotation, translation, stations, *, dt=No
 
 
 def _start(P, ang, mask, stations):
-    """Per-station starts in the world frame: list of (R (F,3,3), t (F,3), ok (F,))."""
+    """Per-station starts in the world frame: list of (R (F,3,3), t (F,3), ok (F,)), the planar
+    runner-ups (``PnPResult.alt_rotation``) included."""
     out = []
     for s, st in enumerate(stations):
         a = np.where(mask[:, s], ang[:, s], np.nan)
@@ -105,6 +107,12 @@ def _start(P, ang, mask, stations):
         Rw = np.einsum("ij,fjk->fik", st.rotation, np.where(ok[:, None, None], r.rotation, np.eye(3)))
         tw = np.where(ok[:, None], r.translation, 0.0) @ st.rotation.T + st.translation
         out.append((Rw, tw, ok))
+        if r.alt_rotation is not None:                       # the planar runner-up is a start too
+            alt = ok & np.all(np.isfinite(r.alt_rotation), (1, 2)) & np.all(np.isfinite(r.alt_translation), 1)
+            if alt.any():
+                Ra = np.einsum("ij,fjk->fik", st.rotation, np.where(alt[:, None, None], r.alt_rotation, np.eye(3)))
+                ta = np.where(alt[:, None], r.alt_translation, 0.0) @ st.rotation.T + st.translation
+                out.append((Ra, ta, alt))
     return out
 
 
@@ -261,3 +269,53 @@ def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> Pn
         bad[go] = st == STATUS_DEGENERATE
         R[bad], t[bad] = np.nan, np.nan
     return PnPResult(R, t, status == STATUS_OK, status, res, its)
+
+
+#: Window rule: rows (one station's frame each) whose times lie within this many seconds of the
+#: window's first row form one joint sample, at most one row per station (cflib's sample matcher
+#: groups LH2 sweeps the same way).
+WINDOW_S = 0.020
+
+
+def group_windows(t, station, n_stations: int, window_s: float = WINDOW_S):
+    """Group frame-table rows into joint time windows.
+
+    t : (R,) s; station : (R,) int station index in ``[0, n_stations)`` (-1 = unknown: skipped).
+    Rule, in time order: a window opens at the first row not yet taken and takes the following
+    rows while ``t - t_open <= window_s`` and their station has no row in it yet; a second row of a
+    station already in the window closes it (that row opens the next window).
+    Returns ``rows (W, S)`` int (row index, -1 = station not in the window) and ``t_window (W,)``
+    (mean time of the window's rows, s).
+    """
+    t = np.asarray(t, float)
+    st = np.asarray(station, int)
+    order = np.argsort(t, kind="stable")
+    rows, times = [], []
+    cur = np.full(n_stations, -1)
+    t_open = None
+    for r in order:
+        s = st[r]
+        if s < 0 or s >= n_stations or not np.isfinite(t[r]):
+            continue
+        if t_open is None or t[r] - t_open > window_s or cur[s] >= 0:
+            if t_open is not None:
+                rows.append(cur)
+                times.append(float(np.mean(t[cur[cur >= 0]])))
+            cur = np.full(n_stations, -1)
+            t_open = t[r]
+        cur[s] = r
+    if t_open is not None:
+        rows.append(cur)
+        times.append(float(np.mean(t[cur[cur >= 0]])))
+    if not rows:
+        return np.zeros((0, n_stations), int), np.zeros(0)
+    return np.stack(rows), np.asarray(times)
+
+
+def window_angles(angles_rows, rows):
+    """Per-row angles ``(R, n, 2)`` → per-window ``(W, S, n, 2)`` (NaN where a station is absent)."""
+    a = np.asarray(angles_rows, float)
+    out = np.full(rows.shape + a.shape[1:], np.nan)
+    have = rows >= 0
+    out[have] = a[rows[have]]
+    return out

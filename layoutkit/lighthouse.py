@@ -32,6 +32,8 @@ __all__ = [
     "Station",
     "points_in_station",
     "lh2_to_lh1_angles",
+    "angles_to_ray",
+    "sweep_to_lh2_angles",
     "CALIBRATION_PARAMS",
     "MODEL_PARAMS",
     "Calibration",
@@ -196,6 +198,20 @@ def lh2_to_lh1_angles(plane_angles, tilt_rad: float = LH2_TILT_RAD) -> np.ndarra
     s = np.sin(0.5 * (a[..., 1] - a[..., 0])) / np.tan(tilt_rad)
     c = np.cos(base)
     return np.stack([np.arctan2(c, np.sin(base)), np.arctan2(c, s)], -1)
+
+
+def angles_to_ray(theta) -> np.ndarray:
+    """LH1 sweep angles ``(..., 2)`` → a ray ``(..., 3)`` in the station frame with those angles
+    (``(cot theta_x, cot theta_y, 1)`` scaled by ``sin theta_x sin theta_y``; Chen eq. 2)."""
+    th = np.asarray(theta, float)
+    sx, sy = np.sin(th[..., 0]), np.sin(th[..., 1])
+    return np.stack([np.cos(th[..., 0]) * sy, np.cos(th[..., 1]) * sx, sx * sy], -1)
+
+
+def sweep_to_lh2_angles(theta, tilt_rad: float = LH2_TILT_RAD) -> np.ndarray:
+    """LH1-equivalent sweep angles ``(..., 2)`` → LH2 light-plane angles (inverse of
+    :func:`lh2_to_lh1_angles`); NaN stays NaN."""
+    return lh2_sweep_angles(angles_to_ray(theta), tilt_rad)
 
 
 # ------------------------------------------------------------------------------ calibration
@@ -445,9 +461,7 @@ def distort(ideal_angles, calib: Calibration) -> np.ndarray:
     """
     a = np.asarray(ideal_angles, float)
     th = a if calib.kind == "lh1" else lh2_to_lh1_angles(a)
-    ray = np.stack([np.cos(th[..., 0]) * np.sin(th[..., 1]), np.cos(th[..., 1]) * np.sin(th[..., 0]),
-                    np.sin(th[..., 0]) * np.sin(th[..., 1])], -1)
-    return measure(ray[..., None, :], calib)[..., 0, :]
+    return measure(angles_to_ray(th)[..., None, :], calib)[..., 0, :]
 
 
 def undistort(measured, calib: Calibration, *, max_iterations: int = 5, tol: float = 5e-4) -> np.ndarray:

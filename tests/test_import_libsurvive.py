@@ -125,7 +125,7 @@ def test_lh2_import_and_solve(libsurvive_dir, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads(r.output)
     assert s["devices"]["T20"]["frames_per_station"] == {"0": 170, "1": 145} or s["devices"]["T20"]["frames"] > 250
-    r = _solve(out, "T20", "--stations", str(out / "stations.json"), "--static")
+    r = _solve(out, "T20", "--stations", str(out / "stations.json"), "--static", "--solve", "per-station")
     assert r.exit_code == 0, r.output
     o = json.loads(r.output)
     assert o["frames_with_4_lit_solved"] == o["frames_with_4_lit"] > 250

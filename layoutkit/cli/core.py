@@ -6,7 +6,7 @@ import click
 from ..units import ARCSEC
 from ._common import echo_json, fail
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
-                      registry_choice, rho_option, seed_option, sigma_option, stations_option)
+                      registry_choice, rho_option, seed_option, sigma_option, solve_mode_option, stations_option)
 
 
 def _layout(path):
@@ -102,12 +102,17 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, as_jso
                    "with the DOP prediction.")
 @json_flag(help="Print a JSON summary.")
 @filter_options
-def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, as_json, filter_settings):
+@solve_mode_option
+def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, as_json, filter_settings,
+              solve_mode):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
 
     Bad frames (too few angles, inf, angles outside (0, pi), all behind) get a status each and the
     batch goes on; exit 0 when the file could be read and at least one pose is good, 1 when no pose
-    is (with the most common reason). With --stations the pose table is in the world frame.
+    is (with the most common reason). With --stations the pose table is in the world frame; with
+    several stations the default is --solve joint: one pose per 20 ms window from all stations'
+    angles through their calibrated forward models (station 'joint'); --solve per-station solves
+    each station's frames alone.
 
     With --filter ekf the frames (in time order, by their t) also go through the tracking filter
     (X then Y sweep at the frame's t); --out then holds the filtered poses (status 0 ok, 10
@@ -116,6 +121,33 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
     from ..workflows.frames import solve_frame_file
 
     lay = _layout(layout_path)
+    if solve_mode == "joint" and stations_path is None:
+        fail("--solve joint needs --stations (station poses in one world frame)")
+    if stations_path is not None and solve_mode != "per-station":
+        from ..workflows.calibrate import frame_file_stations, solve_station_file
+
+        try:
+            several = solve_mode == "joint" or frame_file_stations(frames_path, stations_path) > 1
+        except ValueError as exc:
+            fail(str(exc))
+    else:
+        several = False
+    if several:  # joint: one pose per window through every station's calibrated forward model
+        try:
+            summary = solve_station_file(frames_path, lay, stations_path, out=out, mode="joint", sigma=sigma, rho=rho)
+        except ValueError as exc:
+            fail(str(exc))
+        if as_json:
+            echo_json(summary)
+        else:
+            click.echo(f"{summary['mode']}: solved {summary['solved']} / {summary['poses']} poses from "
+                       f"{summary['rows']} rows; statuses {summary['status_counts']}")
+            if "predicted_position_sigma_m" in summary:
+                click.echo(f"position scatter {summary['position_scatter_m'] * 1e3:.3f} mm; DOP prediction "
+                           f"{summary['predicted_position_sigma_m'] * 1e3:.3f} mm")
+        if summary["solved"] == 0:
+            fail(summary.get("reason", "no pose solved"), code=1)
+        return
     try:
         summary = solve_frame_file(frames_path, lay, out=out, sigma=sigma, rho=rho, method=solver,
                                    filter_settings=filter_settings, stations_path=stations_path, static=static)

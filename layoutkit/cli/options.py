@@ -32,7 +32,7 @@ __all__ = [
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options",
-    "system_config_option", "stations_option",
+    "system_config_option", "stations_option", "solve_mode_option", "SOLVE_MODES",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
@@ -295,11 +295,12 @@ def system_config_option(f=None):
     return deco(f) if f is not None else deco
 
 
-def stations_option(f=None):
+def stations_option(f=None, *, required: bool = False,
+                    help: str = "Stations JSON (station poses, calibration), e.g. from layoutkit import."):
     """``--stations FILE``: a stations JSON (station poses and calibration). The command receives
     ``stations_path``."""
     deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False), default=None,
-                        metavar="FILE", help="Stations JSON (station poses, calibration), e.g. from layoutkit import.")
+                        required=required, metavar="FILE", help=help)
     return deco(f) if f is not None else deco
 
 
@@ -400,3 +401,16 @@ def camera_options(f):
     for o in reversed(opts):
         f = o(f)
     return f
+
+
+#: ``--solve`` choices: one pose per time window from all stations, or one per station frame.
+SOLVE_MODES = ("joint", "per-station")
+
+
+def solve_mode_option(f=None):
+    """``--solve joint|per-station``; default (None): joint when several stations are known.
+    The command receives ``solve_mode``."""
+    deco = click.option("--solve", "solve_mode", type=click.Choice(SOLVE_MODES), default=None,
+                        help="joint: one pose per 20 ms window from all stations (station 'joint'); per-station: "
+                             "one pose per station frame. Default: joint when several stations are given.")
+    return deco(f) if f is not None else deco
