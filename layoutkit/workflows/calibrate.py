@@ -30,52 +30,15 @@ class StationFrames:
 
 
 def read_station_frames(path, layout: Layout) -> StationFrames:
-    """Read a frame table with an optional ``station`` column (missing: every row station "0").
+    """Read a frame table (:func:`layoutkit.io.frames.read_frame_table`; no ``station`` column = every
+    row station 0). ValueError naming the file, line and field. Infinite angles count as not seen."""
+    from ..io.frames import read_frame_table
 
-    Extra columns (truth ``true_*``) are ignored. ValueError naming the file, line and field.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"{path}: no such frame file")
-    try:
-        with open(path, newline="") as fh:
-            rd = csv.reader(fh)
-            header = next(rd, None)
-            if not header or header[0] != "t":
-                raise ValueError(f"{path}: expected a CSV header starting with 't'")
-            cols = {h: k for k, h in enumerate(header)}
-            ids = [h[5:] for h in header if h.startswith("th_x_")]
-            missing = [i for i in ids if i not in layout.ids]
-            if missing:
-                raise ValueError(f"{path}: sensor ids {missing[:5]} are not in the layout")
-            if not ids:
-                raise ValueError(f"{path}: no th_x_<id> columns")
-            idx = {i: k for k, i in enumerate(layout.ids)}
-            t, st, ang = [], [], []
-            for r in rd:
-                if not r:
-                    continue
-                if len(r) != len(header):
-                    raise ValueError(f"{path}: line {rd.line_num}: {len(r)} fields, the header has {len(header)}")
-                a = np.full((layout.n, 2), np.nan)
-                try:
-                    t.append(float(r[0]))
-                    for i in ids:
-                        for ax, name in ((0, f"th_x_{i}"), (1, f"th_y_{i}")):
-                            v = r[cols[name]].strip() if name in cols else ""
-                            if v:
-                                a[idx[i], ax] = float(v)
-                except ValueError:
-                    raise ValueError(f"{path}: line {rd.line_num}: a field is not a number") from None
-                st.append(r[cols["station"]].strip() if "station" in cols else "0")
-                ang.append(a)
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a text (CSV) frame file") from None
-    if not t:
-        raise ValueError(f"{path}: no frames")
-    ang = np.asarray(ang)
+    fr = read_frame_table(path, layout.ids)
+    ang = np.array(fr.angles, float)
     ang[~np.isfinite(ang)] = np.nan
-    return StationFrames(np.asarray(t), np.asarray(st), ang)
+    st = fr.stations() if hasattr(fr, "stations") else (fr.station if fr.station is not None else np.zeros(len(fr.t), int))
+    return StationFrames(np.asarray(fr.t, float), np.asarray([str(int(x)) for x in st]), ang)
 
 
 def station_index(labels, stations) -> np.ndarray:
