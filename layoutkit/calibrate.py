@@ -1,5 +1,9 @@
 """Self-calibration: bundle adjustment of station poses, station calibration and sensor offsets.
 
+About 700 lines, one problem kept together on purpose: the column layout, the analytic sparse
+Jacobian, the Schur-complement LM, the covariance and the per-parameter report all index the
+same parameter vector; split, each piece would re-derive that layout.
+
 Unknowns (``scipy.optimize.least_squares``, trust-region reflective, ``lsmr`` on the sparse
 Jacobian, robust ``soft_l1`` loss on the normalised angle residuals):
 

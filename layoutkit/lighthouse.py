@@ -491,8 +491,10 @@ def undistort(measured, calib: Calibration, *, max_iterations: int = 5, tol: flo
 # lighthouse frame = ours turned by diag(1, -1, -1); Bitcraze station frame x_bc = z, y_bc = x,
 # z_bc = y.
 
-LIBSURVIVE_KEYS = {"phase": "fcalphase", "tilt": "fcaltilt", "curve": "fcalcurve", "gib_phase": "fcalgibpha",
-                   "gib_mag": "fcalgibmag", "ogee_phase": "fcalogeephase", "ogee_mag": "fcalogeemag"}
+# accepted spellings: the recording's fcal* keys and BaseStationCal's field names
+LIBSURVIVE_KEYS = {"phase": ("fcalphase",), "tilt": ("fcaltilt",), "curve": ("fcalcurve",),
+                   "gib_phase": ("fcalgibpha", "gibpha"), "gib_mag": ("fcalgibmag", "gibmag"),
+                   "ogee_phase": ("fcalogeephase", "ogeephase"), "ogee_mag": ("fcalogeemag", "ogeemag")}
 CRAZYFLIE_KEYS = {"phase": "phase", "tilt": "tilt", "curve": "curve", "gib_phase": "gibphase",
                   "gib_mag": "gibmag", "ogee_phase": "ogeephase", "ogee_mag": "ogeemag"}
 
@@ -568,7 +570,8 @@ def calibration_from_dict(d: dict, kind: str | None = None, *, what: str = "cali
         raise ValueError(f"{what}: expected an object, got {type(d).__name__}")
     conv = d.get("convention")
     if conv is None:
-        conv = "crazyflie" if "sweeps" in d else "libsurvive" if any(k.startswith("fcal") for k in d) else "layoutkit"
+        conv = ("crazyflie" if "sweeps" in d else
+                "libsurvive" if any(k.startswith("fcal") or k in ("gibpha", "gibmag") for k in d) else "layoutkit")
     kind = d.get("kind", kind) or "lh1"
     try:
         if conv == "layoutkit":
@@ -587,8 +590,11 @@ def calibration_from_dict(d: dict, kind: str | None = None, *, what: str = "cali
 def _per_axis(values: dict, keys: dict, what: str) -> dict:
     """``{name: (axis0, axis1)}`` from a dict keyed by ``name`` or by ``keys[name]`` (missing → 0)."""
     out = {}
-    for name, alt in keys.items():
-        raw = values.get(name, values.get(alt, (0.0, 0.0)))
+    for name, alts in keys.items():
+        raw = values.get(name, (0.0, 0.0))
+        for alt in ((alts,) if isinstance(alts, str) else alts):
+            if name not in values and alt in values:
+                raw = values[alt]
         try:
             pair = [float(x) for x in (raw if isinstance(raw, (list, tuple, np.ndarray)) else [raw, raw])]
         except (TypeError, ValueError):

@@ -113,6 +113,10 @@ def test_libsurvive_recording_keys_accepted(rng):
              "fcalogeephase": cal["ogee_phase"], "fcalogeemag": cal["ogee_mag"]}
     a = calibration_from_dict(keyed, "lh2")
     np.testing.assert_array_equal(a.params, calibration_from_libsurvive(cal, "lh2").params)
+    short = {"convention": "libsurvive", "phase": cal["phase"], "tilt": cal["tilt"], "curve": cal["curve"],
+             "gibpha": cal["gib_phase"], "gibmag": cal["gib_mag"], "ogeephase": cal["ogee_phase"],
+             "ogeemag": cal["ogee_mag"]}               # BaseStationCal field names (the importer's)
+    np.testing.assert_array_equal(calibration_from_dict(short, "lh2").params, a.params)
     b = calibration_from_dict(a.to_dict())
     np.testing.assert_array_equal(b.params, a.params)
     assert (b.kind, b.gib_argument) == ("lh2", "corrected")

@@ -19,13 +19,15 @@ from .options import json_flag, layout_option, out_dir_option, seed_option, sigm
 @click.option("--sensor-offsets", is_flag=True, help="Also adjust each sensor's position (bounded, with a prior).")
 @click.option("--offset-prior-mm", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
               help="1-sigma of the hand-measured sensor positions, mm (the prior of --sensor-offsets).")
+@click.option("--calibration-prior", "calibration_prior", type=click.FloatRange(min=0.0, min_open=True), default=0.1,
+              show_default=True, help="1-sigma of each calibration parameter around its starting (factory) value, rad.")
 @sigma_option(help="Sweep-angle noise 1-sigma, arcsec: the residual scale of the fit (paper: 8.28\").")
 @click.option("--max-samples", type=click.IntRange(min=2), default=None,
               help="Use at most this many time windows (a random subset, --seed).")
 @seed_option
 @json_flag(help="Print the report JSON.")
 def calibrate_cmd(frames_path, layout_path, stations_path, out_dir, reference_path, sensor_offsets,
-                  offset_prior_mm, sigma, max_samples, seed, as_json):
+                  offset_prior_mm, calibration_prior, sigma, max_samples, seed, as_json):
     """Bundle-adjust station poses and calibration (and, with --sensor-offsets, sensor positions).
 
     Samples: the frame table's rows grouped into 20 ms windows (one row per station). Gauge: the
@@ -37,7 +39,7 @@ def calibrate_cmd(frames_path, layout_path, stations_path, out_dir, reference_pa
     try:
         rep = calibrate_files(frames_path, layout_path, stations_path, out_dir, reference_path=reference_path,
                               sensor_offsets=sensor_offsets, sigma=sigma, offset_prior=offset_prior_mm * 1e-3,
-                              max_samples=max_samples, seed=seed)
+                              calibration_prior=calibration_prior, max_samples=max_samples, seed=seed)
     except ValueError as exc:
         fail(str(exc))
     if as_json:
