@@ -37,17 +37,24 @@ def capture(rng, *, kind="lh1", n=32, samples=200, sigma=2e-5, offset_rms=0.0, s
                        translation=s1.translation + rng.normal(0, station_error[1], 3), kind=kind)
     P, N = sphere_layout(rng, n)
     offsets = rng.normal(0, offset_rms / np.sqrt(3), (n, 3)) if offset_rms else np.zeros((n, 3))
+    cap = {"truth": truth, "start": start, "P": P, "N": N, "offsets": offsets, "sigma": sigma}
+    cap["R"], cap["t"], cap["angles"] = observe(cap, rng, samples)
+    return cap
+
+
+def observe(cap, rng, samples):
+    """New random body poses of a capture's set-up and their angles (truth stations, true sensors)."""
+    P, N = cap["P"], cap["N"]
     R = random_rotations(samples, rng)
     t = rng.uniform(-0.5, 0.5, (samples, 3))
-    a = simulate_station_angles(P + offsets, R, t, truth, sigma=sigma, rho=0.0, rng=rng)
+    a = simulate_station_angles(P + cap["offsets"], R, t, cap["truth"], sigma=cap["sigma"], rho=0.0, rng=rng)
     nw = np.einsum("kij,nj->kni", R, N)
     pw = np.einsum("kij,nj->kni", R, P) + t[:, None]
-    for s, st in enumerate(truth):
+    for s, st in enumerate(cap["truth"]):
         d = st.translation - pw
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         a[:, s][~(np.sum(nw * d, -1) > 0.2)] = np.nan
-    return {"truth": truth, "start": start, "P": P, "N": N, "offsets": offsets, "R": R, "t": t, "angles": a,
-            "sigma": sigma}
+    return R, t, a
 
 
 def z_scores(res, cap, kind):

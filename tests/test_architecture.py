@@ -19,7 +19,7 @@ PKG = Path(__file__).resolve().parents[1] / "layoutkit"
 TIERS = {
     "units": 0, "_validate": 0, "status": 0,
     "geometry": 1, "lighthouse": 1, "noise": 1, "joint": 1, "pnp": 1, "dop": 1, "dop_batch": 1,
-    "simulate": 1, "visibility": 1, "quality": 1, "coverage_rule": 1, "filter": 1, "rotations": 1,
+    "simulate": 1, "visibility": 1, "quality": 1, "coverage_rule": 1, "filter": 1, "rotations": 1, "calibrate": 1,
     "io": 2.0, "_json": 2.1, "layout": 2.2, "shapes": 2.3, "envelope": 2.3, "mesh": 2.4, "candidates": 2.5,
     "importers": 2.6,
     "optimize": 3, "camera": 3, "render": 3, "live": 3,

@@ -7,7 +7,7 @@ from ._common import echo_json, fail
 from .options import json_flag, layout_option, out_dir_option, seed_option, sigma_option, stations_option
 
 
-@click.command("calibrate", short_help="Self-calibrate stations (and sensor positions) from a frame table.")
+@click.command("calibrate", short_help="Self-calibrate stations and sensors from a frame table.")
 @click.argument("frames_path", type=click.Path(dir_okay=False))
 @layout_option
 @stations_option(required=True, help="Stations JSON: start poses (one world frame), kind, factory calibration.")
