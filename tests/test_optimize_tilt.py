@@ -63,3 +63,16 @@ def test_tilt_orientations_geometry():
     np.testing.assert_allclose(np.linalg.norm(a2, axis=1), 1.0)
     with pytest.raises(ValueError, match="max_tilt_deg"):
         tilt_orientations(pos, nor, 95.0)
+
+
+def test_optimize_layout_max_tilt_keyword_matches_stations_path():
+    """optimize_layout(max_tilt_deg=...) (the array API a sweep drives) = the explicit expansion."""
+    from layoutkit.optimize import optimize_layout
+
+    pos, nor, R, t = leaning_instance()
+    vis = cone_visibility(pos, nor, R, t, half_angle_deg=60)
+    r = optimize_layout(pos, nor, vis, R, t, 4, rho=0.8717, method="exhaustive", max_tilt_deg=30.0,
+                        tilt_directions=2)
+    ex, site, tl, _ = _solve(30.0, "exhaustive")
+    assert r.value == pytest.approx(ex.value, rel=1e-12)
+    assert sorted(r.info["site"].tolist()) == sorted(site[ex.selected].tolist())

@@ -113,7 +113,8 @@ def spacing_conflicts(positions, min_spacing):
 def optimize_layout(positions, normals, visible, rotations, translations, k, *,
                     objective="worst-adop", rho=0.0, min_visible=4, method="pipeline", rng=None,
                     fixed=(), min_spacing=0.0, coverage_fraction=1.0, weights=None,
-                    time_limit=None, progress=None) -> OptimizeResult:
+                    time_limit=None, progress=None, max_tilt_deg=0.0, tilt_directions=4,
+                    half_angle_deg=60.0, fov_deg=120.0) -> OptimizeResult:
     """Choose ``k`` of N candidate sites minimising an envelope DOP objective (design §6).
 
     positions : (N, 3) float, m, candidate sites in the body frame; normals : (N, 3) outward normals
@@ -130,6 +131,12 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
     time_limit : s, wall budget of the method (the relaxation itself is not interrupted); None:
         unlimited, except ``"pipeline"`` which then stops after ``DEFAULT_PIPELINE_TIME_S`` = 100 s.
     progress : callable ``(stage: str, fraction: float | None, best: float | None)``.
+    max_tilt_deg : > 0 lets every site also take its normal tilted by this angle towards
+        ``tilt_directions`` azimuths (:mod:`layoutkit.optimize.tilt`, one orientation per site). The
+        given ``visible`` applies to the untilted orientations; tilted ones are lit by the acceptance
+        cone (``half_angle_deg``) and field of view (``fov_deg``) test (exact for convex bodies, no
+        occlusion). ``selected`` then indexes the expanded candidates; ``info`` has ``site``,
+        ``tilt_deg`` and ``axes`` of the selection.
     Returns an :class:`OptimizeResult`; infeasible requests are a status with an explanation.
     """
     pos = as_array(positions, "positions", (None, 3))
@@ -144,12 +151,28 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
     vis = np.asarray(visible)
     if vis.shape != (P, N):
         raise ValueError(f"visible: expected shape ({P}, {N}), got {vis.shape}")
+    vis = vis.astype(bool)
+    conflict = spacing_conflicts(pos, min_spacing)
+    site = None
+    if max_tilt_deg and max_tilt_deg > 0:
+        from .instances import cone_visibility
+        from .tilt import site_conflicts, tilt_orientations
+
+        nor = as_array(normals, "normals", (N, 3))
+        pos, axes, site, tilt = tilt_orientations(pos, nor, float(max_tilt_deg), int(tilt_directions))
+        vt = cone_visibility(pos[N:], axes[N:], R, t, half_angle_deg=half_angle_deg, fov_deg=fov_deg)
+        vis = np.concatenate([vis, vt], axis=1)
+        conflict = site_conflicts(site, spacing_conflicts(pos, min_spacing))
     jac = candidate_jacobians(pos, R, t)
-    return optimize_stations(jac, vis.astype(bool)[:, None, :], k, objective=objective, rho=rho,
-                             min_visible=min_visible, method=method, rng=rng, fixed=fixed,
-                             conflict=spacing_conflicts(pos, min_spacing),
-                             coverage_fraction=coverage_fraction, weights=weights,
-                             time_limit=time_limit, progress=progress)
+    res = optimize_stations(jac, vis[:, None, :], k, objective=objective, rho=rho,
+                            min_visible=min_visible, method=method, rng=rng, fixed=fixed,
+                            conflict=conflict, coverage_fraction=coverage_fraction, weights=weights,
+                            time_limit=time_limit, progress=progress)
+    if site is not None:
+        sel = res.selected
+        res = dataclasses.replace(res, info={**res.info, "site": site[sel], "tilt_deg": tilt[sel],
+                                             "axes": axes[sel]})
+    return res
 
 
 def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_visible=4,
