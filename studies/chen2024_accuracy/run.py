@@ -52,7 +52,7 @@ def factory_calibration(rng) -> Calibration:
 
 
 def pose_set(rng, layout, count, station, P_true, sigma):
-    R, t = poses_in_front(count * 3, rng)
+    R, t = poses_in_front(count * 6, rng)
     vis = facing_mask(layout.positions, layout.normals, R, t)
     keep = np.flatnonzero(vis.sum(1) >= 6)[:count]
     R, t, vis = R[keep], t[keep], vis[keep]
@@ -94,6 +94,7 @@ def run(n_cal, n_test, seed):
     out["no_systematic_errors"] = accuracy(solve_joint(P, ideal_a, stations=[nominal]), Rt, tt, P, nominal, vt, sigma)
     # calibration capture with a mocap reference
     Rc, tc, ac, vc = pose_set(rng, layout, n_cal, truth, P + offsets, sigma)
+    n_cal = len(Rc)
     ref_R = rotvec_to_matrix(rng.normal(0, np.radians(0.02) / np.sqrt(3), (n_cal, 3))) @ Rc
     ref_t = tc + rng.normal(0, 0.2e-3 / np.sqrt(3), (n_cal, 3))
     ini = solve_joint(P, ac, stations=[nominal])
@@ -146,6 +147,7 @@ def write(out, folder: Path):
         ax.set_xticks(x, labels)
         ax.set_yscale("log")
         ax.set_ylabel(unit)
+        ax.set_xlabel("model used to solve the held-out poses")
         ax.set_title("attitude" if unit == "deg" else "position")
         ax.legend(fontsize=7)
     fig.suptitle("Chen set-up: accuracy vs precision, with systematic errors and after calibrate")
