@@ -167,3 +167,16 @@ def test_not_a_recording_clear_error(tmp_path):
     p.write_text("hello world\n")
     r = CliRunner().invoke(main, ["import", "libsurvive", str(p), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "not a libsurvive recording" in r.output and "Traceback" not in r.output
+
+
+def test_calibrated_solve_lowers_residuals_and_joins_stations(lh1):
+    """--calibrated: each LH1 station's frames through its factory calibration (from the recording's
+    fcal*, layoutkit.lighthouse model): the residuals drop and the two stations' world poses of the
+    static HMD come closer (libsurvive's own lighthouse poses as the independent reference)."""
+    d, _ = lh1
+    st = ["--stations", str(d / "stations.json")]
+    raw = json.loads(_solve(d, "HMD", *st).output)
+    cal = json.loads(_solve(d, "HMD", *st, "--calibrated").output)
+    assert cal["calibrated_stations"] == [0, 1] and cal["solved"] >= raw["solved"] - 1
+    assert cal["residual_rms_median"] < 0.7 * raw["residual_rms_median"]
+    assert cal["world_between_stations"]["translation_m"] < 0.5 * raw["world_between_stations"]["translation_m"]

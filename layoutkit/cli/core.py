@@ -100,11 +100,13 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, as_jso
 @click.option("--static", is_flag=True,
               help="The body is at rest: estimate sigma and rho from the angles and compare the pose scatter "
                    "with the DOP prediction.")
+@click.option("--calibrated", is_flag=True,
+              help="Solve each LH1 station's frames through its calibration from --stations (factory model).")
 @json_flag(help="Print a JSON summary.")
 @filter_options
 @solve_mode_option
-def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, as_json, filter_settings,
-              solve_mode):
+def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, calibrated, as_json,
+              filter_settings, solve_mode):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
 
     Bad frames (too few angles, inf, angles outside (0, pi), all behind) get a status each and the
@@ -150,7 +152,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
         return
     try:
         summary = solve_frame_file(frames_path, lay, out=out, sigma=sigma, rho=rho, method=solver,
-                                   filter_settings=filter_settings, stations_path=stations_path, static=static)
+                                   filter_settings=filter_settings, stations_path=stations_path, static=static,
+                                   calibrated=calibrated)
     except ValueError as exc:
         fail(str(exc))
     if as_json:

@@ -81,14 +81,16 @@ def _nearest_initial(t, station, ok, R, T, need):
     return R0, T0
 
 
-def angle_residuals(layout: Layout, angles, seen, R, T) -> np.ndarray:
+def angle_residuals(layout: Layout, angles, seen, R, T, calibration=None) -> np.ndarray:
     """Measured minus predicted sweep angles ``(F, n, 2)`` rad of poses ``R (F,3,3), T (F,3)``
-    (NaN where not seen or no pose); wrapped to (-pi, pi]."""
+    (NaN where not seen or no pose); wrapped to (-pi, pi]. calibration : the station's LH1
+    calibration (predicted = its forward model, :func:`layoutkit.lighthouse.measure`)."""
     from ..geometry import transform_points
-    from ..lighthouse import sweep_angles
+    from ..lighthouse import measure, sweep_angles
 
     with np.errstate(invalid="ignore"):
-        pred = sweep_angles(transform_points(R, T, layout.positions))
+        pts = transform_points(R, T, layout.positions)
+        pred = sweep_angles(pts) if calibration is None else measure(pts, calibration, "lh1")
         r = np.asarray(angles, float) - pred
     r = (r + np.pi) % (2 * np.pi) - np.pi
     return np.where(seen, r, np.nan)
@@ -182,8 +184,50 @@ def static_precision(layout: Layout, angles, seen, R, T, *, min_frames: int = 10
             "mean_rotvec": Rotation.from_matrix(Rm).as_rotvec().tolist(), "mean_translation": tm.tolist()}
 
 
+def _station_calibrations(fr: Frames, stations: dict | None, calibrated: bool) -> dict:
+    """``{station index: Calibration}`` for a calibrated solve (LH1 stations with a calibration)."""
+    if not calibrated:
+        return {}
+    if not stations:
+        raise ValueError("--calibrated needs --stations (the stations JSON carries the calibration)")
+    cals = {}
+    for s in np.unique(fr.stations()):
+        st = stations.get(int(s))
+        if st is None or st.calibration is None:
+            continue
+        if st.kind != "lh1":
+            raise ValueError(f"--calibrated: station {int(s)} is LH2; the frame table holds LH1-equivalent angles "
+                             "converted without calibration, and a calibrated LH2 solve needs the plane angles "
+                             "(not supported)")
+        cals[int(s)] = st.calibration
+    return cals
+
+
+def _solve_by_station(layout, angles, seen, st, cals, noise, initial=None):
+    """solve_pnp per station (each with its calibration, if any); arrays over all frames."""
+    from ..pnp import solve_pnp
+
+    F = len(angles)
+    R, T = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan)
+    status, res = np.zeros(F, int), np.full(F, np.nan)
+    alt_R, alt_T = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan)
+    groups = [(None, np.ones(F, bool))] if not cals else [(int(s), st == s) for s in np.unique(st)]
+    for s, k in groups:
+        kw = dict(noise)
+        cal = cals.get(s) if s is not None else None
+        if cal is not None:
+            kw = {"calibration": cal}
+        ini = None if initial is None else (initial[0][k], initial[1][k])
+        sol = solve_pnp(layout.positions, angles[k], seen[k], initial=ini, **kw)
+        R[k], T[k], status[k], res[k] = sol.rotation, sol.translation, sol.status, sol.residual_rms
+        if sol.alt_rotation is not None:
+            alt_R[k], alt_T[k] = sol.alt_rotation, sol.alt_translation
+    return R, T, status, res, alt_R, alt_T
+
+
 def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0,
-                 method: str = "lm", stations: dict | None = None, static: bool = False) -> dict:
+                 method: str = "lm", stations: dict | None = None, static: bool = False,
+                 calibrated: bool = False) -> dict:
     """Solve every frame; never raises on bad frames (each gets a status).
 
     Pass 1 solves every frame cold; pass 2 solves the frames that meet the minimum rule but had
@@ -192,21 +236,19 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     frame (``world_rotvec``, ``world_translation``) and the per-station mean world poses compared.
     static : the body is at rest; add :func:`static_precision` per station.
     method : a key of :data:`layoutkit.pnp.PNP_SOLVERS`.
+    calibrated : solve each LH1 station's frames through its calibration (``stations`` needed;
+    :func:`layoutkit.pnp.solve_pnp` with ``calibration``); residuals are then against that model.
     Returns a summary dict plus per-frame arrays ``t, station, status, rotvec, translation,
     residual_rms, success``.
     """
     from ..dop import GROSS_FAILURE_DEG, gross_failures, pose_dop, pose_errors, predicted_precision, rms
-    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES, STATUS_NO_START, STATUS_OK, solve_pnp
+    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES, STATUS_NO_START, STATUS_OK
 
     seen = ~np.isnan(fr.angles)
     st = fr.stations()
     noise = {"method": method, **({} if sigma is None else {"sigma": sigma, "rho": rho})}  # the ambiguity test's noise
-    sol = solve_pnp(layout.positions, fr.angles, seen, **noise)
-    R, T = np.array(sol.rotation), np.array(sol.translation)
-    status, res = np.array(sol.status), np.array(sol.residual_rms)
-    F = len(fr.t)
-    alt_R = np.full((F, 3, 3), np.nan) if sol.alt_rotation is None else np.array(sol.alt_rotation)
-    alt_T = np.full((F, 3), np.nan) if sol.alt_translation is None else np.array(sol.alt_translation)
+    cals = _station_calibrations(fr, stations, calibrated)
+    R, T, status, res, alt_R, alt_T = _solve_by_station(layout, fr.angles, seen, st, cals, noise)
     need = status == STATUS_NO_START
     second = 0
     if need.any() and (status == STATUS_OK).any():
@@ -214,11 +256,11 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
         has = np.all(np.isfinite(T0), 1)
         idx = np.flatnonzero(need)[has]
         if idx.size:
-            s2 = solve_pnp(layout.positions, fr.angles[idx], seen[idx], initial=(R0[has], T0[has]), **noise)
-            R[idx], T[idx], status[idx], res[idx] = s2.rotation, s2.translation, s2.status, s2.residual_rms
-            if s2.alt_rotation is not None:
-                alt_R[idx], alt_T[idx] = s2.alt_rotation, s2.alt_translation
-            second = int(np.sum(s2.success))
+            R2, T2, s2, r2, aR2, aT2 = _solve_by_station(layout, fr.angles[idx], seen[idx], st[idx], cals, noise,
+                                                         initial=(R0[has], T0[has]))
+            R[idx], T[idx], status[idx], res[idx] = R2, T2, s2, r2
+            alt_R[idx], alt_T[idx] = aR2, aT2
+            second = int(np.sum(s2 == STATUS_OK))
     ok = status == STATUS_OK
     amb = status == STATUS_AMBIGUOUS
     names = {int(k): STATUS_NAMES.get(int(k), str(k)) for k in np.unique(status)}
@@ -237,9 +279,12 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     if big.any() and np.nanmedian(np.where(np.isfinite(a), a, np.nan)) > np.pi:
         reasons["hint"] = "most angles exceed pi: the file looks like degrees; frame tables are in radians"
     r = angle_residuals(layout, fr.angles, seen & ok[:, None, None], R, T)
+    for s_, cal in cals.items():  # calibrated stations: residuals against their own model
+        k = st == s_
+        r[k] = angle_residuals(layout, fr.angles[k], (seen & ok[:, None, None])[k], R[k], T[k], cal)
     out = {"frames": int(len(fr.t)), "solved": int(ok.sum()), "solved_from_neighbour": second,
            "status_counts": {int(k): int(v) for k, v in zip(*np.unique(status, return_counts=True))},
-           "statuses": counts, "input": reasons,
+           "statuses": counts, "input": reasons, "calibrated_stations": sorted(cals),
            "residual_rms_median": float(np.median(res[ok])) if ok.any() else None,
            "residual_rms_p90": float(np.percentile(res[ok], 90)) if ok.any() else None,
            "sensor_residuals": sensor_residual_summary(layout.ids, r),
@@ -325,7 +370,7 @@ def simulate_frame_file(layout: Layout, frames: int, out, *, seed: int, sigma: f
 
 def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | None = None, rho: float = 0.0,
                      method: str = "lm", filter_settings: dict | None = None, stations_path=None,
-                     static: bool = False) -> dict:
+                     static: bool = False, calibrated: bool = False) -> dict:
     """What ``layoutkit solve`` does: read a frame file, solve every frame, write the pose table to ``out``
     (:mod:`layoutkit.io.poses`: t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m).
 
@@ -341,7 +386,8 @@ def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | No
 
     fr = read_frames(frames_path, layout)
     stations = dict(enumerate(read_stations(stations_path))) if stations_path else None
-    res = solve_frames(fr, layout, sigma=sigma, rho=rho, method=method, stations=stations, static=static)
+    res = solve_frames(fr, layout, sigma=sigma, rho=rho, method=method, stations=stations, static=static,
+                       calibrated=calibrated)
     fres = None
     if filter_settings is not None:
         from .filter import filter_config, filter_frames
