@@ -110,14 +110,16 @@ def run_scenario(name: str, d: Path, duration: float, seed: int) -> dict:
     sim = _simulator(link, seeds, duration)
     _wait_for(link)
     sim_wall = duration / SPEED
-    live_wall = sim_wall * len(seeds) + 4.0
+    live_wall = sim_wall * len(seeds) + 8.0  # + start-up on a loaded machine
     live = subprocess.Popen(EXE + ["live", "--port", str(link), "--layout", LAYOUT, "--record", str(cap),
                                    "--report", str(rep), "--no-dashboard", "--duration", str(live_wall)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     foreign = None
     try:
         if name in ("sim-sigkill", "sim-sigterm", "live-sigterm"):
-            time.sleep(2.0 + sim_wall / 2)  # start-up, then mid-stream
+            end = time.monotonic() + 60.0  # mid-stream: once the capture holds a few frames
+            while time.monotonic() < end and not (cap.exists() and cap.stat().st_size > 3000):
+                time.sleep(0.05)
             target = os.readlink(link) if link.is_symlink() else None
             if name == "live-sigterm":
                 live.send_signal(signal.SIGTERM)
