@@ -216,3 +216,13 @@ def test_same_device_rules(tmp_path):
     assert device_identity("socket://localhost:1") is None
     os.close(s2)
     os.close(m2)
+
+
+def test_fake_fpga_out_refuses_an_existing_capture_before_writing_anything(tmp_path):
+    """`fake-fpga --out` onto an existing capture: refused (exit 2) and its --truth is not written."""
+    cap = tmp_path / "c.lkcap"
+    cap.write_bytes(b"keep")
+    r = subprocess.run(EXE + ["fake-fpga", "--layout", LAYOUT, "--out", str(cap), "--truth", str(tmp_path / "t.csv"),
+                              "--duration", "0.2"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "a capture already exists (4 bytes)" in r.stderr
+    assert cap.read_bytes() == b"keep" and not (tmp_path / "t.csv").exists()

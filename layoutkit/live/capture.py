@@ -25,6 +25,7 @@ from ..io.stations import station_from_dict, station_to_dict  # re-exported (old
 
 __all__ = [
     "CaptureExists",
+    "check_new_capture",
     "CaptureWriter",
     "CaptureReader",
     "sidecar_path",
@@ -45,6 +46,18 @@ def index_path(path) -> Path:
 
 class CaptureExists(ValueError):
     """A capture (or its index/sidecar) is already at the path: it is never replaced silently."""
+
+
+def check_new_capture(path) -> None:
+    """Raise :class:`CaptureExists` (naming the file and its size) when ``path`` or its
+    ``.idx``/``.json`` exists: a capture is never overwritten without ``--overwrite``."""
+    path = Path(path)
+    for p in (path, index_path(path), sidecar_path(path)):
+        if p.exists():
+            size = p.stat().st_size if p.is_file() else 0
+            what = "a capture" if p == path else "a capture's " + p.suffix + " file"
+            raise CaptureExists(f"{p}: {what} already exists ({size:,} bytes); a capture is never overwritten: "
+                                "record to a new file, or pass --overwrite to replace it")
 
 
 class CaptureWriter:
@@ -73,13 +86,7 @@ class CaptureWriter:
         self.closed = True
         self.error = None
         if not overwrite:
-            for p in (self.path, index_path(self.path), sidecar_path(self.path)):
-                if p.exists():
-                    size = p.stat().st_size if p.is_file() else 0
-                    what = "a capture" if p == self.path else "a capture's " + p.suffix + " file"
-                    raise CaptureExists(
-                        f"{p}: {what} already exists ({size:,} bytes); a capture is never overwritten: "
-                        "record to a new file, or pass --overwrite to replace it")
+            check_new_capture(self.path)
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
         if not overwrite:
             flags |= os.O_EXCL

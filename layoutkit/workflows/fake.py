@@ -91,6 +91,10 @@ def run_fake(layout: Layout, *, out=None, link=None, truth_path=None, realtime: 
     from ..live.simulator import run_fake_fpga, write_truth
 
     st = fake_fpga_stream(layout, **stream_kw)
+    if out is not None and not overwrite:  # refuse before anything is written (the truth file too)
+        from ..live.capture import check_new_capture
+
+        check_new_capture(out)
     if truth_path:
         write_truth(st.sweeps, truth_path)
     cam = None
