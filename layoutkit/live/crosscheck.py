@@ -10,8 +10,10 @@ the body attitude ``R_lh(t_dev)``; ``R_ct = X R_lh Y`` with fixed ``X`` (camera 
    ``chi2 = sum d_k^2 / p_k^2`` (disagreement over its predicted variance, X and Y re-fitted at
    every evaluation: a profile likelihood). The uncertainty is ``2 H^-1`` of that chi² (H its
    Hessian), inflated by the residuals' integrated autocorrelation (camera errors vary slowly with
-   the pose, so consecutive frames are not independent). A drift whose standard deviation exceeds ``max_drift_sigma`` is not observable in the
-   session: it is fixed at 0 and reported as such.
+   the pose, so consecutive frames are not independent). The drift: independent offsets in windows
+   of ``window_s`` (>= 4 of them), a straight line through them, its uncertainty from their scatter
+   (slowly varying systematic errors count); a drift that is not 3 sigma from 0, or whose sigma
+   exceeds ``max_drift_sigma``, is fixed at 0 and reported as such.
 2. **Alignment.** X and Y by the rotation-averaging core
    (:func:`layoutkit.rotations.fit_rotation_pair`) on the matched frames outside the face-on band.
 3. **Disagreement** ``d_k = |log(R_ct,k (X R_lh(t_k) Y)^T)|`` and its prediction
@@ -94,7 +96,7 @@ def _chi2(params, t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, body_offset=
 
 
 def estimate_camera_clock(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, *, max_offset_s: float | None = None,
-                          max_drift_sigma: float = 1e-4, scan_s: float = 3.0) -> ClockEstimate:
+                          max_drift_sigma: float = 1e-4, scan_s: float = 3.0, window_s: float = 10.0) -> ClockEstimate:
     """Clock offset and drift between a lighthouse and a camera attitude stream (module docstring).
 
     t_lh (N,), R_lh (N, 3, 3), adop (N,) deg/rad : good lighthouse poses (device time, s).
@@ -102,7 +104,7 @@ def estimate_camera_clock(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, *, m
     predicted attitude variance. max_offset_s : bound of the coarse search (default: any lag with
     at least half the shorter stream overlapping).
     """
-    from scipy.optimize import minimize, minimize_scalar
+    from scipy.optimize import minimize_scalar
 
     from .reference import PoseTrack, estimate_time_offset
 
@@ -168,50 +170,56 @@ def estimate_camera_clock(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, *, m
             k = int(np.nanargmin(np.where(far, cgrid, np.inf)))
             if (cgrid[k] - best[1]) * scale < 4.0:
                 ambiguous = float(grid[k])
-    # (offset at the middle of the session, drift): nearly uncorrelated, then offset at t_dev = 0
-    t_mid = float(np.median(t_lh))
     full = np.arange(len(t_cam))
-
-    def cost_mid(x):
-        tm, d = x
-        return cost((tm - d * t_mid, d), full)
-
-    x0 = np.array([off, 0.0])
-    res = minimize(cost_mid, x0, method="Nelder-Mead",
-                   options={"xatol": 1e-7, "fatol": 1e-6, "initial_simplex": [x0, x0 + [2e-3, 0], x0 + [0, 2e-4]]})
-    xm = res.x if res.success or np.isfinite(res.fun) else x0
-    H = _hessian(cost_mid, xm, (1e-3, 2e-5))
-    cov = _cov_from_hessian(H)
+    r = minimize_scalar(lambda x: cost((x, 0.0), full), bounds=(off - 0.02, off + 0.02), method="bounded",
+                        options={"xatol": 1e-6})
+    off = float(r.x)
+    h = _hessian(lambda x: cost((x[0], 0.0), full), np.array([off]), (1e-3,))
+    cv = _cov_from_hessian(h)
     # camera errors are partly systematic and vary slowly with the pose: consecutive residuals are
     # correlated, so the white-noise chi² curvature is too sharp by sqrt(1 + 2 sum rho_k)
-    infl = _correlation_inflation(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, xm[0] - xm[1] * t_mid, xm[1])
-    if cov is not None:
-        cov = cov * infl ** 2
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) if cov is not None else np.array([np.nan, np.nan])
-    drift_ok = bool(np.isfinite(sd[1]) and sd[1] <= max_drift_sigma)
-    if not drift_ok:
-        r = minimize_scalar(lambda x: cost((x, 0.0), full), bounds=(off - 0.02, off + 0.02), method="bounded",
-                            options={"xatol": 1e-6})
-        off = float(r.x)
-        h = _hessian(lambda x: cost((x[0], 0.0), full), np.array([off]), (1e-3,))
-        cv = _cov_from_hessian(h)
-        s_off = float(np.sqrt(cv[0, 0])) * infl if cv is not None else np.nan
-        msg = (f"offset {off:.6f} s ± {s_off * 1e3:.3g} ms; drift not observable in this session "
-               f"(σ {sd[1] * 1e6:.3g} ppm > {max_drift_sigma * 1e6:.3g} ppm): fixed at 0")
-        if ambiguous is not None:
-            return ClockEstimate(off, 0.0, abs(ambiguous - off), float(sd[1]), False, "ambiguous",
-                                 f"clock offset ambiguous: {off:.3f} s and {ambiguous:.3f} s fit the data "
-                                 "equally well (too little motion); pass the offset if it is known")
-        return ClockEstimate(off, 0.0, s_off, float(sd[1]), False, "ok", msg)
-    tm, d = xm
-    off0 = float(tm - d * t_mid)
-    s_off0 = float(np.sqrt(max(cov[0, 0] + t_mid ** 2 * cov[1, 1] - 2 * t_mid * cov[0, 1], 0.0)))
+    infl = _correlation_inflation(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, off, 0.0)
+    s_off = float(np.sqrt(cv[0, 0])) * infl if cv is not None else np.nan
+    # drift: independent offsets in windows of >= window_s, a straight line through them; the
+    # windows' scatter about the line — not the white-noise curvature — gives the uncertainty, so
+    # slowly varying systematic errors count (the curvature alone gave an 8-sigma "drift")
+    d, s_d, off0, s_off0, K = 0.0, np.nan, off, s_off, 0
+    t_dev = t_cam - off
+    K = int(min(12, np.floor((t_dev[-1] - t_dev[0]) / window_s))) if len(t_dev) > 1 else 0
+    if K >= 4:
+        edges = np.linspace(t_dev[0], t_dev[-1], K + 1)
+        tk, ok_k = [], []
+        for k in range(K):
+            idx = np.flatnonzero((t_dev >= edges[k]) & (t_dev <= edges[k + 1]))
+            if len(idx) < 30:
+                continue
+            rk = minimize_scalar(lambda x: cost((x, 0.0), idx), bounds=(off - 0.05, off + 0.05), method="bounded",
+                                 options={"xatol": 1e-6})
+            tk.append(float(np.mean(t_dev[idx])))
+            ok_k.append(float(rk.x))
+        if len(tk) >= 4:
+            A = np.column_stack([np.ones(len(tk)), tk])
+            coef, *_ = np.linalg.lstsq(A, np.array(ok_k), rcond=None)
+            res = np.array(ok_k) - A @ coef
+            s2 = float(res @ res) / (len(tk) - 2)
+            C = s2 * np.linalg.inv(A.T @ A)
+            d, s_d = float(coef[1]), float(np.sqrt(C[1, 1]))
+            off0, s_off0 = float(coef[0]), float(np.sqrt(C[0, 0]))
+            s_off = max(s_off, float(np.sqrt(s2 / len(tk))))
+            K = len(tk)
     if ambiguous is not None:
-        return ClockEstimate(off0, float(d), abs(ambiguous - off), float(sd[1]), True, "ambiguous",
+        return ClockEstimate(off, 0.0, abs(ambiguous - off), s_d, False, "ambiguous",
                              f"clock offset ambiguous: {off:.3f} s and {ambiguous:.3f} s fit the data "
                              "equally well (too little motion); pass the offset if it is known")
-    return ClockEstimate(off0, float(d), s_off0, float(sd[1]), True, "ok",
-                         f"offset {off0:.6f} s ± {s_off0 * 1e3:.3g} ms, drift {d * 1e6:.3g} ± {sd[1] * 1e6:.3g} ppm")
+    if np.isfinite(s_d) and s_d <= max_drift_sigma and abs(d) > 3 * s_d:
+        return ClockEstimate(off0, d, s_off0, s_d, True, "ok",
+                             f"offset {off0:.6f} s ± {s_off0 * 1e3:.3g} ms, drift {d * 1e6:.3g} ± {s_d * 1e6:.3g} ppm "
+                             f"(a line through {K} window offsets)")
+    why = (f"σ {s_d * 1e6:.3g} ppm from {K} window offsets" if np.isfinite(s_d)
+           else f"the session is shorter than 4 windows of {window_s:g} s")
+    return ClockEstimate(off, 0.0, s_off, s_d, False, "ok",
+                         f"offset {off:.6f} s ± {s_off * 1e3:.3g} ms; drift not significant in this session "
+                         f"({d * 1e6:.3g} ppm, {why}): fixed at 0")
 
 
 def _correlation_inflation(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, off, drift) -> float:
