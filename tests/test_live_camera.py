@@ -217,3 +217,32 @@ def test_live_session_with_both_streams(bench, tmp_path):
     again = json.loads(rp.output)["camera"]
     for k in ("frames", "solved", "clock_offset_s", "disagreement_rms_deg", "predicted_disagreement_rms_deg"):
         assert again[k] == pytest.approx(live[k], rel=1e-5, abs=1e-12), k
+
+
+def test_camera_reader_counts_a_stall_and_a_stop(bench, tmp_path):
+    """A camera that stalls (a 1.5 s gap in its timing) and then stops early: the reader keeps every
+    frame raw, counts the stall, ends by itself, and its solves match the replay of the same frames."""
+    from layoutkit.io.camera import read_camera_meta
+    from layoutkit.live.camera import CameraConfig, CameraReader, process_camera_folder
+
+    src = read_camera_index(bench / "cam")
+    d = tmp_path / "stall"
+    with CameraIndexWriter(d, read_camera_meta(bench / "cam")) as w:
+        for k in range(12):  # 12 frames, then the source stops; a 1.5 s stall after frame 5
+            w.add_bytes(Path(src.files[k]).read_bytes(), src.t[k] + (1.5 if k > 5 else 0.0))
+    meta = read_camera_meta(d)
+    cfg = CameraConfig(meta.focal_length_px, None, "ippe", meta.aspect_ratio)
+    rec = tmp_path / "rec"
+    reader = CameraReader(d, cfg, rec, stall_s=1.0).start()
+    t0 = time.monotonic()
+    reader.wait(timeout=60)
+    reader.stop()
+    st = reader.stats()
+    assert time.monotonic() - t0 >= 1.5
+    assert st["received"] == 12 and st["processed"] == 12 and st["ended"] and st["error"] is None
+    assert st["stalls"] == 1
+    got = read_camera_index(rec)
+    assert [Path(f).read_bytes() for f in got.files] == [Path(f).read_bytes() for f in read_camera_index(d).files]
+    assert np.diff(got.t)[5] == pytest.approx(np.diff(read_camera_index(d).t)[5], abs=1e-6)
+    ref, _ = process_camera_folder(d, cfg)
+    assert reader.processor.frames.status == ref.status
