@@ -11,7 +11,7 @@ import warnings
 
 import click
 
-from . import calibrate, camera, core, fake, importers, live, mesh, optimize, render, score
+from . import calibrate, camera, core, distributed, fake, importers, live, mesh, optimize, render, score
 from ._common import fail
 
 
@@ -83,7 +83,7 @@ def main():
     """
 
 
-for _mod in (core, mesh, render, optimize, score, live, fake, camera, importers, calibrate):
+for _mod in (core, mesh, render, optimize, score, live, fake, camera, importers, calibrate, distributed):
     for _cmd in _mod.commands:
         _add_allow_odd_size(_cmd)
         main.add_command(_cmd)

@@ -32,7 +32,7 @@ __all__ = [
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options",
-    "system_config_option", "stations_option", "solve_mode_option", "SOLVE_MODES",
+    "system_config_option", "stations_option", "solve_mode_option", "SOLVE_MODES", "scheduler_option", "workers_option",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
@@ -413,4 +413,21 @@ def solve_mode_option(f=None):
     deco = click.option("--solve", "solve_mode", type=click.Choice(SOLVE_MODES), default=None,
                         help="joint: one pose per 20 ms window from all stations (station 'joint'); per-station: "
                              "one pose per station frame. Default: joint when several stations are given.")
+
+
+def scheduler_option(f=None):
+    """``--scheduler ADDRESS|synchronous``: where Dask tasks run (default: a LocalCluster here).
+
+    The command receives ``scheduler`` (None = LocalCluster); see :func:`layoutkit.parallel.open_executor`.
+    """
+    deco = click.option("--scheduler", "scheduler", default=None, metavar="ADDRESS|synchronous",
+                        help="Dask scheduler address (tcp://host:8786) of a running cluster, or 'synchronous' "
+                             "(in-process, for debugging). Default: a LocalCluster on this machine.")
+    return deco(f) if f is not None else deco
+
+
+def workers_option(f=None):
+    """``--workers N``: worker processes of the default LocalCluster. The command receives ``workers``."""
+    deco = click.option("--workers", "workers", type=click.IntRange(min=1), default=None,
+                        help="Worker processes of the local Dask cluster (default: the CPUs of this machine).")
     return deco(f) if f is not None else deco

@@ -10,14 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dop import gross_failures, pose_dop, pose_errors, precision, predicted_precision, rms
+from ..dop import pose_dop, pose_errors, predicted_precision, rms
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..simulate import poses_in_front, simulate_angles
 from ..units import RAD2DEG, RHO_PAPER, SIGMA_THETA_PAPER
 from ..visibility import facing_mask
 
-__all__ = ["StudyConfig", "static_groups", "dynamic_run", "run_chen2024", "write_outputs"]
-
+__all__ = ["StudyConfig", "static_groups", "static_chunk", "dynamic_run", "run_chen2024", "write_outputs"]
 
 
 @dataclass(frozen=True)
@@ -35,6 +34,7 @@ class StudyConfig:
     dynamic_seconds: float = 60.0
     frame_rate_hz: float = 60.0
     sensor_error_mm: float = 0.5
+    chunk_frames: int = 20000
 
 
 def _target():
@@ -43,56 +43,83 @@ def _target():
     return chen_target()[1]
 
 
-def static_groups(cfg: StudyConfig, layout=None, progress=None) -> list[dict]:
+def static_groups(cfg: StudyConfig, layout=None, progress=None, executor=None) -> list[dict]:
     """Chen §4.2 in simulation: ``cfg.groups`` static poses × ``cfg.frames`` noisy frames.
 
     For each group: a pose on the 3 m × 3 m area in front of the station with ≥ ``min_lit``
     sensors lit, frames solved by :func:`layoutkit.pnp.solve_pnp`, measured precision by
-    eq. (23) against the prediction ADOP·σθ, PDOP·σθ of eq. (24) (rho included).
+    eq. (23) (streaming form, :class:`layoutkit.montecarlo.ErrorSums`) against the prediction
+    ADOP·σθ, PDOP·σθ of eq. (24) (rho included).
+
+    Frames run in chunks of ``cfg.chunk_frames`` as tasks on ``executor`` (a
+    :func:`layoutkit.parallel.open_executor` executor; None: in this process). Seeds:
+    ``SeedSequence(cfg.seed).spawn(2)`` = (poses, frames); the frames child spawns one child per
+    group and each group one per chunk, so the result is the same on any number of workers.
+    progress : ``callable(frames_done)`` (increments).
     """
-    from ..pnp import solve_pnp
+    from ..montecarlo import ErrorSums
+    from ..parallel import chunk_plan, map_reduce_ordered
+    from ..parallel.scheduler import SynchronousExecutor
 
     layout = layout or _target()
-    rng = np.random.default_rng(cfg.seed)
+    ss_pose, ss_frames = np.random.SeedSequence(cfg.seed).spawn(2)
+    rng = np.random.default_rng(ss_pose)
     P, N = layout.positions, layout.normals
-    out = []
-    while len(out) < cfg.groups:
+    poses = []
+    while len(poses) < cfg.groups:
         R0, t0 = poses_in_front(64, rng)
         lit = facing_mask(P, N, R0, t0, half_angle_deg=cfg.half_angle_deg)
         for R, t, v in zip(R0, t0, lit):
-            if v.sum() < cfg.min_lit or len(out) >= cfg.groups:
-                continue
-            dop = pose_dop(P, R, t, rho=cfg.rho, visible=v)
-            Rf = np.broadcast_to(R, (cfg.frames, 3, 3))
-            tf = np.broadcast_to(t, (cfg.frames, 3))
-            ang = simulate_angles(P, Rf, tf, sigma=cfg.sigma, rho=cfg.rho, rng=rng, quantize=cfg.quantize)
-            sol = solve_pnp(P, ang, np.broadcast_to(v, (cfg.frames, P.shape[0])))
-            ok = np.asarray(sol.success)
-            e_rot, _ = pose_errors(sol.rotation, sol.translation, Rf, tf)
-            gross = gross_failures(e_rot, success=ok, translation=sol.translation)
-            good = ~gross
-            if good.sum() >= 2:
-                s_rot, s_t = precision(sol.rotation[good], sol.translation[good])  # eq. (23)
-            else:
-                s_rot = s_t = np.nan
-            out.append({
-                "group": len(out),
-                "n_lit": int(v.sum()),
-                "lit": [i for i in np.flatnonzero(v).tolist()],
-                "rotvec_rad": matrix_to_rotvec(R).tolist(),
-                "translation_m": t.tolist(),
-                "adop_deg_per_rad": float(dop.adop),
-                "pdop_m_per_rad": float(dop.pdop),
-                "predicted_sigma_rot_deg": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[0]),  # eq. (24)
-                "simulated_sigma_rot_deg": float(np.degrees(s_rot)),
-                "predicted_sigma_trans_m": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[1]),
-                "simulated_sigma_trans_m": float(s_t),
-                "frames": cfg.frames,
-                "gross_failures": int(gross.sum()),
-            })
-            if progress:
-                progress(1)
+            if v.sum() >= cfg.min_lit and len(poses) < cfg.groups:
+                poses.append((R, t, v))
+    Rs = np.stack([p[0] for p in poses])
+    ts = np.stack([p[1] for p in poses])
+    vs = np.stack([p[2] for p in poses])
+    items = [(g, c) for g, gss in enumerate(ss_frames.spawn(cfg.groups))
+             for c in chunk_plan(cfg.frames, cfg.chunk_frames, gss)]
+    ex = executor or SynchronousExecutor()
+    shared = (P, ex.share(Rs), ex.share(ts), ex.share(vs), cfg.sigma, cfg.rho, cfg.quantize)
+
+    def merge(acc, res):
+        g, sums = res
+        acc[g] = acc[g].merge(sums)
+        return acc
+
+    sums = map_reduce_ordered(ex, static_chunk, items, merge, [ErrorSums() for _ in poses], shared_args=shared,
+                              progress=(lambda it, r: progress(it[1].count)) if progress else None,
+                              key="chen-static")
+    out = []
+    for g, ((R, t, v), s) in enumerate(zip(poses, sums)):
+        dop = pose_dop(P, R, t, rho=cfg.rho, visible=v)
+        s_rot, s_t = s.precision()  # eq. (23)
+        out.append({
+            "group": g,
+            "n_lit": int(v.sum()),
+            "lit": [i for i in np.flatnonzero(v).tolist()],
+            "rotvec_rad": matrix_to_rotvec(R).tolist(),
+            "translation_m": t.tolist(),
+            "adop_deg_per_rad": float(dop.adop),
+            "pdop_m_per_rad": float(dop.pdop),
+            "predicted_sigma_rot_deg": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[0]),  # eq. (24)
+            "simulated_sigma_rot_deg": float(np.degrees(s_rot)),
+            "predicted_sigma_trans_m": float(predicted_precision(dop.adop, dop.pdop, cfg.sigma)[1]),
+            "simulated_sigma_trans_m": float(s_t),
+            "frames": cfg.frames,
+            "gross_failures": int(s.gross + s.frames - s.solved),
+        })
     return out
+
+
+def static_chunk(points, Rs, ts, lit, sigma, rho, quantize, item):
+    """Dask task: one chunk of one static group -> ``(group, ErrorSums)`` (no per-frame arrays)."""
+    from ..montecarlo import ErrorSums, simulate_solve
+
+    g, chunk = item
+    F = chunk.count
+    e, d, solved = simulate_solve(points, np.broadcast_to(Rs[g], (F, 3, 3)), np.broadcast_to(ts[g], (F, 3)),
+                                  np.broadcast_to(lit[g], (F, len(points))), sigma=sigma, rho=rho,
+                                  rng=chunk.rng(), quantize=quantize)
+    return g, ErrorSums().add(e, d, solved)
 
 
 def dynamic_run(cfg: StudyConfig, layout=None, sensor_error_mm: float = 0.0) -> dict:
@@ -140,9 +167,10 @@ def dynamic_run(cfg: StudyConfig, layout=None, sensor_error_mm: float = 0.0) -> 
     }
 
 
-def run_chen2024(cfg: StudyConfig, progress=None) -> dict:
-    """Static groups and two dynamic runs (ideal, and with ``sensor_error_mm`` systematic error)."""
-    groups = static_groups(cfg, progress=progress)
+def run_chen2024(cfg: StudyConfig, progress=None, executor=None) -> dict:
+    """Static groups (chunked on ``executor``) and two dynamic runs (ideal, and with
+    ``sensor_error_mm`` systematic error). progress : ``callable(frames_done)`` for the static part."""
+    groups = static_groups(cfg, progress=progress, executor=executor)
     pred_r = np.array([g["predicted_sigma_rot_deg"] for g in groups])
     sim_r = np.array([g["simulated_sigma_rot_deg"] for g in groups])
     pred_t = np.array([g["predicted_sigma_trans_m"] for g in groups])
