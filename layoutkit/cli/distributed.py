@@ -63,7 +63,7 @@ class _CellProgress:
         return False
 
 
-@click.command("sweep")
+@click.command("sweep", short_help="Design sweep: one optimisation per cell, on Dask.")
 @click.argument("sweep_path", metavar="SWEEP.toml", type=click.Path(dir_okay=False))
 @out_dir_option(out_alias=True, help="Sweep folder (also --out DIR): summary.csv, summary.json, plots, cells/ "
                                      "(re-run to resume).")
@@ -113,7 +113,7 @@ def sweep_cmd(sweep_path, out_dir, scheduler, workers, as_json):
         raise SystemExit(1)
 
 
-@click.command("validate")
+@click.command("validate", short_help="Monte-Carlo a layout over an envelope vs its DOP.")
 @click.argument("layout_path", metavar="LAYOUT", type=click.Path(dir_okay=False))
 @envelope_option
 @click.option("--frames", type=click.IntRange(min=1), required=True, help="Frames to simulate and solve.")
