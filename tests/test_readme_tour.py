@@ -32,6 +32,8 @@ SHORTEN = [
     ("live", "--report val-live/", "--report val-live/ --duration 30 --idle-timeout 1.5"),
     ("chen2024", "--groups 50 --frames 3600", "--groups 2 --frames 30 --dynamic-seconds 1"),
     ("zhai2014", "study zhai2014", "study zhai2014 --quick"),
+    ("sweep", "models/chen_sweep.toml", "models/chen_sweep_quick.toml --scheduler synchronous"),
+    ("validate", "--frames 1000000", "--frames 3000 --scheduler synchronous"),
 ]
 
 
