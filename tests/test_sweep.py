@@ -128,6 +128,26 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path, small_envelope)
     assert json.loads(r.stdout)["ran"] == 2 and "changed inputs" in r.stderr
 
 
+def test_tilt_axis_runs_once_the_optimiser_has_it(tmp_path, small_envelope):
+    """Same-computation check: a tilted cell equals `run_optimize(max_tilt_deg=...)` directly."""
+    from layoutkit.workflows.sweep_config import tilt_supported
+
+    if not tilt_supported():
+        pytest.skip("optimiser without sensor tilt")
+    sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [6]\nmax_tilt_deg = [0.0, 20.0]\n",
+                       base_extra='method = "greedy"\n')
+    r = CliRunner().invoke(main, ["sweep", str(sweep), "--out", str(tmp_path / "o"), "--scheduler", "synchronous"])
+    assert r.exit_code == 0, r.output
+    cells = {c["axes"]["max_tilt_deg"]: c for c in _cells(tmp_path / "o").values()}
+    from layoutkit.workflows.optimize import run_optimize
+
+    direct = run_optimize(str(tmp_path / "target.stl"), str(tmp_path / "envelope.toml"), 6, spacing=0.02,
+                          max_candidates=40, rho=0.8717, method="greedy", max_tilt_deg=20.0, render=False)
+    assert cells[20.0]["status"] == direct["status"] == "ok"
+    assert cells[20.0]["value"] == pytest.approx(direct["value"], rel=1e-12)
+    assert cells[20.0]["candidates"] > cells[0.0]["candidates"]  # tilted orientations are candidates
+
+
 def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -413,6 +413,7 @@ def solve_mode_option(f=None):
     deco = click.option("--solve", "solve_mode", type=click.Choice(SOLVE_MODES), default=None,
                         help="joint: one pose per 20 ms window from all stations (station 'joint'); per-station: "
                              "one pose per station frame. Default: joint when several stations are given.")
+    return deco(f) if f is not None else deco
 
 
 def scheduler_option(f=None):

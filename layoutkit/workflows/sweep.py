@@ -73,6 +73,7 @@ def prepare_task(opts: dict) -> dict:
             "ids": tuple(cand.ids), "rotations": np.asarray(prep["rotations"]),
             "translations": np.asarray(prep["translations"]), "stations": tuple(prep["stations"]),
             "visible": np.asarray(prep["visible"], bool), "mesh_sha256": mesh_hash(mesh),
+            "site": None if prep.get("site") is None else np.asarray(prep["site"]),
             "warnings": notes, "prep_s": time.perf_counter() - t0}
 
 
@@ -120,12 +121,16 @@ def cell_task(prep: dict, opts: dict) -> dict:
 def _optimize(jac, prep, opts, fixed, pos):
     from ..optimize import optimize_stations, spacing_conflicts
 
+    conflict = spacing_conflicts(pos, opts["min_spacing_mm"] * 1e-3)
+    if opts.get("max_tilt_deg") and prep.get("site") is not None:  # one orientation per site
+        from ..optimize.tilt import site_conflicts
+
+        conflict = site_conflicts(prep["site"], conflict)
     return optimize_stations(
         jac, prep["visible"], opts["k"], objective=opts["objective"], rho=opts["rho"],
         min_visible=opts["min_visible"], method=opts["method"], rng=opts["seed"], fixed=fixed,
-        conflict=spacing_conflicts(pos, opts["min_spacing_mm"] * 1e-3),
-        coverage_fraction=opts["coverage_fraction"], weights=opts.get("weights"),
-        time_limit=opts.get("time_limit_s"))
+        conflict=conflict, coverage_fraction=opts["coverage_fraction"], coverage=opts["coverage"],
+        weights=opts.get("weights"), time_limit=opts.get("time_limit_s"))
 
 
 def _cell_path(cells_dir: Path, cell_id: str) -> Path:

@@ -145,6 +145,7 @@ OPTIONS: dict[str, _Opt] = {
     "method": _Opt(_method),
     "min_visible": _Opt(_int(1)),
     "coverage_fraction": _Opt(_float(0.0, 1.0, lo_open=True)),
+    "coverage": _Opt(_str(("any-station", "each-station", "joint"))),
     "min_spacing_mm": _Opt(_float(0.0)),
     "half_angle_deg": _Opt(_float(0.0, 90.0, lo_open=True)),
     "max_tilt_deg": _Opt(_float(0.0, 90.0)),
@@ -154,7 +155,7 @@ OPTIONS: dict[str, _Opt] = {
 
 #: Defaults of ``layoutkit optimize`` for options a sweep leaves out.
 DEFAULTS = {"objective": "worst-adop", "rho": RHO_PAPER, "method": "pipeline", "min_visible": 4,
-            "coverage_fraction": 1.0, "min_spacing_mm": 0.0, "half_angle_deg": 60.0, "seed": 0,
+            "coverage_fraction": 1.0, "coverage": "any-station", "min_spacing_mm": 0.0, "half_angle_deg": 60.0, "seed": 0,
             "units": "m", "keepout_box": (), "fixed": (), "allow_odd_size": False}
 
 #: Options that change the prepared problem (mesh, candidates, visibility); the others only the search.
