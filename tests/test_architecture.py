@@ -19,12 +19,8 @@ PKG = Path(__file__).resolve().parents[1] / "layoutkit"
 TIERS = {
     "units": 0, "_validate": 0, "status": 0,
     "geometry": 1, "lighthouse": 1, "noise": 1, "joint": 1, "pnp": 1, "dop": 1, "dop_batch": 1,
-<<<<<<< HEAD
     "simulate": 1, "visibility": 1, "quality": 1, "coverage_rule": 1, "filter": 1, "rotations": 1, "calibrate": 1,
-=======
-    "simulate": 1, "visibility": 1, "quality": 1, "coverage_rule": 1, "filter": 1, "rotations": 1,
     "parallel": 1, "montecarlo": 1,
->>>>>>> b1c9a8d (Design sweeps and chunked Monte-Carlo on Dask (issue 15): layoutkit sweep (validated sweep TOML -> frozen cells with stable ids and input hashes; one prepare task per distinct problem ships arrays to the cell tasks; cells stream to DIR/cells atomically; resume skips unchanged cells; summary CSV/JSON, objective-vs-axis and Pareto plots; failed cells recorded), layoutkit validate and study chen2024 in SeedSequence-seeded chunks merged in order (identical on any worker count) with streaming sums and a log-histogram sketch; scheduler choice (LocalCluster / address / synchronous); tests with a real dask scheduler+worker killed mid-sweep and kill -9 + resume; Monte-Carlo and sweep benchmarks; docs/distributed.md)
     "io": 2.0, "_json": 2.1, "layout": 2.2, "shapes": 2.3, "envelope": 2.3, "mesh": 2.4, "candidates": 2.5,
     "importers": 2.6,
     "optimize": 3, "camera": 3, "render": 3, "live": 3,
