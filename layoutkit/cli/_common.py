@@ -20,6 +20,16 @@ def echo_json(obj, path=None) -> None:
         atomic_write_text(path, text + "\n")
 
 
+def emit_json(obj, as_json: bool, json_out=None) -> bool:
+    """The ``--json`` / ``--json-out FILE`` pair: write ``obj`` to ``json_out`` (a file, or '-' for
+    stdout) and/or print it with ``--json``. True when JSON went to stdout (print nothing else)."""
+    if json_out:
+        echo_json(obj, json_out)
+    if as_json:
+        echo_json(obj)
+    return bool(as_json or json_out == "-")
+
+
 def fail(message: str, code: int = 2):
     """Print a clear error (no traceback) and exit with ``code``."""
     click.secho(f"error: {message}", fg="red", err=True)

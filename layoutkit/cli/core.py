@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ..units import ARCSEC
-from ._common import echo_json, fail
+from ._common import echo_json, emit_json, fail
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
                       registry_choice, rho_option, seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
                       workers_option)
@@ -233,11 +233,7 @@ def study_chen(groups, frames, chunk_frames, seed, dynamic_seconds, sensor_error
     paths = write_outputs(res, out_dir)
     doc = {"summary": res["summary"], "groups": res["groups"],
            "dynamic": [{k: v for k, v in d.items() if not isinstance(v, list)} for d in res["dynamic"]]}
-    if json_out:
-        echo_json(doc, json_out)
-    if as_json or json_out == "-":
-        if as_json:
-            echo_json(doc)
+    if emit_json(doc, as_json, json_out):
         return
     s = res["summary"]
     click.echo(f"{s['groups']} groups × {s['frames_per_group']} frames: simulated/predicted median ratio "
@@ -265,10 +261,7 @@ def study_zhai(quick, seed, out_dir, as_json, json_out):
     with warnings.catch_warnings():  # pyvista cannot keep trimesh's 'parts' metadata: harmless, noisy
         warnings.filterwarnings("ignore", message="Unable to store metadata key")
         summary = zhai_main(out_dir, quick=quick, seed=seed, progress=(lambda *a, **k: None) if quiet else click.echo)
-    if json_out:
-        echo_json(summary, json_out)
-    if as_json:
-        echo_json(summary)
+    emit_json(summary, as_json, json_out)
     if not quiet:
         click.echo(f"wrote figures, table.md and results.json to {out_dir}")
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import echo_json, fail
+from ._common import echo_json, emit_json, fail
 from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option,
                       min_visible_option, out_file_option, seed_option, units_option)
 
@@ -111,11 +111,7 @@ def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_
                                 max_range=max_range_m, min_lit=min_visible)
     except ValueError as exc:
         fail(str(exc))
-    if json_out:
-        echo_json(rep, json_out)
-    if as_json or json_out == "-":
-        if as_json:
-            echo_json(rep)
+    if emit_json(rep, as_json, json_out):
         return
     _warn(rep["warnings"])
     st = rep["stations"]
