@@ -246,3 +246,34 @@ def test_camera_reader_counts_a_stall_and_a_stop(bench, tmp_path):
     assert np.diff(got.t)[5] == pytest.approx(np.diff(read_camera_index(d).t)[5], abs=1e-6)
     ref, _ = process_camera_folder(d, cfg)
     assert reader.processor.frames.status == ref.status
+
+
+def test_live_running_disagreement_equals_the_batch_crosscheck(bench):
+    """The dashboard's running disagreement (LiveCrossCheck, fed in pieces) equals the batch
+    camera_crosscheck with the same clock, alignment and variance factor (independent code path)."""
+    from layoutkit.io.camera import read_camera_meta
+    from layoutkit.io.poses import read_poses
+    from layoutkit.live.camera import CameraConfig, CameraFrames, LiveCrossCheck, process_camera_folder
+    from layoutkit.live.crosscheck import camera_crosscheck
+
+    meta = read_camera_meta(bench / "cam")
+    T = meta.truth
+    fr, _ = process_camera_folder(bench / "cam", CameraConfig(meta.focal_length_px, None, "ippe", meta.aspect_ratio))
+    tab = read_poses(bench / "truth.csv")
+    lh = np.column_stack([tab.t, tab.rotvec, tab.translation, np.full(len(tab.t), 40.0)])
+    X = rotvec_to_matrix(T["camera_from_lighthouse_rotvec"])
+    Y = rotvec_to_matrix(T["body_from_face_rotvec"])
+    sigma = 4.014e-5
+    batch = camera_crosscheck(lh[:, 0], rotvec_to_matrix(lh[:, 1:4]), lh[:, 7], sigma, fr.arrays(),
+                              clock=(T["clock_offset_s"], T["clock_drift"]), alignment=(X, Y)).summary
+    live = LiveCrossCheck(sigma)
+    live._est = (T["clock_offset_s"], T["clock_drift"], X, Y, batch["camera_variance_factor"])
+    part = CameraFrames()
+    snap = None
+    for k in range(len(fr)):  # frames arrive one by one, the dashboard updates every 7th
+        part.append(fr.t[k], fr.status[k], fr.rotation[k], fr.corners[k], fr.jj_trace[k], fr.tilt[k],
+                    fr.reprojection_px[k], fr.alt_ratio[k], fr.pred_var[k], fr.rep_pred2[k])
+        if k % 7 == 6 or k == len(fr) - 1:
+            snap = live.update(lh, part)
+    assert snap["disagreement_rms_deg"] == pytest.approx(batch["disagreement_rms_deg"], rel=1e-9)
+    assert snap["predicted_rms_deg"] == pytest.approx(batch["predicted_disagreement_rms_deg"], rel=1e-9)

@@ -474,18 +474,17 @@ class LiveCrossCheck:
         off, drift, X, Y, vf = self._est
         new = range(self._done, n)
         self._done = n
-        if len(lh_sample) >= 2:
-            order = np.argsort(lh_sample[:, 0])
-            lh = lh_sample[order]
-            for k in new:
-                if frames.status[k] != "ok":
+        ks = [k for k in new if frames.status[k] == "ok"]
+        if len(lh_sample) >= 2 and ks:
+            # the pose sample to matrices once per update, all new frames in one interpolation
+            lh = lh_sample[np.argsort(lh_sample[:, 0])]
+            td = (np.array([frames.t[k] for k in ks]) - off) / (1.0 + drift)
+            R, a, w, okm = lh_at(lh[:, 0], rotvec_to_matrix(lh[:, 1:4]), lh[:, 7], td)
+            for j, k in enumerate(ks):
+                if not okm[j]:
                     continue
-                td = (frames.t[k] - off) / (1.0 + drift)
-                R, a, w, ok = lh_at(lh[:, 0], rotvec_to_matrix(lh[:, 1:4]), lh[:, 7], np.array([td]))
-                if not ok[0]:
-                    continue
-                d = float(attitude_error(frames.rotation[k], X @ R[0] @ Y))
-                p2 = vf * frames.pred_var[k] + w[0] * (a[0] * self.sigma_theta / RAD2DEG) ** 2
+                d = float(attitude_error(frames.rotation[k], X @ R[j] @ Y))
+                p2 = vf * frames.pred_var[k] + w[j] * (a[j] * self.sigma_theta / RAD2DEG) ** 2
                 face_on = frames.tilt[k] < np.radians(self.face_on_deg)
                 self.last = {"disagreement_deg": np.degrees(d), "predicted_deg": float(np.degrees(np.sqrt(p2))),
                              "face_on": bool(face_on), "mirror_branch": bool(face_on and d * d > 25 * p2)}
