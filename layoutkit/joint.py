@@ -30,7 +30,8 @@ from .lighthouse import Station, lh2_to_lh1_angles, measure_jacobian, undistort
 from .pnp import (PnPResult, STATUS_AMBIGUOUS, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_NOT_CONVERGED, STATUS_OK,
                   STATUS_TOO_FEW, solve_pnp)
 
-__all__ = ["solve_joint", "model_angles_jacobian", "group_windows", "window_angles", "MIN_ANGLES", "DEFAULT_CHUNK",
+__all__ = ["solve_joint", "model_angles_jacobian", "group_windows", "window_angles", "ray_midpoints",
+           "firmware_corrected_angles", "crossing_beam_positions", "MIN_ANGLES", "DEFAULT_CHUNK",
            "WINDOW_S"]
 
 #: Fewest angles for a pose (6 unknowns); fewer gives ``STATUS_TOO_FEW``.
@@ -50,7 +51,8 @@ def model_angles_jacobian(points_body, rotation, translation, stations, *, dt=No
 
     points_body : (n, 3) m; rotation : (F, 3, 3), translation : (F, 3) m (world frame).
     stations : S :class:`Station` (pose, kind, calibration).
-    dt : (F, S) s, optional time of each station's sweeps from the window time; velocity :
+    dt : (F, S) s, optional time of each station's sweeps from the window time, or (F, S, 2) one
+        time per station and axis; velocity :
         ``(omega (F, 3) rad/s, v (F, 3) m/s)`` (world frame), used with ``dt``.
     Returns ``angles (F, S, n, 2)``, ``J (F, S, n, 2, 6)`` (None without ``jacobian``) and the
     station-frame points ``p_s (F, S, n, 3)``.
@@ -60,6 +62,14 @@ def model_angles_jacobian(points_body, rotation, translation, stations, *, dt=No
     t = np.asarray(translation, float)
     F = R.shape[0]
     lever = np.einsum("fij,nj->fni", R, P)                       # l = R p_body (F, n, 3)
+    if dt is not None and velocity is not None and np.ndim(dt) == 3:
+        # one time per station and axis (e.g. the two LH2 light planes ~P/3 apart): each axis'
+        # angles and Jacobian rows from the pose at its own time
+        parts = [model_angles_jacobian(P, R, t, stations, dt=np.asarray(dt, float)[..., k], velocity=velocity,
+                                       jacobian=jacobian) for k in (0, 1)]
+        A = np.stack([parts[0][0][..., 0], parts[1][0][..., 1]], -1)
+        J = None if not jacobian else np.stack([parts[0][1][..., 0, :], parts[1][1][..., 1, :]], -2)
+        return A, J, 0.5 * (parts[0][2] + parts[1][2])
     angs, jacs, pts = [], [], []
     for s, st in enumerate(stations):
         E = None
@@ -172,7 +182,8 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
     visible : optional (F, S, n) or (F, S, n, 2) bool (per sensor or per angle).
     stations : S :class:`Station` with poses in one world frame (and calibrations).
     initial : optional ``(R (F, 3, 3), t (F, 3))`` world start; default the per-station solves.
-    dt, velocity : optional motion compensation (see :func:`model_angles_jacobian`).
+    dt, velocity : optional motion compensation (see :func:`model_angles_jacobian`; dt (F, S) or
+        (F, S, 2) per axis).
     Returns a :class:`layoutkit.pnp.PnPResult` (world frame; ``residual_rms`` over the used angles).
     Frames with fewer than :data:`MIN_ANGLES` usable angles (or no station start) get
     ``STATUS_TOO_FEW``; singular normal equations ``STATUS_DEGENERATE``; a used point behind its
@@ -200,7 +211,8 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
         except ValueError:
             raise ValueError(f"visible: expected shape (F, {S}, {n}) or (F, {S}, {n}, 2), got {v.shape}") from None
     if dt is not None:
-        dt = np.broadcast_to(np.asarray(dt, float), (F, S))
+        dt = np.asarray(dt, float)
+        dt = np.broadcast_to(dt, (F, S, 2) if dt.ndim == 3 else (F, S))
     if velocity is not None:
         velocity = (np.broadcast_to(np.asarray(velocity[0], float), (F, 3)),
                     np.broadcast_to(np.asarray(velocity[1], float), (F, 3)))
@@ -319,3 +331,74 @@ def window_angles(angles_rows, rows):
     have = rows >= 0
     out[have] = a[rows[have]]
     return out
+
+
+# ------------------------------------------------------------------ crossing-beam reference
+# The Crazyflie firmware's own two-station position (crazyflie-firmware
+# src/modules/src/lighthouse/lighthouse_position_est.c estimatePositionCrossingBeams with
+# src/utils/src/lighthouse/lighthouse_geometry.c lighthouseGeometryGetPositionFromRayIntersection):
+# per sensor seen by both stations, the ray of each station from its corrected (ideal) sweep
+# angles, the midpoint of the two rays' closest points; the position is the mean over those sensors.
+# Re-derived here from the geometry (no orientation; a reference to compare the joint solve with).
+
+
+def ray_midpoints(origins, directions):
+    """Closest points of two lines and their midpoint (Schneider & Eberly §10.8.2, the firmware's
+    ``intersect_lines``).
+
+    origins : (..., 2, 3) m, a point of each line; directions : (..., 2, 3) (any length).
+    Returns ``(midpoint (..., 3) m, gap (..., ) m = distance between the closest points)``; NaN
+    where the lines are (nearly) parallel (``a c - b² < 1e-12 a c``).
+    """
+    o = np.asarray(origins, float)
+    u, v = np.asarray(directions, float)[..., 0, :], np.asarray(directions, float)[..., 1, :]
+    w0 = o[..., 0, :] - o[..., 1, :]
+    a, b, c = np.sum(u * u, -1), np.sum(u * v, -1), np.sum(v * v, -1)
+    d, e = np.sum(u * w0, -1), np.sum(v * w0, -1)
+    den = a * c - b * b
+    bad = ~(np.abs(den) > 1e-12 * a * c)
+    den = np.where(bad, 1.0, den)
+    s = (b * e - c * d) / den                   # on line 0: o0 + s u
+    q = (a * e - b * d) / den                   # on line 1: o1 + q v
+    p0 = o[..., 0, :] + s[..., None] * u
+    p1 = o[..., 1, :] + q[..., None] * v
+    mid = np.where(bad[..., None], np.nan, 0.5 * (p0 + p1))
+    return mid, np.where(bad, np.nan, np.linalg.norm(p0 - p1, axis=-1))
+
+
+def firmware_corrected_angles(measured, station: Station, *, max_iterations: int = 5, tol: float = 5e-4):
+    """Measured angles ``(..., n, 2)`` of ``station`` (its own convention) → LH1-equivalent ideal
+    angles, as the firmware corrects them before the crossing-beam method: the calibration's
+    fixed-point inverse (5 steps or 5e-4 rad, :func:`layoutkit.lighthouse.undistort`), then for LH2
+    the light planes → sweep angles (:func:`layoutkit.lighthouse.lh2_to_lh1_angles`)."""
+    a = np.asarray(measured, float)
+    if station.calibration is not None:
+        a = undistort(a, station.calibration, max_iterations=max_iterations, tol=tol)
+    return lh2_to_lh1_angles(a) if station.kind == "lh2" else a
+
+
+def crossing_beam_positions(theta, stations):
+    """Two-station crossing-beam positions (the firmware's method; see the section comment).
+
+    theta : (..., 2, n, 2) rad, LH1-equivalent ideal sweep angles of the two stations (NaN = not seen).
+    stations : the two :class:`Station` (world poses).
+    Returns ``(position (..., 3) m, world frame: the mean of the per-sensor midpoints over the
+    sensors seen on both axes by both stations; NaN with none), n_used (...,) int, gap (..., )
+    m, the mean distance between the two rays' closest points)``. The position is that of the mean
+    of the used sensors' body positions (the deck's centre when all four are used).
+    """
+    from .lighthouse import angles_to_ray
+
+    th = np.asarray(theta, float)
+    if th.shape[-3] != 2 or len(stations) != 2:
+        raise ValueError(f"theta: expected (..., 2, n, 2) for two stations, got {th.shape} and {len(stations)} stations")
+    rays = angles_to_ray(th)                                          # (..., 2, n, 3) station frames
+    dirs = np.stack([rays[..., s, :, :] @ st.rotation.T for s, st in enumerate(stations)], -2)  # (..., n, 2, 3)
+    orig = np.broadcast_to(np.stack([st.translation for st in stations]), dirs.shape)
+    mid, gap = ray_midpoints(orig, dirs)
+    use = np.all(np.isfinite(th), axis=(-3, -1)) & np.all(np.isfinite(mid), -1)
+    k = use.sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pos = np.where(use[..., None], mid, 0.0).sum(-2) / k[..., None]
+        g = np.where(use, gap, 0.0).sum(-1) / k
+    return np.where((k > 0)[..., None], pos, np.nan), k, np.where(k > 0, g, np.nan)

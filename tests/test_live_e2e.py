@@ -239,12 +239,21 @@ def test_two_stations_poses_in_world_frame(tmp_path):
     run_fake_fpga(chunks, out=cap, sidecar={"protocol": "layoutkit",
                                             "stations": [station_to_dict(s) for s in sw.stations]})
     write_truth(sw, truth)
-    s = replay_capture(cap, lay, truth=truth)
+    s = replay_capture(cap, lay, truth=truth, solve="per-station")
     assert s["frames"] == len(sw.t) // 2 and s["unpaired_sweeps"] == 0
     assert s["good"] + s["too_few_lit"] == s["frames"] and s["good"] > 0.5 * s["frames"]
     e = s["truth"]
     assert e["n"] == s["good"]
     assert abs(e["ratio_rot"] - 1) < 0.12 and abs(e["ratio_trans"] - 1) < 0.12
+    # the default with two known stations is the joint solve: one world pose per 20 ms window (the
+    # A/B slots: both stations' frames in every window); its errors vs the world truth follow the
+    # joint DOP (Monte-Carlo vs predicted covariance, eq. 18 with both stations' Jacobians), 12 %
+    j = replay_capture(cap, lay, truth=truth)
+    assert j["solve"] == "joint" and j["joint"]["windows_by_stations"] == {"2": len(sw.t) // 4}
+    assert j["frames"] == len(sw.t) // 4 and j["good"] > 0.9 * j["frames"]
+    e = j["truth"]
+    assert e["n"] == j["good"]
+    assert abs(e["ratio_rot"] - 1) < 0.12 and abs(e["ratio_trans"] - 1) < 0.12, e
 
 
 def test_lh2_station_through_the_lh1_pipeline(tmp_path):

@@ -7,7 +7,8 @@ import sys
 import click
 
 from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
-                      rho_option, sigma_option, stations_option, system_config_option, units_option)
+                      rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
+                      units_option)
 
 _common_options = [
     layout_option(required=False, help="Layout JSON (sensor positions, m, body frame)."),
@@ -35,6 +36,7 @@ _common_options = [
     json_flag(help="Print the run summary as JSON."),
     system_config_option,
     stations_option,
+    solve_mode_option,
 ]
 
 
@@ -128,6 +130,11 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
         + (f"  ({summary['speed_x_realtime']:.0f}x real time, {summary['frames_per_s']:.0f} frames/s)"
            if summary.get("speed_x_realtime") else ""),
     ]
+    j = summary.get("joint")
+    if j:
+        per = ", ".join(f"{k} station(s): {v}" for k, v in (j.get("windows_by_stations") or {}).items())
+        lines.append(f"joint: {j['poses']} windows ({per}), {j['good']} ok; window {j['window_s'] * 1e3:.0f} ms; "
+                     f"poses in the stations' world frame")
     g = summary.get("static_groups") or []
     if g:
         lines.append(f"static groups: {len(g)}")
@@ -182,12 +189,16 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @camera_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
-               camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px):
+               camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
+               solve_mode):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
-    present. Poses are body poses in the station frame (m, rad); t is the device time base of
-    the simulator's TRUTH.csv. With --camera-device DIR (or a CAPTURE.camera/ folder beside the
+    present. Poses are body poses in the station frame (m, rad), or in the stations' world frame
+    when station poses are known; t is the device time base of the simulator's TRUTH.csv.
+    --solve joint (the default with two or more known stations): one pose per 20 ms window from
+    all stations' angles, "station": "joint" (docs/live.md "Joint solving"). A Crazyflie microSD
+    log (cfusdlog) is replayed directly. With --camera-device DIR (or a CAPTURE.camera/ folder beside the
     capture) the camera frames are solved too and compared with the poses (summary "camera").
     """
     from ..workflows.live import camera_folder_for, replay_capture
@@ -204,7 +215,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir,
                                  camera_device=camera_device, camera_config=cam_cfg, stations=stations_path,
-                                 system_config=system_config)
+                                 system_config=system_config, solve=solve_mode)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
@@ -268,7 +279,7 @@ def _quiet_exit():
 def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
              as_json, system_config, stations_path, filter_settings, camera_device, focal_length_px, principal_point_px,
-             camera_method, aspect_ratio, corner_sigma_px):
+             camera_method, aspect_ratio, corner_sigma_px, solve_mode):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
@@ -293,7 +304,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
               idle_timeout=idle_timeout, overwrite=overwrite, camera_device=camera_device,
-              stations=_stations_arg(stations_path, system_config), system_config=system_config,
+              stations=_stations_arg(stations_path, system_config), system_config=system_config, solve=solve_mode,
               camera_config=_camera_config(camera_device, focal_length_px, principal_point_px, camera_method,
                                            aspect_ratio, corner_sigma_px))
     try:

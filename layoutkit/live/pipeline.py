@@ -67,6 +67,10 @@ STATUS_NAMES = {c: _status.NAMES[c] for c in (STATUS_OK, STATUS_TOO_FEW_LIT, STA
                                                STATUS_HIGH_RESIDUAL, STATUS_JUMP, STATUS_AMBIGUOUS)}
 
 LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
+#: ``LiveConfig.solve`` values (the CLI's ``--solve`` choices, :data:`layoutkit.cli.options.SOLVE_MODES`).
+SOLVE_MODES = ("joint", "per-station")
+#: ``LiveConfig.calibration`` values.
+CALIBRATION_MODES = ("model", "undistort")
 
 
 @dataclass(frozen=True)
@@ -110,6 +114,15 @@ class LiveConfig:
     series_capacity : points kept for plots (decimated series).
     filter : a :class:`layoutkit.filter.EkfConfig` to also run the per-sweep filter
         (``--filter ekf``; its outputs replace the frame records on ``--json-lines``), or None.
+    solve : "per-station" (one pose per station frame, station or world frame) or "joint" (one
+        world pose per window from every station's frame, :mod:`layoutkit.live.joint_stream`;
+        needs station poses). The commands pick the default (joint when several stations are known).
+    window_s : the joint window rule's span (s, :data:`layoutkit.joint.WINDOW_S`).
+    calibration : how a station calibration enters — "model": the decoder's measured (distorted)
+        angles are fitted through the station's forward model :func:`layoutkit.lighthouse.measure`
+        (joint, and per-station through :func:`layoutkit.pnp.solve_pnp` ``calibration=``);
+        "undistort": the decoder pre-corrects the angles (firmware style, Bitcraze decoders with a
+        system config) and the ideal model is fitted (the behaviour before the forward model).
     """
 
     n_sensors: int | None = None
@@ -133,8 +146,17 @@ class LiveConfig:
     static_factor: float = 4.0
     series_capacity: int = 20000
     filter: object = None
+    solve: str = "per-station"
+    window_s: float = 0.020
+    calibration: str = "model"
 
     def __post_init__(self):
+        if self.solve not in SOLVE_MODES:
+            raise ValueError(f"solve: expected one of {SOLVE_MODES}, got {self.solve!r}")
+        if self.calibration not in CALIBRATION_MODES:
+            raise ValueError(f"calibration: expected one of {CALIBRATION_MODES}, got {self.calibration!r}")
+        if not self.window_s > 0:
+            raise ValueError(f"window_s: expected > 0 s, got {self.window_s}")
         if self.n_sensors is not None and self.n_sensors < 1:
             raise ValueError(f"n_sensors: expected >= 1, got {self.n_sensors}")
         if self.min_lit < 3:
@@ -169,9 +191,16 @@ PipelineConfig = LiveConfig
 class AngleFrame:
     """One pose frame: both sweep angles of every sensor from one station.
 
-    t : s, sync time of the X sweep; station : index; angles : (n, 2) rad [theta_x, theta_y],
-    NaN where a sensor was not hit on that axis; seq : X sweep's sequence number or None;
+    t : s, sync time of the X sweep; station : index; angles : (n, 2) rad [theta_x, theta_y]
+    (LH1-equivalent, LH2 planes converted with the nominal tilt), NaN where a sensor was not hit
+    on that axis; seq : X sweep's sequence number or None;
     dt_y : s, sync time of the Y sweep minus ``t`` (LH1; NaN for LH2 and when unknown).
+    kind : the station kind of the sweeps ("lh1"/"lh2"); raw : (n, 2) rad, the decoder's angles in
+    that kind's own convention (LH1 sweep angles, LH2 light-plane angles; as measured, i.e.
+    distorted when the decoder does not pre-correct) — what a calibrated forward model takes.
+    None = same as ``angles``. t_axes : (2,) s, when each axis was measured: LH1 the X and Y sync
+    times; LH2 each light plane's crossing of the sensors, ``t + (mean alpha_k + pi -/+ pi/3) / 2 pi
+    * period`` from the rotor zero ``t`` (None = both at ``t``).
     """
 
     t: float
@@ -179,6 +208,14 @@ class AngleFrame:
     angles: np.ndarray
     seq: int | None = None
     dt_y: float = float("nan")
+    kind: str = "lh1"
+    raw: np.ndarray | None = None
+    t_axes: tuple | None = None
+
+    @property
+    def t_measured(self) -> float:
+        """Mean measurement time of the two axes (s)."""
+        return float(self.t) if self.t_axes is None else 0.5 * float(self.t_axes[0] + self.t_axes[1])
 
 
 class SweepPairer:
@@ -190,9 +227,10 @@ class SweepPairer:
     apart — is dropped and counted in ``unpaired``. State: one pending sweep per station.
     """
 
-    def __init__(self, n_sensors: int, rotor_rpm: float = LH1_ROTOR_RPM):
+    def __init__(self, n_sensors: int, rotor_rpm: float = LH1_ROTOR_RPM, lh2_periods: dict | None = None):
         self.n_sensors = int(n_sensors)
         self.max_gap = {"lh1": 60.0 / rotor_rpm, "lh2": 1.0 / LH2_ROTOR_HZ_MIN}
+        self.lh2_periods = dict(lh2_periods or {})   # station -> rotor period (s), default 1/50 s
         self._pending: dict[int, SweepMeasurement] = {}
         self.paired = 0
         self.unpaired = 0
@@ -217,12 +255,21 @@ class SweepPairer:
         if not (0.0 <= gap <= self.max_gap.get(m.kind, self.max_gap["lh1"])) or m.kind != x.kind:
             self.unpaired += 2  # both sweeps are lost
             return None
-        angles = np.stack([np.asarray(x.angles, float), ang], -1)
-        if m.kind == "lh2":
-            angles = lh2_to_lh1_angles(angles)
+        raw = np.stack([np.asarray(x.angles, float), ang], -1)
+        angles = lh2_to_lh1_angles(raw) if m.kind == "lh2" else raw
         self.paired += 1
+        if m.kind == "lh2":
+            per = self.lh2_periods.get(int(m.station), 0.02)
+            with np.errstate(invalid="ignore"):
+                mean = np.nanmean(raw, 0) if np.isfinite(raw).any() else np.zeros(2)
+            mean = np.where(np.isfinite(mean), mean, 0.0)
+            t_axes = (float(x.t + (mean[0] + np.pi - np.pi / 3) / (2 * np.pi) * per),
+                      float(m.t + (mean[1] + np.pi + np.pi / 3) / (2 * np.pi) * per))
+        else:
+            t_axes = (float(x.t), float(m.t))
         return AngleFrame(t=float(x.t), station=int(m.station), angles=angles, seq=x.seq,
-                          dt_y=float(gap) if m.kind == "lh1" else float("nan"))
+                          dt_y=float(gap) if m.kind == "lh1" else float("nan"), kind=m.kind,
+                          raw=raw if m.kind == "lh2" else None, t_axes=t_axes)
 
     def flush(self) -> None:
         """End of stream: a still pending X sweep is unpaired."""
@@ -263,6 +310,9 @@ class PoseChunk:
     status : (F,) int (STATUS_*); residual_rms : (F,) rad (RMS angle residual of the PnP fit);
     adop : (F,) deg/rad, pdop : (F,) m/rad — Chen eq. (22) at the solved pose with its lit set
         and ``rho`` (inf where no pose); lit : (F, n) bool.
+    Joint poses (``station`` = :data:`layoutkit.io.poses.JOINT`, one per window, world frame) also
+    carry n_stations : (F,) int, stations in the window, and lit_by_station : (F, S) int, sensors
+    lit on both axes per station; ``n_lit`` counts lit (sensor, station) pairs.
     """
 
     t: np.ndarray
@@ -276,6 +326,8 @@ class PoseChunk:
     adop: np.ndarray
     pdop: np.ndarray
     lit: np.ndarray
+    n_stations: np.ndarray | None = None
+    lit_by_station: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -296,11 +348,16 @@ class PoseChunk:
         return _status.summarize(self.status, STATUS_NAMES)
 
     def records(self):
-        """Yield one plain dict per frame with a pose (the ``--json-lines`` contract)."""
+        """Yield one plain dict per frame with a pose (the ``--json-lines`` contract).
+
+        Joint poses: ``"station": "joint"``, plus ``n_stations`` (stations in the window) and
+        ``lit_by_station`` (sensors lit on both axes, per station index)."""
+        from ..io.poses import JOINT
+
         for i in range(len(self)):
             if self.status[i] in (STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED):
                 continue
-            yield {
+            rec = {
                 "t": float(self.t[i]),
                 "rotvec": [float(v) for v in self.rotvec[i]],
                 "translation": [float(v) for v in self.translation[i]],
@@ -309,8 +366,12 @@ class PoseChunk:
                 "adop": _finite_or_none(self.adop[i]),
                 "pdop": _finite_or_none(self.pdop[i]),
                 "residual_rms": _finite_or_none(self.residual_rms[i]),
-                "station": int(self.station[i]),
+                "station": "joint" if self.station[i] == JOINT else int(self.station[i]),
             }
+            if self.n_stations is not None:
+                rec["n_stations"] = int(self.n_stations[i])
+                rec["lit_by_station"] = [int(v) for v in self.lit_by_station[i]]
+            yield rec
 
 
 def _finite_or_none(x):
@@ -325,7 +386,8 @@ def _solver():
 
 
 def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
-                initial: dict | None = None, stations: "list[Station] | None" = None) -> PoseChunk:
+                initial: dict | None = None, stations: "list[Station] | None" = None,
+                calibrations: dict | None = None) -> PoseChunk:
     """Solve the poses of a chunk of frames (batched PnP, then batched DOP).
 
     points_body : (n, 3) m, sensor positions (body frame).
@@ -337,6 +399,10 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         recent poses per pass under ``("motion", station)`` when ``config.motion_compensation``:
         then the Y angles of every frame with a velocity estimate are moved to its X time and the
         frame is solved again (:func:`_compensate_motion`).
+    calibrations : optional dict station index -> :class:`~layoutkit.lighthouse.Calibration`: that
+        station's frames are fitted through its forward model from their ``raw`` (measured) angles
+        (``solve_pnp(..., calibration=)``, cold start per frame; no Y-sweep motion correction) and
+        their DOP comes from the model's Jacobian.
     Returns a :class:`PoseChunk`; failures are statuses, never exceptions.
     """
     P = as_array(points_body, "points_body", (None, 3))
@@ -357,16 +423,23 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
     enough = n_lit >= config.min_lit
     solve_pnp = _solver()
     initial = {} if initial is None else initial
+    calibrations = calibrations or {}
     for s in np.unique(st[enough]):
         idx = np.flatnonzero(enough & (st == s))
         a = np.where(lit[idx, :, None], ang[idx], np.pi / 2)  # placeholders never enter the fit
         init = initial.get(int(s))
         kw = {}
-        if init is not None and 0 <= t[idx[0]] - init[2] <= config.reacquire_s:
+        cal = calibrations.get(int(s))
+        if cal is not None and all(frames[i].kind == cal.kind for i in idx):
+            # through the forward model: the measured angles in the station's own convention
+            raw = np.stack([frames[i].angles if frames[i].raw is None else frames[i].raw for i in idx])
+            a = np.where(lit[idx, :, None], raw, 0.0)
+            kw["calibration"] = cal
+        elif init is not None and 0 <= t[idx[0]] - init[2] <= config.reacquire_s:
             kw["initial"] = (np.broadcast_to(init[0], (len(idx), 3, 3)),
                              np.broadcast_to(init[1], (len(idx), 3)))
         Rs, ts, ok, rr, ad, pd, stat = _solve_frames(solve_pnp, P, a, lit[idx], kw, config)
-        if config.motion_compensation:
+        if config.motion_compensation and "calibration" not in kw:
             (Rs, ts, ok, rr, ad, pd, stat), initial[("motion", int(s))] = _compensate_motion(
                 solve_pnp, P, t[idx], dty[idx], a, lit[idx], (Rs, ts, ok, rr, ad, pd, stat), init,
                 initial.get(("jump", int(s))), initial.get(("motion", int(s))), config)
@@ -406,7 +479,10 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
     ok = np.array(sol.success, bool)
     Rs, ts = np.array(sol.rotation, float), np.array(sol.translation, float)
     rr = np.array(sol.residual_rms, float)
-    ad, pd = _dop(P, Rs, ts, ok, lit, config) if dop is None else (np.array(dop[0]), np.array(dop[1]))
+    if dop is not None:
+        ad, pd = np.array(dop[0]), np.array(dop[1])
+    else:
+        ad, pd = _dop(P, Rs, ts, ok, lit, config, kw.get("calibration"))
     from ..pnp import STATUS_AMBIGUOUS as PNP_AMBIGUOUS
 
     failed = np.where(np.asarray(sol.status) == PNP_AMBIGUOUS, STATUS_AMBIGUOUS, STATUS_SOLVER_FAILED)
@@ -415,12 +491,14 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
     return Rs, ts, ok, rr, ad, pd, stat
 
 
-def _dop(P, R, t, ok, lit, config: PipelineConfig):
-    """ADOP (F,) deg/rad and PDOP (F,) m/rad at poses R (F, 3, 3), t (F, 3) (placeholder where not ok)."""
+def _dop(P, R, t, ok, lit, config: PipelineConfig, calibration=None):
+    """ADOP (F,) deg/rad and PDOP (F,) m/rad at poses R (F, 3, 3), t (F, 3) (placeholder where not ok);
+    with a ``calibration`` through that station model's Jacobian (station frame)."""
     from ..dop import pose_dop
 
+    st = None if calibration is None else [Station(kind=calibration.kind, calibration=calibration)]
     d = pose_dop(P, np.where(ok[:, None, None], R, np.eye(3)), np.where(ok[:, None], t, [0, 0, 1.0]),
-                 rho=config.rho, visible=lit)
+                 rho=config.rho, visible=lit if st is None else lit[:, None], stations=st)
     return np.array(d.adop, float), np.array(d.pdop, float)
 
 
@@ -632,9 +710,13 @@ class PipelineCounters:
     bad: int = 0
     too_few_lit: int = 0
     unpaired_sweeps: int = 0
+    by_status: dict = field(default_factory=dict)          # status name -> poses
+    windows_by_stations: dict = field(default_factory=dict)  # joint: stations in the window -> windows
+    unknown_station_frames: int = 0                         # joint: frames of a station not in the set-up
+    late_frames: int = 0                                     # joint: frames older than one already windowed
 
     def as_dict(self) -> dict:
-        return dict(self.__dict__)
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
 
 
 @dataclass
@@ -652,13 +734,24 @@ class PosePipeline:
     config: PipelineConfig
     stations: "list[Station] | None" = None
     counters: PipelineCounters = field(default_factory=PipelineCounters)
+    calibrations: dict | None = None
 
     def __post_init__(self):
         self.points_body = as_array(self.points_body, "points_body", (None, 3))
         self.config = self.config.resolved(self.points_body.shape[0], self.stations)
-        self.pairer = SweepPairer(self.config.n_sensors, self.config.rotor_rpm)
+        lh2 = {k: 60.0 / st.rotor_rpm for k, st in enumerate(self.stations or ()) if st.kind == "lh2"}
+        self.pairer = SweepPairer(self.config.n_sensors, self.config.rotor_rpm, lh2)
         self.batcher = FrameBatcher(self.config.chunk_frames, self.config.chunk_seconds)
         self.previous: dict = {}
+        self.windower = None
+        if self.config.solve == "joint":
+            if not self.stations:
+                raise ValueError("solve 'joint': station poses are required (a stations file, the capture's "
+                                 "sidecar stations or a system config's geometry)")
+            from .joint_stream import JointWindower
+
+            self.windower = JointWindower(len(self.stations), self.config.window_s)
+            self.window_batcher = FrameBatcher(self.config.chunk_frames, self.config.chunk_seconds)
 
     def feed(self, sweeps) -> list[PoseChunk]:
         """Add decoded sweeps; return the chunks completed by them (possibly none)."""
@@ -667,6 +760,12 @@ class PosePipeline:
             fr = self.pairer.push(m)
             if fr is None:
                 continue
+            if self.windower is not None:
+                for w in self.windower.push(fr):
+                    batch = self.window_batcher.push(w)
+                    if batch is not None:
+                        out.append(self._solve(batch))
+                continue
             batch = self.batcher.push(fr)
             if batch is not None:
                 out.append(self._solve(batch))
@@ -674,19 +773,45 @@ class PosePipeline:
         return out
 
     def flush(self, end_of_stream: bool = False) -> list[PoseChunk]:
-        """Solve the pending frames now (live: on a timer; end of stream: ``end_of_stream=True``)."""
+        """Solve the pending frames now (live: on a timer; end of stream: ``end_of_stream=True``).
+
+        Joint: the windows closed so far are solved; an open window (and frames in the reorder
+        buffer) wait for the next frames unless ``end_of_stream``."""
         if end_of_stream:
             self.pairer.flush()
             self.counters.unpaired_sweeps = self.pairer.unpaired
+        if self.windower is not None:
+            out = []
+            for w in (self.windower.flush() if end_of_stream else []):
+                batch = self.window_batcher.push(w)
+                if batch is not None:
+                    out.append(self._solve(batch))
+            batch = self.window_batcher.flush()
+            self.counters.unknown_station_frames = self.windower.unknown_station
+            self.counters.late_frames = self.windower.late
+            return out + ([] if batch is None else [self._solve(batch)])
         batch = self.batcher.flush()
         return [] if batch is None else [self._solve(batch)]
 
     def _solve(self, frames) -> PoseChunk:
-        ch = solve_chunk(self.points_body, frames, self.config, self.previous, self.stations)
+        if self.windower is not None:
+            from .joint_stream import solve_windows
+
+            ch = solve_windows(self.points_body, frames, self.config, self.stations, self.previous)
+        else:
+            ch = solve_chunk(self.points_body, frames, self.config, self.previous, self.stations, self.calibrations)
         c = self.counters
+        if self.windower is not None:
+            c.unknown_station_frames, c.late_frames = self.windower.unknown_station, self.windower.late
         c.frames += len(ch)
         g = int(np.sum(ch.good))
         c.good += g
         c.bad += len(ch) - g
         c.too_few_lit += int(np.sum(ch.status == STATUS_TOO_FEW_LIT))
+        for code in np.unique(ch.status):
+            name = STATUS_NAMES[int(code)]
+            c.by_status[name] = c.by_status.get(name, 0) + int(np.sum(ch.status == code))
+        if ch.n_stations is not None:
+            for k in np.unique(ch.n_stations):
+                c.windows_by_stations[int(k)] = c.windows_by_stations.get(int(k), 0) + int(np.sum(ch.n_stations == k))
         return ch

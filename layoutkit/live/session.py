@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +23,8 @@ from ..layout import Layout
 from .pipeline import STATUS_NAMES, LiveConfig, PoseChunk, PosePipeline
 from .stats import DecimatedSeries, ErrorAccumulator, StaticGroupTracker
 
-__all__ = ["LiveConfig", "LiveSession", "POSES_EXTRAS", "POSES_HEADER", "make_decoder", "session_for"]
+__all__ = ["LiveConfig", "LiveSession", "POSES_EXTRAS", "POSES_HEADER", "make_decoder", "session_for",
+           "calibrated_setup"]
 
 #: Extra columns of ``poses.csv`` after the pose table's fixed ones (:mod:`layoutkit.io.poses`).
 POSES_EXTRAS = ("n_lit", "adop_deg_per_rad", "pdop_m_per_rad")
@@ -44,7 +45,9 @@ class LiveSession:
     sweep_sink : optional per-sweep consumer (``feed(sweeps)``, ``summary(truth_summary)``; the EKF's
     :class:`layoutkit.workflows.filter.FilterSink` when ``options.filter`` is set): it sees every
     decoded sweep, its outputs replace the frame records on ``json_out`` and its summary goes
-    under ``"filter"``.
+    under ``"filter"``. calibrations : optional dict station index -> Calibration for stations
+    without a known pose (per-station solving through the forward model, ``options.calibration ==
+    "model"``); stations' own calibrations are used too.
     """
 
     layout: Layout
@@ -55,12 +58,21 @@ class LiveSession:
     json_out: object = None
     poses_path: Path | None = None
     sweep_sink: object = None
+    calibrations: dict | None = None
 
     def __post_init__(self):
         self.options = o = self.options.resolved(self.layout.n, self.stations)
         self.config = o  # the pipeline runs on the same config
-        multi = self.stations is not None and len(self.stations) > 1
-        self.pipeline = PosePipeline(self.layout.positions, self.config, self.stations if multi else None)
+        multi = self.stations is not None and (len(self.stations) > 1 or o.solve == "joint")
+        cals = None
+        if o.calibration == "model":
+            cals = dict(self.calibrations or {})
+            for k, st in enumerate(self.stations or ()):
+                if st.calibration is not None:
+                    cals.setdefault(k, st.calibration)
+            cals = cals or None
+        self.pipeline = PosePipeline(self.layout.positions, self.config, self.stations if multi else None,
+                                     calibrations=cals)
         self.static = StaticGroupTracker(o.sigma_theta, o.static_window, o.static_factor)
         self.truth_err = ErrorAccumulator(o.sigma_theta, o.series_capacity) if self.truth is not None else None
         # decimated good poses (t, rotvec, translation) for reference alignment, and DOP series for plots
@@ -187,7 +199,20 @@ class LiveSession:
             "static_groups": [g.as_dict() for g in groups],
             "truth": None if self.truth_err is None or self.truth_err.n == 0 else self.truth_err.summary().as_dict(),
             "status_names": STATUS_NAMES,
+            "by_status": dict(c.by_status),
+            "solve": self.options.solve,
+            "calibration": {"mode": self.options.calibration,
+                            "stations_with_calibration": sorted(self.pipeline.calibrations or {})
+                            if self.options.solve == "per-station" else
+                            [k for k, st in enumerate(self.stations or ()) if st.calibration is not None]},
         }
+        if self.options.solve == "joint":
+            self.finished["joint"] = {
+                "poses": c.frames, "good": c.good, "window_s": self.options.window_s,
+                "windows_by_stations": {str(k): v for k, v in sorted(c.windows_by_stations.items())},
+                "frames_of_unknown_station": c.unknown_station_frames, "late_frames": c.late_frames,
+                "stations": len(self.stations or ()),
+                "frame": "world (the stations' common frame)"}
         if self.filter is not None:
             self.finished["filter"] = self.filter.summary(self.finished["truth"])
         return self.finished
@@ -219,6 +244,41 @@ def session_for(layout: Layout, sidecar: CaptureSidecar | None = None, *, protoc
     :class:`~layoutkit.live.reference.PoseTrack` or None."""
     sc = CaptureSidecar.from_dict(sidecar or {})
     name = protocol or sc.protocol or "layoutkit"
-    stations = list(sc.stations) or None
-    dec = make_decoder(name, layout.n, stations, sc.protocol_options)
-    return LiveSession(layout, dec, options or LiveConfig(), stations, truth, json_out, poses_path, sweep_sink)
+    options = options or LiveConfig()
+    stations, dec_options, cals = calibrated_setup(list(sc.stations), sc.protocol_options, options.calibration)
+    dec = make_decoder(name, layout.n, stations or None, dec_options)
+    return LiveSession(layout, dec, options, stations or None, truth, json_out, poses_path, sweep_sink,
+                       calibrations=cals)
+
+
+def calibrated_setup(stations: list, protocol_options: dict, mode: str = "model"):
+    """Stations and decoder options for a calibration ``mode`` (:class:`LiveConfig` ``calibration``).
+
+    "model": a Crazyflie system config named in the decoder options (``system_config``) gives its
+    calibrations to the stations of the same index that have none, and the decoder is told not to
+    pre-correct (``calibrate=False``: it emits the measured angles, the solvers fit them through
+    :func:`layoutkit.lighthouse.measure`). "undistort": the stations lose their calibrations and
+    the decoder corrects the angles (the Bitcraze decoders' firmware-style inverse; the
+    ``layoutkit`` protocol then solves uncalibrated). Returns ``(stations, decoder options,
+    calibrations)`` with ``calibrations`` a dict station index -> :class:`~layoutkit.lighthouse.Calibration`
+    (also for stations without a known pose: the per-station solve needs no pose) or None.
+    """
+    opts = dict(protocol_options or {})
+    if mode == "undistort":
+        return [replace(st, calibration=None) for st in stations], opts, None
+    cals = {k: st.calibration for k, st in enumerate(stations) if st.calibration is not None}
+    cfg_path = opts.get("system_config")
+    if cfg_path:
+        from .protocols.bitcraze import load_system_config
+
+        cfg = load_system_config(cfg_path)
+        kind = "lh1" if cfg.system_type == 1 else "lh2"
+        for sid, cal in cfg.calibs.items():
+            if sid < len(stations):
+                if stations[sid].calibration is None and stations[sid].kind == kind:
+                    stations[sid] = replace(stations[sid], calibration=cal.to_calibration(kind))
+                    cals[sid] = stations[sid].calibration
+            else:
+                cals.setdefault(sid, cal.to_calibration(kind))
+        opts["calibrate"] = False
+    return stations, opts, (cals or None)

@@ -16,7 +16,7 @@ from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "import_reference", "write_layout",
+__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "import_reference", "write_layout",
            "write_reference"]
 
 
@@ -237,6 +237,30 @@ def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
              "slow_bit": "not in the log; 0 (OOTX calibration data cannot be decoded: give --system-config)",
              "offset": "logged in 24 MHz ticks; written as the deck's 6 MHz field (offset / 4)"}
     return b"".join(out), notes
+
+
+def cfusdlog_capture(log) -> tuple[bytes, "object"]:
+    """A Crazyflie microSD log → ``(deck UART bytes, CaptureSidecar)`` in memory, for ``replay LOG``
+    without an import step: protocol ``bitcraze-lh2``, the deck layout, the deck-to-log clock offset
+    (as :func:`import_cfusdlog`; no stations: give ``--system-config`` or ``--stations``).
+    ValueError naming the file when it has no ``lhUartFrame`` events."""
+    from ..importers.cfusdlog import read_cfusdlog
+    from ..io.sidecar import CaptureSidecar
+    from ..live.protocols.bitcraze import DECK_CLOCK_HZ
+
+    log = Path(log)
+    ul = read_cfusdlog(log)
+    if "lhUartFrame" not in ul.events or len(ul.events["lhUartFrame"]["t"]) == 0:
+        raise ValueError(f"{log}: no lhUartFrame events (event types: {sorted(ul.events)}); enable the "
+                         "lighthouse deck's UART frame event trigger when logging")
+    ev = ul.events["lhUartFrame"]
+    data, notes = deck_bytes(ev)
+    offset = float(np.median(ev["t"] - _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ))
+    sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options={"time_offset_s": offset},
+                        layout=_deck_layout().to_dict(), source="cfusdlog (replayed directly)", n_sensors=4,
+                        bytes=len(data), extra={"imported_from": str(log), "log_ended": ul.ended,
+                                                "import_notes": [f"{k}: {v}" for k, v in notes.items()]})
+    return data, sc
 
 
 def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:

@@ -31,6 +31,7 @@ __all__ = [
     "replay_capture",
     "run_live",
     "reference_accuracy",
+    "resolve_solve_mode",
 ]
 
 _READ_BYTES = 1 << 16
@@ -183,10 +184,26 @@ def stations_from_files(stations_path=None, system_config=None):
     return None
 
 
+def resolve_solve_mode(solve: str | None, stations, options: LiveConfig | None) -> LiveConfig:
+    """``options`` with ``solve`` resolved: None → "joint" when two or more stations with known poses
+    are given, else "per-station"; "joint" without any station pose → ValueError (the CLI's one
+    ``error:`` line)."""
+    from dataclasses import replace
+
+    options = options or LiveConfig()
+    n = len(stations or ())
+    if solve is None:
+        solve = "joint" if n >= 2 else "per-station"
+    if solve == "joint" and n == 0:
+        raise ValueError("--solve joint: no station poses known (give --stations FILE, --system-config YAML with "
+                         "geos, or a capture whose sidecar lists its stations)")
+    return replace(options, solve=solve)
+
+
 def replay_capture(capture, layout=None, *, protocol: str | None = None, options: LiveConfig | None = None,
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
-                   camera_config=None, stations=None, system_config=None) -> dict:
+                   camera_config=None, stations=None, system_config=None, solve: str | None = None) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -199,7 +216,11 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     (:func:`layoutkit.live.crosscheck.camera_crosscheck`); default: ``CAPTURE.camera/`` when it exists
     and a config is given. stations : a stations JSON path replacing the sidecar's stations;
     system_config : a Crazyflie system config YAML (calibration for the Bitcraze decoders, and the
-    stations when no stations file is given).
+    stations when no stations file is given). solve : "joint", "per-station" or None (joint when
+    two or more stations with known poses are given; :func:`resolve_solve_mode`).
+    A Crazyflie microSD log (cfusdlog, detected from its header) is replayed directly: its
+    ``lhUartFrame`` events are turned into the deck's bytes in memory
+    (:func:`layoutkit.workflows.importers.cfusdlog_capture`), protocol ``bitcraze-lh2``.
     """
     from ..io.sidecar import read_sidecar
 
@@ -207,12 +228,18 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     if not capture.is_file():
         raise ValueError(f"{capture}: no such capture file")
     sidecar = read_sidecar(capture)
+    data_override = None
+    if not sidecar.protocol and _is_cfusdlog(capture):
+        from .importers import cfusdlog_capture
+
+        data_override, sidecar = cfusdlog_capture(capture)
     if stations is not None or system_config is not None:
         st = stations_from_files(stations, system_config)
         opts = dict(sidecar.protocol_options)
         if system_config is not None:
             opts["system_config"] = str(system_config)
         sidecar = sidecar.updated(stations=tuple(st) if st else sidecar.stations, protocol_options=opts)
+    options = resolve_solve_mode(solve, sidecar.stations, options)
     with tempfile.TemporaryDirectory() as tmp:
         poses = None
         if report_dir is not None:
@@ -223,7 +250,9 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
                                  json_out=json_out, poses_path=poses)
         # the raw bytes in blocks (the timing index is not needed as fast as possible: memory stays
         # flat whatever the capture's length)
-        with open(capture, "rb") as rd:
+        import io
+
+        with (io.BytesIO(data_override) if data_override is not None else open(capture, "rb")) as rd:
             while True:
                 data = rd.read(_READ_BYTES)
                 if not data:
@@ -237,6 +266,13 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
         cam = _camera_from_folder(capture, camera_device, camera_config)
         return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
                            report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
+
+
+def _is_cfusdlog(path) -> bool:
+    """A Crazyflie microSD log: magic 0xBC, then version 1 or 2 (little-endian u16)."""
+    with open(path, "rb") as fh:
+        head = fh.read(3)
+    return len(head) == 3 and head[0] == 0xBC and int.from_bytes(head[1:3], "little") in (1, 2)
 
 
 def camera_folder_for(capture) -> Path:
@@ -266,7 +302,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
              reference_offset: float | None = None, camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
              on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None,
              overwrite: bool = False, on_status=None, status_interval: float = 10.0, camera_device=None,
-             camera_config=None, system_config=None) -> dict:
+             camera_config=None, system_config=None, solve: str | None = None) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
     port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar);
@@ -291,7 +327,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     from ..live.sources import DEFAULT_BAUDRATE, ReconnectingSerial
     from ..live.stopping import stop_on_signals
 
-    options = options or LiveConfig()
+    options = resolve_solve_mode(solve, stations, options)
     lay = _layout_from(layout, CaptureSidecar())
     baudrate = baudrate or DEFAULT_BAUDRATE
     settings = {"url": port, "baudrate": baudrate, "timeout": 0.05, "reconnect": True}

@@ -44,7 +44,7 @@ LH2: the firmware's angles are already the ``lh2_sweep_angles`` light-plane angl
 (plane 0: t = -30°, plane 1: t = +30°). ``SweepMeasurement.t`` is the sync (LH1) or rotor-zero
 (LH2) time in s, deck clock unwrapped; ``station`` is the LH1 station (0/1) or LH2 channel (0-15).
 
-Length (~640 lines): one module per wire protocol — frame layout, both pulse processors, the
+Length (~730 lines): one module per wire protocol — frame layout, both pulse processors, the
 reference encoders and the system-config reader belong together and share the frame constants.
 """
 from __future__ import annotations
@@ -73,6 +73,8 @@ __all__ = [
     "lh1_deck_stream",
     "lh1_deck_frames",
     "lh2_deck_stream",
+    "lh2_deck_session",
+    "system_config_dict",
     "lh1_model",
     "lh2_model",
     "calibrate_lh1",
@@ -163,6 +165,11 @@ class SystemConfig:
 _LK_TO_BC = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
+def _lh2_rpm(channel: int) -> float:
+    """Rotor speed (rpm) of LH2 channel ``channel`` (its cycle period; 3000 outside 0-15)."""
+    return 60.0 * DECK_CLOCK_HZ / LH2_CYCLE_PERIODS[channel] if 0 <= channel < len(LH2_CYCLE_PERIODS) else 3000.0
+
+
 def load_system_config(source) -> SystemConfig:
     """Read a Crazyflie system-configuration YAML (``type: lighthouse_system_configuration``).
 
@@ -194,7 +201,8 @@ def load_system_config(source) -> SystemConfig:
             R = nearest_rotation(np.asarray(geo["rotation"], float))
             stations[int(sid)] = Station(id=str(sid), rotation=R @ _LK_TO_BC,
                                          translation=np.asarray(geo["origin"], float), kind=kind,
-                                         rotor_rpm=3600.0 if kind == "lh1" else 3000.0, clock_hz=DECK_CLOCK_HZ)
+                                         rotor_rpm=3600.0 if kind == "lh1" else _lh2_rpm(int(sid)),
+                                         clock_hz=DECK_CLOCK_HZ)
         for sid, cal in (data.get("calibs") or {}).items():
             sw = tuple(SweepCalibration(**{k: float(s.get(k, 0.0)) for k in SweepCalibration.__dataclass_fields__})
                        for s in cal["sweeps"][:2])
@@ -309,6 +317,90 @@ def lh2_deck_stream(alpha, *, channel: int = 0, t0_ticks: int = 1000, sync_every
         pulses += rot
         out += [encode_pulse(p) for p in rot]
     return b"".join(out), starts, pulses
+
+
+def lh2_deck_session(points_body, motion, stations, *, duration: float, channels=None, sigma: float = 0.0,
+                     rng=None, normals=None, cone_deg: float = 80.0, t0_ticks: int = 1000, sync_every: int = 64,
+                     phases=None):
+    """Deck UART bytes of a body moving in front of several LH2 stations, per the public frame spec.
+
+    points_body : (n <= 4, 3) m; motion : callable ``t (K,) s -> (R (K, 3, 3), t (K, 3))``, the body
+    pose in the stations' world frame; stations : LH2 :class:`~layoutkit.lighthouse.Station` s (world
+    poses; a station's ``calibration`` distorts its angles through
+    :func:`layoutkit.lighthouse.measure` — the true calibration); channels : LH2 channel per station
+    (default 0, 1, ...). Channel c's rotor starts rotation r at ``t0_ticks + phase_c + r P_c``
+    (24 MHz ticks, ``P_c = LH2_CYCLE_PERIODS[c]``; ``phases`` default ``P_c * c / 2.7``); plane k
+    (0: -30°, 1: +30°) of that rotation measures the body at its nominal crossing time
+    ``start + (pi -/+ pi/3) / 2 pi * P_c``; each angle gets N(0, sigma²) noise, is quantised to the
+    deck's 6 MHz offset and sent as one pulse (offset on every pulse). A sensor is seen when it is in
+    front of the station (z > 0) and, with ``normals`` (n, 3), faces it within ``cone_deg``. The
+    channels' pulses are merged in time order (blocks of two channels that interleave are lost by
+    the decoder, as on the real deck). Returns ``(bytes, info)``: ``info["starts"][c]`` rotation
+    starts (s, deck clock), ``info["alpha"][c]`` the noise-free measured angles (R_c, n, 2),
+    ``info["plane_times"][c]`` (R_c, 2) s.
+    """
+    from ...lighthouse import lh2_sweep_angles, measure
+
+    P_body = np.asarray(points_body, float)
+    n = P_body.shape[0]
+    if n > MAX_DECK_SENSORS:
+        raise ValueError(f"points_body: the deck has at most {MAX_DECK_SENSORS} sensors, got {n}")
+    stations = list(stations)
+    channels = list(range(len(stations))) if channels is None else [int(c) for c in channels]
+    rng = np.random.default_rng(0) if rng is None else rng
+    pulses, info = [], {"starts": {}, "alpha": {}, "plane_times": {}}
+    for s, (st, ch) in enumerate(zip(stations, channels)):
+        if st.kind != "lh2":
+            raise ValueError(f"stations[{s}]: an LH2 station is required, got {st.kind!r}")
+        Pc = LH2_CYCLE_PERIODS[ch]
+        ph = int(round(Pc * ch / 2.7)) if phases is None else int(phases[s])
+        Rn = int(np.floor((duration * DECK_CLOCK_HZ - ph) / Pc))
+        starts = t0_ticks + ph + Pc * np.arange(max(Rn, 0), dtype=np.int64)
+        tp = (starts[:, None] + np.array([(np.pi - np.pi / 3), (np.pi + np.pi / 3)]) / (2 * np.pi) * Pc) / DECK_CLOCK_HZ
+        R, tr = motion(tp.reshape(-1))
+        Rs, ts = st.world_to_station(R, tr)
+        p = np.einsum("kij,nj->kni", Rs, P_body) + ts[:, None, :]            # (2 Rn, n, 3)
+        a = measure(p, st.calibration) if st.calibration is not None else lh2_sweep_angles(p)
+        a = a.reshape(Rn, 2, n, 2)
+        alpha = np.stack([a[:, 0, :, 0], a[:, 1, :, 1]], -1)                  # plane k at its own time
+        seen = p[..., 2] > 0
+        if normals is not None:
+            nw = np.einsum("kij,nj->kni", Rs, np.asarray(normals, float))
+            cosang = -np.sum(nw * p, -1) / np.maximum(np.linalg.norm(p, axis=-1), 1e-300)
+            seen &= cosang >= np.cos(np.deg2rad(cone_deg))
+        seen = seen.reshape(Rn, 2, n).transpose(0, 2, 1)
+        alpha_n = np.where(seen, alpha + (rng.normal(0.0, sigma, alpha.shape) if sigma > 0 else 0.0), np.nan)
+        info["starts"][ch], info["alpha"][ch], info["plane_times"][ch] = starts / DECK_CLOCK_HZ, alpha, tp
+        for r in range(Rn):
+            for plane, shift in ((0, -np.pi / 3), (1, np.pi / 3)):
+                for i in range(n):
+                    v = alpha_n[r, i, plane]
+                    if not np.isfinite(v):
+                        continue
+                    off6 = int(round((v + np.pi + shift) * Pc / (2 * np.pi) / 4))
+                    pulses.append(DeckPulse(i, int(starts[r]) + 4 * off6, 150, off6, 0, ch, 0))
+    pulses.sort(key=lambda q: q.timestamp)
+    out = []
+    for k, q in enumerate(pulses):
+        if k % sync_every == 0:
+            out.append(SYNC_FRAME)
+        out.append(encode_pulse(q))
+    return b"".join(out), info
+
+
+def system_config_dict(stations: dict, calibs: dict | None = None, system_type: int = 2) -> dict:
+    """A cflib/Crazyflie system configuration (``type: lighthouse_system_configuration``) as a dict
+    for ``yaml.safe_dump``: the inverse of :func:`load_system_config`. stations : id →
+    :class:`~layoutkit.lighthouse.Station` (world pose, layoutkit station frame); calibs : id →
+    :class:`StationCalibration` (firmware convention)."""
+    geos = {int(k): {"origin": [float(v) for v in st.translation],
+                     "rotation": [[float(v) for v in row] for row in st.rotation @ _LK_TO_BC.T]}
+            for k, st in stations.items()}
+    cal = {int(k): {"uid": int(c.uid), "sweeps": [{f: float(getattr(sw, f)) for f in SweepCalibration.__dataclass_fields__}
+                                                 for sw in c.sweeps]}
+           for k, c in (calibs or {}).items()}
+    return {"type": "lighthouse_system_configuration", "version": "1", "systemType": int(system_type),
+            "geos": geos, "calibs": cal}
 
 
 # ------------------------------------------------------------------------------------ decoder

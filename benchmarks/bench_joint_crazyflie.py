@@ -1,0 +1,102 @@
+"""Crazyflie yardstick, simulated: joint calibrated solve vs the firmware's crossing-beam method.
+
+    python benchmarks/bench_joint_crazyflie.py            # 60 s static + 60 s flight, 3 seeds
+    python benchmarks/bench_joint_crazyflie.py --quick    # 10 s each, 1 seed
+
+Set-up (tests/_cf_joint_sim.py): the Lighthouse deck (4 sensors, 3 x 1.5 cm) ~3 m from two LH2
+stations with factory-size calibrations (phase 0.02-0.06, tilt ~0.01, gib ~0.02 rad), angle noise
+sigma = 4e-5 rad plus the deck's 6 MHz quantisation; the deck's real UART bytes
+(``lh2_deck_session``) and a cflib system-config YAML. Both methods see the same decoded bytes and
+the same 20 ms windows:
+
+- joint: ``layoutkit replay capture.bin --system-config sys.yaml --solve joint --json-lines``
+  (residuals through each station's calibrated forward model; also with ``--motion-compensation``);
+- crossing beam: the firmware's method (``layoutkit.joint.crossing_beam_positions`` on the angles
+  corrected as the firmware does, ``firmware_corrected_angles``: 5-step / 5e-4 rad inverse).
+
+Measured: static jitter (RMS distance from the mean position, the deck at rest) and, for a flight
+(Lissajous loop at ~0.5 m/s), position RMS vs the truth at each window's measurement time (the
+window time: the mean crossing time of its light planes). Joint: ok poses of windows with both
+stations; crossing beam: windows with all 4 sensors seen by both stations. Results: benchmarks/results/joint_crazyflie[_quick].json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+sys.path.insert(0, str(Path(__file__).parent.parent / "tests"))
+
+from _cf_joint_sim import crossing_beam, decoded_windows, flying_motion, scenario, truth_position, write_capture  # noqa: E402
+from _util import write_result  # noqa: E402
+
+LAYOUTKIT = str(Path(sys.executable).with_name("layoutkit"))
+
+
+def replay_joint(sc, folder, extra=()):
+    cap, yml = write_capture(sc, folder)
+    t0 = time.perf_counter()
+    r = subprocess.run([LAYOUTKIT, "replay", str(cap), "--system-config", str(yml), "--solve", "joint",
+                        "--json-lines", *extra], capture_output=True, text=True, check=True)
+    wall = time.perf_counter() - t0
+    lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    # the same windows as the crossing beam: both stations in the window (one-station windows are
+    # ok joint poses too, at the one-station precision, but the crossing beam has nothing there)
+    ok = [x for x in lines if x["status"] == "ok" and x["n_stations"] == 2]
+    return (np.array([x["t"] for x in ok]), np.array([x["translation"] for x in ok]), len(lines), wall)
+
+
+def jitter(p):
+    return float(np.sqrt(np.mean(np.sum((p - p.mean(0)) ** 2, 1))))
+
+
+def rms_vs_truth(sc, t, p):
+    return float(np.sqrt(np.mean(np.sum((p - truth_position(sc, t)) ** 2, 1))))
+
+
+def run(seed, duration, tmp):
+    out = {"seed": seed}
+    st = scenario(seed, duration=duration)
+    tj, pj, nj, wall = replay_joint(st, Path(tmp) / f"static{seed}")
+    tc, pc = crossing_beam(st, decoded_windows(st))
+    out["static"] = {"joint_jitter_m": jitter(pj), "crossbeam_jitter_m": jitter(pc),
+                     "joint_rms_vs_truth_m": rms_vs_truth(st, tj, pj), "crossbeam_rms_vs_truth_m": rms_vs_truth(st, tc, pc),
+                     "joint_ok": int(len(tj)), "joint_windows": nj, "crossbeam_windows": int(len(tc)),
+                     "replay_wall_s": wall}
+    fl = scenario(seed, duration=duration, motion=flying_motion(0.5))
+    tj, pj, nj, _ = replay_joint(fl, Path(tmp) / f"fly{seed}")
+    tm, pm, nm, _ = replay_joint(fl, Path(tmp) / f"flymc{seed}", ["--motion-compensation"])
+    tc, pc = crossing_beam(fl, decoded_windows(fl))
+    out["flight"] = {"joint_rms_vs_truth_m": rms_vs_truth(fl, tj, pj),
+                     "joint_motion_compensated_rms_vs_truth_m": rms_vs_truth(fl, tm, pm),
+                     "crossbeam_rms_vs_truth_m": rms_vs_truth(fl, tc, pc),
+                     "joint_ok": int(len(tj)), "joint_windows": nj, "joint_mc_ok": int(len(tm)),
+                     "crossbeam_windows": int(len(tc))}
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args(argv)
+    duration, seeds = (10.0, [1]) if a.quick else (60.0, [1, 2, 3])
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = [run(s, duration, tmp) for s in seeds]
+    med = {part: {k: float(np.median([r[part][k] for r in runs])) for k in runs[0][part]} for part in ("static", "flight")}
+    res = {"duration_s": duration, "seeds": seeds, "sigma_rad": 4e-5, "runs": runs, "median": med,
+           "joint_steadier": bool(med["static"]["joint_jitter_m"] <= med["static"]["crossbeam_jitter_m"]),
+           "joint_at_least_as_accurate": bool(med["flight"]["joint_rms_vs_truth_m"] <= med["flight"]["crossbeam_rms_vs_truth_m"])}
+    p = write_result("joint_crazyflie_quick" if a.quick else "joint_crazyflie", res)
+    print(json.dumps(med, indent=2))
+    print(p)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,228 @@
+"""Joint multi-station solving on a stream: paired frames → 20 ms windows → one world pose per window.
+
+Data flow (``LiveConfig.solve == "joint"``; docs/live.md "Joint solving")::
+
+    AngleFrame ─▶ JointWindower ─▶ JointWindow ─▶ (batches) ─▶ solve_windows ─▶ PoseChunk
+    (one station)  (reorder buffer +   (<= 1 frame per        layoutkit.joint.solve_joint:
+                    the window rule)    station, time t)       residuals through each station's
+                                                               calibrated forward model
+
+Window rule (the one of :func:`layoutkit.joint.group_windows`, applied incrementally): frames in
+time order; a window opens at the first frame not yet taken and takes the following frames while
+``t - t_open <= window_s`` and their station has no frame in it yet; a second frame of a station
+already in the window closes it (that frame opens the next window). The window time — the time the
+joint pose describes — is the mean of its frames' measurement times (``AngleFrame.t_measured``: LH1
+the X and Y sync times, LH2 the two light planes' crossing times; for frames without that, the
+frame time). Frames may reach the windower slightly out of time order (a station's frame is
+complete only when its second sweep arrives), so frames first wait in a reorder buffer until a frame
+``reorder_s`` later has arrived; memory is bounded by the frames of ``reorder_s`` + one window.
+
+Angles: each frame's ``raw`` angles in its station's own convention (LH1 sweep angles, LH2
+light-plane angles, as the decoder measured them: distorted when the station has a calibration),
+solved through :func:`layoutkit.lighthouse.measure` of each station (never pre-corrected).
+Poses are in the stations' common world frame, ``station`` = :data:`JOINT` (``"joint"`` on
+``--json-lines`` and in ``poses.csv``).
+"""
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..io.poses import JOINT
+from ..joint import WINDOW_S
+
+__all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows"]
+
+
+@dataclass(frozen=True)
+class JointWindow:
+    """One window: ``t`` s (mean of its frames' times), ``frames`` one :class:`AngleFrame` or None per
+    station (index = station index)."""
+
+    t: float
+    frames: tuple
+
+    @property
+    def n_stations(self) -> int:
+        return sum(f is not None for f in self.frames)
+
+
+class JointWindower:
+    """Incremental :func:`layoutkit.joint.group_windows` over :class:`AngleFrame` s.
+
+    n_stations : stations known (frames of a station index outside ``[0, n_stations)`` are counted
+    in ``unknown_station`` and skipped). window_s : the window rule's span (s). reorder_s : how long a
+    frame waits for earlier frames of other stations (s; default one window span, longer than any
+    station's pairing delay). ``push`` returns the windows closed by a frame, in time order;
+    ``flush`` closes everything (end of stream).
+    """
+
+    def __init__(self, n_stations: int, window_s: float = WINDOW_S, reorder_s: float | None = None):
+        self.n_stations = int(n_stations)
+        self.window_s = float(window_s)
+        self.reorder_s = self.window_s if reorder_s is None else float(reorder_s)
+        self._heap: list = []   # (t, seq, frame) waiting for order
+        self._seq = 0
+        self._latest = -np.inf
+        self._cur: list | None = None
+        self._t_open = None
+        self._last_released = -np.inf
+        self.unknown_station = 0
+        self.late = 0
+
+    def push(self, frame) -> list[JointWindow]:
+        s = int(frame.station)
+        if not 0 <= s < self.n_stations or not np.isfinite(frame.t):
+            self.unknown_station += 1
+            return []
+        if frame.t < self._last_released:
+            # older than a frame already windowed: it cannot be placed in time order any more
+            self.late += 1
+            return []
+        heapq.heappush(self._heap, (float(frame.t), self._seq, frame))
+        self._seq += 1
+        self._latest = max(self._latest, float(frame.t))
+        out: list = []
+        while self._heap and self._heap[0][0] <= self._latest - self.reorder_s:
+            self._take(heapq.heappop(self._heap)[2], out)
+        return out
+
+    def flush(self) -> list[JointWindow]:
+        out: list = []
+        while self._heap:
+            self._take(heapq.heappop(self._heap)[2], out)
+        self._close(out)
+        return out
+
+    def _take(self, frame, out) -> None:
+        s = int(frame.station)
+        self._last_released = float(frame.t)
+        if self._cur is None or frame.t - self._t_open > self.window_s or self._cur[s] is not None:
+            self._close(out)
+            self._cur = [None] * self.n_stations
+            self._t_open = float(frame.t)
+        self._cur[s] = frame
+
+    def _close(self, out) -> None:
+        if self._cur is None:
+            return
+        fr = [f for f in self._cur if f is not None]
+        out.append(JointWindow(float(np.mean([f.t_measured for f in fr])), tuple(self._cur)))
+        self._cur = None
+        self._t_open = None
+
+
+def window_arrays(windows, n_sensors: int, n_stations: int):
+    """Windows → ``t (W,)``, ``angles (W, S, n, 2)`` rad (each station's own convention, NaN = not
+    seen or station absent), ``dt (W, S, 2)`` s (each axis' measurement time − window time, 0 where
+    absent), ``have (W, S)``."""
+    W = len(windows)
+    ang = np.full((W, n_stations, n_sensors, 2), np.nan)
+    dt = np.zeros((W, n_stations, 2))
+    have = np.zeros((W, n_stations), bool)
+    t = np.fromiter((w.t for w in windows), float, W)
+    for k, w in enumerate(windows):
+        for s, f in enumerate(w.frames):
+            if f is None:
+                continue
+            ang[k, s] = f.angles if f.raw is None else f.raw
+            dt[k, s] = (np.asarray(f.t_axes, float) if f.t_axes is not None else f.t) - w.t
+            have[k, s] = True
+    return t, ang, dt, have
+
+
+def solve_windows(points_body, windows, config, stations, state: dict | None = None):
+    """Joint poses of a batch of windows → :class:`~layoutkit.live.pipeline.PoseChunk` (world frame).
+
+    points_body : (n, 3) m. windows : list of :class:`JointWindow`. config : the run's
+    :class:`~layoutkit.live.pipeline.LiveConfig` (``min_lit``, noise, residual limit, continuity
+    gate, ``motion_compensation``). stations : the S :class:`~layoutkit.lighthouse.Station` (world
+    poses, kinds, calibrations). state : dict kept between batches (the continuity gate's last pose
+    and candidate, the motion history), updated in place.
+
+    Statuses: fewer than ``min_lit`` sensors lit on both axes on every station of the window (no
+    station can start the solve) → too_few_lit; the joint solve's own failure (degenerate, behind,
+    not converged) → solver_failed; RMS residual above ``max_residual_sigma`` sigma → high_residual;
+    a jump from the recent joint track → jump (the per-station continuity gate, on the joint poses).
+    With ``motion_compensation`` each station's angles are modelled at their own time in the window
+    (constant body velocity from the recent good joint poses, :func:`layoutkit.joint.solve_joint`
+    ``dt``/``velocity``) and the window is solved again from the first pose.
+    """
+    from ..dop import pose_dop
+    from ..geometry import matrix_to_rotvec
+    from ..joint import solve_joint
+    from ..pnp import STATUS_OK as PNP_OK, STATUS_TOO_FEW as PNP_TOO_FEW
+    from .pipeline import (STATUS_HIGH_RESIDUAL, STATUS_OK, STATUS_SOLVER_FAILED, STATUS_TOO_FEW_LIT, PoseChunk,
+                           _continuity_gate, _motion_history, _recent_velocity)
+
+    state = {} if state is None else state
+    P = np.asarray(points_body, float)
+    n, S = P.shape[0], len(stations)
+    t, ang, dt, have = window_arrays(windows, n, S)
+    W = len(windows)
+    lit = np.all(np.isfinite(ang), -1)                        # (W, S, n)
+    n_lit = lit.sum(axis=(1, 2))
+    startable = np.any(lit.sum(-1) >= config.min_lit, axis=1)
+    R = np.full((W, 3, 3), np.nan)
+    tr = np.full((W, 3), np.nan)
+    res = np.full(W, np.nan)
+    status = np.full(W, STATUS_TOO_FEW_LIT, int)
+    adop = np.full(W, np.inf)
+    pdop = np.full(W, np.inf)
+    idx = np.flatnonzero(startable)
+    if idx.size:
+        a = ang[idx]
+        sol = solve_joint(P, a, stations=stations)
+        Rs, ts, rr = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
+        ok = np.asarray(sol.status) == PNP_OK
+        if config.motion_compensation:
+            Rs, ts, rr, ok = _compensate(P, a, dt[idx], t[idx], Rs, ts, rr, ok, stations, config, state, solve_joint,
+                                         _recent_velocity, _motion_history)
+        if ok.any():
+            d = pose_dop(P, np.where(ok[:, None, None], Rs, np.eye(3)), np.where(ok[:, None], ts, 0.0),
+                         rho=config.rho, visible=lit[idx], stations=stations)
+            ad = np.where(ok, d.adop, np.inf)
+            pd = np.where(ok, d.pdop, np.inf)
+        else:
+            ad = pd = np.full(idx.size, np.inf)
+        st = np.where(~ok, np.where(np.asarray(sol.status) == PNP_TOO_FEW, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED),
+                      np.where(rr > config.max_residual_sigma * config.sigma_theta, STATUS_HIGH_RESIDUAL, STATUS_OK))
+        st, cand = _continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
+        state["jump"] = cand
+        good = np.flatnonzero(st == STATUS_OK)
+        if good.size:
+            j = good[-1]
+            state["last"] = (Rs[j].copy(), ts[j].copy(), float(t[idx][j]))
+        R[idx], tr[idx], res[idx], status[idx], adop[idx], pdop[idx] = Rs, ts, rr, st, ad, pd
+    has = np.isfinite(R[:, 0, 0])
+    rv = np.full((W, 3), np.nan)
+    if has.any():
+        rv[has] = matrix_to_rotvec(R[has])
+    return PoseChunk(t=t, station=np.full(W, JOINT), n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
+                     status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit.any(1),
+                     n_stations=have.sum(1), lit_by_station=lit.sum(-1))
+
+
+def _compensate(P, a, dt, t, Rs, ts, rr, ok, stations, config, state, solve_joint, recent_velocity, motion_history):
+    """Second pass with constant body velocity across the window (world frame, left perturbation):
+    velocity from the previous good joint poses (causal, as the per-station compensation)."""
+    from ..pnp import STATUS_OK as PNP_OK
+
+    hist = state.get("motion")
+    good = ok.copy()
+    inf = np.full(t.size, 0.0)
+    w, v = recent_velocity(t, Rs, ts, good, inf, inf, hist, config)
+    state["motion"] = motion_history(hist, t, Rs, ts, good, inf, inf, config.motion_window)
+    fix = np.flatnonzero(ok & np.isfinite(w[:, 0]))
+    if fix.size == 0:
+        return Rs, ts, rr, ok
+    sol = solve_joint(P, a[fix], stations=stations, dt=dt[fix], velocity=(w[fix], v[fix]),
+                      initial=(Rs[fix], ts[fix]))
+    took = np.asarray(sol.status) == PNP_OK
+    k = fix[took]
+    Rs, ts, rr = Rs.copy(), ts.copy(), rr.copy()
+    Rs[k], ts[k], rr[k] = np.asarray(sol.rotation)[took], np.asarray(sol.translation)[took], \
+        np.asarray(sol.residual_rms)[took]
+    return Rs, ts, rr, ok
