@@ -14,6 +14,10 @@ the same 20 ms windows:
 - crossing beam: the firmware's method (``layoutkit.joint.crossing_beam_positions`` on the angles
   corrected as the firmware does, ``firmware_corrected_angles``: 5-step / 5e-4 rad inverse).
 
+Also: the joint solve with the stations' poses but without their calibrations (``--stations`` a
+plain stations file: the bias the calibrated model removes), and the joint DOP prediction of the
+static precision (``pdop * sigma_eff``, rho = 0 as simulated).
+
 Measured: static jitter (RMS distance from the mean position, the deck at rest) and, for a flight
 (Lissajous loop at ~0.5 m/s), position RMS vs the truth at each window's measurement time (the
 window time: the mean crossing time of its light planes). Joint: ok poses of windows with both
@@ -40,17 +44,32 @@ from _util import write_result  # noqa: E402
 LAYOUTKIT = str(Path(sys.executable).with_name("layoutkit"))
 
 
-def replay_joint(sc, folder, extra=()):
+def replay_joint(sc, folder, extra=(), setup=None, any_status=False):
     cap, yml = write_capture(sc, folder)
+    setup = ["--system-config", str(yml)] if setup is None else setup(folder)
     t0 = time.perf_counter()
-    r = subprocess.run([LAYOUTKIT, "replay", str(cap), "--system-config", str(yml), "--solve", "joint",
+    r = subprocess.run([LAYOUTKIT, "replay", str(cap), *setup, "--solve", "joint",
                         "--json-lines", *extra], capture_output=True, text=True, check=True)
     wall = time.perf_counter() - t0
     lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
     # the same windows as the crossing beam: both stations in the window (one-station windows are
     # ok joint poses too, at the one-station precision, but the crossing beam has nothing there)
-    ok = [x for x in lines if x["status"] == "ok" and x["n_stations"] == 2]
-    return (np.array([x["t"] for x in ok]), np.array([x["translation"] for x in ok]), len(lines), wall)
+    ok = [x for x in lines if (any_status or x["status"] == "ok") and x["n_stations"] == 2]
+    return (np.array([x["t"] for x in ok]), np.array([x["translation"] for x in ok]), len(lines), wall,
+            np.array([x["pdop"] for x in ok]))
+
+
+def plain_stations(sc):
+    """The stations' poses without their calibrations (a stations file): the model ignores them."""
+    from layoutkit.io.stations import write_stations
+    from layoutkit.lighthouse import Station
+
+    def setup(folder):
+        p = Path(folder) / "plain.json"
+        write_stations(p, [Station(id=s.id, rotation=s.rotation, translation=s.translation, kind="lh2",
+                                   rotor_rpm=s.rotor_rpm) for s in sc["stations"]])
+        return ["--stations", str(p)]
+    return setup
 
 
 def jitter(p):
@@ -64,15 +83,21 @@ def rms_vs_truth(sc, t, p):
 def run(seed, duration, tmp):
     out = {"seed": seed}
     st = scenario(seed, duration=duration)
-    tj, pj, nj, wall = replay_joint(st, Path(tmp) / f"static{seed}")
+    tj, pj, nj, wall, pd = replay_joint(st, Path(tmp) / f"static{seed}", ["--rho", "0"])
+    # every status: without the calibration the residuals are ~100 sigma, the poses 'high_residual'
+    tu, pu, nu, _, _ = replay_joint(st, Path(tmp) / f"plain{seed}", setup=plain_stations(st), any_status=True)
+    tuo = replay_joint(st, Path(tmp) / f"plainok{seed}", setup=plain_stations(st))[0]
     tc, pc = crossing_beam(st, decoded_windows(st))
     out["static"] = {"joint_jitter_m": jitter(pj), "crossbeam_jitter_m": jitter(pc),
+                     "joint_dop_predicted_m": float(np.sqrt(np.mean(pd ** 2)) * st["sigma_eff"]),
+                     "joint_uncalibrated_rms_vs_truth_m": rms_vs_truth(st, tu, pu),
+                     "joint_uncalibrated_ok": int(len(tuo)), "joint_uncalibrated_solved": int(len(tu)),
                      "joint_rms_vs_truth_m": rms_vs_truth(st, tj, pj), "crossbeam_rms_vs_truth_m": rms_vs_truth(st, tc, pc),
                      "joint_ok": int(len(tj)), "joint_windows": nj, "crossbeam_windows": int(len(tc)),
                      "replay_wall_s": wall}
     fl = scenario(seed, duration=duration, motion=flying_motion(0.5))
-    tj, pj, nj, _ = replay_joint(fl, Path(tmp) / f"fly{seed}")
-    tm, pm, nm, _ = replay_joint(fl, Path(tmp) / f"flymc{seed}", ["--motion-compensation"])
+    tj, pj, nj, _, _ = replay_joint(fl, Path(tmp) / f"fly{seed}")
+    tm, pm, nm, _, _ = replay_joint(fl, Path(tmp) / f"flymc{seed}", ["--motion-compensation"])
     tc, pc = crossing_beam(fl, decoded_windows(fl))
     out["flight"] = {"joint_rms_vs_truth_m": rms_vs_truth(fl, tj, pj),
                      "joint_motion_compensated_rms_vs_truth_m": rms_vs_truth(fl, tm, pm),
