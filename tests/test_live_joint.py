@@ -227,3 +227,52 @@ def test_replay_reads_a_cfusdlog_directly(tmp_path):
     for x in ok:
         j = int(np.argmin(np.abs(starts + off - x["t"])))
         assert np.linalg.norm(np.subtract(x["translation"], tr[j])) < 0.02
+
+
+def test_live_joint_from_a_pty_equals_replay(tmp_path):
+    """Proof kind: same computation, two deliveries. The deck's bytes served over a real pty
+    (``run_fake_fpga``, 600-byte pieces at 4x real time) to ``layoutkit live --solve joint``: the
+    streaming windows (solved after every port read, the open window kept for the next read) give
+    the same joint poses as ``replay`` on the same bytes (same window times and statuses, poses to
+    1e-9). ``live --solve joint`` without station poses is one ``error:`` line, exit 2."""
+    import threading
+
+    from layoutkit.live.simulator import run_fake_fpga
+
+    sc = scenario(4, duration=3.0)
+    cap, yml = write_capture(sc, tmp_path / "c")
+    r = CliRunner().invoke(main, ["replay", str(cap), "--system-config", str(yml), "--json-lines"])
+    assert r.exit_code == 0, r.output[-1500:]
+    want = _lines(r.output)
+    data = sc["bytes"]
+    chunks = [(k / 600 * 0.005, data[k:k + 600]) for k in range(0, len(data), 600)]
+    ready, box = threading.Event(), {}
+
+    def on_ready(path):
+        box["path"] = path
+        ready.set()
+
+    th = threading.Thread(target=run_fake_fpga, args=(chunks,), kwargs=dict(on_ready=on_ready, realtime=True, speed=4.0),
+                          daemon=True)
+    th.start()
+    assert ready.wait(5)
+    r = CliRunner().invoke(main, ["live", "--port", box["path"], "--layout", str(sc_layout_path(tmp_path, sc)),
+                                  "--protocol", "bitcraze-lh2", "--system-config", str(yml), "--solve", "joint",
+                                  "--json-lines", "--idle-timeout", "1.5", "--duration", "30"])
+    th.join(10)
+    assert r.exit_code == 0, r.output[-1500:]
+    got = _lines(r.output)
+    assert len(got) == len(want) > 100 and all(x["station"] == "joint" for x in got)
+    assert [x["status"] for x in got] == [x["status"] for x in want]
+    np.testing.assert_allclose([x["t"] for x in got], [x["t"] for x in want], rtol=0, atol=1e-12)
+    np.testing.assert_allclose([x["translation"] for x in got], [x["translation"] for x in want], rtol=0, atol=1e-9)
+    r = CliRunner().invoke(main, ["live", "--port", "loop://", "--layout", str(sc_layout_path(tmp_path, sc)),
+                                  "--solve", "joint", "--duration", "1"])
+    assert r.exit_code == 2 and sum(x.startswith("error:") for x in r.output.splitlines()) == 1, r.output
+
+
+def sc_layout_path(tmp_path, sc):
+    p = tmp_path / "deck.layout.json"
+    if not p.exists():
+        p.write_text(json.dumps(sc["layout"].to_dict()))
+    return p

@@ -118,8 +118,18 @@ def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, option
     if options is not None and options.filter is not None:  # the per-sweep EKF beside the frames
         from .filter import FilterSink
 
+        from ..live.session import calibrated_setup
+
         fp = None if poses_path is None else Path(poses_path).with_name("filter_poses.csv")
-        sink = FilterSink(lay.positions, list(sidecar.stations) or None, options.filter, tr, json_out, fp)
+        # the filter sees the sweeps the decoder emits: measured angles with the stations' (or the
+        # system config's) calibrations in "model" mode, pre-corrected ones in "undistort" mode
+        sts, _, cals = calibrated_setup(list(sidecar.stations), sidecar.protocol_options, options.calibration)
+        if not sts and cals and 0 in cals:
+            from ..lighthouse import Station
+
+            sts = [Station(kind=cals[0].kind, rotor_rpm=3600.0 if cals[0].kind == "lh1" else 3000.0,
+                           calibration=cals[0])]
+        sink = FilterSink(lay.positions, sts or None, options.filter, tr, json_out, fp)
     return session_for(lay, sidecar, protocol=protocol, options=options, truth=tr, json_out=json_out,
                        poses_path=poses_path, sweep_sink=sink)
 
