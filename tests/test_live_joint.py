@@ -131,20 +131,27 @@ def test_replay_joint_follows_joint_dop_in_world_frame(static, tmp_path):
 
 
 def test_replay_per_station_keeps_per_station_lines(static):
-    """Proof kind: world truth. ``--solve per-station`` keeps one pose per station frame (``station``
-    0 or 1, mapped to the world with the system config's geometry; each station alone through its
-    calibrated forward model): ok poses lie near the truth at the one-station precision (tens of mm
-    along the range here, hence the 10 cm bound)."""
+    """Proof kind: the planar-ambiguity test on the same bytes. ``--solve per-station`` keeps one
+    pose per station frame (``station`` 0 or 1, world frame from the system config's geometry, each
+    station through its calibrated forward model, started from the fast PnP on the inverted
+    angles): the 3 x 1.5 cm planar deck at 3 m from ONE station has two poses that fit equally well
+    at this noise, so almost every frame is honestly ``ambiguous`` — while the joint solve of the
+    same windows is ``ok`` (two stations break the two-fold ambiguity)."""
     sc, cap, yml = static
     r = CliRunner().invoke(main, ["replay", str(cap), "--system-config", str(yml), "--solve", "per-station",
-                                  "--json-lines"])
-    assert r.exit_code == 0, r.output[-2000:]
+                                  "--json-lines", "--rho", "0"])
+    assert r.exit_code == 1, r.output[-2000:]            # no good pose: exit 1 with the reason
+    assert "most common reason" in r.output
     L = _lines(r.output)
     assert {x["station"] for x in L} == {0, 1}
-    ok = [x for x in L if x["status"] == "ok"]
-    assert len(ok) > 0.5 * len(L)
-    e = np.linalg.norm(np.array([x["translation"] for x in ok]) - truth_position(sc, [x["t"] for x in ok]), axis=1)
-    assert np.median(e) < 0.1
+    assert sum(x["status"] == "ambiguous" for x in L) >= 0.9 * len(L)
+    # the poses it does print (the better-fitting of the two) are at the one-station precision,
+    # not biased: median distance to the world truth within the one-station DOP scale (~1 cm)
+    e = np.linalg.norm(np.array([x["translation"] for x in L]) - truth_position(sc, [x["t"] for x in L]), axis=1)
+    assert np.median(e) < 0.02
+    r = CliRunner().invoke(main, ["replay", str(cap), "--system-config", str(yml), "--json-lines"])
+    J = _lines(r.output)
+    assert 1.9 * len(J) <= len(L) <= 2.1 * len(J) and sum(x["status"] == "ok" for x in J) >= 0.95 * len(J)
 
 
 def test_joint_without_station_poses_is_one_error_line(static):

@@ -433,9 +433,9 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         if cal is not None and all(frames[i].kind == cal.kind for i in idx):
             # through the forward model: the measured angles in the station's own convention
             raw = np.stack([frames[i].angles if frames[i].raw is None else frames[i].raw for i in idx])
-            a = np.where(lit[idx, :, None], raw, 0.0)
             kw["calibration"] = cal
-        elif init is not None and 0 <= t[idx[0]] - init[2] <= config.reacquire_s:
+            kw["raw"] = np.where(lit[idx, :, None], raw, 0.0)
+        if init is not None and 0 <= t[idx[0]] - init[2] <= config.reacquire_s:
             kw["initial"] = (np.broadcast_to(init[0], (len(idx), 3, 3)),
                              np.broadcast_to(init[1], (len(idx), 3)))
         Rs, ts, ok, rr, ad, pd, stat = _solve_frames(solve_pnp, P, a, lit[idx], kw, config)
@@ -474,15 +474,46 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
     whose pose moved by a fraction of a degree: the geometry, and so the DOP, is the same).
     Returns writable arrays ``(R (F, 3, 3), t (F, 3), ok (F,), residual_rms (F,) rad, adop (F,),
     pdop (F,), status (F,))`` (status before the continuity gate).
+    kw ``calibration`` + ``raw`` (F, n, 2) (measured angles, the station's own convention): the fast
+    PnP runs on the angles inverted through the calibration (its start, its planar-ambiguity test)
+    and its pose is refined by :func:`layoutkit.joint.solve_joint` through the forward model — the
+    residuals and the pose are the forward model's, an ambiguous frame stays ambiguous.
     """
+    kw = dict(kw)
+    cal, raw = kw.pop("calibration", None), kw.pop("raw", None)
+    if cal is not None:
+        from ..lighthouse import undistort
+
+        ideal = undistort(np.where(lit[..., None], raw, np.nan), cal, max_iterations=20, tol=1e-9)
+        a = np.where(lit[..., None], lh2_to_lh1_angles(ideal) if cal.kind == "lh2" else ideal, np.pi / 2)
     sol = solve_pnp(P, a, lit, sigma=config.sigma_theta, rho=config.rho, **kw)
     ok = np.array(sol.success, bool)
     Rs, ts = np.array(sol.rotation, float), np.array(sol.translation, float)
     rr = np.array(sol.residual_rms, float)
+    status0 = np.asarray(sol.status)
+    if cal is not None:
+        from ..joint import solve_joint
+        from ..pnp import STATUS_AMBIGUOUS as PNP_AMB, STATUS_OK as PNP_OK
+
+        go = np.flatnonzero(np.all(np.isfinite(Rs), (1, 2)) & np.all(np.isfinite(ts), 1))
+        if go.size:
+            ref = solve_joint(P, raw[go][:, None], lit[go][:, None],
+                              stations=[Station(kind=cal.kind, calibration=cal)], initial=(Rs[go], ts[go]))
+            took = np.isfinite(np.asarray(ref.rotation)[:, 0, 0])
+            k = go[took]
+            Rs[k], ts[k], rr[k] = np.asarray(ref.rotation)[took], np.asarray(ref.translation)[took], \
+                np.asarray(ref.residual_rms)[took]
+            st_ref = np.asarray(ref.status)[took]
+            status0 = status0.copy()
+            status0[k] = np.where(status0[k] == PNP_AMB, PNP_AMB, st_ref)
+            ok = status0 == PNP_OK
+            bad = go[~took]
+            ok[bad] = False
+        sol = type(sol)(Rs, ts, ok, status0, rr, sol.iterations)
     if dop is not None:
         ad, pd = np.array(dop[0]), np.array(dop[1])
     else:
-        ad, pd = _dop(P, Rs, ts, ok, lit, config, kw.get("calibration"))
+        ad, pd = _dop(P, Rs, ts, ok, lit, config, cal)
     from ..pnp import STATUS_AMBIGUOUS as PNP_AMBIGUOUS
 
     failed = np.where(np.asarray(sol.status) == PNP_AMBIGUOUS, STATUS_AMBIGUOUS, STATUS_SOLVER_FAILED)
