@@ -19,8 +19,10 @@ Parts (results in benchmarks/results/calibrate[_quick].json):
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -164,7 +166,16 @@ def main():
     if "recovery" in parts:
         out["recovery"] = recovery(10 if q else 100, 60, 16)
         print("recovery", out["recovery"], flush=True)
-    p = write_result("calibrate_quick" if q else "calibrate", out)
+    name = "calibrate_quick" if q else "calibrate"
+    prev = Path(__file__).resolve().parent / "results" / f"{name}.json"
+    if prev.exists():  # a subset of --parts keeps the other parts' last figures
+        old = json.loads(prev.read_text())
+        out = {**{k: v for k, v in old.items() if k not in ("benchmark", "when", "machine")}, **out}
+    for k in parts:
+        key = {"time": "calibrate_time", "speed": "joint_speed", "dop": "joint_vs_dop"}.get(k, k)
+        if isinstance(out.get(key), dict):
+            out[key]["measured"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    p = write_result(name, out)
     print("wrote", p)
 
 

@@ -23,9 +23,27 @@ instead lets scipy difference the model over that pattern (``jac_sparsity``), a 
 
 Uncertainty: the covariance of the global parameters is the inverse of the Schur complement of the
 per-sample pose blocks in ``J^T J`` (J the loss-weighted Jacobian at the solution), scaled by the
-residual variance. A parameter whose posterior standard deviation exceeds ``0.5 x`` its prior's is
-determined by the prior, not by the data: it is reported ``unobservable``, held at its starting
-value and the problem re-solved without it (it is never returned as a fitted value).
+residual variance. When the sensor positions are not adjusted, the layout's own uncertainty
+(``layout_sigma``, default ``offset_prior``, per coordinate) is carried as a *consider* term (Schmidt):
+an unmodelled sensor offset ``d_o`` moves the estimate by ``-H^-1 H_go d_o``, so its covariance adds
+``H^-1 C C^T H^-1 layout_sigma^2`` with ``C`` the Schur-reduced cross-information of the global
+columns with the offsets. Noise averages down over repeated samples; a layout error does not (it is the
+same in every sample of a static capture), which is why a static capture's white-noise sigmas alone
+are far too small. Observability (per calibration parameter, prior sd ``sigma_0``):
+
+- ``unobservable``: in the null space, or the posterior sd from noise alone exceeds ``0.5 sigma_0``
+  (the data carry less than 3x the prior's information);
+- ``weakly_observable``: passes that, but the sd including the layout consider term exceeds
+  ``0.5 sigma_0`` — the data would fix it only if the layout were exact (it is confounded with sensor
+  offsets and poses; e.g. tilt, curve and gib from one static pose).
+
+Both are held at their starting (factory) values and the problem re-solved without them, until no
+parameter fails (never returned as a fitted value). A fitted parameter of a station that came with a
+calibration that lands more than :data:`SUSPECT_SIGMAS` reported sds from that factory value is
+``suspect`` (value and sd returned: the data and the factory value disagree; check the station's
+model, pose or the layout). Every global parameter also reports ``correlation``: its multiple
+correlation with all other unknowns, ``sqrt(1 - 1 / (H_jj Sigma_jj))`` (1 = a linear combination of
+them).
 """
 from __future__ import annotations
 
@@ -40,12 +58,16 @@ __all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "j
            "station_to_ba", "station_from_ba"]
 
 UNOBSERVABLE_RATIO = 0.5
+#: A fitted calibration parameter this many reported sds from its factory value is ``suspect``.
+SUSPECT_SIGMAS = 5.0
 
 
 @dataclass(frozen=True)
 class ParameterEstimate:
-    """One global parameter: ``name`` (e.g. ``station 1 axis 0 phase``), ``value``, ``std`` (None when
-    unobservable), ``start``, ``unit``, ``status`` ("ok", "unobservable" or "fixed")."""
+    """One global parameter: ``name`` (e.g. ``station 1 axis 0 phase``), ``value``, ``std`` (None when not
+    fitted; includes the layout consider term), ``start``, ``unit``, ``status`` ("ok", "suspect",
+    "weakly_observable", "unobservable" or "fixed"; module docstring), ``correlation``: multiple
+    correlation with all other unknowns at the last solve where it was free (None if never free)."""
 
     name: str
     value: float
@@ -53,6 +75,7 @@ class ParameterEstimate:
     start: float
     unit: str
     status: str
+    correlation: float | None = None
 
 
 @dataclass(frozen=True)
@@ -394,11 +417,38 @@ def _global_covariance(J, K):
     return cov_n / np.outer(d, d), null
 
 
+def _consider_covariance(Jw, Jo, K, cov):
+    """Covariance (absolute, parameter units) the unadjusted sensor offsets add to the global columns.
+
+    Jw : (M, 6K + G) weighted Jacobian of the adjusted problem; Jo : (M, 3n) weighted Jacobian of the
+    same rows w.r.t. the sensor offsets (zero on prior rows); cov : (G, G) the global covariance of
+    :func:`_global_covariance` (the inverse Schur-reduced information). An offset error ``d_o`` moves
+    the estimate by ``-Sigma C d_o`` with ``C = H_go - H_gp H_pp^-1 H_po`` (sample poses eliminated), so
+    per unit offset variance the consider term is ``Sigma C C^T Sigma`` (multiply by ``layout_sigma^2``).
+    """
+    Jc = Jw.tocsc()
+    Jp, Jg = Jc[:, : 6 * K], Jc[:, 6 * K:]
+    Joc = Jo.tocsc()
+    Hgo = (Jg.T @ Joc).toarray()
+    Hpo = (Jp.T @ Joc).toarray().reshape(K, 6, -1)
+    Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], K, 6)
+    Hpp = (Jp.T @ Jp).tocsr()
+    blocks = np.zeros((K, 6, 6))
+    for a in range(6):
+        for b in range(6):
+            blocks[:, a, b] = np.asarray(Hpp[np.arange(K) * 6 + a, np.arange(K) * 6 + b]).ravel()
+    inv = np.linalg.pinv(blocks)
+    Cr = Hgo - np.einsum("gki,kij,kjo->go", Hgp, inv, Hpo)
+    A = cov @ Cr
+    return A @ A.T
+
+
 def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses, fit_calibration: bool = True,
                   sensor_offsets: bool = False, offset_prior: float = 1e-3, offset_bound: float = 5e-3,
                   calibration_prior: float = 0.1, reference=None, reference_sigma=(1e-3, 1e-3),
                   gauge_station: int = 0, loss: str = "soft_l1", f_scale: float = 3.0, max_nfev: int = 200,
-                  solver: str = "schur", jacobian: str = "analytic", before=None) -> BundleResult:
+                  solver: str = "schur", jacobian: str = "analytic", before=None,
+                  layout_sigma: float | None = None) -> BundleResult:
     """Bundle adjustment of K samples seen by S stations (module docstring).
 
     points_body : (n, 3) m, the layout as measured; angles : (K, S, n, 2) rad, measured (distorted)
@@ -415,6 +465,9 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     "least_squares" (``scipy.optimize.least_squares``, trf + lsmr over the sparse problem;
     ``jacobian="2-point"`` differences it over :func:`jacobian_sparsity`). Both minimise the same cost
     (``loss`` on the angle residuals in units of sigma, ``f_scale`` sigmas); the tests check they agree.
+    layout_sigma : m, 1-sigma of each sensor coordinate when ``sensor_offsets`` is off (default
+    ``offset_prior``; 0 = the layout is exact): carried as a consider term in every reported sd and in
+    the ``weakly_observable`` test (module docstring).
     """
     from scipy.optimize import least_squares
 
@@ -446,10 +499,14 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                     if name in names and not (st.kind == "lh2" and ax == 0 and j == 0):
                         free_cal.append((s, ax, j))   # (LH2 phase_common is the station's yaw: never free)
     fixed: set = set()
+    weak: set = set()
+    lsig = float(offset_prior if layout_sigma is None else layout_sigma)
+    consider = (not sensor_offsets) and lsig > 0
     base = (R0, t0, RS0, TS0)
     x0_full = None
     before_res = before
-    for attempt in range(3):
+    corr_seen: dict = {}
+    for attempt in range(len(free_cal) + 1):
         cal_list = [c for c in free_cal if c not in fixed]
         pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
                       offsets=sensor_offsets, offset_prior=offset_prior, calibration_prior=prior,
@@ -492,12 +549,32 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         rd = r[: pb.m_data]
         dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off), 1)
         s2 = float(np.sum(wts[: pb.m_data] * rd * rd) / dof)
-        std = np.sqrt(np.maximum(np.diag(cov), 0) * s2)
+        std_noise = np.sqrt(np.maximum(np.diag(cov), 0) * s2)
+        if consider:                                   # the unadjusted layout's error (module docstring)
+            from scipy.sparse import csr_matrix, vstack
+
+            twin = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
+                            offsets=True, offset_prior=lsig, calibration_prior=prior, cal_start=cal_start,
+                            reference=reference, reference_sigma=reference_sigma)
+            Jt = twin.jacobian(np.concatenate([sol.x, np.zeros(3 * n)]), base).tocsr()
+            Jo = vstack([diags(np.sqrt(wts[: pb.m_data])) @ Jt[: pb.m_data, twin.c_off:],
+                         csr_matrix((pb.M - pb.m_data, 3 * n))])
+            cov_tot = cov * s2 + _consider_covariance(Jw, Jo, K, cov) * lsig ** 2
+        else:
+            cov_tot = cov * s2
+        std = np.sqrt(np.maximum(np.diag(cov_tot), 0))
+        hjj = np.asarray(Jw.tocsc()[:, 6 * K:].power(2).sum(0)).ravel()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = np.sqrt(np.clip(1.0 - 1.0 / (hjj * np.diag(cov)), 0.0, 1.0))
         newly = set()
         for (s, ax, j), c in pb.cal_col.items():
             gi = c - 6 * K
-            if null[gi] or std[gi] > UNOBSERVABLE_RATIO * prior[j]:
+            corr_seen[(s, ax, j)] = float(corr[gi])
+            if null[gi] or std_noise[gi] > UNOBSERVABLE_RATIO * prior[j]:
                 newly.add((s, ax, j))
+            elif std[gi] > UNOBSERVABLE_RATIO * prior[j]:
+                newly.add((s, ax, j))
+                weak.add((s, ax, j))
         x0_full = sol.x
         if not newly:
             break
@@ -520,8 +597,18 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                 bad = bool(null[gi])
                 params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val),
                                                 None if bad else float(std[gi]), float(st0), "rad" if q < 3 else "m",
-                                                "unobservable" if bad else "ok"))
-    scov = cov * s2
+                                                "unobservable" if bad else "ok", float(corr[gi])))
+
+    def fitted_status(s, value, start, sd):
+        """'suspect' when a station that came with a (factory) calibration lands far from it."""
+        far = sd is not None and abs(value - start) > SUSPECT_SIGMAS * sd
+        return "suspect" if (stations[s].calibration is not None and far) else "ok"
+
+    def held_status(s, keys):
+        if any(k in weak for k in keys):
+            return "weakly_observable"
+        return "unobservable" if any(k in fixed for k in keys) else "fixed"
+
     for s, st in enumerate(stations):
         for ax in (0, 1):
             for j, name in enumerate(_ba_names(st.kind)[ax]):
@@ -531,12 +618,14 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                 nm = f"station {st.id} axis {ax} {name}"
                 if key in pb.cal_col:
                     gi = pb.cal_col[key] - 6 * K
-                    params.append(ParameterEstimate(nm, float(cal[s, ax, j]), float(std[gi]),
-                                                    float(cal_start[s, ax, j]), "rad", "ok"))
+                    params.append(ParameterEstimate(nm, float(cal[s, ax, j]), float(std[gi]), float(cal_start[s, ax, j]),
+                                                    "rad", fitted_status(s, cal[s, ax, j], cal_start[s, ax, j], std[gi]),
+                                                    float(corr[gi])))
                 else:
-                    params.append(ParameterEstimate(nm, float(cal[s, ax, j]), None, float(cal_start[s, ax, j]),
-                                                    "rad", "unobservable" if (key in fixed or (st.kind == "lh2" and ax == 0 and j == 0))
-                                                    else "fixed"))
+                    lh2_yaw = st.kind == "lh2" and ax == 0 and j == 0
+                    params.append(ParameterEstimate(nm, float(cal[s, ax, j]), None, float(cal_start[s, ax, j]), "rad",
+                                                    "unobservable" if lh2_yaw else held_status(s, [key]),
+                                                    corr_seen.get(key)))
             # derived magnitude/phase of the two sinusoids, std by first-order propagation
             for ia, ib, mname, pname in ((3, 4, "gib_mag", "gib_phase"), (5, 6, "ogee_mag", "ogee_phase")):
                 if CALIBRATION_PARAMS[ib] not in MODEL_PARAMS[st.kind]:
@@ -546,20 +635,23 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                 m0 = station_from_ba(cal_start[s], st.kind)[ax]
                 ka, kb = pb.cal_col.get((s, ax, ia)), pb.cal_col.get((s, ax, ib))
                 if ka is None or kb is None:
-                    st_ = "unobservable" if ((s, ax, ia) in fixed or (s, ax, ib) in fixed) else "fixed"
+                    st_ = held_status(s, [(s, ax, ia), (s, ax, ib)])
                     params.append(ParameterEstimate(f"station {st.id} axis {ax} {mname}", mag, None, float(m0[ib]), "rad", st_))
                     params.append(ParameterEstimate(f"station {st.id} axis {ax} {pname}", ph, None, float(m0[ia]), "rad", st_))
                     continue
                 g = np.array([ka, kb]) - 6 * K
-                C2 = scov[np.ix_(g, g)]
+                C2 = cov_tot[np.ix_(g, g)]
                 u = np.array([a_, b_]) / max(mag, 1e-300)
                 sd_mag = float(np.sqrt(max(u @ C2 @ u, 0.0)))
                 v = np.array([-b_, a_]) / max(mag, 1e-300) ** 2
                 sd_ph = float(np.sqrt(max(v @ C2 @ v, 0.0)))
                 ok_ph = mag > 3.0 * sd_mag
-                params.append(ParameterEstimate(f"station {st.id} axis {ax} {mname}", mag, sd_mag, float(m0[ib]), "rad", "ok"))
+                params.append(ParameterEstimate(f"station {st.id} axis {ax} {mname}", mag, sd_mag, float(m0[ib]), "rad",
+                                                fitted_status(s, mag, m0[ib], sd_mag)))
+                dph = float(_wrap(ph - m0[ia]))
                 params.append(ParameterEstimate(f"station {st.id} axis {ax} {pname}", ph, sd_ph if ok_ph else None,
-                                                float(m0[ia]), "rad", "ok" if ok_ph else "unobservable"))
+                                                float(m0[ia]), "rad",
+                                                fitted_status(s, m0[ia] + dph, m0[ia], sd_ph) if ok_ph else "unobservable"))
     if sensor_offsets:
         for i in range(n):
             for c in range(3):
@@ -576,8 +668,10 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     R = np.where(good[:, None, None], R, np.nan)
     t = np.where(good[:, None], t, np.nan)
     status = "ok" if sol.status > 0 else "not_converged"
+    cnt = {k: sum(p.status == k for p in params) for k in ("unobservable", "weakly_observable", "suspect")}
     msg = (f"{sol.message.strip()} ({sol.nfev} evaluations); residual scale {np.sqrt(s2):.3g} sigma; "
-           f"{sum(p.status == 'unobservable' for p in params)} parameter(s) unobservable")
+           f"{cnt['unobservable']} parameter(s) unobservable, {cnt['weakly_observable']} weakly observable "
+           f"(held at their start), {cnt['suspect']} suspect")
     return BundleResult(new_st, P + off, R, t, params, before_res, after, sol.status > 0, status, msg,
                         int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost)})
 

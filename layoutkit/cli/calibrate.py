@@ -18,7 +18,8 @@ from .options import json_flag, layout_option, out_dir_option, seed_option, sigm
                    "fixes frame and scale (then no station is held fixed).")
 @click.option("--sensor-offsets", is_flag=True, help="Also adjust each sensor's position (bounded, with a prior).")
 @click.option("--offset-prior-mm", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
-              help="1-sigma of the hand-measured sensor positions, mm (the prior of --sensor-offsets).")
+              help="1-sigma of the hand-measured sensor positions, mm: the prior of --sensor-offsets; without "
+                   "it, the layout uncertainty every reported sd includes (docs/calibration.md).")
 @click.option("--calibration-prior", "calibration_prior", type=click.FloatRange(min=0.0, min_open=True), default=0.1,
               show_default=True, help="1-sigma of each calibration parameter around its starting (factory) value, rad.")
 @sigma_option(help="Sweep-angle noise 1-sigma, arcsec: the residual scale of the fit (paper: 8.28\").")
@@ -31,8 +32,9 @@ def calibrate_cmd(frames_path, layout_path, stations_path, out_dir, reference_pa
     """Bundle-adjust station poses and calibration (and, with --sensor-offsets, sensor positions).
 
     Samples: the frame table's rows grouped into 20 ms windows (one row per station). Gauge: the
-    first station's pose as given, or the --reference poses. Unobservable parameters are reported
-    as such and kept at their starting values (docs/calibration.md).
+    first station's pose as given, or the --reference poses. Unobservable and weakly observable
+    parameters are reported as such and kept at their starting values; parameters far from their
+    factory values are flagged suspect (docs/calibration.md).
     """
     from ..workflows.calibrate import calibrate_files
 
@@ -50,8 +52,12 @@ def calibrate_cmd(frames_path, layout_path, stations_path, out_dir, reference_pa
     click.echo(f"{rep['samples']} samples, {len(rep['stations'])} station(s): {rep['message']}")
     click.echo(f"median per-sample residual RMS: raw {fmt(med['raw'])} rad, start {fmt(med['start'])} rad, "
                f"after {fmt(med['after'])} rad")
-    click.echo(f"{len(rep['unobservable'])} parameter(s) unobservable; wrote {rep['outputs']['stations']}, "
+    click.echo(f"{len(rep['unobservable'])} parameter(s) unobservable, {len(rep['weakly_observable'])} weakly "
+               f"observable (held at their start); wrote {rep['outputs']['stations']}, "
                f"{rep['outputs']['layout']}, {rep['outputs']['report']}")
+    if rep["suspect"]:
+        click.echo(f"suspect (many sd from the factory value; check the station's model and pose): "
+                   f"{', '.join(rep['suspect'])}")
     if not rep["success"]:
         fail("the adjustment did not converge (see report.json)", code=1)
 
