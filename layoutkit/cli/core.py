@@ -7,6 +7,7 @@ from ..units import ARCSEC
 from ._common import echo_json, emit_json, fail
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
                       registry_choice, rho_option, seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
+                      ignore_calibration_option,
                       workers_option)
 
 
@@ -101,13 +102,14 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, as_jso
 @click.option("--static", is_flag=True,
               help="The body is at rest: estimate sigma and rho from the angles and compare the pose scatter "
                    "with the DOP prediction.")
-@click.option("--calibrated", is_flag=True,
-              help="Solve each LH1 station's frames through its calibration from --stations (factory model).")
+# --calibrated was the opt-in to the stations' calibration; it is the default now (kept so scripts run)
+@click.option("--calibrated", is_flag=True, hidden=True)
+@ignore_calibration_option
 @json_flag(help="Print a JSON summary.")
 @filter_options
 @solve_mode_option
-def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, calibrated, as_json,
-              filter_settings, solve_mode):
+def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, calibrated, ignore_calibration,
+              as_json, filter_settings, solve_mode):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
 
     Bad frames (too few angles, inf, angles outside (0, pi), all behind) get a status each and the
@@ -115,7 +117,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
     is (with the most common reason). With --stations the pose table is in the world frame; with
     several stations the default is --solve joint: one pose per 20 ms window from all stations'
     angles through their calibrated forward models (station 'joint'); --solve per-station solves
-    each station's frames alone.
+    each station's frames alone — also through its calibration when the stations file carries one
+    (--ignore-calibration: the ideal model, for comparison).
 
     With --filter ekf the frames (in time order, by their t) also go through the tracking filter
     (X then Y sweep at the frame's t); --out then holds the filtered poses (status 0 ok, 10
@@ -124,6 +127,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
     from ..workflows.frames import solve_frame_file
 
     lay = _layout(layout_path)
+    if calibrated and ignore_calibration:
+        fail("--calibrated and --ignore-calibration: choose one (calibrated is the default)")
     if solve_mode == "joint" and stations_path is None:
         fail("--solve joint needs --stations (station poses in one world frame)")
     if stations_path is not None and solve_mode != "per-station":
@@ -137,7 +142,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
         several = False
     if several:  # joint: one pose per window through every station's calibrated forward model
         try:
-            summary = solve_station_file(frames_path, lay, stations_path, out=out, mode="joint", sigma=sigma, rho=rho)
+            summary = solve_station_file(frames_path, lay, stations_path, out=out, mode="joint", sigma=sigma, rho=rho,
+                                         ignore_calibration=ignore_calibration)
         except ValueError as exc:
             fail(str(exc))
         if as_json:
@@ -154,7 +160,7 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
     try:
         summary = solve_frame_file(frames_path, lay, out=out, sigma=sigma, rho=rho, method=solver,
                                    filter_settings=filter_settings, stations_path=stations_path, static=static,
-                                   calibrated=calibrated)
+                                   ignore_calibration=ignore_calibration)
     except ValueError as exc:
         fail(str(exc))
     if as_json:

@@ -32,7 +32,7 @@ __all__ = [
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options",
-    "system_config_option", "stations_option", "solve_mode_option", "SOLVE_MODES", "scheduler_option", "workers_option",
+    "system_config_option", "stations_option", "ignore_calibration_option", "solve_mode_option", "SOLVE_MODES", "scheduler_option", "workers_option",
 ]
 
 #: names of :data:`layoutkit.coverage_rule.COVERAGE_RULES` (listed here so that importing the CLI
@@ -301,6 +301,15 @@ def stations_option(f=None, *, required: bool = False,
     ``stations_path``."""
     deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False), default=None,
                         required=required, metavar="FILE", help=help)
+    return deco(f) if f is not None else deco
+
+
+def ignore_calibration_option(f=None):
+    """``--ignore-calibration``: solve through the ideal station model even when the stations JSON
+    carries a calibration (the uncalibrated comparison). The command receives ``ignore_calibration``."""
+    deco = click.option("--ignore-calibration", "ignore_calibration", is_flag=True,
+                        help="Ignore the stations' calibration (ideal model; for comparison with the calibrated "
+                             "solve, which is the default whenever --stations carries one).")
     return deco(f) if f is not None else deco
 
 

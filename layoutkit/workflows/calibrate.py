@@ -277,7 +277,8 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
 
 
 def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, mode: str | None = None,
-                       sigma: float | None = None, rho: float = 0.0, motion_compensation: bool = False) -> dict:
+                       sigma: float | None = None, rho: float = 0.0, motion_compensation: bool = False,
+                       ignore_calibration: bool = False) -> dict:
     """``layoutkit solve FRAMES --stations S [--solve joint|per-station]``: poses in the stations' world
     frame through each station's forward model (calibration included).
 
@@ -285,6 +286,7 @@ def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, 
     row's station) or None (joint when the file has several stations). Writes the pose table to
     ``out`` (t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m) and returns a summary
     with status counts and, with ``sigma``, the DOP-predicted position precision of the geometry.
+    ignore_calibration : drop the stations' calibrations (the ideal model, for comparison).
     """
     from ..dop import pose_dop
     from ..geometry import matrix_to_rotvec
@@ -294,6 +296,10 @@ def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, 
     from ..pnp import STATUS_NAMES
 
     stations = list(read_stations(stations_path))
+    if ignore_calibration:
+        from dataclasses import replace
+
+        stations = [replace(s, calibration=None) for s in stations]
     fr = read_station_frames(frames_path, layout)
     sidx = station_index(fr.station, stations)
     present = sorted(set(sidx[sidx >= 0].tolist()))

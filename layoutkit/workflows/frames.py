@@ -83,15 +83,20 @@ def _nearest_initial(t, station, ok, R, T, need):
 
 def angle_residuals(layout: Layout, angles, seen, R, T, calibration=None) -> np.ndarray:
     """Measured minus predicted sweep angles ``(F, n, 2)`` rad of poses ``R (F,3,3), T (F,3)``
-    (NaN where not seen or no pose); wrapped to (-pi, pi]. calibration : the station's LH1
-    calibration (predicted = its forward model, :func:`layoutkit.lighthouse.measure`)."""
+    (NaN where not seen or no pose); wrapped to (-pi, pi]. calibration : the station's calibration
+    (predicted = its forward model, :func:`layoutkit.lighthouse.measure`; an LH2 calibration compares
+    light-plane angles, the frame table's LH1-equivalent ones turned back by
+    :func:`layoutkit.lighthouse.sweep_to_lh2_angles`)."""
     from ..geometry import transform_points
-    from ..lighthouse import measure, sweep_angles
+    from ..lighthouse import measure, sweep_angles, sweep_to_lh2_angles
 
     with np.errstate(invalid="ignore"):
         pts = transform_points(R, T, layout.positions)
-        pred = sweep_angles(pts) if calibration is None else measure(pts, calibration, "lh1")
-        r = np.asarray(angles, float) - pred
+        pred = sweep_angles(pts) if calibration is None else measure(pts, calibration)
+        a = np.asarray(angles, float)
+        if calibration is not None and calibration.kind == "lh2":
+            a = sweep_to_lh2_angles(a)
+        r = a - pred
     r = (r + np.pi) % (2 * np.pi) - np.pi
     return np.where(seen, r, np.nan)
 
@@ -184,27 +189,57 @@ def static_precision(layout: Layout, angles, seen, R, T, *, min_frames: int = 10
             "mean_rotvec": Rotation.from_matrix(Rm).as_rotvec().tolist(), "mean_translation": tm.tolist()}
 
 
-def _station_calibrations(fr: Frames, stations: dict | None, calibrated: bool) -> dict:
-    """``{station index: Calibration}`` for a calibrated solve (LH1 stations with a calibration)."""
-    if not calibrated:
+def _station_calibrations(fr: Frames, stations: dict | None, use: bool) -> dict:
+    """``{station index: Calibration}`` of the frame table's stations that carry one (none when
+    ``use`` is False: the ideal model, ``--ignore-calibration``)."""
+    if not use or not stations:
         return {}
-    if not stations:
-        raise ValueError("--calibrated needs --stations (the stations JSON carries the calibration)")
     cals = {}
     for s in np.unique(fr.stations()):
         st = stations.get(int(s))
-        if st is None or st.calibration is None:
-            continue
-        if st.kind != "lh1":
-            raise ValueError(f"--calibrated: station {int(s)} is LH2; the frame table holds LH1-equivalent angles "
-                             "converted without calibration, and a calibrated LH2 solve needs the plane angles "
-                             "(not supported)")
-        cals[int(s)] = st.calibration
+        if st is not None and st.calibration is not None:
+            cals[int(s)] = st.calibration
     return cals
 
 
+def _solve_calibrated(layout, angles, seen, cal, noise, initial=None):
+    """One station's frames through its forward model (:func:`layoutkit.pnp.solve_pnp` with
+    ``calibration``, i.e. :func:`layoutkit.joint.solve_joint` with one station), the planar-ambiguity
+    test kept: the ideal solver with its test runs on the undistorted angles (the same geometry); a
+    frame it calls ambiguous stays ``STATUS_AMBIGUOUS`` and its runner-up is refined through the model.
+    angles : the frame table's LH1-equivalent angles (LH2 rows turned into light-plane angles here)."""
+    from ..lighthouse import lh2_to_lh1_angles, sweep_to_lh2_angles, undistort
+    from ..pnp import STATUS_AMBIGUOUS, STATUS_NO_START, solve_pnp
+
+    a_model = sweep_to_lh2_angles(angles) if cal.kind == "lh2" else np.asarray(angles, float)
+    a_model = np.where(seen, a_model, np.nan)
+    with np.errstate(invalid="ignore"):
+        ideal = undistort(a_model, cal, max_iterations=20, tol=1e-9)
+    if cal.kind == "lh2":
+        ideal = lh2_to_lh1_angles(ideal)
+    ref = solve_pnp(layout.positions, ideal, seen & np.isfinite(ideal), initial=initial, **noise)
+    have = np.all(np.isfinite(ref.translation), 1) & np.all(np.isfinite(ref.rotation), (1, 2))
+    ini = (np.where(have[:, None, None], ref.rotation, np.nan), np.where(have[:, None], ref.translation, np.nan))
+    if initial is not None:
+        ini = (np.where(have[:, None, None], ini[0], initial[0]), np.where(have[:, None], ini[1], initial[1]))
+    sol = solve_pnp(layout.positions, a_model, seen, calibration=cal, initial=ini)
+    status = sol.status.copy()
+    # no cold start (fewer than 4 sensors on both axes): say so, so that pass 2 retries from a neighbour
+    status[(ref.status == STATUS_NO_START) & ~sol.success] = STATUS_NO_START
+    alt_R = np.full(sol.rotation.shape, np.nan)
+    alt_T = np.full(sol.translation.shape, np.nan)
+    amb = (ref.status == STATUS_AMBIGUOUS) & sol.success
+    if amb.any() and ref.alt_rotation is not None:
+        k = np.flatnonzero(amb)
+        alt = solve_pnp(layout.positions, a_model[k], seen[k], calibration=cal,
+                        initial=(ref.alt_rotation[k], ref.alt_translation[k]))
+        status[k] = STATUS_AMBIGUOUS
+        alt_R[k], alt_T[k] = alt.rotation, alt.translation
+    return sol.rotation, sol.translation, status, sol.residual_rms, alt_R, alt_T
+
+
 def _solve_by_station(layout, angles, seen, st, cals, noise, initial=None):
-    """solve_pnp per station (each with its calibration, if any); arrays over all frames."""
+    """solve_pnp per station (through its calibration, if any); arrays over all frames."""
     from ..pnp import solve_pnp
 
     F = len(angles)
@@ -213,12 +248,13 @@ def _solve_by_station(layout, angles, seen, st, cals, noise, initial=None):
     alt_R, alt_T = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan)
     groups = [(None, np.ones(F, bool))] if not cals else [(int(s), st == s) for s in np.unique(st)]
     for s, k in groups:
-        kw = dict(noise)
         cal = cals.get(s) if s is not None else None
-        if cal is not None:
-            kw = {"calibration": cal}
         ini = None if initial is None else (initial[0][k], initial[1][k])
-        sol = solve_pnp(layout.positions, angles[k], seen[k], initial=ini, **kw)
+        if cal is not None:
+            out = _solve_calibrated(layout, angles[k], seen[k], cal, noise, initial=ini)
+            R[k], T[k], status[k], res[k], alt_R[k], alt_T[k] = out
+            continue
+        sol = solve_pnp(layout.positions, angles[k], seen[k], initial=ini, **noise)
         R[k], T[k], status[k], res[k] = sol.rotation, sol.translation, sol.status, sol.residual_rms
         if sol.alt_rotation is not None:
             alt_R[k], alt_T[k] = sol.alt_rotation, sol.alt_translation
@@ -227,7 +263,7 @@ def _solve_by_station(layout, angles, seen, st, cals, noise, initial=None):
 
 def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0,
                  method: str = "lm", stations: dict | None = None, static: bool = False,
-                 calibrated: bool = False) -> dict:
+                 ignore_calibration: bool = False) -> dict:
     """Solve every frame; never raises on bad frames (each gets a status).
 
     Pass 1 solves every frame cold; pass 2 solves the frames that meet the minimum rule but had
@@ -236,8 +272,10 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     frame (``world_rotvec``, ``world_translation``) and the per-station mean world poses compared.
     static : the body is at rest; add :func:`static_precision` per station.
     method : a key of :data:`layoutkit.pnp.PNP_SOLVERS`.
-    calibrated : solve each LH1 station's frames through its calibration (``stations`` needed;
-    :func:`layoutkit.pnp.solve_pnp` with ``calibration``); residuals are then against that model.
+    Every station of ``stations`` that carries a calibration is solved through its forward model
+    (:func:`layoutkit.pnp.solve_pnp` with ``calibration``: residuals minimised through ``measure``, never
+    pre-corrected; LH1 and LH2); residuals are then against that model. ignore_calibration : the
+    ideal model for every station (the uncalibrated comparison).
     Returns a summary dict plus per-frame arrays ``t, station, status, rotvec, translation,
     residual_rms, success``.
     """
@@ -247,7 +285,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     seen = ~np.isnan(fr.angles)
     st = fr.stations()
     noise = {"method": method, **({} if sigma is None else {"sigma": sigma, "rho": rho})}  # the ambiguity test's noise
-    cals = _station_calibrations(fr, stations, calibrated)
+    cals = _station_calibrations(fr, stations, not ignore_calibration)
     R, T, status, res, alt_R, alt_T = _solve_by_station(layout, fr.angles, seen, st, cals, noise)
     need = status == STATUS_NO_START
     second = 0
@@ -286,6 +324,8 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
            "status_counts": {int(k): int(v) for k, v in zip(*np.unique(status, return_counts=True))},
            "statuses": counts, "input": reasons, "calibrated_stations": sorted(cals),
            "residual_rms_median": float(np.median(res[ok])) if ok.any() else None,
+           "residual_rms_median_per_station": {str(int(q)): float(np.median(res[ok & (st == q)]))
+                                               for q in np.unique(st) if (ok & (st == q)).any()},
            "residual_rms_p90": float(np.percentile(res[ok], 90)) if ok.any() else None,
            "sensor_residuals": sensor_residual_summary(layout.ids, r),
            "t": fr.t, "station": st, "rotvec": rv, "translation": np.where(has_pose[:, None], T, np.nan),
@@ -370,7 +410,7 @@ def simulate_frame_file(layout: Layout, frames: int, out, *, seed: int, sigma: f
 
 def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | None = None, rho: float = 0.0,
                      method: str = "lm", filter_settings: dict | None = None, stations_path=None,
-                     static: bool = False, calibrated: bool = False) -> dict:
+                     static: bool = False, ignore_calibration: bool = False) -> dict:
     """What ``layoutkit solve`` does: read a frame file, solve every frame, write the pose table to ``out``
     (:mod:`layoutkit.io.poses`: t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m).
 
@@ -378,7 +418,8 @@ def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | No
     :func:`layoutkit.workflows.filter.filter_config`): the frames also go through the tracking
     filter, ``out`` then holds the filtered poses and the summary a ``filter`` entry.
     stations_path : a stations JSON; the pose table then holds world-frame poses and the summary
-    compares the stations' mean world poses. static : see :func:`static_precision`.
+    compares the stations' mean world poses; stations with a calibration are solved through it
+    unless ``ignore_calibration`` (:func:`solve_frames`). static : see :func:`static_precision`.
     Returns the JSON-ready summary of :func:`solve_frames` (without the per-frame arrays).
     ValueError (naming the file) for an unreadable frame file, stations file or filter settings.
     """
@@ -387,7 +428,7 @@ def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | No
     fr = read_frames(frames_path, layout)
     stations = dict(enumerate(read_stations(stations_path))) if stations_path else None
     res = solve_frames(fr, layout, sigma=sigma, rho=rho, method=method, stations=stations, static=static,
-                       calibrated=calibrated)
+                       ignore_calibration=ignore_calibration)
     fres = None
     if filter_settings is not None:
         from .filter import filter_config, filter_frames
