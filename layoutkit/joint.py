@@ -164,6 +164,7 @@ def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
         gain = cost[act] - cn
         conv = better & ((gain <= _RTOL * cost[act]) | (gain <= _ATOL * np.maximum(m[act], 1)))
         tiny = better & (np.linalg.norm(step, axis=1) < 1e-9)     # rad / m: far below any noise
+        tiny |= ~better & (cost[act] <= _ATOL * np.maximum(m[act], 1))  # at the rounding floor (noise-free)
         acc = idx[better]
         R[acc], t[acc], cost[acc], r[acc], J[acc], ps[acc] = Rn[better], tn[better], cn[better], rn[better], Jn[better], psn[better]
         lam[idx] = np.where(better, np.maximum(lam[idx] / 10.0, 1e-9), lam[idx] * 10.0)

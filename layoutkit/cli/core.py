@@ -70,21 +70,30 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
 @rho_option
 @sigma_option(allow_zero=True)
 @click.option("--no-quantize", is_flag=True, help="Skip the 50 MHz counter quantisation.")
+@stations_option(help="Stations JSON (poses in one world frame, kind, calibration): one row per station and pose, "
+                      "the angles through each station's forward model (calibrated when it carries a calibration).")
 @json_flag(help="Print a JSON summary.")
-def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, as_json):
+def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, stations_path, as_json):
     """Simulate noisy sweep-angle frames at random static poses in front of one station.
 
     Poses: the paper's 3 m × 3 m area in front of the station, uniform attitudes, ≥ 4 sensors lit.
-    The file holds the true poses too, so `layoutkit solve` can report errors.
+    The file holds the true poses too, so `layoutkit solve` can report errors. With --stations the
+    poses are drawn in front of station 0 and every station (each lighting >= 4 sensors) writes a row
+    within the same 20 ms window, its angles measure(points, calibration) — the distorted angles a
+    station with those factory parameters reports; true poses in each row's station frame.
     """
     from ..workflows.frames import simulate_frame_file
 
     lay = _layout(layout_path)
-    summary = simulate_frame_file(lay, frames, out, seed=seed, sigma=sigma, rho=rho, quantize=not no_quantize)
+    try:
+        summary = simulate_frame_file(lay, frames, out, seed=seed, sigma=sigma, rho=rho, quantize=not no_quantize,
+                                      stations_path=stations_path)
+    except ValueError as exc:
+        fail(str(exc))
     if as_json:
         echo_json(summary)
     else:
-        click.echo(f"wrote {frames} frames to {out} (lit sensors: mean {summary['mean_lit']:.1f}, "
+        click.echo(f"wrote {summary['rows']} frames to {out} (lit sensors: mean {summary['mean_lit']:.1f}, "
                    f"min {summary['min_lit']})")
 
 

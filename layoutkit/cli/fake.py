@@ -5,7 +5,7 @@ import click
 
 from ._common import echo_json, fail
 from .options import (json_flag, layout_option, overwrite_option, protocol_option, rho_option, seed_option,
-                      sigma_option)
+                      sigma_option, stations_option)
 
 
 @click.command("fake-fpga", short_help="Hardware simulator: a board's bytes to a pty or a file.")
@@ -52,10 +52,13 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
               help="Camera clock minus device clock at device time 0, s.")
 @click.option("--camera-clock-drift-ppm", type=float, default=50.0, show_default=True,
               help="Camera clock rate error, ppm (t_cam = (1 + drift) t_dev + offset).")
+@stations_option(help="Stations JSON (poses in the world frame, kind, calibration) [default: one LH1 station at the "
+                      "origin]: a station with a calibration emits its distorted angles, measure(points, calibration).")
 @json_flag(help="Print the summary as JSON.")
 def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s, seed, protocol, motion, dropout,
               frame_loss, garbage, sigma, rho, realtime, speed, wait_reader_s, tumble_rate_deg_s, camera_out,
-              focal_length_px, camera_fps, camera_size, camera_clock_offset_s, camera_clock_drift_ppm, as_json):
+              focal_length_px, camera_fps, camera_size, camera_clock_offset_s, camera_clock_drift_ppm, stations_path,
+              as_json):
     """Hardware simulator: emit an FPGA board's exact bytes for a layout in motion.
 
     Without --out a pseudo-terminal is opened and its device path printed (first line,
@@ -90,11 +93,18 @@ def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s
 
     try:
         layout = load_layout(layout_path)
+        stations = None
+        if stations_path is not None:
+            from ..io.stations import read_stations
+
+            stations = list(read_stations(stations_path))
+            if not stations:
+                fail(f"{stations_path}: no stations")
         summary = run_fake(layout, out=out, link=link, truth_path=truth_path, realtime=realtime, speed=speed,
                            wait_reader_s=wait_reader_s, overwrite=overwrite, on_ready=ready, duration_s=duration_s, seed=seed,
                            protocol=protocol, motion=motion, dropout=dropout, frame_loss=frame_loss,
                            garbage=garbage, sigma=sigma, rho=rho, tumble_rate_deg_s=tumble_rate_deg_s,
-                           camera=camera, on_camera=camera_done)
+                           camera=camera, on_camera=camera_done, stations=stations)
     except FileExistsError as exc:
         fail(str(exc))
     except (ValueError, TimeoutError, ReaderGone) as exc:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import matrix_to_rotvec, random_rotations, rotvec_to_matrix
-from ..lighthouse import Station, lh2_sweep_angles, sweep_angles
+from ..lighthouse import Station, lh2_sweep_angles, measure, sweep_angles
 from ..noise import sample_angle_noise
 from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 
@@ -226,7 +226,8 @@ def simulate_sweeps(layout, *, duration: float, seed: int = 0, motion="tumble", 
 
     layout : :class:`layoutkit.layout.Layout`. motion : "tumble", "static", a :class:`Trajectory`
     or a callable ``t (K,) -> (R (K,3,3), t (K,3))`` giving the body pose in the world frame.
-    stations : sequence of :class:`Station` (default one LH1 station at the world origin).
+    stations : sequence of :class:`Station` (default one LH1 station at the world origin); a station
+    with a calibration reports its forward model's (distorted) angles, :func:`layoutkit.lighthouse.measure`.
     sigma : rad, rho : same-sweep correlation (Chen eq. 19). The hit counters are whole clock
     ticks (the quantisation); ``angles_true`` keeps the exact noise-free angles.
     """
@@ -262,7 +263,10 @@ def simulate_sweeps(layout, *, duration: float, seed: int = 0, motion="tumble", 
         lit[m] = lit_sensors(layout, R[m], tr[m], st, cone_deg=cone_deg)
         Rs, ts = st.world_to_station(R[m], tr[m])
         p = np.einsum("kij,nj->kni", Rs, layout.positions) + ts[:, None, :]
-        a = lh2_sweep_angles(p) if st.kind == "lh2" else sweep_angles(p)
+        if st.calibration is not None:  # the distorted angles a station with these parameters reports
+            a = measure(p, st.calibration)
+        else:
+            a = lh2_sweep_angles(p) if st.kind == "lh2" else sweep_angles(p)
         angles[m] = np.take_along_axis(a, axis[m][:, None, None], -1)[..., 0]
     angles_true = np.where(lit, angles, np.nan)
     noise = sample_angle_noise((K, n), sigma, rho, rng)

@@ -33,13 +33,17 @@ def _check_probability(name: str, p: float) -> None:
 def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protocol: str = "layoutkit",
                      motion="tumble", dropout: float = 0.0, frame_loss: float = 0.0, garbage: float = 0.0,
                      sigma: float = SIGMA_THETA_PAPER, rho: float = RHO_PAPER,
-                     tumble_rate_deg_s: float | None = None) -> FakeStream:
+                     tumble_rate_deg_s: float | None = None, stations=None) -> FakeStream:
     """The simulated device output for ``layout`` over ``duration_s`` seconds.
 
     motion : ``"tumble"``, ``"static"``, a trajectory pose table path (:mod:`layoutkit.io.poses`)
     or a :class:`layoutkit.live.simulator.Trajectory`. sigma : sweep-angle noise, rad; rho :
     same-rotor correlation in [0, 1). tumble_rate_deg_s : largest angular rate of the tumble (default
-    0.5°/s). ValueError (naming the option) for bad input.
+    0.5°/s). stations : optional :class:`layoutkit.lighthouse.Station` list (poses in the world frame,
+    kind, calibration; default one LH1 station at the origin): each station with a calibration emits
+    its forward model's distorted angles (``measure(p, calibration)``), one without exactly the ideal
+    ones; the sidecar records the stations used, calibration included. ValueError (naming the option)
+    for bad input.
     """
     from ..io.sidecar import CaptureSidecar
     from ..live.protocols import protocol_entry
@@ -62,9 +66,11 @@ def fake_fpga_stream(layout: Layout, *, duration_s: float, seed: int = 0, protoc
         from ..live.simulator import tumble_trajectory
 
         motion = tumble_trajectory(layout, duration_s, np.random.default_rng(seed),
-                                   max_rate=np.deg2rad(tumble_rate_deg_s))
+                                   max_rate=np.deg2rad(tumble_rate_deg_s),
+                                   station=stations[0] if stations else None)
     chunks, sw = simulate_stream(layout, duration=duration_s, seed=seed, protocol=protocol, motion=motion,
-                                 dropout=dropout, frame_loss=frame_loss, garbage=garbage, sigma=sigma, rho=rho)
+                                 dropout=dropout, frame_loss=frame_loss, garbage=garbage, sigma=sigma, rho=rho,
+                                 stations=stations or None)
     sidecar = CaptureSidecar(
         source="fake-fpga", protocol=protocol, protocol_options=protocol_entry(protocol).options(sw.stations, layout.n),
         n_sensors=layout.n, layout=layout.to_dict(), stations=tuple(sw.stations), port={"url": None, "baudrate": None},

@@ -18,26 +18,95 @@ __all__ = ["Frames", "simulate_frames", "write_frames", "read_frames", "solve_fr
 
 def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho: float,
                     half_angle_deg: float = 60.0, min_lit: int = 4, rate_hz: float = 60.0,
-                    quantize: bool = True) -> Frames:
-    """Static random poses on the paper's area in front of the station, ≥ ``min_lit`` lit."""
+                    quantize: bool = True, stations=None) -> Frames:
+    """Static random poses on the paper's area in front of the station, ≥ ``min_lit`` lit.
+
+    stations : optional S :class:`layoutkit.lighthouse.Station` (poses in one world frame, kind,
+    calibration), e.g. from a stations JSON. The poses are then drawn in front of station 0 and kept
+    where every station lights ≥ ``min_lit`` sensors; each pose gives one row per station, station s at
+    ``k / rate_hz + s / (rate_hz S)`` (all within one 20 ms window, :func:`layoutkit.joint.group_windows`),
+    its angles the station's forward model ``measure(p_s, calibration)`` (calibrated, distorted; the
+    ideal :func:`~layoutkit.lighthouse.sweep_angles` for a station without one, exactly as without
+    ``stations``) plus noise (sigma, rho per station and frame, Chen eq. 19) and, for LH1, counter
+    quantisation. LH2 stations: noise on the light-plane angles, no quantisation, written as
+    LH1-equivalent angles (:func:`~layoutkit.lighthouse.lh2_to_lh1_angles`, the frame table's
+    convention). Truth columns: the body pose in the row's station frame (what a per-station solve
+    returns; world pose = ``R_s R``, ``R_s t + T_s``).
+    """
     from ..simulate import poses_in_front, simulate_angles
     from ..visibility import facing_mask
 
     rng = np.random.default_rng(seed)
-    Rs, ts, vs = [], [], []
+    if stations is None:
+        Rs, ts, vs = [], [], []
+        n_have = 0
+        while n_have < frames:
+            R, t = poses_in_front(max(64, 2 * frames), rng)
+            v = facing_mask(layout.positions, layout.normals, R, t, half_angle_deg=half_angle_deg)
+            k = v.sum(1) >= min_lit
+            Rs.append(R[k]); ts.append(t[k]); vs.append(v[k])
+            n_have += int(k.sum())
+        R = np.concatenate(Rs)[:frames]
+        t = np.concatenate(ts)[:frames]
+        v = np.concatenate(vs)[:frames]
+        ang = simulate_angles(layout.positions, R, t, sigma=sigma, rho=rho, rng=rng, quantize=quantize)
+        ang[~v] = np.nan
+        return Frames(np.arange(frames) / rate_hz, ang, layout.ids, R, t)
+    return _simulate_station_frames(layout, frames, list(stations), rng, sigma=sigma, rho=rho,
+                                    half_angle_deg=half_angle_deg, min_lit=min_lit, rate_hz=rate_hz, quantize=quantize)
+
+
+def _simulate_station_frames(layout, frames, stations, rng, *, sigma, rho, half_angle_deg, min_lit, rate_hz,
+                             quantize, max_rounds: int = 200) -> Frames:
+    """:func:`simulate_frames` with stations (see there); ValueError when no pose in front of station 0
+    lights ``min_lit`` sensors of every station."""
+    from ..geometry import transform_points
+    from ..lighthouse import lh2_to_lh1_angles, measure, quantize_angles, sweep_angles
+    from ..noise import sample_angle_noise
+    from ..simulate import poses_in_front
+    from ..visibility import facing_mask
+
+    S = len(stations)
+    if S == 0:
+        raise ValueError("stations: the stations file has no station")
+    s0 = stations[0]
+    Rw, tw, vis = [], [], []
     n_have = 0
-    while n_have < frames:
-        R, t = poses_in_front(max(64, 2 * frames), rng)
-        v = facing_mask(layout.positions, layout.normals, R, t, half_angle_deg=half_angle_deg)
-        k = v.sum(1) >= min_lit
-        Rs.append(R[k]); ts.append(t[k]); vs.append(v[k])
+    for _ in range(max_rounds):
+        if n_have >= frames:
+            break
+        R, t = poses_in_front(max(64, 2 * frames), rng)          # station 0's frame
+        R = np.einsum("ij,fjk->fik", s0.rotation, R)              # -> world
+        t = t @ s0.rotation.T + s0.translation
+        v = np.stack([facing_mask(layout.positions, layout.normals, *st.world_to_station(R, t),
+                                  half_angle_deg=half_angle_deg, fov_deg=st.fov_deg) for st in stations], 1)
+        k = np.all(v.sum(2) >= min_lit, 1)
+        Rw.append(R[k]); tw.append(t[k]); vis.append(v[k])
         n_have += int(k.sum())
-    R = np.concatenate(Rs)[:frames]
-    t = np.concatenate(ts)[:frames]
-    v = np.concatenate(vs)[:frames]
-    ang = simulate_angles(layout.positions, R, t, sigma=sigma, rho=rho, rng=rng, quantize=quantize)
-    ang[~v] = np.nan
-    return Frames(np.arange(frames) / rate_hz, ang, layout.ids, R, t)
+    if n_have < frames:
+        raise ValueError(f"stations: only {n_have} of {frames} poses in front of station {s0.id} light >= {min_lit} "
+                         "sensors of every station (do the stations look at a common volume?)")
+    R, t, v = np.concatenate(Rw)[:frames], np.concatenate(tw)[:frames], np.concatenate(vis)[:frames]
+    F, n = frames, layout.n
+    ang = np.full((F, S, n, 2), np.nan)
+    tru_R, tru_t = np.empty((F, S, 3, 3)), np.empty((F, S, 3))
+    for q, st in enumerate(stations):
+        Rs, ts = st.world_to_station(R, t)
+        tru_R[:, q], tru_t[:, q] = Rs, ts
+        p = transform_points(Rs, ts, layout.positions)
+        a = (sweep_angles(p) if st.kind == "lh1" else measure(p, kind="lh2")) if st.calibration is None \
+            else measure(p, st.calibration)
+        a = a + sample_angle_noise(a.shape[:-1], sigma, rho, rng)
+        if st.kind == "lh2":
+            a = lh2_to_lh1_angles(a)
+        elif quantize:
+            a = quantize_angles(a, st.rotor_rpm, st.clock_hz)
+        a[~v[:, q]] = np.nan
+        ang[:, q] = a
+    tt = (np.arange(F)[:, None] / rate_hz + np.arange(S)[None, :] / (rate_hz * S)).ravel()
+    station = np.tile(np.arange(S), F)
+    return Frames(tt, ang.reshape(F * S, n, 2), layout.ids, tru_R.reshape(F * S, 3, 3), tru_t.reshape(F * S, 3),
+                  station)
 
 
 def write_frames(fr: Frames, path) -> None:
@@ -397,15 +466,32 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
 
 
 def simulate_frame_file(layout: Layout, frames: int, out, *, seed: int, sigma: float, rho: float,
-                        quantize: bool = True) -> dict:
+                        quantize: bool = True, stations_path=None) -> dict:
     """What ``layoutkit simulate`` does: :func:`simulate_frames`, written to ``out`` (.csv or .npz).
 
-    Returns the summary ``{out, frames, mean_lit, min_lit}`` (lit sensors per frame).
+    stations_path : a stations JSON (:mod:`layoutkit.io.stations`): one row per station and pose
+    through each station's forward model (calibrated when the station carries a calibration).
+    Returns the summary ``{out, frames, rows, mean_lit, min_lit}`` (lit sensors per row) and, with
+    stations, ``stations`` (the stations used, with calibration, as in a stations JSON) and
+    ``calibrated_stations`` (indices). ValueError naming the file for a bad stations JSON.
     """
-    fr = simulate_frames(layout, frames, seed=seed, sigma=sigma, rho=rho, quantize=quantize)
+    stations = None
+    if stations_path is not None:
+        from ..io.stations import read_stations
+
+        stations = list(read_stations(stations_path))
+    fr = simulate_frames(layout, frames, seed=seed, sigma=sigma, rho=rho, quantize=quantize, stations=stations)
     write_frames(fr, out)
     lit = np.all(np.isfinite(fr.angles), -1).sum(1)
-    return {"out": str(out), "frames": int(frames), "mean_lit": float(lit.mean()), "min_lit": int(lit.min())}
+    out_ = {"out": str(out), "frames": int(frames), "rows": int(fr.n_frames), "mean_lit": float(lit.mean()),
+            "min_lit": int(lit.min())}
+    if stations is not None:
+        from ..io.stations import stations_to_list
+
+        out_["stations"] = stations_to_list(stations)
+        out_["calibrated_stations"] = [q for q, st in enumerate(stations) if st.calibration is not None]
+        out_["truth_frame"] = "the row's station frame"
+    return out_
 
 
 def solve_frame_file(frames_path, layout: Layout, *, out=None, sigma: float | None = None, rho: float = 0.0,
