@@ -417,7 +417,7 @@ def _global_covariance(J, K):
     return cov_n / np.outer(d, d), null
 
 
-def _consider_covariance(Jw, Jo, K, cov):
+def _consider_covariance(Jw, Jo, K, cov, chunk: int = 2048):
     """Covariance (absolute, parameter units) the unadjusted sensor offsets add to the global columns.
 
     Jw : (M, 6K + G) weighted Jacobian of the adjusted problem; Jo : (M, 3n) weighted Jacobian of the
@@ -425,20 +425,24 @@ def _consider_covariance(Jw, Jo, K, cov):
     :func:`_global_covariance` (the inverse Schur-reduced information). An offset error ``d_o`` moves
     the estimate by ``-Sigma C d_o`` with ``C = H_go - H_gp H_pp^-1 H_po`` (sample poses eliminated), so
     per unit offset variance the consider term is ``Sigma C C^T Sigma`` (multiply by ``layout_sigma^2``).
+    The sample poses are eliminated ``chunk`` samples at a time (memory bounded for any K).
     """
     Jc = Jw.tocsc()
-    Jp, Jg = Jc[:, : 6 * K], Jc[:, 6 * K:]
+    Jg = Jc[:, 6 * K:]
     Joc = Jo.tocsc()
-    Hgo = (Jg.T @ Joc).toarray()
-    Hpo = (Jp.T @ Joc).toarray().reshape(K, 6, -1)
-    Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], K, 6)
-    Hpp = (Jp.T @ Jp).tocsr()
-    blocks = np.zeros((K, 6, 6))
-    for a in range(6):
-        for b in range(6):
-            blocks[:, a, b] = np.asarray(Hpp[np.arange(K) * 6 + a, np.arange(K) * 6 + b]).ravel()
-    inv = np.linalg.pinv(blocks)
-    Cr = Hgo - np.einsum("gki,kij,kjo->go", Hgp, inv, Hpo)
+    Cr = (Jg.T @ Joc).toarray()                                # H_go, then minus the pose parts
+    for k0 in range(0, K, chunk):                              # bounded memory for any K
+        k1 = min(K, k0 + chunk)
+        Jp = Jc[:, 6 * k0: 6 * k1]
+        kk = k1 - k0
+        Hpo = (Jp.T @ Joc).toarray().reshape(kk, 6, -1)
+        Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], kk, 6)
+        Hpp = (Jp.T @ Jp).tocsr()
+        blocks = np.zeros((kk, 6, 6))
+        for a in range(6):
+            for b in range(6):
+                blocks[:, a, b] = np.asarray(Hpp[np.arange(kk) * 6 + a, np.arange(kk) * 6 + b]).ravel()
+        Cr -= np.einsum("gki,kij,kjo->go", Hgp, np.linalg.pinv(blocks), Hpo)
     A = cov @ Cr
     return A @ A.T
 

@@ -242,3 +242,27 @@ def test_cli_calibrate_bad_input_is_one_error_line(tmp_path):
     r = CliRunner().invoke(main, ["calibrate", str(tmp_path / "f.csv"), "--layout", str(lay), "--stations",
                                   str(tmp_path / "nope.json"), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "nope.json" in r.output and "Traceback" not in r.output
+
+
+def test_consider_term_equals_dense_full_inverse():
+    """Closed form vs brute force: the Schur-reduced consider covariance (sample poses eliminated in
+    chunks) equals [H^-1 J^T J_o][H^-1 J^T J_o]^T of the dense full information matrix, restricted
+    to the global columns, for any chunk size."""
+    from scipy.sparse import csr_matrix
+
+    from layoutkit.calibrate import _consider_covariance
+
+    rng = np.random.default_rng(3)
+    K, G, n = 9, 5, 4
+    J = rng.normal(size=(400, 6 * K + G)) * (rng.random((400, 6 * K + G)) < 0.6)
+    own = np.arange(400) % K                        # each angle belongs to one sample: H_pp block-diagonal
+    J[:, : 6 * K] *= (np.arange(6 * K)[None] // 6 == own[:, None])
+    Jo = rng.normal(size=(400, 3 * n))
+    H = J.T @ J
+    Hinv = np.linalg.inv(H)
+    cov = Hinv[6 * K:, 6 * K:]                      # the marginal = inverse Schur complement
+    full = (Hinv @ J.T @ Jo)[6 * K:]
+    ref = full @ full.T
+    for chunk in (1, 4, 100):
+        got = _consider_covariance(csr_matrix(J), csr_matrix(Jo), K, cov, chunk=chunk)
+        np.testing.assert_allclose(got, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())

@@ -10,7 +10,8 @@ CSV with a header ``t[,station],th_x_<id>,th_y_<id>,...[,true_rx,...,true_tz]``:
   that angle was not seen. Each axis is its own observation: a sensor seen on one axis only has
   one empty cell, not a dropped sensor;
 - ``true_rx, true_ry, true_rz`` (rotation vector, rad), ``true_tx, true_ty, true_tz`` (m),
-  optional, all six or none: the true pose (simulations).
+  optional, all six or none: the true pose (simulations) — the body pose in the frame of the row's
+  station (``layoutkit simulate --stations``: world pose = ``R_s R``, ``R_s t + T_s``).
 
 Or ``.npz`` with arrays ``t (F,)``, ``angles (F, n, 2)``, ``ids (n,)`` and optional
 ``station (F,)``, ``truth_rotvec (F, 3)``, ``truth_translation (F, 3)``.
