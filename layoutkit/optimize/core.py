@@ -19,10 +19,12 @@ from .relaxation import fallback_bound
 # wall-time budget of the default pipeline when the caller gives none (s); small problems stop
 # much earlier (when random kicks stop improving)
 DEFAULT_PIPELINE_TIME_S = 100.0
+#: values of ``branch_and_bound`` (:func:`optimize_layout`)
+BNB_CHOICES = ("auto", "off")
 # seconds of a time limit kept for the exact evaluation of the result after the method stops
 _FINISH_RESERVE_S = 0.05
 
-__all__ = ["OptimizeResult", "optimize_layout", "optimize_stations", "candidate_jacobians",
+__all__ = ["BNB_CHOICES", "OptimizeResult", "optimize_layout", "optimize_stations", "candidate_jacobians",
            "sweep_k", "spacing_conflicts"]
 
 
@@ -35,7 +37,8 @@ class OptimizeResult:
         all stations); deg/rad for ADOP objectives, m/rad for PDOP, inf if none.
     bound : certified lower bound on the optimum of the same objective over all feasible selections.
     gap : value / bound - 1 (0 for a proven optimum). certified_by : how the bound was obtained —
-        "relaxation" (joint), "per-pose relaxation", "trace" (closed form) or "exhaustive".
+        "relaxation" (joint), "branch-and-bound" (:mod:`layoutkit.optimize.bnb`), "per-pose
+        relaxation", "trace" (closed form) or "exhaustive".
     success : a feasible layout was found; status : "optimal" (proven), "ok", "infeasible",
         "uncoverable", "no_feasible_found"; message : plain-language summary.
     adop, pdop : (P,) exact per-pose ADOP (deg/rad) and PDOP (m/rad); n_lit : (P,) lit counts.
@@ -114,7 +117,7 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
                     objective="worst-adop", rho=0.0, min_visible=4, method="pipeline", rng=None,
                     fixed=(), min_spacing=0.0, coverage_fraction=1.0, weights=None,
                     time_limit=None, progress=None, max_tilt_deg=0.0, tilt_directions=4,
-                    half_angle_deg=60.0, fov_deg=120.0) -> OptimizeResult:
+                    half_angle_deg=60.0, fov_deg=120.0, branch_and_bound="auto") -> OptimizeResult:
     """Choose ``k`` of N candidate sites minimising an envelope DOP objective (design §6).
 
     positions : (N, 3) float, m, candidate sites in the body frame; normals : (N, 3) outward normals
@@ -131,6 +134,9 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
     time_limit : s, wall budget of the method (the relaxation itself is not interrupted); None:
         unlimited, except ``"pipeline"`` which then stops after ``DEFAULT_PIPELINE_TIME_S`` = 100 s.
     progress : callable ``(stage: str, fraction: float | None, best: float | None)``.
+    branch_and_bound : "auto" (pipeline, worst-case objective, finite time limit: branch-and-bound on
+        the relaxation in a second process while the search runs, and after it while the gap is above
+        1 % and time is left — :mod:`layoutkit.optimize.bnb`) or "off".
     max_tilt_deg : > 0 lets every site also take its normal tilted by this angle towards
         ``tilt_directions`` azimuths (:mod:`layoutkit.optimize.tilt`, one orientation per site). The
         given ``visible`` applies to the untilted orientations; tilted ones are lit by the acceptance
@@ -167,7 +173,7 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
     res = optimize_stations(jac, vis[:, None, :], k, objective=objective, rho=rho,
                             min_visible=min_visible, method=method, rng=rng, fixed=fixed,
                             conflict=conflict, coverage_fraction=coverage_fraction, weights=weights,
-                            time_limit=time_limit, progress=progress)
+                            time_limit=time_limit, progress=progress, branch_and_bound=branch_and_bound)
     if site is not None:
         sel = res.selected
         res = dataclasses.replace(res, info={**res.info, "site": site[sel], "tilt_deg": tilt[sel],
@@ -178,7 +184,7 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
 def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_visible=4,
                       method="pipeline", rng=None, fixed=(), conflict=None, coverage_fraction=1.0,
                       weights=None, time_limit=None, progress=None, ctx_options=None,
-                      coverage="any-station") -> OptimizeResult:
+                      coverage="any-station", branch_and_bound="auto") -> OptimizeResult:
     """Multi-station core of :func:`optimize_layout`.
 
     jac : (P, S, N, 2, 6) per-candidate angle Jacobians; visible : (P, S, N) bool.
@@ -192,6 +198,9 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     from ..coverage_rule import check_rule
 
     check_rule(coverage)
+    if branch_and_bound not in BNB_CHOICES:
+        raise ValueError(f"branch_and_bound: expected one of {list(BNB_CHOICES)}, got {branch_and_bound!r}")
+    ctx_options = {"bnb": branch_and_bound, **(ctx_options or {})}
     jac = as_array(jac, "jac", (None, None, None, 2, 6))
     P, S, N = jac.shape[:3]
     visible = np.asarray(visible, bool)

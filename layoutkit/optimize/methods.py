@@ -6,6 +6,7 @@ and tuning knobs (``n_random``, ``n_round``, ``patience``).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -37,6 +38,14 @@ class Context:
     warm_start: "np.ndarray | None" = None
     #: pose indices to start the relaxation's pose generation from
     active_poses: "np.ndarray | None" = None
+    #: branch-and-bound on the relaxation (:mod:`layoutkit.optimize.bnb`) in a second process
+    #: while the pipeline searches: "auto" (on for the worst case with a finite deadline; after the
+    #: search it may keep the rest of the time while the gap exceeds ``bnb_gap``) or "off"
+    bnb: str = "auto"
+    #: after the search, B&B keeps running until the deadline only while the gap exceeds this
+    bnb_gap: float = 0.01
+    #: B&B is started only if at least this many seconds are left after the relaxation
+    bnb_min_s: float = 2.0
 
     def report(self, stage, fraction=None, best=None):
         if self.progress is not None:
@@ -254,8 +263,10 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
     r = None
     n_ls = 0
     starts = []
+    bnb = None
     try:
         r = _relax(problem, ctx, ctx.relax_share)
+        bnb = _start_bnb(problem, ctx, r)
         if ctx.warm_start is not None:
             w = repair(problem, np.asarray(ctx.warm_start, int), r.z)
             if w is not None:
@@ -271,6 +282,8 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
             v, _ = evaluate_subsets(problem, np.array(subs))
             starts += [subs[i] for i in np.argsort(v)[:3]]
         if not starts:
+            if bnb is not None:
+                bnb.stop()
             return MethodOutput(None, r)
         sv, feas = evaluate_subsets(problem, np.array(starts))
         i0 = int(np.argmin(np.where(feas, sv, np.inf)))
@@ -317,8 +330,106 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
         if best is None:
             best = repair(problem, np.r_[problem.fixed, np.setdiff1d(np.arange(problem.N), problem.fixed)[
                 : problem.k - len(problem.fixed)]], r.z)
+    except BaseException:
+        if bnb is not None:
+            bnb.stop()
+        raise
+    if bnb is not None:
+        best, bv, r = bnb.finish(problem, ctx, best, bv, r)
     ctx.report("local search", 1.0, bv)
-    return MethodOutput(best, r, info={"local_searches": n_ls, "search_s": time.perf_counter() - t_start})
+    info = {"local_searches": n_ls, "search_s": time.perf_counter() - t_start}
+    if bnb is not None:
+        info["branch_and_bound"] = bnb.summary
+    return MethodOutput(best, r, info=info)
+
+
+def _start_bnb(problem: Problem, ctx: Context, r: RelaxResult):
+    """Start branch-and-bound in a forked child when it can help (worst case, relaxation bound,
+    finite deadline with room left); None otherwise."""
+    from .bnb import bnb_applicable
+
+    if ctx.bnb == "off" or not bnb_applicable(problem) or r.certified_by != "relaxation":
+        return None
+    if not math.isfinite(ctx.deadline) or ctx.deadline - time.perf_counter() < ctx.bnb_min_s:
+        return None
+    return _BnbChild(problem, r, ctx.deadline)
+
+
+class _BnbChild:
+    """Branch-and-bound in a forked process; its certificate is published through shared memory
+    (lower bound, incumbent value and selection, nodes, open nodes, done), so the child never
+    blocks on the parent and may be killed at any moment: every published bound is valid on its
+    own (:mod:`layoutkit.optimize.bnb`)."""
+
+    def __init__(self, problem: Problem, r: RelaxResult, deadline: float):
+        import multiprocessing as mp
+
+        mpc = mp.get_context("fork")
+        self.root = float(r.bound)
+        self.state = mpc.Array("d", [self.root, math.inf, 0.0, 1.0, 0.0], lock=False)
+        self.sel = mpc.Array("l", [-1] * problem.k, lock=False)
+        self.summary = {}
+        self.proc = mpc.Process(target=_bnb_child, args=(problem, r, deadline, self.state, self.sel),
+                                daemon=True)
+        self.proc.start()
+
+    def stop(self):
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join()
+
+    def done(self) -> bool:
+        return self.state[4] > 0 or not self.proc.is_alive()
+
+    def finish(self, problem: Problem, ctx: Context, best, bv, r: RelaxResult):
+        """Wait (while the gap exceeds ``ctx.bnb_gap`` and time is left, unless interrupted), stop the
+        child, and fold its bound (and incumbent, if better) into the result."""
+        try:
+            if ctx.interrupted is None and best is not None:
+                while (time.perf_counter() < ctx.deadline and not self.done()
+                       and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)):
+                    time.sleep(0.05)
+        except (Interrupted, KeyboardInterrupt) as exc:
+            ctx.interrupted = getattr(exc, "signame", "SIGINT")
+            ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
+        finally:
+            self.stop()
+        lb, v, nodes, n_open = (float(x) for x in self.state[:4])
+        sel = np.asarray(self.sel[:], int)
+        if np.isfinite(v) and sel.min() >= 0 and v < bv:
+            ev, feas = evaluate_subsets(problem, sel[None])  # re-checked: the child may die mid-write
+            if feas[0] and ev[0] < bv:
+                best, bv = np.sort(sel), float(ev[0])
+        self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": self.root,
+                        "bound": max(lb, self.root), "complete": bool(self.state[4] > 1)}
+        ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {self.root:.6g} -> "
+                         f"{max(lb, self.root):.6g}")
+        if lb > self.root:
+            r = dataclasses.replace(r, bound=lb, certified_by="branch-and-bound")
+        return best, bv, r
+
+
+def _bnb_child(problem, r, deadline, state, sel):  # pragma: no cover - runs in the forked child
+    import signal
+
+    from .bnb import branch_and_bound
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+    def publish(lb, value, nodes, n_open, inc=None):
+        if inc is not None:
+            sel[:] = [int(x) for x in inc]
+        state[1] = value
+        state[2] = nodes
+        state[3] = n_open
+        if lb > state[0]:
+            state[0] = lb  # one 8-byte store: the certificate is never torn
+
+    res = branch_and_bound(problem, root_bound=r.bound, root_z=r.z, poses=r.active, deadline=deadline,
+                           on_bound=publish)
+    publish(res.bound, res.value, res.nodes, res.open_nodes, res.incumbent)
+    state[4] = 2.0 if res.complete else 1.0
 
 
 def _kick(problem: Problem, sel, rng, z):

@@ -1,0 +1,411 @@
+"""Branch-and-bound on the convex relaxation: a tighter certified lower bound (issue 13, item 6).
+
+Worst-case objective with full coverage only (``objective.aggregate == "worst"``, ``n_cover == P``).
+
+Why every number this module reports is a lower bound on the optimum ``d* = min over feasible 0/1
+selections z of max_p d_p(z)`` (design §6; Joshi & Boyd 2009 for the relaxation idea):
+
+1. **Node relaxation.** A node fixes some sites to 1 (``lo``) and some to 0 (``hi``). Its relaxation
+   is the problem of :mod:`layoutkit.optimize.relaxation` (matrix-concave GLS information
+   ``F_p(z)``, Gauss–Markov ``H_p ⪰ F_p(z)^-1``, valid cuts ``sum z = k``, coverage
+   ``lit @ z >= m``, spacing ``z_i + z_j <= 1``) with ``lo <= z <= hi`` instead of ``0 <= z <= 1``.
+   Every feasible 0/1 point of the node is feasible in it, and its objective ``max_p trace(W F_p)^-1``
+   is ``<=`` the exact worst DOP there, so the node optimum is a lower bound on every selection in
+   the node. The epigraph is taken over a working set of poses only: a maximum over fewer poses is
+   smaller, so the bound stays valid (pose generation adds poses when the node's z violates them,
+   which only tightens it). Only solves with solver status ``optimal`` count; the value is shrunk by
+   the same relative safety margin as the root relaxation (solver tolerance).
+2. **Children.** Branching on a free site i splits a node into ``z_i = 0`` and ``z_i = 1``: every 0/1
+   point of the parent lies in exactly one child, and each child's region is a subset of the
+   parent's, so ``max(parent bound, child relaxation)`` bounds the child. A child whose solve is not
+   ``optimal`` keeps the parent's bound and is never expanded (it stays open: conservative). A child
+   the solver proves infeasible (or that violates ``#fixed-1 <= k <= #free + #fixed-1``) contains no
+   feasible selection and is dropped.
+3. **Leaves and pruning.** A node with every site decided is one selection: its exact value (Chen
+   eq. 18, the objective itself) replaces its bound and it is an incumbent. A node whose bound is
+   ``>=`` the incumbent value holds nothing better than the incumbent and is closed.
+4. **Certificate.** The nodes that are open (or closed with their exact value) partition the feasible
+   set, so ``min(incumbent, min over open node bounds)`` is a lower bound on ``d*`` at any moment
+   (best-first: the node with the smallest bound is expanded next, so this number only rises).
+
+Cost: every node is one conic solve (Clarabel) of a parametrised cvxpy problem compiled once per
+working set (DPP: only ``lo``/``hi`` change between nodes, cvxpy reuses its canonicalisation).
+"""
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .problem import Problem
+from .relaxation import _SAFETY, _pose_information, _weight_matrix, _whitening, relaxed_pose_values
+from .search import evaluate_subsets
+
+__all__ = ["BnbResult", "branch_and_bound", "bnb_applicable", "site_groups"]
+
+# a node's z is integral when every entry is this close to 0 or 1
+_INT_TOL = 1e-4
+# relative violation above the node bound at which a pose joins the working set
+_POSE_TOL = 1e-3
+import os as _os
+_DEBUG = bool(_os.environ.get("BNB_DEBUG"))
+_RULE = _os.environ.get("BNB_RULE", "score")
+
+
+@dataclass(frozen=True)
+class BnbResult:
+    """bound : certified lower bound on the optimum (d units: deg/rad for ADOP, m/rad for PDOP);
+    incumbent : best selection met at integral nodes / leaves (k,) int or None, with exact value
+    ``value`` (inf if none); nodes : relaxations solved; open_nodes : nodes left open at the end;
+    complete : the tree was exhausted (then ``bound == value``, a proven optimum); status : text;
+    time_s : wall time; poses : size of the final pose working set."""
+
+    bound: float
+    value: float
+    incumbent: "np.ndarray | None"
+    nodes: int
+    open_nodes: int
+    complete: bool
+    status: str
+    time_s: float
+    poses: int
+
+
+def bnb_applicable(problem: Problem) -> bool:
+    """B&B bounds the worst case with full coverage (the joint relaxation's case)."""
+    return problem.objective.aggregate == "worst" and problem.n_cover >= problem.P
+
+
+class _NodeRelaxation:
+    """The relaxation over a pose working set with site bounds ``lo <= z <= hi`` as cvxpy Parameters."""
+
+    def __init__(self, problem: Problem, poses, groups=None, use_rho=True, weights=None):
+        import cvxpy as cp
+        import scipy.sparse as sp
+
+        self.cp = cp
+        self.problem = problem
+        self.poses = np.sort(np.unique(np.asarray(poses, int)))
+        self.groups = groups
+        N, k = problem.N, problem.k
+        E = _weight_matrix(problem.objective)
+        self.z = cp.Variable(N)
+        self.lo = cp.Parameter(N)
+        self.hi = cp.Parameter(N)
+        cons = [self.z >= self.lo, self.z <= self.hi, cp.sum(self.z) == k]
+        if groups is not None and len(groups):
+            self.glo = cp.Parameter(len(groups))
+            self.ghi = cp.Parameter(len(groups))
+            rows = np.concatenate([np.full(len(g), r) for r, g in enumerate(groups)])
+            cols = np.concatenate(groups)
+            Gm = sp.csr_matrix((np.ones(len(cols)), (rows, cols)), shape=(len(groups), N))
+            cons += [Gm @ self.z >= self.glo, Gm @ self.z <= self.ghi]
+        cons.append(problem.lit.astype(float) @ self.z >= problem.m)
+        if problem.conflict is not None:
+            i, j = np.nonzero(np.triu(problem.conflict, 1))
+            if len(i):
+                cons.append(self.z[i] + self.z[j] <= 1)
+        use_gls = use_rho and problem.rho > 0
+        self.use_rho = use_rho
+        Ds, cs = _whitening(problem, self.poses, E) if weights is None else _node_whitening(problem, self.poses, E, weights)
+        self.cbar = float(np.median(cs))
+        self.t = cp.Variable()
+        for q, p in enumerate(self.poses):
+            idx = np.flatnonzero(problem.vis[p].any(axis=0))
+            if len(idx) == 0:
+                continue
+            info, fac, extra = _pose_information(cp, problem, p, self.z[idx], idx, Ds[q], use_gls)
+            cons += extra
+            cons.append((fac * cs[q] / self.cbar) * cp.matrix_frac(Ds[q] @ E / np.sqrt(cs[q]), info) <= self.t)
+        self.prob = cp.Problem(cp.Minimize(self.t), cons)
+
+    def solve(self, lo, hi, glo=None, ghi=None, time_limit=None, solver="CLARABEL"):
+        """``(status, bound, z)``: bound (d units, safety margin applied) only for status optimal.
+        lo, hi : (N,) site bounds; glo, ghi : (G,) bounds on the group counts ``sum_{i in g} z_i``."""
+        cp = self.cp
+        self.lo.value = np.asarray(lo, float)
+        self.hi.value = np.asarray(hi, float)
+        if self.groups is not None and len(self.groups):
+            self.glo.value = np.asarray(glo, float)
+            self.ghi.value = np.asarray(ghi, float)
+        kw = {} if time_limit is None else {"time_limit": max(float(time_limit), 0.05)}
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                self.prob.solve(solver=solver, **kw)
+            status = str(self.prob.status)
+        except cp.error.SolverError as exc:
+            return f"solver_error: {exc}", float("nan"), None
+        if status == "optimal" and self.prob.value is not None and np.isfinite(self.prob.value):
+            b = float(np.sqrt(max(self.prob.value, 0.0) * self.cbar * (1 - _SAFETY)))
+            return status, b, np.clip(np.asarray(self.z.value, float), 0.0, 1.0)
+        return status, float("nan"), None
+
+
+def site_groups(problem: Problem, min_size=2, max_groups=256):
+    """Groups of sites for branching: the clusters (size >= ``min_size``, at most ``max_groups``
+    largest) of a Ward hierarchy over the sites' lit patterns (P,) — sites lit at the same poses
+    (e.g. one face of a box) substitute for each other, so single-site branching barely moves the
+    bound while fixing how many sensors a group holds does. Any grouping keeps the bound valid."""
+    from scipy.cluster.hierarchy import linkage
+
+    N = problem.N
+    if N < 3:
+        return []
+    X = np.asarray(problem.lit, float).T  # (N, P)
+    Zl = linkage(X, method="ward")
+    members = [[i] for i in range(N)]
+    out = []
+    for a, b, _, _ in Zl:
+        m = members[int(a)] + members[int(b)]
+        members.append(m)
+        if min_size <= len(m) < N:
+            out.append(np.asarray(sorted(m), int))
+    out.sort(key=len, reverse=True)
+    return out[:max_groups]
+
+
+def _node_whitening(problem: Problem, poses, E, weights):
+    """``D_p = (sum_i w_i G_ip)^(-1/2)`` and ``c_p = |D_p E|_F²`` at site weights ``w`` (N,) — the
+    scaling of :func:`layoutkit.optimize.relaxation._whitening` centred on a node's region (a node
+    that forbids many sites is badly scaled by the uniform z). Scaling changes conditioning only."""
+    Gsum = np.einsum("pnij,n->pij", problem.G[poses], np.asarray(weights, float))
+    Ds, cs = [], []
+    for Gp in Gsum:
+        ev, evec = np.linalg.eigh(Gp)
+        ev = np.maximum(ev, max(ev.max(), 1e-300) * 1e-12)
+        D = (evec / np.sqrt(ev)) @ evec.T
+        Ds.append(D)
+        cs.append(float(np.sum((D @ E) ** 2)))
+    return Ds, cs
+
+
+def _region_weights(lo, hi, k, z=None):
+    """Site weights inside a node: fixed ones 1, free sites share the remaining sensors (half
+    uniformly, half by ``z`` if given), forbidden sites 0."""
+    free = (lo < 0.5) & (hi > 0.5)
+    w = (lo > 0.5).astype(float)
+    rest = max(k - w.sum(), 0.0)
+    if free.any() and rest > 0:
+        u = np.where(free, 1.0, 0.0)
+        u = u / u.sum()
+        if z is not None and (zf := np.where(free, z, 0.0)).sum() > 0:
+            u = 0.5 * u + 0.5 * zf / zf.sum()
+        w = w + rest * u
+    return w
+
+
+def _decided(lo, hi, k):
+    """The selection if the node fixes everything (k ones, or the free sites fill up to k), else None."""
+    ones = np.flatnonzero(lo > 0.5)
+    free = np.flatnonzero((lo < 0.5) & (hi > 0.5))
+    if len(ones) == k:
+        return ones
+    if len(ones) + len(free) == k:
+        return np.sort(np.r_[ones, free])
+    return None
+
+
+def _branch(z, lo, hi, groups, glo, ghi):
+    """The disjunction to branch on: ``("group", r, floor)`` for group r with fractional count, or
+    ``("site", i, 0)``; None if no free site is left.
+
+    Score of a candidate (group or single free site): its count's distance to the nearest integer
+    divided by the rounded-up count (a relative rounding change: a side face holding 0.35 sensors
+    beats the top face holding 15.43); among candidates within half the best score, the largest
+    group (coarse decisions first)."""
+    free = np.flatnonzero((lo < 0.5) & (hi > 0.5))
+    if len(free) == 0:
+        return None
+    cand = []  # (score, size, kind, index, floor)
+    zf = z[free]
+    fs = np.minimum(zf, 1 - zf)
+    for j in np.flatnonzero(fs > _INT_TOL):
+        cand.append((fs[j], 1, "site", int(free[j]), 0.0))
+    for r, g in enumerate(groups):
+        m = float(z[g].sum())
+        fl = math.floor(m + _INT_TOL)
+        fr = min(m - fl, fl + 1 - m)
+        if fr > _INT_TOL and glo[r] <= fl and fl + 1 <= ghi[r]:
+            cand.append((fr / max(math.ceil(m), 1), len(g), "group", r, float(fl)))
+    if not cand:
+        return ("site", int(free[np.argmax(zf)]), 0.0)  # integral z: split on a chosen free site
+    if _RULE == "largest":
+        big = [c for c in cand if c[2] == "group" and c[0] * max(math.ceil(z[groups[c[3]]].sum()), 1) >= 0.05]
+        if big:
+            best = max(big, key=lambda c: (c[1], c[0]))
+            return best[2], best[3], best[4]
+    top = max(c[0] for c in cand)
+    best = max((c for c in cand if c[0] >= 0.5 * top), key=lambda c: (c[1], c[0]))
+    return best[2], best[3], best[4]
+
+
+def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=None, incumbent=None,
+                     deadline=None, max_nodes=None, gap_tol=0.0, on_bound=None, use_rho=True,
+                     initial_poses=24, max_poses_per_round=8, groups=None, solver="CLARABEL") -> BnbResult:
+    """Best-first branch-and-bound on the relaxation; certified lower bound (module docstring).
+
+    problem : worst-case objective with full coverage (:func:`bnb_applicable`).
+    root_bound, root_z : the root relaxation's certified bound and z (from
+        :func:`layoutkit.optimize.relaxation.relax`), reused instead of solving the root again;
+        poses : its active pose set, the start of the working set (default: the ``initial_poses``
+        worst poses at the uniform z).
+    incumbent : optional ``(selection, value)`` known feasible (prunes nodes whose bound reaches it).
+    deadline : perf_counter time to stop (each solve gets the remaining time as solver limit);
+    max_nodes : stop after this many relaxations; gap_tol : stop once ``value <= (1 + gap_tol) bound``.
+    groups : site groups for count branching (default :func:`site_groups`; ``[]``: sites only).
+    on_bound : callable ``(bound, value, nodes, open_nodes, incumbent)`` after every expansion
+    (streaming the certificate out of a child process that may be killed at any time).
+    """
+    if not bnb_applicable(problem):
+        raise ValueError("branch_and_bound: only the worst-case objective with full coverage is supported")
+    t0 = time.perf_counter()
+    deadline = math.inf if deadline is None else float(deadline)
+    N, k = problem.N, problem.k
+    if poses is None or len(poses) == 0:
+        z0 = np.full(N, k / N)
+        poses = np.argsort(-relaxed_pose_values(problem, z0, use_rho))[:initial_poses]
+    groups = site_groups(problem) if groups is None else [np.asarray(g, int) for g in groups]
+    G = len(groups)
+    gsize = np.array([len(g) for g in groups], float)
+    rel = _NodeRelaxation(problem, poses, groups, use_rho)
+    nodes = 0
+    best_sel, best_v = None, math.inf
+    if incumbent is not None and incumbent[0] is not None and np.isfinite(incumbent[1]):
+        best_sel, best_v = np.sort(np.asarray(incumbent[0], int)), float(incumbent[1])
+
+    def offer(sel):
+        nonlocal best_sel, best_v
+        v, feas = evaluate_subsets(problem, np.asarray(sel, int)[None])
+        if feas[0] and v[0] < best_v:
+            best_sel, best_v = np.sort(np.asarray(sel, int)), float(v[0])
+
+    def left():
+        return None if not math.isfinite(deadline) else deadline - time.perf_counter()
+
+    scaled = {}  # node relaxations whitened at a region, keyed by the forbidden / forced sites
+
+    def solve(nd, parent_bound, zp=None):
+        """Node relaxation with pose generation: ``(bound, z or None, expandable)``. A solve that
+        is not optimal is retried once with the scaling centred on the node (:func:`_node_whitening`)."""
+        nonlocal rel, nodes
+        lo, hi, glo, ghi = nd
+        if lo.sum() > k + 0.5 or hi.sum() < k - 0.5 or np.any(glo > ghi + 0.5):
+            return math.inf, None, False  # no k-subset in this node
+        cur, retried = rel, False
+        while True:
+            tl = left()
+            if tl is not None and tl <= 0:
+                return parent_bound, None, False
+            status, b, z = cur.solve(lo, hi, glo, ghi, tl, solver)
+            nodes += 1
+            if status == "infeasible":
+                return math.inf, None, False  # the solver's certificate: no feasible point (module docstring 2)
+            if z is None:
+                if retried:
+                    return parent_bound, None, True  # unusable: the parent's bound, expanded with its z
+                key = (cur.poses.tobytes(), np.flatnonzero(hi < 0.5).tobytes(), np.flatnonzero(lo > 0.5).tobytes())
+                if key not in scaled:
+                    scaled.clear()  # one at a time (each holds a compiled problem)
+                    scaled[key] = _NodeRelaxation(problem, cur.poses, groups, use_rho,
+                                                  weights=_region_weights(lo, hi, k, zp))
+                cur, retried = scaled[key], True
+                continue
+            v = np.sqrt(relaxed_pose_values(problem, z, use_rho))
+            viol = np.setdiff1d(np.flatnonzero(v > b * (1 + _POSE_TOL)), cur.poses)
+            if len(viol) == 0 or (tl is not None and tl < 1.0):
+                return max(b, parent_bound), z, True
+            add = viol[np.argsort(-v[viol])][:max_poses_per_round]
+            rel = _NodeRelaxation(problem, np.r_[rel.poses, add], groups, use_rho)  # the bound over more poses
+            cur, retried = rel, False
+
+    counter = itertools.count()
+    heap = []  # (bound, tie, node arrays, z, expandable)
+    lo0 = np.zeros(N)
+    hi0 = np.ones(N)
+    lo0[problem.fixed] = 1.0
+    nd0 = (lo0, hi0, np.zeros(G), gsize.copy())
+    if root_z is not None and root_bound is not None and np.isfinite(root_bound):
+        root = (float(root_bound), np.asarray(root_z, float), True)
+    else:
+        root = solve(nd0, -math.inf)
+    if np.isfinite(root[0]):
+        heapq.heappush(heap, (root[0], next(counter), nd0, root[1], root[2]))
+        if root[1] is not None:
+            _offer_integral(root[1], offer, k)
+
+    stuck = []  # bounds of open nodes that cannot be expanded (they still count)
+
+    def lower():
+        return min(best_v, heap[0][0] if heap else math.inf, min(stuck, default=math.inf))
+
+    status = "deadline"
+    while True:
+        lb = lower()
+        if on_bound is not None:
+            on_bound(lb, best_v, nodes, len(heap) + len(stuck), best_sel)
+        if not heap:
+            status = "complete" if not stuck else "stuck"
+            break
+        if best_v <= (1 + gap_tol) * lb:
+            status = "gap reached"
+            break
+        if time.perf_counter() >= deadline:
+            break
+        if max_nodes is not None and nodes >= max_nodes:
+            status = "node limit"
+            break
+        b, _, nd, z, expandable = heapq.heappop(heap)
+        if b >= best_v:
+            continue  # nothing better than the incumbent in here
+        if not expandable:
+            stuck.append(b)
+            continue
+        lo, hi, glo, ghi = nd
+        sel = _decided(lo, hi, k)
+        if sel is not None:
+            offer(sel)  # a single selection: its exact value closes the node
+            continue
+        kind, j, fl = _branch(z, lo, hi, groups, glo, ghi)
+        if _DEBUG: print("branch", kind, j, fl, len(groups[j]) if kind == "group" else 1, "node bound", b, flush=True)
+        for side in (0, 1):
+            clo, chi, cglo, cghi = lo.copy(), hi.copy(), glo.copy(), ghi.copy()
+            if kind == "site":
+                (clo if side else chi)[j] = float(side)
+            elif side == 0:
+                cghi[j] = fl  # sum over the group <= floor
+                if fl <= 0:
+                    chi[groups[j]] = 0.0  # none of the group
+            else:
+                cglo[j] = fl + 1  # sum over the group >= floor + 1
+                if fl + 1 >= len(groups[j]):
+                    clo[groups[j]] = 1.0  # all of the group
+            dsel = _decided(clo, chi, k)
+            if dsel is not None:
+                offer(dsel)
+                continue
+            cb, cz, cexp = solve((clo, chi, cglo, cghi), b, z)
+            if _DEBUG: print("  child", side, cb, cexp, flush=True)
+            if not np.isfinite(cb):
+                continue
+            if cz is not None:
+                _offer_integral(cz, offer, k)
+            if cb < best_v:
+                heapq.heappush(heap, (cb, next(counter), (clo, chi, cglo, cghi), z if cz is None else cz, cexp))
+    lb = lower()
+    complete = status == "complete"
+    return BnbResult(float(lb), float(best_v), best_sel, nodes, len(heap) + len(stuck), complete,
+                     status, time.perf_counter() - t0, len(rel.poses))
+
+
+def _offer_integral(z, offer, k):
+    """An integral relaxed z (k ones) is a selection: offer it as an incumbent."""
+    if np.all(np.minimum(z, 1 - z) < _INT_TOL):
+        sel = np.flatnonzero(z > 0.5)
+        if len(sel) == k:
+            offer(sel)
