@@ -136,7 +136,8 @@ def optimize_layout(positions, normals, visible, rotations, translations, k, *,
     progress : callable ``(stage: str, fraction: float | None, best: float | None)``.
     branch_and_bound : "auto" (pipeline, worst-case objective, finite time limit: branch-and-bound on
         the relaxation in a second process while the search runs, and after it while the gap is above
-        1 % and time is left — :mod:`layoutkit.optimize.bnb`) or "off".
+        1 %, for at most as long again as the run took so far and within the time limit —
+        :mod:`layoutkit.optimize.bnb`) or "off".
     max_tilt_deg : > 0 lets every site also take its normal tilted by this angle towards
         ``tilt_directions`` azimuths (:mod:`layoutkit.optimize.tilt`, one orientation per site). The
         given ``visible`` applies to the untilted orientations; tilted ones are lit by the acceptance

@@ -42,8 +42,10 @@ class Context:
     #: while the pipeline searches: "auto" (on for the worst case with a finite deadline; after the
     #: search it may keep the rest of the time while the gap exceeds ``bnb_gap``) or "off"
     bnb: str = "auto"
-    #: after the search, B&B keeps running until the deadline only while the gap exceeds this
+    #: after the search, B&B keeps running only while the gap exceeds this, for at most
+    #: ``bnb_wait`` times the time spent so far (at least 2 s) and never past the deadline
     bnb_gap: float = 0.01
+    bnb_wait: float = 1.0
     #: B&B is started only if at least this many seconds are left after the relaxation
     bnb_min_s: float = 2.0
 
@@ -335,7 +337,7 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
             bnb.stop()
         raise
     if bnb is not None:
-        best, bv, r = bnb.finish(problem, ctx, best, bv, r)
+        best, bv, r = bnb.finish(problem, ctx, best, bv, r, t_start)
     ctx.report("local search", 1.0, bv)
     info = {"local_searches": n_ls, "search_s": time.perf_counter() - t_start}
     if bnb is not None:
@@ -381,12 +383,15 @@ class _BnbChild:
     def done(self) -> bool:
         return self.state[4] > 0 or not self.proc.is_alive()
 
-    def finish(self, problem: Problem, ctx: Context, best, bv, r: RelaxResult):
-        """Wait (while the gap exceeds ``ctx.bnb_gap`` and time is left, unless interrupted), stop the
-        child, and fold its bound (and incumbent, if better) into the result."""
+    def finish(self, problem: Problem, ctx: Context, best, bv, r: RelaxResult, t_start: float):
+        """Wait (while the gap exceeds ``ctx.bnb_gap``, for at most ``ctx.bnb_wait`` times the time
+        since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
+        bound (and incumbent, if better) into the result."""
+        now = time.perf_counter()
+        until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
         try:
             if ctx.interrupted is None and best is not None:
-                while (time.perf_counter() < ctx.deadline and not self.done()
+                while (time.perf_counter() < until and not self.done()
                        and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)):
                     time.sleep(0.05)
         except (Interrupted, KeyboardInterrupt) as exc:
