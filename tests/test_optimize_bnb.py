@@ -108,3 +108,27 @@ def test_pipeline_reports_branch_and_bound_certificate():
     assert off.certified_by == "relaxation" and off.bound < on.bound
     with pytest.raises(ValueError, match="branch_and_bound"):
         optimize_layout(**inst, k=K, rho=RHO_PAPER, branch_and_bound="maybe")
+
+
+def test_cli_branch_and_bound_switch(tmp_path):
+    """`layoutkit optimize` reports the B&B summary by default and none with --no-branch-and-bound
+    (the bound is then the relaxation's)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from layoutkit.cli import main
+
+    env = tmp_path / "env.toml"
+    env.write_text(open("models/chen_envelope.toml").read().replace("count = 200", "count = 20"))
+    args = ["optimize", "models/chen_target.stl", "--sensors", "8", "--envelope", str(env), "--spacing-mm", "20",
+            "--time-limit-s", "20", "--no-render", "--json"]
+    on = CliRunner().invoke(main, args + ["--out", str(tmp_path / "a.json")])
+    off = CliRunner().invoke(main, args + ["--out", str(tmp_path / "b.json"), "--no-branch-and-bound"])
+    assert on.exit_code == 0 and off.exit_code == 0, on.output + off.output
+    s_on, s_off = json.loads(on.output), json.loads(off.output)
+    assert s_off["branch_and_bound"] is None and s_off["certified_by"] in ("relaxation", "none")
+    if s_on["certified_by"] != "none":
+        b = s_on["branch_and_bound"]
+        assert b["nodes"] >= 0 and b["bound"] >= b["root_bound"]
+        assert s_on["bound"] == pytest.approx(b["bound"]) and s_on["certified_by"] in ("branch-and-bound", "relaxation")

@@ -61,10 +61,13 @@ def _k_range(ctx, param, value):
 @click.option("--dense-poses", type=click.IntRange(min=1), default=None, metavar="N",
               help="Adaptive pose generation against N extra envelope poses (dense set); report with a "
                    "held-out set. --time-limit-s is then the budget of all rounds.")
+@click.option("--branch-and-bound/--no-branch-and-bound", "bnb", default=True, show_default=True,
+              help="Tighten the certified bound by branch-and-bound in a second process beside the search "
+                   "(worst-case objectives with a time limit; docs/optimize.md).")
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                  half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json,
-                 coverage, max_tilt_deg, dense_poses):
+                 coverage, max_tilt_deg, dense_poses, bnb):
     """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
     import warnings
 
@@ -81,7 +84,8 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
             s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                           spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                           half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize,
-                          dict(coverage=coverage, max_tilt_deg=max_tilt_deg, dense_poses=dense_poses))
+                          dict(coverage=coverage, max_tilt_deg=max_tilt_deg, dense_poses=dense_poses,
+                               branch_and_bound="auto" if bnb else "off"))
         except MeshUnitsWarning as exc:
             fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")
     if as_json:

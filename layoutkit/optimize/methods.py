@@ -359,7 +359,7 @@ def _start_bnb(problem: Problem, ctx: Context, r: RelaxResult):
 
 class _BnbChild:
     """Branch-and-bound in a forked process; its certificate is published through shared memory
-    (lower bound, incumbent value and selection, nodes, open nodes, done), so the child never
+    (lower bound, B&B's own incumbent value and selection, nodes, open nodes, done), so the child never
     blocks on the parent and may be killed at any moment: every published bound is valid on its
     own (:mod:`layoutkit.optimize.bnb`)."""
 
@@ -386,7 +386,7 @@ class _BnbChild:
     def finish(self, problem: Problem, ctx: Context, best, bv, r: RelaxResult, t_start: float):
         """Wait (while the gap exceeds ``ctx.bnb_gap``, for at most ``ctx.bnb_wait`` times the time
         since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
-        bound (and incumbent, if better) into the result."""
+        bound into the result."""
         now = time.perf_counter()
         until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
         try:
@@ -399,12 +399,9 @@ class _BnbChild:
             ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
         finally:
             self.stop()
+        # only the bound is taken: the layout stays the search's (B&B's progress depends on timing,
+        # the selection of a run that finishes before its deadline must not)
         lb, v, nodes, n_open = (float(x) for x in self.state[:4])
-        sel = np.asarray(self.sel[:], int)
-        if np.isfinite(v) and sel.min() >= 0 and v < bv:
-            ev, feas = evaluate_subsets(problem, sel[None])  # re-checked: the child may die mid-write
-            if feas[0] and ev[0] < bv:
-                best, bv = np.sort(sel), float(ev[0])
         self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": self.root,
                         "bound": max(lb, self.root), "complete": bool(self.state[4] > 1)}
         ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {self.root:.6g} -> "

@@ -99,7 +99,8 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                  min_visible=4, k_range=None, seed=0, units="m", min_spacing=0.0,
                  coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
                  max_candidates=None, render=True, echo=print, coverage="any-station", max_tilt_deg=0.0,
-                 tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=6):
+                 tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=6,
+                 branch_and_bound="auto"):
     """Optimise a k-sensor layout on ``mesh`` over ``envelope``; write layout JSON and a report.
 
     k_range : optional (k_min, k_max) — also the best layout for every k in the range (DOP vs k).
@@ -108,7 +109,8 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
     per site; :mod:`layoutkit.optimize.tilt`). dense_poses : adaptive pose generation against a
     dense set of the envelope (:mod:`layoutkit.workflows.dense`; ``time_limit`` is then the budget of
     all rounds), reported with design-set, dense-set and held-out (``heldout_poses``, fresh seed)
-    statistics. Returns a summary dict (JSON-able)."""
+    statistics. branch_and_bound : "auto" | "off" — B&B on the relaxation beside the search
+    (:mod:`layoutkit.optimize.bnb`). Returns a summary dict (JSON-able)."""
     from ..layout import Layout, save_layout
     from ..mesh import mesh_hash
     from ..optimize import optimize_stations, spacing_conflicts
@@ -133,7 +135,8 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
 
         conflict = site_conflicts(prep["site"], conflict)
     kw = dict(objective=objective, rho=rho, min_visible=min_visible, method=method, fixed=fixed,
-              conflict=conflict, coverage_fraction=coverage_fraction, time_limit=time_limit, progress=progress)
+              conflict=conflict, coverage_fraction=coverage_fraction, time_limit=time_limit, progress=progress,
+              branch_and_bound=branch_and_bound)
     interrupted = None
     dense_info = None
 
@@ -181,6 +184,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
         "k": int(k), "objective": res.objective, "rho": rho, "method": method, "min_visible": min_visible,
         "status": res.status, "success": res.success, "message": res.message,
         "value": res.value, "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
+        "branch_and_bound": res.info.get("branch_and_bound"),
         "min_k": res.min_k, "uncoverable_poses": res.uncoverable.tolist(),
         "timings_s": {**res.timings, "total_s": time.perf_counter() - t0},
         "selected_ids": [cand.ids[i] for i in res.selected],

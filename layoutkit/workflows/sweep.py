@@ -130,7 +130,8 @@ def _optimize(jac, prep, opts, fixed, pos):
         jac, prep["visible"], opts["k"], objective=opts["objective"], rho=opts["rho"],
         min_visible=opts["min_visible"], method=opts["method"], rng=opts["seed"], fixed=fixed,
         conflict=conflict, coverage_fraction=opts["coverage_fraction"], coverage=opts["coverage"],
-        weights=opts.get("weights"), time_limit=opts.get("time_limit_s"))
+        weights=opts.get("weights"), time_limit=opts.get("time_limit_s"),
+        branch_and_bound="off")  # a cell must be reproducible (schedulers, resumes); B&B's bound depends on timing
 
 
 def _cell_path(cells_dir: Path, cell_id: str) -> Path:
