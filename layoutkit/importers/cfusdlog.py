@@ -29,14 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAGIC", "UsdLog", "read_cfusdlog"]
+__all__ = ["MAGIC", "UsdLog", "read_cfusdlog", "SWEEP_EVENTS", "SweepEvents", "sweep_events", "firmware_positions"]
 
 MAGIC = 0xBC
 
 
 @dataclass
 class UsdLog:
-    """A decoded log: ``events[name][var]`` arrays and ``events[name]["t"]`` (s, log clock);
+    """A decoded log: ``events[name][var]`` arrays and ``events[name]["t"]`` (s, log clock; a
+    variable itself named ``t`` is stored as ``t_var``);
     version; crc_ok (None when the trailer is missing); ended (None or where it stopped)."""
 
     path: str
@@ -126,7 +127,122 @@ def read_cfusdlog(path) -> UsdLog:
         log.ended = f"{path}: the log ends inside an event at byte {i} (truncated); read the events before it"
     for name, (vars_) in types.items():
         cols = list(zip(*rows[name])) if rows[name] else [[] for _ in vars_]
-        ev = {v: np.asarray(c) for (v, _), c in zip(vars_, cols)}
+        # a variable named "t" (estSweepAngle's plane tilt) is kept as "t_var": "t" is the event time
+        ev = {("t_var" if v == "t" else v): np.asarray(c) for (v, _), c in zip(vars_, cols)}
         ev["t"] = np.asarray(times[name], float)
         log.events[name] = ev
     return log
+
+
+# ------------------------------------------------------------------ sweep-angle and estimate events
+#
+# What the firmware's lighthouse code can write to the card (docs/real-data.md, "Crazyflie"):
+#   lhAngle      (sensor u8, basestation u8, sweep u8, angle f32, correctedAngle f32): one angle of one
+#                sensor and sweep as the pulse processor measured it (``angle``: raw, the firmware's
+#                own convention; ``correctedAngle``: after its calibration inverse). The public
+#                Lighthouse dataset's logs (Taffanel et al. 2021) carry it.
+#   estSweepAngle (sensorId u8, basestationId|baseStationId u8, sweepId u8, t f32, sweepAngle f32):
+#                the sweep-angle measurement the Kalman filter gets (``estimator.c``); ``t`` is the
+#                light plane's tilt (LH1: 0, LH2: -/+ pi/6), ``sweepAngle`` the raw measured angle.
+#   estPosition  (x, y, z f32 in old firmware; ``source`` u8 + the log variables the config names
+#                in newer firmware, e.g. lighthouse.x/y/z): the crossing-beam position pushed to the
+#                estimator (lighthouse.method = 0).
+#   any event (e.g. ``fixedFrequency``) with the log variables stateEstimate.x/y/z (the state
+#                estimate) or lighthouse.x/y/z (the last crossing-beam position).
+
+#: sweep-angle event types this reader understands, in order of preference: name → variables
+#: (sensor, station, sweep, angle) — alternatives separated by "|".
+SWEEP_EVENTS = {
+    "lhAngle": ("sensor", "basestation", "sweep", "angle"),
+    "estSweepAngle": ("sensorId", "basestationId|baseStationId", "sweepId", "sweepAngle"),
+}
+
+
+@dataclass(frozen=True)
+class SweepEvents:
+    """Sweep-angle events of a log, one row per sensor and sweep, in log order.
+
+    source : the event type read (``lhAngle`` / ``estSweepAngle``). t : (N,) s, log clock (when the
+    firmware logged the angle). station : (N,) base-station index (LH1 0/1, LH2 channel 0-15).
+    sensor : (N,) deck sensor 0-3. sweep : (N,) 0/1 (LH1 X/Y rotor, LH2 light plane -30°/+30°).
+    angle : (N,) rad, the raw measured angle in the firmware's convention, float32 as logged.
+    corrected : (N,) rad, the firmware's calibrated angle (``lhAngle`` only) or None.
+    kind : "lh1"/"lh2" when the events tell (``estSweepAngle``'s plane tilt), else None.
+    """
+
+    source: str
+    t: np.ndarray
+    station: np.ndarray
+    sensor: np.ndarray
+    sweep: np.ndarray
+    angle: np.ndarray
+    corrected: np.ndarray | None = None
+    kind: str | None = None
+
+
+def _var(ev: dict, spec: str):
+    for name in spec.split("|"):
+        if name in ev:
+            return ev[name]
+    return None
+
+
+def sweep_events(log: UsdLog) -> SweepEvents | None:
+    """The log's sweep-angle events (``lhAngle`` preferred, else ``estSweepAngle``), or None when it
+    has neither (or none logged). ValueError naming the file and the variables it has when such
+    an event type lacks a variable."""
+    for name, spec in SWEEP_EVENTS.items():
+        ev = log.events.get(name)
+        if ev is None or len(ev["t"]) == 0:
+            continue
+        cols = [_var(ev, s) for s in spec]
+        miss = [s for s, c in zip(spec, cols) if c is None]
+        if miss:
+            raise ValueError(f"{log.path}: {name} events lack variable(s) {miss} "
+                             f"(have {sorted(k for k in ev if k != 't')})")
+        sensor, station, sweep, angle = (np.asarray(c) for c in cols)
+        kind = None
+        if name == "estSweepAngle" and "t_var" in ev:
+            tilt = np.asarray(ev["t_var"], float)
+            kind = "lh2" if np.nanmedian(np.abs(tilt)) > 0.1 else "lh1"
+            if kind == "lh2":  # the plane from the tilt's sign (some firmware leaves sweepId unset)
+                sweep = (tilt > 0).astype(int)
+        corrected = np.asarray(ev["correctedAngle"], float) if "correctedAngle" in ev else None
+        return SweepEvents(name, np.asarray(ev["t"], float), station.astype(int), sensor.astype(int),
+                           sweep.astype(int), angle.astype(np.float32).astype(float), corrected, kind)
+    return None
+
+
+#: firmware position estimates: (label, event or None = any event, x/y/z variable names)
+_ESTIMATE_SOURCES = (
+    ("crossing_beam", None, ("lighthouse.x", "lighthouse.y", "lighthouse.z")),
+    ("crossing_beam", "lhCrossingBeam", ("x", "y", "z")),
+    ("crossing_beam", "estPosition", ("x", "y", "z")),
+    ("state_estimate", None, ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z")),
+)
+
+
+def firmware_positions(log: UsdLog) -> dict:
+    """The firmware's own position estimates in the log: label → ``{"event", "t" (K,) s, "position"
+    (K, 3) m}`` (world frame = the system config's). ``crossing_beam``: the two-station
+    crossing-beam positions (``lighthouse.x/y/z`` log variables, ``lhCrossingBeam`` or old
+    ``estPosition`` x/y/z events); ``state_estimate``: ``stateEstimate.x/y/z`` (the Kalman filter's
+    state, fed by the crossing beam or the sweeps). Rows that are exactly 0 (the variable is 0
+    until the method writes it) and non-finite rows are left out. The first event type that has
+    a source's variables wins."""
+    out = {}
+    for label, event, names in _ESTIMATE_SOURCES:
+        if label in out:
+            continue
+        for ename, ev in log.events.items():
+            if event is not None and ename != event:
+                continue
+            if not all(k in ev for k in names) or len(ev["t"]) == 0:
+                continue
+            p = np.column_stack([np.asarray(ev[k], float) for k in names])
+            keep = np.all(np.isfinite(p), 1) & np.any(p != 0, 1)
+            if keep.any():
+                out[label] = {"event": ename, "variables": list(names), "t": np.asarray(ev["t"], float)[keep],
+                              "position": p[keep]}
+                break
+    return out

@@ -789,8 +789,17 @@ class PosePipeline:
         out = []
         for m in sweeps:
             fr = self.pairer.push(m)
-            if fr is None:
-                continue
+            if fr is not None:
+                out += self.feed_frames((fr,))
+        self.counters.unpaired_sweeps = self.pairer.unpaired
+        return out
+
+    def feed_frames(self, frames) -> list[PoseChunk]:
+        """Add already paired :class:`AngleFrame` s (a source that gives whole frames, e.g. a
+        Crazyflie log's sweep-angle events, :mod:`layoutkit.live.cf_events`); return the chunks
+        completed by them."""
+        out = []
+        for fr in frames:
             if self.windower is not None:
                 for w in self.windower.push(fr):
                     batch = self.window_batcher.push(w)
@@ -800,7 +809,6 @@ class PosePipeline:
             batch = self.batcher.push(fr)
             if batch is not None:
                 out.append(self._solve(batch))
-        self.counters.unpaired_sweeps = self.pairer.unpaired
         return out
 
     def flush(self, end_of_stream: bool = False) -> list[PoseChunk]:

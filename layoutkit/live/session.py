@@ -97,6 +97,11 @@ class LiveSession:
         """Decode ``data`` and solve whatever frames complete a chunk (and filter every sweep)."""
         return self._consume(self.pipeline.feed(self._filtered(self.decoder.feed(data))))
 
+    def feed_frames(self, frames) -> list[PoseChunk]:
+        """Solve already paired frames (:meth:`PosePipeline.feed_frames`; the per-sweep filter, which
+        needs sweeps, does not see them)."""
+        return self._consume(self.pipeline.feed_frames(frames))
+
     def _filtered(self, sweeps):
         if self.filter is None:
             return sweeps

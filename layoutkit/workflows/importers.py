@@ -16,7 +16,7 @@ from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "import_reference", "write_layout",
+__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "cfusdlog_replay_source", "firmware_comparison", "import_reference", "write_layout",
            "write_reference"]
 
 
@@ -261,6 +261,124 @@ def cfusdlog_capture(log) -> tuple[bytes, "object"]:
                         bytes=len(data), extra={"imported_from": str(log), "log_ended": ul.ended,
                                                 "import_notes": [f"{k}: {v}" for k, v in notes.items()]})
     return data, sc
+
+
+def _found(ul) -> str:
+    return ", ".join(f"{k} ({len(v['t'])})" for k, v in sorted(ul.events.items())) or "none"
+
+
+def _log_kind(ul, ev, stations, system_config) -> str | None:
+    """LH1 or LH2 for a log's sweep events: the events' own (estSweepAngle's plane tilt), the system
+    config's ``systemType``, the stations' kind, else None."""
+    if ev is not None and ev.kind is not None:
+        return ev.kind
+    if system_config is not None:
+        from ..live.protocols.bitcraze import load_system_config
+
+        return "lh1" if load_system_config(system_config).system_type == 1 else "lh2"
+    kinds = {st.kind for st in stations or ()}
+    return kinds.pop() if len(kinds) == 1 else None
+
+
+def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: str = "auto") -> dict:
+    """What ``replay LOG`` solves from a Crazyflie microSD log, in memory.
+
+    source : "uart" (the ``lhUartFrame`` events re-encoded as the deck's bytes, LH2 only:
+    :func:`cfusdlog_capture`), "angles" (the firmware's sweep-angle events ``lhAngle`` /
+    ``estSweepAngle`` grouped into frames, LH1 and LH2: :func:`layoutkit.live.cf_events.event_frames`)
+    or "auto" (uart for an LH2 log that has UART frames — the deck's 24 MHz clock times each
+    light plane; the angle events otherwise). The base-station type comes from the events, the
+    system config's ``systemType`` or the stations.
+    Returns ``{"mode", "sidecar", "bytes" | "frames", "stats", "kind", "firmware" (the log's own
+    position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``.
+    ValueError naming the file and listing the event types found when nothing can be solved.
+    """
+    from ..importers.cfusdlog import firmware_positions, read_cfusdlog, sweep_events
+    from ..io.sidecar import CaptureSidecar
+
+    if source not in ("auto", "uart", "angles"):
+        raise ValueError(f"source: expected 'auto', 'uart' or 'angles', got {source!r}")
+    log = Path(log)
+    ul = read_cfusdlog(log)
+    ev = sweep_events(ul)
+    uart = "lhUartFrame" in ul.events and len(ul.events["lhUartFrame"]["t"]) > 0
+    kind = _log_kind(ul, ev, stations, system_config)
+    if source == "auto":
+        source = "uart" if uart and (kind == "lh2" or ev is None) else "angles"
+    fw = firmware_positions(ul)
+    info = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "log_ended": ul.ended,
+            "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()},
+            "firmware_estimates": {k: {"event": v["event"], "variables": v["variables"], "rows": int(len(v["t"]))}
+                                   for k, v in fw.items()}}
+    if source == "uart":
+        if not uart:
+            raise ValueError(f"{log}: no lhUartFrame events (found: {_found(ul)})")
+        if kind == "lh1":
+            raise ValueError(f"{log}: an LH1 system cannot be replayed from lhUartFrame events (the pulse widths "
+                             f"that identify LH1 sync pulses are not logged); log lhAngle events (found: {_found(ul)})")
+        data, sc = cfusdlog_capture(log)
+        info["source"] = "lhUartFrame"
+        return {"mode": "uart", "bytes": data, "sidecar": sc, "kind": "lh2", "firmware": fw, "info": info}
+    if ev is None:
+        raise ValueError(f"{log}: no lighthouse sweep data to solve: found {_found(ul)}; replay needs sweep-angle "
+                         "events (lhAngle or estSweepAngle: 'on:lhAngle' in the card's config.txt) or, for LH2, "
+                         "lhUartFrame events")
+    if kind is None:
+        raise ValueError(f"{log}: {ev.source} events do not tell LH1 from LH2 base stations; give --system-config "
+                         "(its systemType) or --stations")
+    from ..live.cf_events import EventFrameSource, event_frames
+    from ..live.frames import DecodeStats
+
+    periods = {k: 60.0 / st.rotor_rpm for k, st in enumerate(stations or ()) if st.kind == kind}
+    stats = DecodeStats()
+    frames = event_frames(ev, kind, 4, periods=periods, stats=stats)
+    if not frames:
+        raise ValueError(f"{log}: {len(ev.t)} {ev.source} events gave no frame (found: {_found(ul)})")
+    proto = "bitcraze-lh1" if kind == "lh1" else "bitcraze-lh2"
+    sc = CaptureSidecar(protocol=proto, layout=_deck_layout().to_dict(), source=f"cfusdlog {ev.source} events",
+                        n_sensors=4, extra={"imported_from": str(log), "log_ended": ul.ended})
+    info.update(source=ev.source, kind=kind, events=int(len(ev.t)), frames=len(frames))
+    return {"mode": "angles", "frames": frames, "source": EventFrameSource(stats), "sidecar": sc, "kind": kind,
+            "firmware": fw, "info": info}
+
+
+def firmware_comparison(poses_path, firmware: dict, *, max_gap_s: float = 0.05) -> dict:
+    """Our ok poses (``poses.csv``) vs the log's own position estimates, on the same clock and in the
+    same world frame (no alignment): each estimate interpolated linearly at our pose times (only
+    where two estimate rows within ``max_gap_s`` bracket the pose). Per source: compared poses,
+    RMS / median / max distance (m), mean offset (m, ours − firmware). Adds the columns
+    ``firmware_<label>_x/y/z`` (NaN where none) to ``poses.csv`` (rewritten atomically)."""
+    from ..io.poses import read_poses, write_poses
+
+    poses_path = Path(poses_path)
+    tab = read_poses(poses_path)
+    out, extra = {}, dict(tab.extras or {})
+    for label, fw in firmware.items():
+        tf, pf = fw["t"], fw["position"]
+        o = np.argsort(tf, kind="stable")
+        tf, pf = tf[o], pf[o]
+        j = np.searchsorted(tf, tab.t)
+        inside = (j > 0) & (j < len(tf))
+        jj = np.clip(j, 1, max(len(tf) - 1, 1))
+        gap = tf[jj] - tf[jj - 1] if len(tf) > 1 else np.full(len(tab.t), np.inf)
+        use = inside & (gap <= max_gap_s)
+        w = np.where(use, (tab.t - tf[jj - 1]) / np.where(gap > 0, gap, 1.0), 0.0)
+        p = np.where(use[:, None], pf[jj - 1] + w[:, None] * (pf[jj] - pf[jj - 1]) if len(tf) > 1 else np.nan, np.nan)
+        for k, ax in enumerate("xyz"):
+            extra[f"firmware_{label}_{ax}"] = p[:, k]
+        ok = use & tab.ok & np.all(np.isfinite(tab.translation), 1)
+        d = tab.translation[ok] - p[ok]
+        r = np.linalg.norm(d, axis=1)
+        out[label] = {"event": fw["event"], "rows": int(len(tf)), "compared_poses": int(ok.sum()),
+                      "rms_distance_m": float(np.sqrt(np.mean(r ** 2))) if r.size else None,
+                      "median_distance_m": float(np.median(r)) if r.size else None,
+                      "max_distance_m": float(r.max()) if r.size else None,
+                      "mean_offset_m": d.mean(0).tolist() if r.size else None,
+                      "columns": [f"firmware_{label}_{ax}" for ax in "xyz"]}
+    from dataclasses import replace
+
+    write_poses(poses_path, replace(tab, extras=extra))
+    return out
 
 
 def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:

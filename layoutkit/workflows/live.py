@@ -213,7 +213,8 @@ def resolve_solve_mode(solve: str | None, stations, options: LiveConfig | None) 
 def replay_capture(capture, layout=None, *, protocol: str | None = None, options: LiveConfig | None = None,
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
-                   camera_config=None, stations=None, system_config=None, solve: str | None = None) -> dict:
+                   camera_config=None, stations=None, system_config=None, solve: str | None = None,
+                   cfusdlog_source: str = "auto") -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -228,9 +229,12 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     system_config : a Crazyflie system config YAML (calibration for the Bitcraze decoders, and the
     stations when no stations file is given). solve : "joint", "per-station" or None (joint when
     two or more stations with known poses are given; :func:`resolve_solve_mode`).
-    A Crazyflie microSD log (cfusdlog, detected from its header) is replayed directly: its
-    ``lhUartFrame`` events are turned into the deck's bytes in memory
-    (:func:`layoutkit.workflows.importers.cfusdlog_capture`), protocol ``bitcraze-lh2``.
+    A Crazyflie microSD log (cfusdlog, detected from its header) is replayed directly
+    (:func:`layoutkit.workflows.importers.cfusdlog_replay_source`, ``cfusdlog_source``): its
+    ``lhUartFrame`` events turned into the deck's bytes in memory (LH2), or its sweep-angle events
+    (``lhAngle`` / ``estSweepAngle``, LH1 and LH2) grouped into frames. The log's own position
+    estimates (crossing beam, state estimate) are compared with the joint poses
+    (``summary["firmware_vs_ours"]``, columns ``firmware_*`` in ``poses.csv``).
     """
     from ..io.sidecar import read_sidecar
 
@@ -238,11 +242,14 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     if not capture.is_file():
         raise ValueError(f"{capture}: no such capture file")
     sidecar = read_sidecar(capture)
-    data_override = None
+    data_override = usd = None
     if not sidecar.protocol and _is_cfusdlog(capture):
-        from .importers import cfusdlog_capture
+        from .importers import cfusdlog_replay_source
 
-        data_override, sidecar = cfusdlog_capture(capture)
+        usd = cfusdlog_replay_source(capture, stations=stations_from_files(stations, system_config),
+                                     system_config=system_config, source=cfusdlog_source)
+        sidecar = usd["sidecar"]
+        data_override = usd.get("bytes")
     if stations is not None or system_config is not None:
         st = stations_from_files(stations, system_config)
         opts = dict(sidecar.protocol_options)
@@ -252,12 +259,21 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     options = resolve_solve_mode(solve, sidecar.stations, options)
     with tempfile.TemporaryDirectory() as tmp:
         poses = None
+        firmware = (usd or {}).get("firmware") if options.solve == "joint" else None
         if report_dir is not None:
             poses = Path(report_dir) / "poses.csv"
-        elif reference is not None or camera is not None:
+        elif reference is not None or camera is not None or firmware:
             poses = Path(tmp) / "poses.csv"
         s = session_from_sidecar(layout, sidecar, protocol=protocol, options=options, truth=truth,
                                  json_out=json_out, poses_path=poses)
+        if usd is not None and usd["mode"] == "angles":
+            s.decoder = usd["source"]
+            frames = usd["frames"]
+            for k in range(0, len(frames), 4096):
+                s.feed_frames(frames[k:k + 4096])
+                if on_progress is not None:
+                    on_progress(s)
+            data_override = b""
         # the raw bytes in blocks (the timing index is not needed as fast as possible: memory stays
         # flat whatever the capture's length)
         import io
@@ -273,6 +289,13 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
         summary = s.finish()
         summary["capture"] = str(capture)
         summary["protocol"] = _protocol_from(sidecar, protocol)[0]
+        if usd is not None:
+            summary["cfusdlog"] = usd["info"]
+            if firmware:
+                from .importers import firmware_comparison
+
+                # the firmware's own estimates beside ours (same clock, same world frame)
+                summary["firmware_vs_ours"] = firmware_comparison(poses, firmware)
         cam = _camera_from_folder(capture, camera_device, camera_config)
         return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
                            report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
