@@ -30,9 +30,12 @@ _common_options = [
     report_option(help="Write report.json, poses.csv and PNG plots into this directory."),
     rho_option(),
     sigma_option(),
-    click.option("--motion-compensation", is_flag=True,
-                 help="Move each frame's Y-sweep angles to its X-sweep time with the velocity of the recent "
-                      "poses (LH1; for fast motion: RMS 2.1x -> 1.0x the DOP prediction at 20 deg/s; costs speed)."),
+    click.option("--motion-compensation/--no-motion-compensation", default=None,
+                 help="Model the motion across a frame / window with the velocity of the recent poses. "
+                      "--solve joint: each station's angles at their own time in the 20 ms window (default on: "
+                      "a flying Crazyflie 0.51 vs 2.0 mm RMS, benchmarks/results/joint_crazyflie.json). "
+                      "Per-station: each frame's Y sweep moved to its X-sweep time (LH1; default off; for fast "
+                      "motion RMS 2.1x -> 1.0x the DOP prediction at 20 deg/s). Costs speed."),
     json_flag(help="Print the run summary as JSON."),
     system_config_option,
     stations_option,
@@ -95,7 +98,7 @@ def _add(options):
     return deco
 
 
-def _options(rho, sigma, live: bool, motion_compensation: bool = False, filter_settings=None):
+def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, filter_settings=None):
     from ..workflows.live import LiveOptions
 
     kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation)

@@ -177,9 +177,20 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         sol = solve_joint(P, a, stations=stations)
         Rs, ts, rr = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
         ok = np.asarray(sol.status) == PNP_OK
+        # body velocity from the recent joint poses (causal; NaN at the start of a stream, after a gap
+        # or a jump), kept whether or not it is used
+        zero = np.zeros(idx.size)
+        w, v = _recent_velocity(t[idx], Rs, ts, ok, zero, zero, state.get("motion"), config)
+        state["motion"] = _motion_history(state.get("motion"), t[idx], Rs, ts, ok, zero, zero, config.motion_window)
+        known = np.all(np.isfinite(w), 1) & np.all(np.isfinite(v), 1)
+        comp = np.zeros(idx.size, bool)
         if config.motion_compensation:
-            Rs, ts, rr, ok = _compensate(P, a, dt[idx], t[idx], Rs, ts, rr, ok, stations, config, state, solve_joint,
-                                         _recent_velocity, _motion_history)
+            Rs, ts, rr, comp = _compensate(P, a, dt[idx], Rs, ts, rr, ok & known, w, v, stations, solve_joint)
+        # the residual limit follows sigma and, for a window solved as static, the known motion
+        # across it (the angles of a moving deck measured up to 20 ms apart cannot fit one pose)
+        sm = _motion_sigma(P, ts, w, v, dt[idx], have[idx], stations)
+        sm = np.where(known & ~comp & np.isfinite(sm), sm, 0.0)
+        limit = config.max_residual_sigma * np.hypot(config.sigma_theta, sm)
         if ok.any():
             d = pose_dop(P, np.where(ok[:, None, None], Rs, np.eye(3)), np.where(ok[:, None], ts, 0.0),
                          rho=config.rho, visible=lit[idx], stations=stations)
@@ -188,7 +199,7 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         else:
             ad = pd = np.full(idx.size, np.inf)
         st = np.where(~ok, np.where(np.asarray(sol.status) == PNP_TOO_FEW, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED),
-                      np.where(rr > config.max_residual_sigma * config.sigma_theta, STATUS_HIGH_RESIDUAL, STATUS_OK))
+                      np.where(rr > limit, STATUS_HIGH_RESIDUAL, STATUS_OK))
         st, cand = _continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
         state["jump"] = cand
         good = np.flatnonzero(st == STATUS_OK)
@@ -205,19 +216,16 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
                      n_stations=have.sum(1), lit_by_station=lit.sum(-1))
 
 
-def _compensate(P, a, dt, t, Rs, ts, rr, ok, stations, config, state, solve_joint, recent_velocity, motion_history):
-    """Second pass with constant body velocity across the window (world frame, left perturbation):
-    velocity from the previous good joint poses (causal, as the per-station compensation)."""
+def _compensate(P, a, dt, Rs, ts, rr, use, w, v, stations, solve_joint):
+    """Second pass with constant body velocity across the window (world frame, left perturbation)
+    for the windows ``use`` (first pass converged, velocity known). Returns the poses, residuals
+    and which windows were compensated."""
     from ..pnp import STATUS_OK as PNP_OK
 
-    hist = state.get("motion")
-    good = ok.copy()
-    inf = np.full(t.size, 0.0)
-    w, v = recent_velocity(t, Rs, ts, good, inf, inf, hist, config)
-    state["motion"] = motion_history(hist, t, Rs, ts, good, inf, inf, config.motion_window)
-    fix = np.flatnonzero(ok & np.isfinite(w[:, 0]))
+    fix = np.flatnonzero(use)
+    comp = np.zeros(len(Rs), bool)
     if fix.size == 0:
-        return Rs, ts, rr, ok
+        return Rs, ts, rr, comp
     sol = solve_joint(P, a[fix], stations=stations, dt=dt[fix], velocity=(w[fix], v[fix]),
                       initial=(Rs[fix], ts[fix]))
     took = np.asarray(sol.status) == PNP_OK
@@ -225,4 +233,20 @@ def _compensate(P, a, dt, t, Rs, ts, rr, ok, stations, config, state, solve_join
     Rs, ts, rr = Rs.copy(), ts.copy(), rr.copy()
     Rs[k], ts[k], rr[k] = np.asarray(sol.rotation)[took], np.asarray(sol.translation)[took], \
         np.asarray(sol.residual_rms)[took]
-    return Rs, ts, rr, ok
+    comp[k] = True
+    return Rs, ts, rr, comp
+
+
+def _motion_sigma(P, tw, w, v, dt, have, stations):
+    """RMS angle change (rad) of the deck's sensors over each window's measurement times for the
+    body velocity ``(w, v)``: per station and axis ``(|v| + |w| L) |dt| / r`` (L the largest sensor
+    distance from the body origin, r the station's distance), RMS over the present station axes.
+    (W,) rad; NaN where the velocity is unknown."""
+    L = float(np.max(np.linalg.norm(P, axis=1))) if len(P) else 0.0
+    speed = np.linalg.norm(v, axis=-1) + np.linalg.norm(w, axis=-1) * L            # (W,)
+    org = np.array([np.asarray(st.translation, float) for st in stations])          # (S, 3)
+    r = np.linalg.norm(tw[:, None, :] - org[None], axis=-1)                         # (W, S)
+    d = speed[:, None, None] * np.abs(dt) / np.maximum(r, 1e-6)[..., None]          # (W, S, 2)
+    m = np.broadcast_to(have[..., None], d.shape)
+    n = np.maximum(m.sum((1, 2)), 1)
+    return np.sqrt(np.where(m, d * d, 0.0).sum((1, 2)) / n)

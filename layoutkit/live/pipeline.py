@@ -98,11 +98,14 @@ class LiveConfig:
         wrong PnP basin can fit the angles as well as the right one. After ``reacquire_s``
         without a good pose the next pose is accepted as is, and ``reacquire_frames`` consecutive
         jumped poses that agree with each other become the new track.
-    motion_compensation : correct each frame's Y-sweep angles to its X-sweep time with the body
-        velocity of the recent good poses (see :func:`solve_chunk`, ``docs/live.md`` "Motion
-        compensation"). Off by default: a stream whose X and Y angles come from one pose (the static
-        frame model of ``tests/test_live_pipeline.py``) is made worse by it; the simulator's and
-        real hardware's are not. LH1 frames only.
+    motion_compensation : per-station: correct each frame's Y-sweep angles to its X-sweep time with
+        the body velocity of the recent good poses (see :func:`solve_chunk`, ``docs/live.md`` "Motion
+        compensation"; LH1 frames only); joint: model every station's and axis' angles at their own
+        time in the window (:func:`layoutkit.live.joint_stream.solve_windows`). None (default) = on
+        for ``solve="joint"`` (a flying deck's stations are measured up to 20 ms apart:
+        benchmarks/results/joint_crazyflie.json), off per-station (a stream whose X and Y angles
+        come from one pose, the static frame model of ``tests/test_live_pipeline.py``, is made
+        worse by it); :meth:`resolved` fills it in.
     motion_window, motion_window_s : the velocity is the least-squares slope over the last
         ``motion_window`` good poses of the station (at least 3) within ``motion_window_s`` s of the
         frame, with no jump between consecutive ones; otherwise (first frames, after a gap, jump or
@@ -138,7 +141,7 @@ class LiveConfig:
     gate_sigma: float = 6.0
     reacquire_s: float = 0.5
     reacquire_frames: int = 5
-    motion_compensation: bool = False
+    motion_compensation: bool | None = None
     motion_window: int = 8
     motion_window_s: float = 0.25
     motion_passes: int = 2
@@ -180,7 +183,8 @@ class LiveConfig:
         rpm = self.rotor_rpm
         if rpm is None:
             rpm = float(stations[0].rotor_rpm) if stations else LH1_ROTOR_RPM
-        return replace(self, n_sensors=int(n_sensors), rotor_rpm=rpm)
+        mc = (self.solve == "joint") if self.motion_compensation is None else bool(self.motion_compensation)
+        return replace(self, n_sensors=int(n_sensors), rotor_rpm=rpm, motion_compensation=mc)
 
 
 #: Old name of :class:`LiveConfig`.

@@ -217,6 +217,7 @@ class LiveSession:
                 "windows_by_stations": {str(k): v for k, v in sorted(c.windows_by_stations.items())},
                 "frames_of_unknown_station": c.unknown_station_frames, "late_frames": c.late_frames,
                 "stations": len(self.stations or ()),
+                "motion_compensation": bool(self.options.motion_compensation),
                 "frame": "world (the stations' common frame)"}
         if self.filter is not None:
             self.finished["filter"] = self.filter.summary(self.finished["truth"])

@@ -286,8 +286,8 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     source : "uart" (the ``lhUartFrame`` events re-encoded as the deck's bytes, LH2 only:
     :func:`cfusdlog_capture`), "angles" (the firmware's sweep-angle events ``lhAngle`` /
     ``estSweepAngle`` grouped into frames, LH1 and LH2: :func:`layoutkit.live.cf_events.event_frames`)
-    or "auto" (uart for an LH2 log that has UART frames — the deck's 24 MHz clock times each
-    light plane; the angle events otherwise). The base-station type comes from the events, the
+    or "auto" (uart for a log with UART frames that is not known to be LH1 — the deck's 24 MHz
+    clock times each light plane; the angle events otherwise). The base-station type comes from the events, the
     system config's ``systemType`` or the stations.
     Returns ``{"mode", "sidecar", "bytes" | "frames", "stats", "kind", "firmware" (the log's own
     position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``.
@@ -304,13 +304,13 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     uart = "lhUartFrame" in ul.events and len(ul.events["lhUartFrame"]["t"]) > 0
     kind = _log_kind(ul, ev, stations, system_config)
     if source == "auto":
-        source = "uart" if uart and (kind == "lh2" or ev is None) else "angles"
+        source = "uart" if uart and kind != "lh1" else "angles"
     fw = firmware_positions(ul)
     info = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "log_ended": ul.ended,
             "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()},
             "firmware_estimates": {k: {"event": v["event"], "variables": v["variables"], "rows": int(len(v["t"]))}
                                    for k, v in fw.items()}}
-    if source == "uart":
+    if source == "uart" or (ev is None and uart):
         if not uart:
             raise ValueError(f"{log}: no lhUartFrame events (found: {_found(ul)})")
         if kind == "lh1":
