@@ -81,7 +81,8 @@ def libsurvive_cmd(recording, out_dir, device, config, as_json):
 @json_flag(help="Print the JSON summary.")
 def cfusdlog_cmd(log, out_dir, system_config, as_json):
     """A Crazyflie microSD event log (cfusdlog) → a deck capture + sidecar for `layoutkit replay`
-    (lhUartFrame events) and the firmware's own angles (lhAngle events) as a table."""
+    (lhUartFrame events), a frame table for `solve` / `calibrate` (sweep-angle events lhAngle /
+    estSweepAngle, LH1 or LH2), the firmware's own angles and position estimates as tables."""
     from ..workflows.importers import import_cfusdlog
 
     s = _run(import_cfusdlog, log, out_dir, system_config=system_config)
@@ -90,8 +91,16 @@ def cfusdlog_cmd(log, out_dir, system_config, as_json):
         return
     if s.get("ended"):
         click.echo(f"warning: {s['ended']}", err=True)
-    click.echo(f"{s['uart_frames']} lhUartFrame events -> {s['capture']}; {s['angle_rows']} lhAngle rows -> "
-               f"{s['firmware_angles']}")
+    if s.get("capture"):
+        click.echo(f"{s['uart_frames']} lhUartFrame events -> {s['capture']}")
+    if s.get("frames_file"):
+        click.echo(f"{s['sweep_events']} {s['sweep_event_type']} events ({s['kind']}) -> {s['frames']} frames in "
+                   f"{s['frames_file']}")
+    elif s.get("frames_error"):
+        click.echo(f"note: {s['frames_error']}")
+    click.echo(f"{s['angle_rows']} lhAngle rows -> {s['firmware_angles']}")
+    for label, f in (s.get("firmware_estimates") or {}).items():
+        click.echo(f"firmware {label} ({f['event']}): {f['rows']} rows -> {f['file']}")
     for note in s.get("notes", []):
         click.echo(f"note: {note}")
 

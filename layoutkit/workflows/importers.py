@@ -385,30 +385,41 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     """A Crazyflie microSD log → ``out_dir/capture.bin`` (the deck's UART bytes re-encoded from the
     ``lhUartFrame`` events) with its sidecar ``capture.bin.json`` (protocol ``bitcraze-lh2``, the
     deck layout, the system config's stations and calibration, the deck-to-log clock offset), and
-    ``out_dir/firmware_angles.csv`` (the firmware's own ``lhAngle`` raw and calibrated angles).
+    ``out_dir/firmware_angles.csv`` (the firmware's own ``lhAngle`` raw and calibrated angles);
+    a log with sweep-angle events (``lhAngle`` / ``estSweepAngle``, LH1 or LH2) also gives
+    ``frames.csv`` + ``layout.json`` (+ ``stations.json`` with a system config) for ``solve`` and
+    ``calibrate``, and the firmware's position estimates ``firmware_<label>.csv``. A log without
+    UART frames gives no capture (``capture: null``).
 
     The replay's ``t`` is the log's event clock: ``t = deck ticks / 24 MHz + offset`` with the
     offset the median of (event time − unwrapped FPGA time) over the events.
     """
-    import csv
-
-    from ..importers.cfusdlog import read_cfusdlog
-    from ..io.atomic import atomic_write, atomic_write_bytes
+    from ..importers.cfusdlog import read_cfusdlog, sweep_events
+    from ..io.atomic import atomic_write_bytes
     from ..io.sidecar import CaptureSidecar, sidecar_path, write_sidecar
     from ..live.protocols.bitcraze import DECK_CLOCK_HZ, load_system_config
 
     log = Path(log)
     out = Path(out_dir)
     ul = read_cfusdlog(log)
-    if "lhUartFrame" not in ul.events or len(ul.events["lhUartFrame"]["t"]) == 0:
-        raise ValueError(f"{log}: no lhUartFrame events (event types: {sorted(ul.events)}); enable the "
-                         "lighthouse deck's UART frame event trigger when logging")
-    ev = ul.events["lhUartFrame"]
+    sweeps = sweep_events(ul)
+    has_uart = "lhUartFrame" in ul.events and len(ul.events["lhUartFrame"]["t"]) > 0
+    if not has_uart and sweeps is None:
+        raise ValueError(f"{log}: no lighthouse sweep data: found {_found(ul)}; log lhAngle or estSweepAngle "
+                         "events ('on:lhAngle' in the card's config.txt) or, for LH2, lhUartFrame events")
     cfg = load_system_config(system_config) if system_config else None
     cap = out / "capture.bin"
-    if cap.exists():
-        raise ValueError(f"{cap}: exists; captures are never overwritten (choose another --out)")
+    if cap.exists() or (out / "frames.csv").exists():
+        raise ValueError(f"{out}: holds an import already (capture.bin / frames.csv); imports are never "
+                         "overwritten (choose another --out)")
     out.mkdir(parents=True, exist_ok=True)
+    summary = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "ended": ul.ended,
+               "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()}}
+    summary.update(_import_sweep_events(log, ul, sweeps, out, cfg, system_config))
+    if not has_uart:
+        return summary | {"uart_frames": 0, "capture": None, "angle_rows": _firmware_angles(ul, out)[0],
+                          "firmware_angles": str(out / "firmware_angles.csv"), "notes": []}
+    ev = ul.events["lhUartFrame"]
     data, notes = deck_bytes(ev)
     atomic_write_bytes(cap, data)
     deck_t = _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ
@@ -431,6 +442,18 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
                                                                     "deck_clock_hz": DECK_CLOCK_HZ},
                                "import_notes": note_list})
     write_sidecar(cap, sc)
+    rows, fa = _firmware_angles(ul, out)
+    return summary | {"uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
+                      "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
+                      "stations": len(stations), "notes": note_list}
+
+
+def _firmware_angles(ul, out) -> tuple[int, Path]:
+    """``out/firmware_angles.csv``: the firmware's own ``lhAngle`` raw and calibrated angles."""
+    import csv
+
+    from ..io.atomic import atomic_write
+
     ang = ul.events.get("lhAngle")
     rows = 0
     fa = out / "firmware_angles.csv"
@@ -444,11 +467,60 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
                             repr(float(ang["angle"][k])),
                             repr(float(ang["correctedAngle"][k])) if "correctedAngle" in ang else ""])
                 rows += 1
-    return {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "ended": ul.ended,
-            "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()},
-            "uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
-            "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
-            "stations": len(stations), "notes": note_list}
+    return rows, fa
+
+
+def _import_sweep_events(log, ul, sweeps, out, cfg, system_config) -> dict:
+    """The sweep-angle events as a frame table ``out/frames.csv`` (LH1-equivalent measured angles,
+    station column; :mod:`layoutkit.io.frames`) with ``out/layout.json`` (the deck) and, with a
+    system config, ``out/stations.json``; the log's own position estimates as position-only pose
+    tables ``out/firmware_<label>.csv``. Returns the summary's part."""
+    from ..importers.cfusdlog import firmware_positions
+    from ..io.frames import Frames
+    from ..io.poses import JOINT, PoseTable, write_poses
+
+    res = {}
+    for label, fw in firmware_positions(ul).items():
+        p = out / f"firmware_{label}.csv"
+        n = len(fw["t"])
+        write_poses(p, PoseTable(fw["t"], np.full((n, 3), np.nan), fw["position"], station=np.full(n, JOINT),
+                                 status=np.zeros(n, int)))
+        res.setdefault("firmware_estimates", {})[label] = {"file": str(p), "event": fw["event"], "rows": n}
+    if sweeps is None:
+        return res
+    stations = None
+    if cfg is not None:
+        ids = sorted(cfg.stations)
+        stations = [cfg.stations[i] for i in ids] if ids == list(range(len(ids))) else None
+    kind = _log_kind(ul, sweeps, stations, system_config)
+    if kind is None:
+        res["frames_error"] = (f"{log}: {sweeps.source} events do not tell LH1 from LH2 base stations; give "
+                               "--system-config to write frames.csv")
+        return res
+    from ..live.cf_events import event_frames
+    from ..live.frames import DecodeStats
+
+    periods = {k: 60.0 / st.rotor_rpm for k, st in enumerate(stations or ()) if st.kind == kind}
+    stats = DecodeStats()
+    frames = event_frames(sweeps, kind, 4, periods=periods, stats=stats)
+    lay = _deck_layout()
+    write_layout(lay, out / "layout.json")
+    fr = Frames(np.array([f.t for f in frames]), np.array([f.angles for f in frames]).reshape(-1, 4, 2),
+                tuple(lay.ids), station=np.array([f.station for f in frames], int))
+    write_frame_table(fr, out / "frames.csv")
+    res.update(frames_file=str(out / "frames.csv"), frames=len(frames), sweep_events=int(len(sweeps.t)),
+               sweep_event_type=sweeps.source, kind=kind, layout=str(out / "layout.json"),
+               dropped=dict(stats.reasons))
+    if stations:
+        from ..io.stations import write_stations
+
+        cals = {k: c.to_calibration(kind) for k, c in cfg.calibs.items()}
+        from dataclasses import replace
+
+        sts = [replace(st, calibration=st.calibration or cals.get(k)) for k, st in enumerate(stations)]
+        write_stations(out / "stations.json", sts)
+        res["stations_file"] = str(out / "stations.json")
+    return res
 
 
 # ---------------------------------------------------------------- motion capture
