@@ -33,7 +33,12 @@ import numpy as np
 from ..io.poses import JOINT
 from ..joint import WINDOW_S
 
-__all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows"]
+__all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "MOTION_MIN_SIGMA"]
+
+#: a window's motion is modelled (``motion_compensation``) when the known velocity changes its
+#: angles by more than this many sigma_theta (RMS over its measurement times): below, the
+#: uncompensated bias is negligible and the velocity estimate mostly noise (a deck at rest)
+MOTION_MIN_SIGMA = 0.25
 
 
 @dataclass(frozen=True)
@@ -147,8 +152,11 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     not converged) → solver_failed; RMS residual above ``max_residual_sigma`` sigma → high_residual;
     a jump from the recent joint track → jump (the per-station continuity gate, on the joint poses).
     With ``motion_compensation`` each station's angles are modelled at their own time in the window
-    (constant body velocity from the recent good joint poses, :func:`layoutkit.joint.solve_joint`
-    ``dt``/``velocity``) and the window is solved again from the first pose.
+    (constant body velocity from the recent joint poses, :func:`layoutkit.joint.solve_joint`
+    ``dt``/``velocity``) and the window is solved again from the first pose — where the velocity is
+    known and moves the angles by more than :data:`MOTION_MIN_SIGMA` sigma across the window. The
+    high_residual limit is ``max_residual_sigma * sqrt(sigma² + sm²)`` with ``sm`` the known motion's
+    RMS angle change for windows solved as static (0 where it was modelled; :func:`_motion_sigma`).
     """
     from ..dop import pose_dop
     from ..geometry import matrix_to_rotvec
@@ -179,17 +187,25 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         ok = np.asarray(sol.status) == PNP_OK
         # body velocity from the recent joint poses (causal; NaN at the start of a stream, after a gap
         # or a jump), kept whether or not it is used
+        # (from windows with two or more stations when there are: a one-station window of a small
+        # deck is ~100x less precise, and its pose would make the velocity noise)
         zero = np.zeros(idx.size)
-        w, v = _recent_velocity(t[idx], Rs, ts, ok, zero, zero, state.get("motion"), config)
-        state["motion"] = _motion_history(state.get("motion"), t[idx], Rs, ts, ok, zero, zero, config.motion_window)
+        vok = ok & (have[idx].sum(1) >= min(2, S))
+        w, v = _recent_velocity(t[idx], Rs, ts, vok, zero, zero, state.get("motion"), config)
+        state["motion"] = _motion_history(state.get("motion"), t[idx], Rs, ts, vok, zero, zero, config.motion_window)
         known = np.all(np.isfinite(w), 1) & np.all(np.isfinite(v), 1)
+        # the RMS angle change the known motion makes across each window's measurement times
+        sm = _motion_sigma(P, ts, w, v, dt[idx], have[idx], stations)
+        sm = np.where(known & np.isfinite(sm), sm, 0.0)
         comp = np.zeros(idx.size, bool)
         if config.motion_compensation:
-            Rs, ts, rr, comp = _compensate(P, a, dt[idx], Rs, ts, rr, ok & known, w, v, stations, solve_joint)
+            # only where the motion matters (> MOTION_MIN_SIGMA sigma): at rest the velocity is noise,
+            # and modelling it would only add that noise to the pose
+            use = ok & known & (sm > MOTION_MIN_SIGMA * config.sigma_theta)
+            Rs, ts, rr, comp = _compensate(P, a, dt[idx], Rs, ts, rr, use, w, v, stations, solve_joint)
         # the residual limit follows sigma and, for a window solved as static, the known motion
         # across it (the angles of a moving deck measured up to 20 ms apart cannot fit one pose)
-        sm = _motion_sigma(P, ts, w, v, dt[idx], have[idx], stations)
-        sm = np.where(known & ~comp & np.isfinite(sm), sm, 0.0)
+        sm = np.where(comp, 0.0, sm)
         limit = config.max_residual_sigma * np.hypot(config.sigma_theta, sm)
         if ok.any():
             d = pose_dop(P, np.where(ok[:, None, None], Rs, np.eye(3)), np.where(ok[:, None], ts, 0.0),
