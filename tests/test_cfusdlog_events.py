@@ -162,3 +162,17 @@ def test_import_writes_a_frame_table_that_solve_reads(tmp_path):
     assert ok.sum() >= 0.9 * len(tab)
     err = np.linalg.norm(tab.translation[ok] - truth_position(sim, tab.t[ok]), axis=1)
     assert np.median(err) < 1e-3
+
+
+def test_zero_angle_is_no_measurement():
+    """An angle of exactly 0 (the firmware's 'none') is not a measurement: NaN in its frame, counted."""
+    from layoutkit.importers.cfusdlog import SweepEvents
+    from layoutkit.live.frames import DecodeStats
+
+    t = np.full(8, 1.0)
+    ev = SweepEvents("lhAngle", t, np.zeros(8, int), np.tile(np.arange(4), 2), np.repeat([0, 1], 4),
+                     np.array([0.1, 0.0, 0.12, 0.13, -0.1, -0.11, -0.12, -0.13]))
+    st = DecodeStats()
+    (f,) = event_frames(ev, "lh2", 4, stats=st)
+    assert np.isnan(f.raw[1, 0]) and np.isfinite(f.raw).sum() == 7
+    assert sum(st.reasons.values()) == 1

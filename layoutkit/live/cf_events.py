@@ -89,8 +89,9 @@ def event_frames(ev, kind: str, n_sensors: int = 4, *, periods: dict | None = No
         if not 0 <= i < n:
             stats.drop("sweep-angle event of a sensor outside the layout")
             continue
-        if not np.isfinite(a):
-            stats.drop("non-finite sweep angle")
+        if not np.isfinite(a) or a == 0.0:
+            # exactly 0 is the firmware's "no measurement" (its estimator skips such angles too)
+            stats.drop("sweep angle missing (non-finite or exactly 0)")
             continue
         fr = open_.get(s)
         span = 0.75 * _lh2_period(s, periods) if kind == "lh2" else LH1_SPAN_S
