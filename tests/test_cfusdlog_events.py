@@ -176,3 +176,28 @@ def test_zero_angle_is_no_measurement():
     (f,) = event_frames(ev, "lh2", 4, stats=st)
     assert np.isnan(f.raw[1, 0]) and np.isfinite(f.raw).sum() == 7
     assert sum(st.reasons.values()) == 1
+
+
+def test_auto_source_prefers_complete_angles_over_dropped_uart_frames(tmp_path):
+    """An LH2 log whose UART frames were dropped on the card (fewer than the angle events) is
+    replayed from its angle events, and the summary says why; with as many UART frames as angles
+    the UART frames are used (the deck clock times each plane)."""
+    from cf_helpers import UART_VARS
+
+    from _cf_events_sim import LHANGLE
+    from layoutkit.workflows.importers import cfusdlog_replay_source
+
+    sim = simulate_events("lh2", duration=0.5, seed=2)
+    rows = sim["rows"]
+    t = np.array([r[0] for r in rows])
+    ang = [(r[2], r[1], r[3], r[4], r[5]) for r in rows]
+    _, yml = write_event_log(sim, tmp_path)
+    for keep, want in ((0.5, "lhAngle"), (1.0, "lhUartFrame")):
+        n = int(keep * len(rows))
+        uart = [(r[2], r[1], 0, 1000 + k, 0) for k, r in enumerate(rows[:n])]
+        log = tmp_path / f"both{keep}"
+        write_cfusdlog(log, {"lhAngle": (t, ang), "lhUartFrame": (t[:n], uart)},
+                       types={"lhAngle": LHANGLE, "lhUartFrame": UART_VARS})
+        src = cfusdlog_replay_source(log, system_config=yml)
+        assert src["info"]["source"] == want
+        assert ("source_choice" in src["info"]) == (want == "lhAngle")

@@ -287,7 +287,8 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     :func:`cfusdlog_capture`), "angles" (the firmware's sweep-angle events ``lhAngle`` /
     ``estSweepAngle`` grouped into frames, LH1 and LH2: :func:`layoutkit.live.cf_events.event_frames`)
     or "auto" (uart for a log with UART frames that is not known to be LH1 — the deck's 24 MHz
-    clock times each light plane; the angle events otherwise). The base-station type comes from the events, the
+    clock times each light plane — unless it has fewer than 90 % as many UART frames as angle
+    events, i.e. the card dropped UART frames; the angle events otherwise). The base-station type comes from the events, the
     system config's ``systemType`` or the stations.
     Returns ``{"mode", "sidecar", "bytes" | "frames", "stats", "kind", "firmware" (the log's own
     position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``.
@@ -303,13 +304,23 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     ev = sweep_events(ul)
     uart = "lhUartFrame" in ul.events and len(ul.events["lhUartFrame"]["t"]) > 0
     kind = _log_kind(ul, ev, stations, system_config)
+    choice = None
     if source == "auto":
         source = "uart" if uart and kind != "lh1" else "angles"
+        n_uart = len(ul.events["lhUartFrame"]["t"]) if uart else 0
+        if source == "uart" and ev is not None and kind is not None and n_uart < 0.9 * len(ev.t):
+            # one UART frame per sensor and light plane, as one angle event: fewer frames than angles
+            # means the card dropped UART frames (its ring buffer overflowed), so the angles are complete
+            source = "angles"
+            choice = (f"{n_uart} lhUartFrame events < 90 % of {len(ev.t)} {ev.source} events: the UART frames "
+                      "were dropped on the card; replaying the angle events")
     fw = firmware_positions(ul)
     info = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "log_ended": ul.ended,
             "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()},
             "firmware_estimates": {k: {"event": v["event"], "variables": v["variables"], "rows": int(len(v["t"]))}
                                    for k, v in fw.items()}}
+    if choice:
+        info["source_choice"] = choice
     if source == "uart" or (ev is None and uart):
         if not uart:
             raise ValueError(f"{log}: no lhUartFrame events (found: {_found(ul)})")
