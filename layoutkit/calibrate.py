@@ -392,6 +392,18 @@ def jacobian_sparsity(problem: _Problem):
     return coo_matrix((np.ones(r.size), (r, c)), shape=(problem.M, problem.N)).tocsr()
 
 
+def _pose_blocks(Jp, K):
+    """The K diagonal 6 × 6 blocks (K, 6, 6) of ``Jp^T Jp`` for the per-sample pose columns ``Jp``
+    (M, 6K) (each sample's pose couples only to itself: the rest of ``Jp^T Jp`` is zero)."""
+    Hpp = (Jp.T @ Jp).tocsr()
+    blocks = np.zeros((K, 6, 6))
+    rows = np.arange(K) * 6
+    for a in range(6):
+        for b in range(6):
+            blocks[:, a, b] = np.asarray(Hpp[rows + a, rows + b]).ravel()
+    return blocks
+
+
 def _global_covariance(J, K):
     """Covariance (up to the residual variance) of the global columns: inverse Schur complement of
     the per-sample 6 × 6 pose blocks of ``J^T J``."""
@@ -399,12 +411,7 @@ def _global_covariance(J, K):
     Jp, Jg = Jc[:, : 6 * K], Jc[:, 6 * K:]
     Hgg = (Jg.T @ Jg).toarray()
     Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], K, 6)
-    Hpp = (Jp.T @ Jp).tocsr()
-    blocks = np.zeros((K, 6, 6))
-    for a in range(6):
-        for b in range(6):
-            blocks[:, a, b] = np.asarray(Hpp[np.arange(K) * 6 + a, np.arange(K) * 6 + b]).ravel()
-    inv = np.linalg.pinv(blocks)
+    inv = np.linalg.pinv(_pose_blocks(Jp, K))
     red = Hgg - np.einsum("gki,kij,hkj->gh", Hgp, inv, Hgp)
     red = 0.5 * (red + red.T)
     d = np.sqrt(np.maximum(np.diag(red), 1e-300))
@@ -437,12 +444,7 @@ def _consider_covariance(Jw, Jo, K, cov, chunk: int = 2048):
         kk = k1 - k0
         Hpo = (Jp.T @ Joc).toarray().reshape(kk, 6, -1)
         Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], kk, 6)
-        Hpp = (Jp.T @ Jp).tocsr()
-        blocks = np.zeros((kk, 6, 6))
-        for a in range(6):
-            for b in range(6):
-                blocks[:, a, b] = np.asarray(Hpp[np.arange(kk) * 6 + a, np.arange(kk) * 6 + b]).ravel()
-        Cr -= np.einsum("gki,kij,kjo->go", Hgp, np.linalg.pinv(blocks), Hpo)
+        Cr -= np.einsum("gki,kij,kjo->go", Hgp, np.linalg.pinv(_pose_blocks(Jp, kk)), Hpo)
     A = cov @ Cr
     return A @ A.T
 

@@ -141,9 +141,8 @@ def crossing_beam_reference(sim):
     (within 20 ms), ``layoutkit.joint.crossing_beam_positions``; times = mean of the two frames'
     event times minus the latency model of :mod:`layoutkit.live.cf_events`."""
     from layoutkit.importers.cfusdlog import SweepEvents
-    from layoutkit.joint import crossing_beam_positions, firmware_corrected_angles
     from layoutkit.live.cf_events import event_frames
-    from layoutkit.live.joint_stream import JointWindower, window_arrays
+    from layoutkit.live.joint_stream import JointWindower, crossing_beam_windows
 
     rows = sim["rows"]
     ev = SweepEvents("lhAngle", np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
@@ -155,12 +154,6 @@ def crossing_beam_reference(sim):
     for f in frames:
         ws += win.push(f)
     ws += win.flush()
-    t, ang, _, have = window_arrays(ws, 4, 2)
-    both = have.all(1)
-    th = np.stack([firmware_corrected_angles(ang[both, s], st) for s, st in enumerate(sim["stations"])], 1)
-    pos, k, _ = crossing_beam_positions(th, sim["stations"])
-    use = k == 4
-    return t[both][use], pos[use]
-
+    return crossing_beam_windows(ws, sim["stations"], 4)
 
 __all__ = ["simulate_events", "write_event_log", "truth_position", "crossing_beam_reference", "lh2_to_lh1_angles"]

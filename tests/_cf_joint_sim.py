@@ -103,17 +103,10 @@ def decoded_windows(sc):
 
 def crossing_beam(sc, windows):
     """The firmware's crossing-beam position of every window with both stations: (t (W,), pos (W, 3))."""
-    from layoutkit.joint import crossing_beam_positions, firmware_corrected_angles
-    from layoutkit.live.joint_stream import window_arrays
+    from layoutkit.live.joint_stream import crossing_beam_windows
 
-    t, ang, _, have = window_arrays(windows, 4, 2)
-    both = have.all(1)
     # stations by system-config id: the channel's exact rotor period (as load_system_config gives)
-    th = np.stack([firmware_corrected_angles(ang[both, s], st) for s, st in enumerate(sc["stations"])], 1)
-    pos, k, _ = crossing_beam_positions(th, sc["stations"])
-    use = k == 4
-    return t[both][use], pos[use]
-
+    return crossing_beam_windows(windows, sc["stations"], 4)
 
 def truth_position(sc, t):
     """True deck-centre position (mean of the sensors; the deck origin) at the windows' times (the

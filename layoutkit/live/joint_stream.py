@@ -33,7 +33,8 @@ import numpy as np
 from ..io.poses import JOINT
 from ..joint import WINDOW_S
 
-__all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "MOTION_MIN_SIGMA"]
+__all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "crossing_beam_windows",
+           "MOTION_MIN_SIGMA"]
 
 #: a window's motion is modelled (``motion_compensation``) when the known velocity changes its
 #: angles by more than this many sigma_theta (RMS over its measurement times): below, the
@@ -136,6 +137,26 @@ def window_arrays(windows, n_sensors: int, n_stations: int):
             dt[k, s] = (np.asarray(f.t_axes, float) if f.t_axes is not None else f.t) - w.t
             have[k, s] = True
     return t, ang, dt, have
+
+
+def crossing_beam_windows(windows, stations, n_sensors: int):
+    """The firmware's crossing-beam position of every window both stations saw (the yardstick of
+    ``benchmarks/bench_joint_crazyflie.py`` and the tests): each station's angles corrected as the
+    firmware does (:func:`layoutkit.joint.firmware_corrected_angles`), then
+    :func:`layoutkit.joint.crossing_beam_positions` over the sensors both stations lit.
+
+    windows : JointWindow list over two stations; stations : the two :class:`Station` (world frame).
+    Returns ``t (W',)`` s and ``pos (W', 3)`` m (world frame), for the windows where every one of the
+    ``n_sensors`` sensors gave a crossing (the firmware's own rule for a position sample).
+    """
+    from ..joint import crossing_beam_positions, firmware_corrected_angles
+
+    t, ang, _, have = window_arrays(windows, n_sensors, 2)
+    both = have.all(1)
+    th = np.stack([firmware_corrected_angles(ang[both, s], st) for s, st in enumerate(stations[:2])], 1)
+    pos, k, _ = crossing_beam_positions(th, stations[:2])
+    use = k == n_sensors
+    return t[both][use], pos[use]
 
 
 def solve_windows(points_body, windows, config, stations, state: dict | None = None):
