@@ -110,7 +110,7 @@ def test_pipeline_reports_branch_and_bound_certificate():
         optimize_layout(**inst, k=K, rho=RHO_PAPER, branch_and_bound="maybe")
 
 
-def test_cli_branch_and_bound_switch(tmp_path):
+def test_cli_branch_and_bound_switch(tmp_path, capsys):
     """`layoutkit optimize` reports the B&B summary by default and none with --no-branch-and-bound
     (the bound is then the relaxation's)."""
     import json
@@ -122,7 +122,7 @@ def test_cli_branch_and_bound_switch(tmp_path):
     env = tmp_path / "env.toml"
     env.write_text(open("models/chen_envelope.toml").read().replace("count = 200", "count = 20"))
     args = ["optimize", "models/chen_target.stl", "--sensors", "8", "--envelope", str(env), "--spacing-mm", "20",
-            "--time-limit-s", "20", "--no-render", "--json"]
+            "--time-limit-s", "10", "--no-render", "--json"]
     on = CliRunner().invoke(main, args + ["--out", str(tmp_path / "a.json")])
     off = CliRunner().invoke(main, args + ["--out", str(tmp_path / "b.json"), "--no-branch-and-bound"])
     assert on.exit_code == 0 and off.exit_code == 0, on.output + off.output
@@ -132,3 +132,9 @@ def test_cli_branch_and_bound_switch(tmp_path):
         b = s_on["branch_and_bound"]
         assert b["nodes"] >= 0 and b["bound"] >= b["root_bound"]
         assert s_on["bound"] == pytest.approx(b["bound"]) and s_on["certified_by"] in ("branch-and-bound", "relaxation")
+    if s_on["certified_by"] == "branch-and-bound":  # the text summary names the B&B run behind the bound
+        from layoutkit.cli.optimize import _print_summary
+
+        _print_summary(s_on)
+        out = capsys.readouterr().out
+        assert "(branch-and-bound)" in out and f"{b['nodes']} node relaxations" in out

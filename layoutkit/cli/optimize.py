@@ -151,6 +151,10 @@ def _print_summary(s):
     else:
         click.echo(f"  {s['objective']} = {s['value']:.5g}   certified bound {s['bound']:.5g} ({s['certified_by']})"
                    f"   gap {100 * s['gap']:.2f} %")
+        if s.get("branch_and_bound"):
+            b = s["branch_and_bound"]
+            click.echo(f"  branch-and-bound: {b['nodes']} node relaxations, bound {b['root_bound']:.5g} (relaxation)"
+                       f" -> {b['bound']:.5g}")
     click.echo(f"  ADOP deg/rad  median {a['median']:.5g}  p95 {a['p95']:.5g}  max {a['max']:.5g}")
     click.echo(f"  PDOP m/rad    median {p['median']:.5g}  p95 {p['p95']:.5g}  max {p['max']:.5g}")
     for row in s["k_sweep"]:
