@@ -52,9 +52,6 @@ __all__ = ["BnbResult", "branch_and_bound", "bnb_applicable", "site_groups"]
 _INT_TOL = 1e-4
 # relative violation above the node bound at which a pose joins the working set
 _POSE_TOL = 1e-3
-import os as _os
-_DEBUG = bool(_os.environ.get("BNB_DEBUG"))
-_RULE = _os.environ.get("BNB_RULE", "score")
 
 
 @dataclass(frozen=True)
@@ -235,11 +232,6 @@ def _branch(z, lo, hi, groups, glo, ghi):
             cand.append((fr / max(math.ceil(m), 1), len(g), "group", r, float(fl)))
     if not cand:
         return ("site", int(free[np.argmax(zf)]), 0.0)  # integral z: split on a chosen free site
-    if _RULE == "largest":
-        big = [c for c in cand if c[2] == "group" and c[0] * max(math.ceil(z[groups[c[3]]].sum()), 1) >= 0.05]
-        if big:
-            best = max(big, key=lambda c: (c[1], c[0]))
-            return best[2], best[3], best[4]
     top = max(c[0] for c in cand)
     best = max((c for c in cand if c[0] >= 0.5 * top), key=lambda c: (c[1], c[0]))
     return best[2], best[3], best[4]
@@ -372,7 +364,6 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
             offer(sel)  # a single selection: its exact value closes the node
             continue
         kind, j, fl = _branch(z, lo, hi, groups, glo, ghi)
-        if _DEBUG: print("branch", kind, j, fl, len(groups[j]) if kind == "group" else 1, "node bound", b, flush=True)
         for side in (0, 1):
             clo, chi, cglo, cghi = lo.copy(), hi.copy(), glo.copy(), ghi.copy()
             if kind == "site":
@@ -390,7 +381,6 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
                 offer(dsel)
                 continue
             cb, cz, cexp = solve((clo, chi, cglo, cghi), b, z)
-            if _DEBUG: print("  child", side, cb, cexp, flush=True)
             if not np.isfinite(cb):
                 continue
             if cz is not None:
