@@ -109,7 +109,7 @@ class _NodeRelaxation:
                 cons.append(self.z[i] + self.z[j] <= 1)
         use_gls = use_rho and problem.rho > 0
         self.use_rho = use_rho
-        Ds, cs = _whitening(problem, self.poses, E) if weights is None else _node_whitening(problem, self.poses, E, weights)
+        Ds, cs = _whitening(problem, self.poses, E, weights)
         self.cbar = float(np.median(cs))
         self.t = cp.Variable()
         for q, p in enumerate(self.poses):
@@ -165,21 +165,6 @@ def site_groups(problem: Problem, min_size=2, max_groups=256):
             out.append(np.asarray(sorted(m), int))
     out.sort(key=len, reverse=True)
     return out[:max_groups]
-
-
-def _node_whitening(problem: Problem, poses, E, weights):
-    """``D_p = (sum_i w_i G_ip)^(-1/2)`` and ``c_p = |D_p E|_F²`` at site weights ``w`` (N,) — the
-    scaling of :func:`layoutkit.optimize.relaxation._whitening` centred on a node's region (a node
-    that forbids many sites is badly scaled by the uniform z). Scaling changes conditioning only."""
-    Gsum = np.einsum("pnij,n->pij", problem.G[poses], np.asarray(weights, float))
-    Ds, cs = [], []
-    for Gp in Gsum:
-        ev, evec = np.linalg.eigh(Gp)
-        ev = np.maximum(ev, max(ev.max(), 1e-300) * 1e-12)
-        D = (evec / np.sqrt(ev)) @ evec.T
-        Ds.append(D)
-        cs.append(float(np.sum((D @ E) ** 2)))
-    return Ds, cs
 
 
 def _region_weights(lo, hi, k, z=None):
@@ -284,7 +269,7 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
 
     def solve(nd, parent_bound, zp=None):
         """Node relaxation with pose generation: ``(bound, z or None, expandable)``. A solve that
-        is not optimal is retried once with the scaling centred on the node (:func:`_node_whitening`)."""
+        is not optimal is retried once with the scaling centred on the node (:func:`layoutkit.optimize.relaxation._whitening` with the node's weights)."""
         nonlocal rel, nodes
         lo, hi, glo, ghi = nd
         if lo.sum() > k + 0.5 or hi.sum() < k - 0.5 or np.any(glo > ghi + 0.5):

@@ -95,16 +95,21 @@ def _pose_information(cp, problem: Problem, p, zi, idx, D, use_gls):
     return X, 1 - rho, [(M + M.T) / 2 >> 0]
 
 
-def _whitening(problem: Problem, poses, E):
-    """Per-pose ``D_p = ((k/N) sum_i G_ip)^(-1/2)`` and the scale ``c_p = |D_p E|_F²``."""
-    Gsum = problem.G[poses].sum(axis=1) * (problem.k / problem.N)
+def _whitening(problem: Problem, poses, E, weights=None):
+    """Per-pose ``D_p = (sum_i w_i G_ip)^(-1/2)`` and the scale ``c_p = |D_p E|_F²``, at site weights
+    ``w`` (N,) — default the uniform ``w = k/N`` (whitened A = I there). A branch-and-bound node that
+    forbids many sites centres it on its own region instead. Scaling changes conditioning only."""
+    if weights is None:
+        Gsum = problem.G[poses].sum(axis=1) * (problem.k / problem.N)
+    else:
+        Gsum = np.einsum("pnij,n->pij", problem.G[poses], np.asarray(weights, float))
     Ds, cs = [], []
     for Gp in Gsum:
         ev, evec = np.linalg.eigh(Gp)
         ev = np.maximum(ev, max(ev.max(), 1e-300) * 1e-12)
         D = (evec / np.sqrt(ev)) @ evec.T
         Ds.append(D)
-        cs.append(float(np.sum((D @ E) ** 2)))  # value at the uniform z = k/N (whitened A = I)
+        cs.append(float(np.sum((D @ E) ** 2)))
     return Ds, cs
 
 
