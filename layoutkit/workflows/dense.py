@@ -1,13 +1,26 @@
 """Dense envelopes by adaptive pose generation (issue 13, item 1).
 
-Worst-case optimisation over a small pose sample fits the sample. Here the optimiser works on a
-*working set* (the envelope's design poses), the incumbent is evaluated on a *dense set* of the
-same envelope (design poses + ``dense_poses`` more from another seed; the fused DOP kernel
-:func:`layoutkit.dop_batch.batch_dop` makes that cheap), the worst dense poses that exceed the
-working-set value (and dense poses the coverage rule leaves uncovered) join the working set, and
-the optimiser runs again warm-started from the incumbent and the relaxation's active poses — until
-the dense-set objective stops improving (``patience`` rounds), no dense pose exceeds the working-set
-value, or the budget ends. The result with the best dense-set value is kept.
+Worst-case optimisation over a small pose sample fits the sample: the worst case of a continuous
+envelope sits at its rim (grazing attitudes, far range), which 200 random poses sample sparsely.
+Here the optimiser works on a *working set* of poses, the incumbent is evaluated on a *dense set*
+of the same envelope (design poses + ``dense_poses`` more from seed ``envelope.seed + 1``, by the
+fused kernel :func:`layoutkit.dop_batch.batch_dop`), and the loop is
+
+1. working set = design poses + ``seed_poses`` dense poses chosen by farthest-point sampling of
+   the pose descriptors (:func:`pose_descriptors`: direction of every station in the body frame and
+   the range) — a space-filling design of the envelope that reaches its rim from the start;
+2. optimise on the working set (warm-started from the incumbent and the relaxation's active
+   poses after round 0), evaluate on the dense set;
+3. add up to ``add`` dense poses above the working-set value (and coverable dense poses the rule
+   leaves uncovered), worst first and spread over the envelope (no two new poses closer than
+   ``min_sep`` in descriptor space while enough others are left), poses no layout can cover
+   skipped and counted; repeat.
+
+A round in which no dense pose exceeds the working-set value by more than ``tol`` adds nothing
+and becomes a *polish* round (the same working set, a fresh random stream for the kicks, the
+incumbent as warm start). The loop stops when the dense-set worst case has not improved for
+``patience`` rounds, the working set reaches ``max_working`` poses (bounded memory), k cannot cover
+the working set, or the budget ends. The layout with the best dense-set value is kept.
 
 Certificate: the working set is a subset of the dense set, so the relaxation bound of any round
 (a lower bound for the working set) is also a lower bound for the dense set; the gap reported is
@@ -20,7 +33,7 @@ import time
 
 import numpy as np
 
-__all__ = ["dense_optimize", "evaluate_selection"]
+__all__ = ["dense_optimize", "evaluate_selection", "pose_descriptors", "farthest_point_poses"]
 
 
 def evaluate_selection(prep, sel, R, t, rho, min_visible, coverage):
@@ -37,6 +50,54 @@ def evaluate_selection(prep, sel, R, t, rho, min_visible, coverage):
     return d.adop, d.pdop, cov
 
 
+def pose_descriptors(R, t, stations, range_weight=0.5):
+    """Pose descriptors ``(P, 3 S + 1)`` for space-filling pose designs.
+
+    R (P, 3, 3), t (P, 3): body poses in the world frame (``p_world = R p + t``, m); stations: list
+    of :class:`layoutkit.lighthouse.Station`. Per station the unit direction from the body origin to
+    the station in the BODY frame (what decides which sites are lit and how they are foreshortened),
+    then the range to the first station scaled to [0, ``range_weight``] over the set (ADOP grows
+    with range). Euclidean distance between descriptors ~ angle (rad) between attitudes.
+    """
+    R = np.asarray(R, float)
+    t = np.asarray(t, float)
+    cols = []
+    for st in stations:
+        d = np.asarray(st.translation, float)[None] - t
+        db = np.einsum("pji,pj->pi", R, d)  # R^T d
+        cols.append(db / np.maximum(np.linalg.norm(db, axis=1, keepdims=True), 1e-300))
+    r = np.linalg.norm(np.asarray(stations[0].translation, float)[None] - t, axis=1)
+    span = r.max() - r.min() if len(r) else 0.0
+    cols.append((range_weight * (r - r.min()) / span if span > 0 else np.zeros_like(r))[:, None])
+    return np.concatenate(cols, axis=1)
+
+
+def farthest_point_poses(desc, count, start=()):
+    """Indices of ``count`` rows of ``desc (P, D)`` by farthest-point sampling (greedy maximin).
+
+    start : indices already chosen (e.g. the design poses); the new ones are each as far as possible
+    from everything chosen before. Deterministic. Returns (count,) int (fewer if P is smaller).
+    """
+    desc = np.asarray(desc, float)
+    P = len(desc)
+    start = np.asarray(start, int)
+    if len(start):
+        dmin = np.full(P, np.inf)
+        for s0 in range(0, len(start), 256):  # bounded memory: (P, 256) distances at a time
+            blk = desc[start[s0:s0 + 256]]
+            dmin = np.minimum(dmin, np.sqrt(((desc[:, None, :] - blk[None]) ** 2).sum(-1)).min(axis=1))
+    else:
+        dmin = np.linalg.norm(desc - desc.mean(axis=0), axis=1) + 1e-12  # first pick: the most extreme
+    out = []
+    for _ in range(min(int(count), P - len(start))):
+        j = int(np.argmax(dmin))
+        if not dmin[j] > 0:
+            break
+        out.append(j)
+        dmin = np.minimum(dmin, np.linalg.norm(desc - desc[j], axis=1))
+    return np.asarray(out, int)
+
+
 def _dense_value(obj, adop, pdop, cov, need_all, uncoverable):
     """``(short, value)``: dense poses left uncovered that are not known to be uncoverable (with full
     coverage required; else 0), and the objective over the covered poses. Rounds compare
@@ -46,22 +107,51 @@ def _dense_value(obj, adop, pdop, cov, need_all, uncoverable):
     return short, val
 
 
-def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=6, add=24,
-                   patience=2, time_limit=None, echo=None):
-    """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations`.
+def _spread_pick(order, desc, add, min_sep):
+    """Up to ``add`` of ``order`` (worst first), skipping poses within ``min_sep`` of one already
+    picked; the skipped ones fill up if too few are far enough apart."""
+    picked, skipped = [], []
+    for i in order:
+        if len(picked) >= add:
+            break
+        if picked and min_sep > 0 and np.min(np.linalg.norm(desc[picked] - desc[i], axis=1)) < min_sep:
+            skipped.append(i)
+            continue
+        picked.append(i)
+    return np.asarray(picked + skipped[: max(0, add - len(picked))], int)
 
-    prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (working set = its poses);
+
+def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=96,
+                   seed_poses=256, min_sep=0.05, tol=0.02, patience=3, max_working=2000,
+                   first_share=0.4, later_method="polish", later_patience=2, time_limit=None, echo=None):
+    """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
+
+    prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
     kw : optimize_stations keywords (objective, rho, min_visible, coverage_fraction, ...);
     dense_poses : extra poses drawn from the envelope (seed ``envelope.seed + 1``) that, with the
-    design poses, form the dense set. time_limit : total budget of all rounds (s); each round gets
+    design poses, form the dense set. seed_poses : dense poses added to the working set before round 0
+    by farthest-point sampling of :func:`pose_descriptors` (0: design poses only). add : violators
+    added per round; min_sep : their minimum descriptor distance (~rad). tol : a round whose dense
+    worst is within ``tol`` of its working-set value adds no poses (polish round). patience : rounds
+    without a better dense value before stopping. max_working : cap on the working set (memory).
+    later_method : method of the rounds after round 0 (default "polish": local search and kicks from
+    the incumbent, no relaxation — a round then costs seconds, not minutes; None: ``kw["method"]``),
+    with ``later_patience`` random kicks in a row without improvement ending a round.
+    time_limit : total budget of all rounds (s); round 0 gets ``first_share`` of it, every later round
     half of what is left (the last round the rest); None: each round uses the optimiser's default.
     Returns ``(result, info)``: the OptimizeResult of the best round (its per-pose arrays are for the
-    final working set) and a dict with per-round values, the dense-set per-pose DOP and sizes.
+    working set of that round) and a dict with per-round values, the dense-set per-pose DOP, the
+    best layout's working set (``working_rotations``, ``working_translations``: the poses it was
+    tuned on) and its value there (``working_value``); ``rounds[i]`` has the round's ``selected``
+    layout and the dense-set indices ``added`` after it (dense index = design poses first, then the
+    ``dense_poses``); ``seed_indices`` the space-filling seed; ``converged`` whether some round's dense
+    worst came within ``tol`` of its working-set value.
     """
     import dataclasses
 
     from ..coverage_rule import covered, layout_counts
     from ..optimize import candidate_jacobians, optimize_stations, parse_objective
+    from ..optimize.methods import Interrupted
     from ..visibility import envelope_visibility
     from .score import envelope_set
 
@@ -69,7 +159,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     env = prep["envelope"]
     _, Rd, td = envelope_set(env, count=int(dense_poses), seed=env.seed + 1)
     Rw, tw = prep["rotations"], prep["translations"]
-    RD, tD = np.concatenate([Rw, Rd]), np.concatenate([tw, td])  # dense set ⊇ working set
+    RD, tD = np.concatenate([Rw, Rd]), np.concatenate([tw, td])  # dense set ⊇ design set
     in_work = np.zeros(len(RD), bool)
     in_work[: len(Rw)] = True
     jac, vis = prep["jac"], prep["visible"]
@@ -77,71 +167,115 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     rho, m = kw.get("rho", 0.0), kw.get("min_visible", 4)
     need_all = kw.get("coverage_fraction", 1.0) >= 1.0
     cand = prep["candidates"]
+    desc = pose_descriptors(RD, tD, prep["stations"])
+    uncoverable = np.zeros(len(RD), bool)  # dense poses with fewer than m lit candidates (by the rule)
+
+    def lit_all(idx):
+        """Full-candidate visibility of dense poses ``idx`` and whether the rule can cover them."""
+        vc = envelope_visibility(prep["mesh"], cand.positions, cand.normals, RD[idx], tD[idx],
+                                 prep["stations"], sensor_half_angle_deg=prep["sensor_half_angle_deg"])
+        ok = covered(layout_counts(vc, coverage), m)
+        uncoverable[idx[~ok]] = True
+        return vc, ok
+
+    def grow(idx, vc):
+        nonlocal jac, vis
+        jac = np.concatenate([jac, candidate_jacobians(cand.positions, RD[idx], tD[idx], prep["stations"])])
+        vis = np.concatenate([vis, vc])
+        in_work[idx] = True
+        order.extend(int(i) for i in idx)
+
+    order = list(range(len(Rw)))  # dense-set index of every working-set row
+    n_seed = max(0, min(int(seed_poses), int(max_working) - len(Rw)))
+    seed_idx = np.zeros(0, int)
+    if n_seed:
+        idx = farthest_point_poses(desc, n_seed, start=np.arange(len(Rw)))
+        vc, ok = lit_all(idx)
+        seed_idx = idx[ok]
+        grow(seed_idx, vc[ok])
     best = None
     hist = []
     warm, active = None, None
     stall = 0
-    uncoverable = np.zeros(len(RD), bool)  # dense poses with fewer than m lit candidates (by the rule)
     note = ""
-    for rnd in range(int(rounds)):
-        kwr = dict(kw)
-        if time_limit is not None:
-            left = t0 + float(time_limit) - time.perf_counter()
-            if left <= 0.05 * float(time_limit):
+    interrupted = None
+    converged = False  # some round's dense worst was within tol of its working-set value
+    try:  # Ctrl-C / SIGTERM between or inside rounds: the best layout so far is the result
+        for rnd in range(int(rounds)):
+            kwr = dict(kw)
+            if time_limit is not None:
+                left = t0 + float(time_limit) - time.perf_counter()
+                if left <= 0.05 * float(time_limit):
+                    break
+                share = first_share if rnd == 0 else 0.5
+                kwr["time_limit"] = left if rnd == rounds - 1 else share * left
+            opts = {"warm_start": warm, "active_poses": active}
+            if rnd > 0 and later_method:
+                kwr["method"] = later_method
+                opts["patience"] = later_patience
+            kwr["ctx_options"] = {**(kw.get("ctx_options") or {}), **opts}
+            res = optimize_stations(jac, vis, k, rng=seed + rnd, coverage=coverage, **kwr)
+            if not res.success:
+                if best is None:
+                    return res, {"rounds": hist, "dense_set_poses": int(len(RD))}
+                note = f"round {rnd}: {res.status}: {res.message}"
                 break
-            kwr["time_limit"] = left if rnd == rounds - 1 else 0.5 * left
-        kwr["ctx_options"] = {**(kw.get("ctx_options") or {}), "warm_start": warm, "active_poses": active}
-        res = optimize_stations(jac, vis, k, rng=seed + rnd, coverage=coverage, **kwr)
-        if not res.success:
-            if best is None:
-                return res, {"rounds": hist, "dense_set_poses": int(len(RD))}
-            note = f"round {rnd}: {res.status}: {res.message}"
-            break
-        a, p, cov = evaluate_selection(prep, res.selected, RD, tD, rho, m, coverage)
-        dval = _dense_value(obj, a, p, cov, need_all, uncoverable)
-        hist.append({"round": rnd, "working_poses": int(in_work.sum()), "working_value": res.value,
-                     "dense_value_covered": dval[1], "dense_uncovered": dval[0], "bound": res.bound,
-                     "status": res.status})
-        if echo is not None:
-            echo(f"dense round {rnd}: working set {int(in_work.sum())} poses, value {res.value:.5g}, "
-                 f"dense-set value {dval[1]:.5g} over covered poses, {dval[0]} coverable poses uncovered")
-        if best is None or dval[0] < best[1][0] or (dval[0] == best[1][0] and dval[1] < best[1][1] * (1 - 1e-3)):
-            best = (res, dval, a, p, cov)
-            stall = 0
-        else:
-            stall += 1
-        if res.status == "interrupted" or stall >= patience:
-            break
-        d = obj.from_dop(a, p)
-        score = np.where(cov, d, np.inf)
-        viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + 1e-6)))
-        if len(viol) == 0:
-            break  # no dense pose above the working-set value: the working optimum holds on the dense set
-        order = viol[np.argsort(-score[viol], kind="stable")]
-        new, v_new = [], []
-        for s0 in range(0, len(order), 4 * add):  # skip poses no layout can cover (too few lit candidates)
-            chunk = order[s0:s0 + 4 * add]
-            vc = envelope_visibility(prep["mesh"], cand.positions, cand.normals, RD[chunk], tD[chunk],
-                                     prep["stations"], sensor_half_angle_deg=prep["sensor_half_angle_deg"])
-            ok = covered(layout_counts(vc, coverage), m)
-            uncoverable[chunk[~ok]] = True
-            new += list(chunk[ok])
-            v_new += list(vc[ok])
-            if len(new) >= add:
+            a, p, cov = evaluate_selection(prep, res.selected, RD, tD, rho, m, coverage)
+            dval = _dense_value(obj, a, p, cov, need_all, uncoverable)
+            n_work = int(in_work.sum())
+            hist.append({"round": rnd, "working_poses": n_work, "working_value": res.value,
+                         "dense_value_covered": dval[1], "dense_uncovered": dval[0], "bound": res.bound,
+                         "status": res.status, "time_s": time.perf_counter() - t0,
+                         "selected": [int(x) for x in res.selected], "added": []})
+            if echo is not None:
+                echo(f"dense round {rnd}: working set {n_work} poses, value {res.value:.5g}, "
+                     f"dense-set value {dval[1]:.5g} over covered poses, {dval[0]} coverable poses uncovered "
+                     f"({time.perf_counter() - t0:.0f} s)")
+            if best is None or dval[0] < best[1][0] or (dval[0] == best[1][0] and dval[1] < best[1][1] * (1 - 1e-3)):
+                best = (res, dval, a, p, cov, np.array(order, int))
+                stall = 0
+            else:
+                stall += 1
+            warm = best[0].selected
+            active = None
+            if isinstance(res.info, dict) and res.info.get("active_poses") is not None:
+                active = res.info["active_poses"]
+            if res.status == "interrupted":
+                interrupted = res.info.get("interrupted", "SIGINT")
                 break
-        if not new:
-            break
-        new, v_new = np.array(new[:add]), np.array(v_new[:add])
-        R_new, t_new = RD[new], tD[new]
-        j_new = candidate_jacobians(cand.positions, R_new, t_new, prep["stations"])
-        jac = np.concatenate([jac, j_new])
-        vis = np.concatenate([vis, v_new])
-        in_work[new] = True
-        warm = res.selected
-        active = None
-        if isinstance(res.info, dict) and res.info.get("active_poses") is not None:
-            active = res.info["active_poses"]
-    res, dval, a, p, cov = best
+            if stall >= patience:
+                break
+            score = np.where(cov, obj.from_dop(a, p), np.inf)
+            viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + tol)))
+            room = int(max_working) - n_work
+            if len(viol) == 0:
+                converged = True
+            if len(viol) == 0 or room <= 0:
+                if room <= 0 and len(viol):
+                    note = f"working set reached max_working = {max_working} poses"
+                continue  # polish round: same working set, fresh kicks, warm start from the best layout
+            srt = viol[np.argsort(-score[viol], kind="stable")]
+            new, v_new = [], []
+            want = min(int(add), room)
+            for s0 in range(0, len(srt), 4 * want):  # skip poses no layout can cover (too few lit candidates)
+                chunk = srt[s0:s0 + 4 * want]
+                vc, ok = lit_all(chunk)
+                new += list(chunk[ok])
+                v_new += list(vc[ok])
+                if len(new) >= want:
+                    break
+            if not new:
+                continue
+            new = np.asarray(new)
+            pick = _spread_pick(np.arange(len(new)), desc[new], want, min_sep)
+            grow(new[pick], np.asarray(v_new)[pick])
+            hist[-1]["added"] = [int(x) for x in new[pick]]
+    except (Interrupted, KeyboardInterrupt) as exc:
+        interrupted = getattr(exc, "signame", "SIGINT")
+        if best is None:
+            raise
+        note = f"interrupted by {interrupted}: best layout of the finished rounds"
+    res, dval, a, p, cov, work_rows = best
     # poses found uncoverable after the best round: its value over the coverable ones
     short, dval = _dense_value(obj, a, p, cov, need_all, uncoverable)
     if short:
@@ -153,9 +287,16 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         res = dataclasses.replace(res, bound=float(max(bounds)), certified_by="relaxation (dense round "
                                   f"{[h['round'] for h in hist if h['bound'] is not None and np.isfinite(h['bound'])][src]})",
                                   gap=res.value / max(bounds) - 1)
+    if interrupted:
+        res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": interrupted},
+                                  message=res.message + " [interrupted: best dense round so far]")
     gap = dval / res.bound - 1 if np.isfinite(res.bound) and res.bound > 0 else float("nan")
-    info = {"rounds": hist, "dense_set_poses": int(len(RD)), "working_set_poses": int(in_work.sum()),
+    info = {"rounds": hist, "dense_set_poses": int(len(RD)), "working_set_poses": int(len(work_rows)),
+            "final_working_set_poses": int(in_work.sum()), "seed_poses": n_seed,
+            "seed_indices": seed_idx, "converged": converged,
             "dense_value": dval, "dense_gap": gap, "dense_adop": a, "dense_pdop": p, "dense_covered": cov,
-            "time_s": time.perf_counter() - t0, "uncoverable_dense_poses": int(uncoverable.sum()), "uncovered_dense_poses": int(short),
-            "note": note}
+            "working_value": float(res.value), "working_rotations": RD[work_rows],
+            "working_translations": tD[work_rows],
+            "time_s": time.perf_counter() - t0, "uncoverable_dense_poses": int(uncoverable.sum()),
+            "uncovered_dense_poses": int(short), "note": note}
     return res, info

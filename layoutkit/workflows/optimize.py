@@ -99,7 +99,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                  min_visible=4, k_range=None, seed=0, units="m", min_spacing=0.0,
                  coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
                  max_candidates=None, render=True, echo=print, coverage="any-station", max_tilt_deg=0.0,
-                 tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=6,
+                 tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=40,
                  branch_and_bound="auto"):
     """Optimise a k-sensor layout on ``mesh`` over ``envelope``; write layout JSON and a report.
 
