@@ -48,6 +48,8 @@ class Context:
     bnb_wait: float = 1.0
     #: B&B is started only if at least this many seconds are left after the relaxation
     bnb_min_s: float = 2.0
+    #: method "polish": also try 2-swaps at a 1-swap local optimum (slower, better)
+    two_swap: bool = True
 
     def report(self, stage, fraction=None, best=None):
         if self.progress is not None:
@@ -436,7 +438,7 @@ def _bnb_child(problem, r, deadline, state, sel):  # pragma: no cover - runs in 
 
 @register_method("polish")
 def _m_polish(problem: Problem, ctx: Context) -> MethodOutput:
-    """No relaxation: 1- and 2-swap local search from ``ctx.warm_start`` (repaired to coverage; greedy
+    """No relaxation: 1- and 2-swap (``ctx.two_swap``) local search from ``ctx.warm_start`` (repaired to coverage; greedy
     without one), then random kicks (2–3 sensors, uniform) around the incumbent until ``patience``
     kicks in a row bring nothing or the time is up. For re-optimising an incumbent after a small change
     of the problem (the dense-envelope loop adds poses); the bound is the closed-form trace bound."""
@@ -450,7 +452,7 @@ def _m_polish(problem: Problem, ctx: Context) -> MethodOutput:
         if s0 is None:
             return MethodOutput(None)
         best = s0
-        best, bv, _ = local_search(problem, s0, deadline=ctx.deadline)
+        best, bv, _ = local_search(problem, s0, deadline=ctx.deadline, two_swap=ctx.two_swap)
         n_ls = 1
         ctx.report("polish", 0.0, bv)
         fails = 0
@@ -458,7 +460,7 @@ def _m_polish(problem: Problem, ctx: Context) -> MethodOutput:
             kick = _kick(problem, best, ctx.rng, z)
             if kick is None:
                 break
-            s2, val, _ = local_search(problem, kick, deadline=ctx.deadline)
+            s2, val, _ = local_search(problem, kick, deadline=ctx.deadline, two_swap=ctx.two_swap)
             n_ls += 1
             if val < bv * (1 - 1e-9):
                 best, bv, fails = s2, val, 0

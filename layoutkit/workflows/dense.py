@@ -121,9 +121,9 @@ def _spread_pick(order, desc, add, min_sep):
     return np.asarray(picked + skipped[: max(0, add - len(picked))], int)
 
 
-def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=96,
-                   seed_poses=256, min_sep=0.05, tol=0.02, patience=3, max_working=2000,
-                   first_share=0.4, later_method="polish", later_patience=2, time_limit=None, echo=None):
+def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
+                   seed_poses=256, min_sep=0.05, tol=0.02, patience=8, max_working=2000,
+                   first_share=0.3, later_method="polish", later_patience=2, later_two_swap=False, time_limit=None, echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
@@ -136,7 +136,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     without a better dense value before stopping. max_working : cap on the working set (memory).
     later_method : method of the rounds after round 0 (default "polish": local search and kicks from
     the incumbent, no relaxation — a round then costs seconds, not minutes; None: ``kw["method"]``),
-    with ``later_patience`` random kicks in a row without improvement ending a round.
+    with ``later_patience`` random kicks in a row without improvement ending a round and 2-swaps only
+    if ``later_two_swap`` (1-swaps keep the rounds short, so more violators are seen in the budget).
     time_limit : total budget of all rounds (s); round 0 gets ``first_share`` of it, every later round
     half of what is left (the last round the rest); None: each round uses the optimiser's default.
     Returns ``(result, info)``: the OptimizeResult of the best round (its per-pose arrays are for the
@@ -200,6 +201,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     note = ""
     interrupted = None
     converged = False  # some round's dense worst was within tol of its working-set value
+    polish = False  # the next round is a full polish (the last round converged)
     try:  # Ctrl-C / SIGTERM between or inside rounds: the best layout so far is the result
         for rnd in range(int(rounds)):
             kwr = dict(kw)
@@ -212,7 +214,10 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             opts = {"warm_start": warm, "active_poses": active}
             if rnd > 0 and later_method:
                 kwr["method"] = later_method
-                opts["patience"] = later_patience
+                # after a converged round: a full polish (2-swaps, the default kick patience) of the
+                # working set that holds the dense worst; else short 1-swap rounds
+                opts["patience"] = (kw.get("ctx_options") or {}).get("patience", 6) if polish else later_patience
+                opts["two_swap"] = True if polish else later_two_swap
             kwr["ctx_options"] = {**(kw.get("ctx_options") or {}), **opts}
             res = optimize_stations(jac, vis, k, rng=seed + rnd, coverage=coverage, **kwr)
             if not res.success:
@@ -248,7 +253,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             score = np.where(cov, obj.from_dop(a, p), np.inf)
             viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + tol)))
             room = int(max_working) - n_work
-            if len(viol) == 0:
+            polish = len(viol) == 0
+            if polish:
                 converged = True
             if len(viol) == 0 or room <= 0:
                 if room <= 0 and len(viol):
