@@ -9,22 +9,27 @@ fused kernel :func:`layoutkit.dop_batch.batch_dop`), and the loop is
 1. working set = design poses + ``seed_poses`` dense poses chosen by farthest-point sampling of
    the pose descriptors (:func:`pose_descriptors`: direction of every station in the body frame and
    the range) — a space-filling design of the envelope that reaches its rim from the start;
-2. optimise on the working set (warm-started from the incumbent and the relaxation's active
-   poses after round 0), evaluate on the dense set;
-3. add up to ``add`` dense poses above the working-set value (and coverable dense poses the rule
-   leaves uncovered), worst first and spread over the envelope (no two new poses closer than
-   ``min_sep`` in descriptor space while enough others are left), poses no layout can cover
+2. round 0: the caller's method (the pipeline: relaxation, roundings, local search) on the working
+   set with ``first_share`` of the budget; later rounds: method ``polish`` (1-swap local search and
+   random kicks from the best layout so far, no relaxation — seconds per round, so many rounds fit);
+3. evaluate the round's layout on the dense set (DOP) and on ``coverage_poses`` more poses (coverage
+   only), add up to ``add`` poses: uncovered coverable ones first, then dense poses above the
+   working-set value, worst first and spread over the envelope (no two new poses closer than
+   ``min_sep`` in descriptor space while enough others are left); poses no layout can cover are
    skipped and counted; repeat.
 
 A round in which no dense pose exceeds the working-set value by more than ``tol`` adds nothing
-and becomes a *polish* round (the same working set, a fresh random stream for the kicks, the
-incumbent as warm start). The loop stops when the dense-set worst case has not improved for
-``patience`` rounds, the working set reaches ``max_working`` poses (bounded memory), k cannot cover
-the working set, or the budget ends. The layout with the best dense-set value is kept.
+and the next round is a full *polish* of that working set (1- and 2-swaps, the full kick patience).
+The loop stops when the dense-set worst case has not improved for ``patience`` rounds, the working
+set reaches ``max_working`` poses (bounded memory: the optimiser holds O(working set × candidates)),
+k cannot cover the working set, or the budget (``time_limit``) ends; Ctrl-C / SIGTERM keeps the best
+finished round. The layout with the best dense-set value (fewest uncovered poses first) is kept;
+``info["working_*"]`` is the working set it was tuned on — its "design set".
 
-Certificate: the working set is a subset of the dense set, so the relaxation bound of any round
-(a lower bound for the working set) is also a lower bound for the dense set; the gap reported is
-``dense value / bound - 1``.
+Certificate: the working set is a subset of the dense set (design + dense poses + the coverage
+poses that joined the working set; the dense value is taken over all of them), so the relaxation
+bound of any round (a lower bound for the working set) is also a lower bound for the dense set; the
+gap reported is ``dense value / bound - 1``.
 """
 from __future__ import annotations
 
@@ -98,13 +103,29 @@ def farthest_point_poses(desc, count, start=()):
     return np.asarray(out, int)
 
 
-def _dense_value(obj, adop, pdop, cov, need_all, uncoverable):
-    """``(short, value)``: dense poses left uncovered that are not known to be uncoverable (with full
-    coverage required; else 0), and the objective over the covered poses. Rounds compare
-    lexicographically; the reported dense value is inf while ``short > 0``."""
-    short = int(np.sum(~cov & ~uncoverable)) if need_all else 0
+def _dense_value(obj, adop, pdop, cov, cov_all, need_all, uncoverable):
+    """``(short, value)``: dense and coverage-only poses left uncovered (``cov_all``) that are not known
+    to be uncoverable (with full coverage required; else 0), and the objective over the covered dense
+    poses (``adop, pdop, cov``). Rounds compare lexicographically; the reported dense value is inf
+    while ``short > 0``."""
+    short = int(np.sum(~cov_all & ~uncoverable)) if need_all else 0
     val = float(obj.aggregate_values(obj.from_dop(adop, pdop), cov)) if cov.any() else math.inf
     return short, val
+
+
+def _covered_only(prep, sel, R, t, min_visible, coverage, chunk=8192):
+    """(P,) bool: the rule's coverage of candidate subset ``sel`` at poses ``R, t`` (visibility only,
+    in chunks of ``chunk`` poses: bounded memory for any P)."""
+    from ..coverage_rule import covered, layout_counts
+    from .score import layout_visibility
+
+    cand = prep["candidates"]
+    out = np.ones(len(R), bool)
+    for s0 in range(0, len(R), chunk):
+        vis = layout_visibility(prep["mesh"], cand.positions[sel], cand.normals[sel], R[s0:s0 + chunk],
+                                t[s0:s0 + chunk], prep["stations"], prep["sensor_half_angle_deg"])
+        out[s0:s0 + chunk] = covered(layout_counts(vis, coverage), min_visible)
+    return out
 
 
 def _spread_pick(order, desc, add, min_sep):
@@ -122,14 +143,18 @@ def _spread_pick(order, desc, add, min_sep):
 
 
 def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
-                   seed_poses=256, min_sep=0.05, tol=0.02, patience=8, max_working=2000,
-                   first_share=0.3, later_method="polish", later_patience=2, later_two_swap=False, time_limit=None, echo=None):
+                   seed_poses=256, coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=2000,
+                   first_share=0.3, later_method="polish", later_patience=2, later_two_swap=False,
+                   time_limit=None, echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
     kw : optimize_stations keywords (objective, rho, min_visible, coverage_fraction, ...);
     dense_poses : extra poses drawn from the envelope (seed ``envelope.seed + 1``) that, with the
-    design poses, form the dense set. seed_poses : dense poses added to the working set before round 0
+    design poses, form the dense set. coverage_poses : more poses (seed ``envelope.seed + 3``) on which
+    only the coverage rule is checked every round (cheap: visibility of k sensors); uncovered ones join
+    the working set like violators, so coverage holds on a set much denser than the DOP set (a fresh
+    pose between dense poses can otherwise lose its m-th lit sensor). seed_poses : dense poses added to the working set before round 0
     by farthest-point sampling of :func:`pose_descriptors` (0: design poses only). add : violators
     added per round; min_sep : their minimum descriptor distance (~rad). tol : a round whose dense
     worst is within ``tol`` of its working-set value adds no poses (polish round). patience : rounds
@@ -160,7 +185,10 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     env = prep["envelope"]
     _, Rd, td = envelope_set(env, count=int(dense_poses), seed=env.seed + 1)
     Rw, tw = prep["rotations"], prep["translations"]
-    RD, tD = np.concatenate([Rw, Rd]), np.concatenate([tw, td])  # dense set ⊇ design set
+    nD = len(Rw) + len(Rd)  # rows [0, nD): dense set ⊇ design set; rows [nD, ...): coverage-only poses
+    Rc, tc = (envelope_set(env, count=int(coverage_poses), seed=env.seed + 3)[1:] if coverage_poses
+              else (np.zeros((0, 3, 3)), np.zeros((0, 3))))
+    RD, tD = np.concatenate([Rw, Rd, Rc]), np.concatenate([tw, td, tc])
     in_work = np.zeros(len(RD), bool)
     in_work[: len(Rw)] = True
     jac, vis = prep["jac"], prep["visible"]
@@ -190,7 +218,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     n_seed = max(0, min(int(seed_poses), int(max_working) - len(Rw)))
     seed_idx = np.zeros(0, int)
     if n_seed:
-        idx = farthest_point_poses(desc, n_seed, start=np.arange(len(Rw)))
+        idx = farthest_point_poses(desc[:nD], n_seed, start=np.arange(len(Rw)))
         vc, ok = lit_all(idx)
         seed_idx = idx[ok]
         grow(seed_idx, vc[ok])
@@ -220,13 +248,25 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 opts["two_swap"] = True if polish else later_two_swap
             kwr["ctx_options"] = {**(kw.get("ctx_options") or {}), **opts}
             res = optimize_stations(jac, vis, k, rng=seed + rnd, coverage=coverage, **kwr)
+            if not res.success and best is None and len(order) > len(Rw):
+                # the seeded working set was too hard for round 0 (k at its minimum, a short budget):
+                # retry on the design poses alone, adding violators from there
+                note = f"round {rnd} on the seeded working set: {res.status}; seed dropped"
+                jac, vis = prep["jac"], prep["visible"]
+                in_work[len(Rw):] = False
+                del order[len(Rw):]
+                seed_idx = np.zeros(0, int)
+                continue
             if not res.success:
                 if best is None:
-                    return res, {"rounds": hist, "dense_set_poses": int(len(RD))}
+                    return res, {"rounds": hist, "dense_set_poses": int(nD), "note": note}
                 note = f"round {rnd}: {res.status}: {res.message}"
                 break
-            a, p, cov = evaluate_selection(prep, res.selected, RD, tD, rho, m, coverage)
-            dval = _dense_value(obj, a, p, cov, need_all, uncoverable)
+            a, p, cov = evaluate_selection(prep, res.selected, RD[:nD], tD[:nD], rho, m, coverage)
+            cov_all = np.concatenate([cov, _covered_only(prep, res.selected, RD[nD:], tD[nD:], m, coverage)])
+            ext = np.flatnonzero(in_work[nD:]) + nD  # coverage poses in the working set count as dense poses
+            ae, pe, ce = evaluate_selection(prep, res.selected, RD[ext], tD[ext], rho, m, coverage)
+            dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all, uncoverable)
             n_work = int(in_work.sum())
             hist.append({"round": rnd, "working_poses": n_work, "working_value": res.value,
                          "dense_value_covered": dval[1], "dense_uncovered": dval[0], "bound": res.bound,
@@ -237,7 +277,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                      f"dense-set value {dval[1]:.5g} over covered poses, {dval[0]} coverable poses uncovered "
                      f"({time.perf_counter() - t0:.0f} s)")
             if best is None or dval[0] < best[1][0] or (dval[0] == best[1][0] and dval[1] < best[1][1] * (1 - 1e-3)):
-                best = (res, dval, a, p, cov, np.array(order, int))
+                best = (res, dval, a, p, cov, cov_all, np.array(order, int), (ae, pe, ce))
                 stall = 0
             else:
                 stall += 1
@@ -250,7 +290,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 break
             if stall >= patience:
                 break
-            score = np.where(cov, obj.from_dop(a, p), np.inf)
+            score = np.concatenate([np.where(cov, obj.from_dop(a, p), np.inf),
+                                    np.where(cov_all[nD:], -np.inf, np.inf)])  # coverage-only rows: coverage
             viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + tol)))
             room = int(max_working) - n_work
             polish = len(viol) == 0
@@ -281,9 +322,9 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         if best is None:
             raise
         note = f"interrupted by {interrupted}: best layout of the finished rounds"
-    res, dval, a, p, cov, work_rows = best
+    res, dval, a, p, cov, cov_all, work_rows, (ae, pe, ce) = best
     # poses found uncoverable after the best round: its value over the coverable ones
-    short, dval = _dense_value(obj, a, p, cov, need_all, uncoverable)
+    short, dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all, uncoverable)
     if short:
         dval = math.inf
     # every round's working set is a subset of the dense set: the largest round bound holds for it
@@ -297,7 +338,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": interrupted},
                                   message=res.message + " [interrupted: best dense round so far]")
     gap = dval / res.bound - 1 if np.isfinite(res.bound) and res.bound > 0 else float("nan")
-    info = {"rounds": hist, "dense_set_poses": int(len(RD)), "working_set_poses": int(len(work_rows)),
+    info = {"rounds": hist, "dense_set_poses": int(nD), "coverage_poses": int(len(RD) - nD),
+            "working_set_poses": int(len(work_rows)),
             "final_working_set_poses": int(in_work.sum()), "seed_poses": n_seed,
             "seed_indices": seed_idx, "converged": converged,
             "dense_value": dval, "dense_gap": gap, "dense_adop": a, "dense_pdop": p, "dense_covered": cov,

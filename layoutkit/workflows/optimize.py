@@ -100,7 +100,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                  coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
                  max_candidates=None, render=True, echo=print, coverage="any-station", max_tilt_deg=0.0,
                  tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=40,
-                 branch_and_bound="auto"):
+                 dense_coverage_poses=None, branch_and_bound="auto"):
     """Optimise a k-sensor layout on ``mesh`` over ``envelope``; write layout JSON and a report.
 
     k_range : optional (k_min, k_max) — also the best layout for every k in the range (DOP vs k).
@@ -108,7 +108,8 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
     max_tilt_deg : sensors may be tilted from the surface normal up to this angle (one orientation
     per site; :mod:`layoutkit.optimize.tilt`). dense_poses : adaptive pose generation against a
     dense set of the envelope (:mod:`layoutkit.workflows.dense`; ``time_limit`` is then the budget of
-    all rounds), reported with design-set, dense-set and held-out (``heldout_poses``, fresh seed)
+    all rounds; coverage also checked on ``dense_coverage_poses`` more poses, default 4 × dense_poses),
+    reported with design-set, working-set, dense-set and held-out (``heldout_poses``, fresh seed)
     statistics. branch_and_bound : "auto" | "off" — B&B on the relaxation beside the search
     (:mod:`layoutkit.optimize.bnb`). Returns a summary dict (JSON-able)."""
     from ..layout import Layout, save_layout
@@ -146,8 +147,9 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
             from .dense import dense_optimize
 
             kd = {x: v for x, v in kw.items() if x != "time_limit"}
+            ncov = 4 * int(dense_poses) if dense_coverage_poses is None else int(dense_coverage_poses)
             r, inf = dense_optimize(prep, kk, kd, dense_poses=dense_poses, seed=seed, coverage=coverage,
-                                    rounds=dense_rounds, time_limit=time_limit, echo=None)
+                                    rounds=dense_rounds, coverage_poses=ncov, time_limit=time_limit, echo=None)
             if kk == k:
                 dense_info = inf
             return r
@@ -233,6 +235,9 @@ def _set_stats(prep, res, rho, min_visible, coverage, dense_info, heldout_poses,
         out["dense"] = stats(dense_info["dense_adop"], dense_info["dense_pdop"], dense_info["dense_covered"])
         out["dense"].update({"value": dense_info["dense_value"], "gap_to_bound": dense_info["dense_gap"],
                              "working_set_poses": dense_info["working_set_poses"], "rounds": dense_info["rounds"]})
+        # the poses the layout was finally tuned on (design poses + the loop's additions)
+        out["working"] = stats(*evaluate_selection(prep, res.selected, dense_info["working_rotations"],
+                                                   dense_info["working_translations"], rho, min_visible, coverage))
         _, Rh, th = envelope_set(env, count=int(heldout_poses), seed=env.seed + 2)
         out["heldout"] = stats(*evaluate_selection(prep, res.selected, Rh, th, rho, min_visible, coverage))
         out["heldout"]["seed"] = env.seed + 2
