@@ -149,7 +149,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
-    kw : optimize_stations keywords (objective, rho, min_visible, coverage_fraction, ...);
+    kw : optimize_stations keywords (objective, rho, min_visible, coverage_fraction, ...; rounds run
+    with ``branch_and_bound="off"``: a B&B certificate of one working set would take the loop's budget);
     dense_poses : extra poses drawn from the envelope (seed ``envelope.seed + 1``) that, with the
     design poses, form the dense set. coverage_poses : more poses (seed ``envelope.seed + 3``) on which
     only the coverage rule is checked every round (cheap: visibility of k sensors); uncovered ones join
@@ -233,6 +234,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     try:  # Ctrl-C / SIGTERM between or inside rounds: the best layout so far is the result
         for rnd in range(int(rounds)):
             kwr = dict(kw)
+            # branch-and-bound would spend the loop's budget certifying one working set: off here
+            kwr["branch_and_bound"] = "off"
             if time_limit is not None:
                 left = t0 + float(time_limit) - time.perf_counter()
                 if left <= 0.05 * float(time_limit):
