@@ -1,7 +1,7 @@
 """Issue 13 study: layouts that hold on poses they were not tuned on (synthetic headset-like device).
 
     .venv/bin/python studies/dense_envelope/run.py [--quick] [--out studies/dense_envelope]
-                     [--time-limit-s 240] [--skip-two-stations] [--skip-bounds]
+                     [--time-limit-s 360] [--design-time-limit-s S] [--skip-two-stations] [--skip-bounds]
 
 Device (built like the headset trial of the issue): a convex "visor" — the convex hull of the part
 z >= -0.04 m of an ellipsoid with semi-axes 0.095 × 0.06 × 0.06 m — as the mesh, candidate sites
@@ -118,6 +118,8 @@ def main():
     ap.add_argument("--dense-poses", type=int, default=10000)
     ap.add_argument("--coverage-poses", type=int, default=40000)
     ap.add_argument("--time-limit-s", type=float, default=360.0, help="budget of the dense loop (design-only: half)")
+    ap.add_argument("--design-time-limit-s", type=float, default=None,
+                    help="budget of the design-only run (default: half of --time-limit-s)")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--out", default=str(Path(__file__).parent))
@@ -149,7 +151,8 @@ def main():
                       "design_poses": 200, "dense_poses": args.dense_poses, "coverage_poses": args.coverage_poses,
                       "heldout_poses": 2000,
                       "rho": rho, "min_visible": m, "half_angle_deg": 60.0},
-           "load": {"loadavg_start": os.getloadavg(), "cpus": os.cpu_count()}, "layouts": {}}
+           "load": {"loadavg_start": os.getloadavg(), "cpus": os.cpu_count()}, "layouts": {},
+           "budgets_s": {"dense_loop": args.time_limit_s, "design_only": args.design_time_limit_s or args.time_limit_s / 2}}
 
     sets = {}
     for i, (name, lat) in enumerate(RING_LATITUDES.items()):
@@ -158,7 +161,7 @@ def main():
     kw = dict(objective="worst-adop", rho=rho, min_visible=m)
     T = args.time_limit_s
     t0 = time.perf_counter()
-    r_design = optimize_stations(prep["jac"], prep["visible"], k, rng=0, time_limit=T / 2, **kw)
+    r_design = optimize_stations(prep["jac"], prep["visible"], k, rng=0, time_limit=args.design_time_limit_s or T / 2, **kw)
     t_design = time.perf_counter() - t0
     print("design-only:", r_design.message, flush=True)
     if r_design.success:
