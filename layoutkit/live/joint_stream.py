@@ -184,7 +184,7 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     from ..joint import solve_joint
     from ..pnp import STATUS_OK as PNP_OK, STATUS_TOO_FEW as PNP_TOO_FEW
     from .pipeline import (STATUS_HIGH_RESIDUAL, STATUS_OK, STATUS_SOLVER_FAILED, STATUS_TOO_FEW_LIT, PoseChunk,
-                           _continuity_gate, _motion_history, _recent_velocity)
+                           empty_pose_arrays, _continuity_gate, _motion_history, _recent_velocity)
 
     state = {} if state is None else state
     P = np.asarray(points_body, float)
@@ -194,12 +194,7 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     lit = np.all(np.isfinite(ang), -1)                        # (W, S, n)
     n_lit = lit.sum(axis=(1, 2))
     startable = np.any(lit.sum(-1) >= config.min_lit, axis=1)
-    R = np.full((W, 3, 3), np.nan)
-    tr = np.full((W, 3), np.nan)
-    res = np.full(W, np.nan)
-    status = np.full(W, STATUS_TOO_FEW_LIT, int)
-    adop = np.full(W, np.inf)
-    pdop = np.full(W, np.inf)
+    R, tr, res, status, adop, pdop = empty_pose_arrays(W)
     idx = np.flatnonzero(startable)
     if idx.size:
         a = ang[idx]

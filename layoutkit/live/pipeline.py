@@ -389,6 +389,13 @@ def _solver():
     return solve_pnp
 
 
+
+def empty_pose_arrays(n: int):
+    """The result arrays of ``n`` frames or windows before solving: ``R (n, 3, 3)``, ``t (n, 3)``,
+    ``residual_rms (n,)`` NaN; ``status (n,)`` too-few-lit; ``adop, pdop (n,)`` inf."""
+    return (np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan),
+            np.full(n, STATUS_TOO_FEW_LIT, int), np.full(n, np.inf), np.full(n, np.inf))
+
 def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
                 initial: dict | None = None, stations: "list[Station] | None" = None,
                 calibrations: dict | None = None) -> PoseChunk:
@@ -418,12 +425,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
     ang = np.stack([f.angles for f in frames]) if F else np.zeros((0, n, 2))
     lit = np.all(np.isfinite(ang), axis=-1)
     n_lit = lit.sum(-1)
-    R = np.full((F, 3, 3), np.nan)
-    tr = np.full((F, 3), np.nan)
-    res = np.full(F, np.nan)
-    status = np.full(F, STATUS_TOO_FEW_LIT, int)
-    adop = np.full(F, np.inf)
-    pdop = np.full(F, np.inf)
+    R, tr, res, status, adop, pdop = empty_pose_arrays(F)
     enough = n_lit >= config.min_lit
     solve_pnp = _solver()
     initial = {} if initial is None else initial
