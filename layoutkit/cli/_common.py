@@ -34,3 +34,12 @@ def fail(message: str, code: int = 2):
     """Print a clear error (no traceback) and exit with ``code``."""
     click.secho(f"error: {message}", fg="red", err=True)
     sys.exit(code)
+
+
+def call_or_fail(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)``; a ``ValueError`` (bad input, named by the workflow) becomes one
+    ``error:`` line and exit 2 instead of a traceback."""
+    try:
+        return fn(*args, **kwargs)
+    except ValueError as exc:
+        fail(str(exc))

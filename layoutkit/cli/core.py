@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ..units import ARCSEC
-from ._common import echo_json, emit_json, fail
+from ._common import call_or_fail, echo_json, emit_json, fail
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
                       registry_choice, rho_option, seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
                       ignore_calibration_option,
@@ -14,10 +14,7 @@ from .options import (filter_options, half_angle_option, json_flag, json_out_opt
 def _layout(path):
     from ..layout import load_layout
 
-    try:
-        return load_layout(path)
-    except ValueError as exc:
-        fail(str(exc))
+    return call_or_fail(load_layout, path)
 
 
 @click.command("dop", short_help="ADOP/PDOP and the predicted precision at one pose.")
@@ -38,11 +35,8 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
     from ..workflows.precision import pose_precision
 
     lay = _layout(layout_path)
-    try:
-        out = pose_precision(lay, rotvec_deg, translation_m, lit=lit, half_angle_deg=half_angle_deg, rho=rho,
-                             sigma=sigma)
-    except ValueError as exc:
-        fail(str(exc))
+    out = call_or_fail(pose_precision, lay, rotvec_deg, translation_m, lit=lit, half_angle_deg=half_angle_deg,
+                       rho=rho, sigma=sigma)
     under = out["status"] == "underdetermined"
     if as_json:
         echo_json(out)
@@ -85,11 +79,8 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, statio
     from ..workflows.frames import simulate_frame_file
 
     lay = _layout(layout_path)
-    try:
-        summary = simulate_frame_file(lay, frames, out, seed=seed, sigma=sigma, rho=rho, quantize=not no_quantize,
-                                      stations_path=stations_path)
-    except ValueError as exc:
-        fail(str(exc))
+    summary = call_or_fail(simulate_frame_file, lay, frames, out, seed=seed, sigma=sigma, rho=rho,
+                           quantize=not no_quantize, stations_path=stations_path)
     if as_json:
         echo_json(summary)
     else:
@@ -143,18 +134,12 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
     if stations_path is not None and solve_mode != "per-station":
         from ..workflows.calibrate import frame_file_stations, solve_station_file
 
-        try:
-            several = solve_mode == "joint" or frame_file_stations(frames_path, stations_path) > 1
-        except ValueError as exc:
-            fail(str(exc))
+        several = solve_mode == "joint" or call_or_fail(frame_file_stations, frames_path, stations_path) > 1
     else:
         several = False
     if several:  # joint: one pose per window through every station's calibrated forward model
-        try:
-            summary = solve_station_file(frames_path, lay, stations_path, out=out, mode="joint", sigma=sigma, rho=rho,
-                                         ignore_calibration=ignore_calibration)
-        except ValueError as exc:
-            fail(str(exc))
+        summary = call_or_fail(solve_station_file, frames_path, lay, stations_path, out=out, mode="joint",
+                               sigma=sigma, rho=rho, ignore_calibration=ignore_calibration)
         if as_json:
             echo_json(summary)
         else:
@@ -166,12 +151,9 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
         if summary["solved"] == 0:
             fail(summary.get("reason", "no pose solved"), code=1)
         return
-    try:
-        summary = solve_frame_file(frames_path, lay, out=out, sigma=sigma, rho=rho, method=solver,
-                                   filter_settings=filter_settings, stations_path=stations_path, static=static,
-                                   ignore_calibration=ignore_calibration)
-    except ValueError as exc:
-        fail(str(exc))
+    summary = call_or_fail(solve_frame_file, frames_path, lay, out=out, sigma=sigma, rho=rho, method=solver,
+                           filter_settings=filter_settings, stations_path=stations_path, static=static,
+                           ignore_calibration=ignore_calibration)
     if as_json:
         echo_json(summary)
     else:
