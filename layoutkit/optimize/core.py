@@ -267,19 +267,13 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
 
         out = MethodOutput(np.arange(N), exact_optimum=True, info={"note": "k = N: the only selection"})
         return _finish(problem, obj, out, method, t0, t0, t0, [], P)
-    ctx_options = dict(ctx_options or {})
     if time_limit is None and method == "pipeline":
         time_limit = DEFAULT_PIPELINE_TIME_S
-    elif time_limit is not None:
-        # a budget the user chose is theirs to spend: after the search, branch-and-bound keeps the rest
-        # of it while the gap exceeds its target (a MIP solver's time limit); the default budget only
-        # lets it run as long again as the search took, so small runs are not stretched
-        ctx_options.setdefault("bnb_wait", math.inf)
     # the budget counts from the call (coverage analysis and relaxation included); the final exact
     # evaluation after the deadline takes well under a second
     deadline = (math.inf if time_limit is None
                 else t0 + float(time_limit) - min(max(_FINISH_RESERVE_S, 0.08 * float(time_limit)), 2.0))
-    ctx = Context(rng=rng, deadline=deadline, progress=progress, **ctx_options)
+    ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
     t1 = time.perf_counter()
     try:
         out = METHODS[method](problem, ctx)

@@ -44,7 +44,6 @@ class Context:
     bnb: str = "auto"
     #: after the search, B&B keeps running only while the gap exceeds this, for at most
     #: ``bnb_wait`` times the time spent so far (at least 2 s) and never past the deadline
-    #: (``optimize_layout`` sets ``bnb_wait = inf`` when the caller gave a time limit: the budget is theirs)
     bnb_gap: float = 0.01
     bnb_wait: float = 1.0
     #: B&B is started only if at least this many seconds are left after the relaxation
@@ -391,8 +390,7 @@ class _BnbChild:
         since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
         bound into the result."""
         now = time.perf_counter()
-        wait = math.inf if math.isinf(ctx.bnb_wait) else max(ctx.bnb_wait * (now - t_start), 2.0)
-        until = min(ctx.deadline, now + wait)
+        until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
         try:
             if ctx.interrupted is None and best is not None:
                 while (time.perf_counter() < until and not self.done()
