@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .problem import Problem
+from .conic import DirectRelaxation
 from .relaxation import _SAFETY, _pose_information, _weight_matrix, _whitening, relaxed_pose_values
 from .search import evaluate_subsets
 
@@ -193,38 +194,58 @@ def _decided(lo, hi, k):
     return None
 
 
-def _branch(z, lo, hi, groups, glo, ghi):
-    """The disjunction to branch on: ``("group", r, floor)`` for group r with fractional count, or
-    ``("site", i, 0)``; None if no free site is left.
-
-    Score of a candidate (group or single free site): its count's distance to the nearest integer
-    divided by the rounded-up count (a relative rounding change: a side face holding 0.35 sensors
-    beats the top face holding 15.43); among candidates within half the best score, the largest
-    group (coarse decisions first)."""
+def _candidates(z, lo, hi, groups, glo, ghi):
+    """The disjunctions to branch on, best heuristic first: tuples ``(score, size, kind, j, floor,
+    f)`` — kind "group" (count of group j ``<= floor`` or ``>= floor + 1``, f = count - floor) or
+    "site" (``z_j = 0`` or 1, f = z_j). Heuristic score: the rounding distance divided by the
+    rounded-up count (a relative change: a side face holding 0.35 sensors beats the top face holding
+    15.43), larger groups first among near-equal scores. An integral z gives the split on its largest
+    free site; no free site: empty."""
     free = np.flatnonzero((lo < 0.5) & (hi > 0.5))
     if len(free) == 0:
-        return None
-    cand = []  # (score, size, kind, index, floor)
+        return []
+    cand = []
     zf = z[free]
     fs = np.minimum(zf, 1 - zf)
     for j in np.flatnonzero(fs > _INT_TOL):
-        cand.append((fs[j], 1, "site", int(free[j]), 0.0))
+        cand.append((fs[j], 1, "site", int(free[j]), 0.0, float(zf[j])))
     for r, g in enumerate(groups):
         m = float(z[g].sum())
         fl = math.floor(m + _INT_TOL)
         fr = min(m - fl, fl + 1 - m)
         if fr > _INT_TOL and glo[r] <= fl and fl + 1 <= ghi[r]:
-            cand.append((fr / max(math.ceil(m), 1), len(g), "group", r, float(fl)))
+            cand.append((fr / max(math.ceil(m), 1), len(g), "group", r, float(fl), m - fl))
     if not cand:
-        return ("site", int(free[np.argmax(zf)]), 0.0)  # integral z: split on a chosen free site
+        j = int(free[np.argmax(zf)])
+        return [(0.0, 1, "site", j, 0.0, min(max(float(z[j]), _INT_TOL), 1 - _INT_TOL))]
     top = max(c[0] for c in cand)
-    best = max((c for c in cand if c[0] >= 0.5 * top), key=lambda c: (c[1], c[0]))
-    return best[2], best[3], best[4]
+    cand.sort(key=lambda c: (c[0] >= 0.5 * top, c[1] if c[0] >= 0.5 * top else 0, c[0]), reverse=True)
+    return cand
+
+
+def _child_node(nd, groups, c, side):
+    """Child ``side`` (0: down, 1: up) of node ``nd = (lo, hi, glo, ghi)`` for candidate ``c``."""
+    lo, hi, glo, ghi = nd
+    kind, j, fl = c[2], c[3], c[4]
+    clo, chi, cglo, cghi = lo.copy(), hi.copy(), glo.copy(), ghi.copy()
+    if kind == "site":
+        (clo if side else chi)[j] = float(side)
+    elif side == 0:
+        cghi[j] = fl  # sum over the group <= floor
+        if fl <= 0:
+            chi[groups[j]] = 0.0  # none of the group
+    else:
+        cglo[j] = fl + 1  # sum over the group >= floor + 1
+        if fl + 1 >= len(groups[j]):
+            clo[groups[j]] = 1.0  # all of the group
+    return clo, chi, cglo, cghi
 
 
 def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=None, incumbent=None,
                      deadline=None, max_nodes=None, gap_tol=0.0, on_bound=None, use_rho=True,
-                     initial_poses=24, max_poses_per_round=8, groups=None, solver="CLARABEL") -> BnbResult:
+                     initial_poses=24, max_poses_per_round=8, groups=None, solver="CLARABEL",
+                     max_candidates=10, max_strong=6, lookahead=3, external=None,
+                     pose_margin=0.1) -> BnbResult:
     """Best-first branch-and-bound on the relaxation; certified lower bound (module docstring).
 
     problem : worst-case objective with full coverage (:func:`bnb_applicable`).
@@ -238,6 +259,12 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
     groups : site groups for count branching (default :func:`site_groups`; ``[]``: sites only).
     on_bound : callable ``(bound, value, nodes, open_nodes, incumbent)`` after every expansion
     (streaming the certificate out of a child process that may be killed at any time).
+    external : callable returning the value of the best layout found elsewhere (the search beside
+    B&B), polled between expansions: a feasible value, so nodes whose bound reaches it are closed
+    and the certificate is ``min(that value, B&B's own incumbent, open nodes)``.
+    max_candidates, max_strong, lookahead : reliability branching (strong branching on at most
+    ``max_strong`` of the ``max_candidates`` best heuristic candidates without pseudo-costs,
+    stopping after ``lookahead`` that do not improve the best score).
     """
     if not bnb_applicable(problem):
         raise ValueError("branch_and_bound: only the worst-case objective with full coverage is supported")
@@ -250,7 +277,9 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
     groups = site_groups(problem) if groups is None else [np.asarray(g, int) for g in groups]
     G = len(groups)
     gsize = np.array([len(g) for g in groups], float)
-    rel = _NodeRelaxation(problem, poses, groups, use_rho)
+    rel = DirectRelaxation(problem, groups, use_rho)
+    work = np.sort(np.unique(np.asarray(poses, int)))
+    n_poses = len(work)
     nodes = 0
     best_sel, best_v = None, math.inf
     if incumbent is not None and incumbent[0] is not None and np.isfinite(incumbent[1]):
@@ -265,41 +294,37 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
     def left():
         return None if not math.isfinite(deadline) else deadline - time.perf_counter()
 
-    scaled = {}  # node relaxations whitened at a region, keyed by the forbidden / forced sites
-
-    def solve(nd, parent_bound, zp=None):
-        """Node relaxation with pose generation: ``(bound, z or None, expandable)``. A solve that
-        is not optimal is retried once with the scaling centred on the node (:func:`layoutkit.optimize.relaxation._whitening` with the node's weights)."""
-        nonlocal rel, nodes
+    def solve(nd, parent_bound, zp=None, prices=None, poses=None):
+        """Node relaxation with pose generation: ``(bound, z or None, expandable, prices, poses)``.
+        The bound is the dual one of :mod:`layoutkit.optimize.conic` — certified for any solver
+        outcome — and never below the parent's (the child's region is a subset of the parent's).
+        The node's pose set starts from the parent's near-critical poses; poses whose relaxed value
+        at the node's z exceeds its bound join and the node is solved again."""
+        nonlocal nodes, n_poses
         lo, hi, glo, ghi = nd
         if lo.sum() > k + 0.5 or hi.sum() < k - 0.5 or np.any(glo > ghi + 0.5):
-            return math.inf, None, False  # no k-subset in this node
-        cur, retried = rel, False
+            return math.inf, None, False, None, None  # no k-subset in this node
+        Q = np.asarray(work if poses is None else poses, int)
         while True:
             tl = left()
             if tl is not None and tl <= 0:
-                return parent_bound, None, False
-            status, b, z = cur.solve(lo, hi, glo, ghi, tl, solver)
+                return parent_bound, None, False, None, Q
+            res = rel.solve(Q, lo, hi, glo, ghi, hint=zp, prices=prices, time_limit=tl)
             nodes += 1
-            if status == "infeasible":
-                return math.inf, None, False  # the solver's certificate: no feasible point (module docstring 2)
-            if z is None:
-                if retried:
-                    return parent_bound, None, True  # unusable: the parent's bound, expanded with its z
-                key = (cur.poses.tobytes(), np.flatnonzero(hi < 0.5).tobytes(), np.flatnonzero(lo > 0.5).tobytes())
-                if key not in scaled:
-                    scaled.clear()  # one at a time (each holds a compiled problem)
-                    scaled[key] = _NodeRelaxation(problem, cur.poses, groups, use_rho,
-                                                  weights=_region_weights(lo, hi, k, zp))
-                cur, retried = scaled[key], True
-                continue
-            v = np.sqrt(relaxed_pose_values(problem, z, use_rho))
-            viol = np.setdiff1d(np.flatnonzero(v > b * (1 + _POSE_TOL)), cur.poses)
+            if res.status == "infeasible":
+                return math.inf, None, False, None, None  # the solver's certificate over all sites (module docstring 2)
+            b = max(res.bound, parent_bound)
+            if res.z is None:
+                return b, None, False, None, Q
+            pr = rel.last_prices
+            v = np.sqrt(relaxed_pose_values(problem, res.z, use_rho))
+            viol = np.setdiff1d(np.flatnonzero(v > res.bound * (1 + _POSE_TOL)), Q)
             if len(viol) == 0 or (tl is not None and tl < 1.0):
-                return max(b, parent_bound), z, True
-            add = viol[np.argsort(-v[viol])][:max_poses_per_round]
-            rel = _NodeRelaxation(problem, np.r_[rel.poses, add], groups, use_rho)  # the bound over more poses
-            cur, retried = rel, False
+                keep = np.flatnonzero(v >= res.bound * (1 - pose_margin))
+                n_poses = max(n_poses, len(Q))
+                return b, res.z, True, pr, np.union1d(keep, Q[v[Q] >= res.bound * (1 - pose_margin)])
+            Q = np.union1d(Q, viol[np.argsort(-v[viol])][:max_poses_per_round])
+            zp, prices, parent_bound = res.z, pr, b
 
     counter = itertools.count()
     heap = []  # (bound, tie, node arrays, z, expandable)
@@ -308,28 +333,112 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
     lo0[problem.fixed] = 1.0
     nd0 = (lo0, hi0, np.zeros(G), gsize.copy())
     if root_z is not None and root_bound is not None and np.isfinite(root_bound):
-        root = (float(root_bound), np.asarray(root_z, float), True)
+        root = (float(root_bound), np.asarray(root_z, float), True, None, work)
     else:
         root = solve(nd0, -math.inf)
+    stuck = []  # bounds of open nodes that cannot be expanded (they still count)
     if np.isfinite(root[0]):
-        heapq.heappush(heap, (root[0], next(counter), nd0, root[1], root[2]))
+        heapq.heappush(heap, (root[0], next(counter), nd0, root[1], root[2], root[3], root[4]))
         if root[1] is not None:
             _offer_integral(root[1], offer, k)
+    elif root[0] < 0:
+        stuck.append(-math.inf)  # the root was not solved (deadline): no certificate
 
-    stuck = []  # bounds of open nodes that cannot be expanded (they still count)
+    ext = [math.inf]  # best value found outside B&B
+
+    def cutoff():
+        return min(best_v, ext[0])
 
     def lower():
-        return min(best_v, heap[0][0] if heap else math.inf, min(stuck, default=math.inf))
+        return min(cutoff(), heap[0][0] if heap else math.inf, min(stuck, default=math.inf))
+
+    pcost = {}  # pseudo-costs: (kind, j) -> [down gain sum, n, up gain sum, n] per unit of rounding
+    eps = 1e-6 * max(abs(heap[0][0]) if heap else 1.0, 1e-12)
+
+    def child(nd, c, side, b, z, prices, Q):
+        """Solve one child; ``(node arrays, bound, z, expandable, prices)`` or None if it holds no
+        selection better than the incumbent (decided children are offered and closed here)."""
+        cnd = _child_node(nd, groups, c, side)
+        dsel = _decided(cnd[0], cnd[1], k)
+        if dsel is not None:
+            offer(dsel)
+            return None
+        cb, cz, cexp, cpr, cQ = solve(cnd, b, z, prices, Q)
+        if cz is not None:
+            _offer_integral(cz, offer, k)
+        if not np.isfinite(cb) or cb >= cutoff():
+            return None
+        return (cnd, cb, z if cz is None else cz, cexp, None if cpr is None else cpr.astype(np.float32),
+                Q if cQ is None else cQ)
+
+    def push(kid):
+        if kid is not None and kid[1] < cutoff():
+            heapq.heappush(heap, (kid[1], next(counter), kid[0], kid[2], kid[3], kid[4], kid[5]))
+
+    def learn(c, b, kids):
+        rec = pcost.setdefault((c[2], c[3]), [0.0, 0, 0.0, 0])
+        for side, kid in enumerate(kids):
+            gain = (cutoff() if kid is None else kid[1]) - b
+            if math.isfinite(gain):
+                rec[2 * side] += max(gain, 0.0) / max(c[5] if side == 0 else 1 - c[5], _INT_TOL)
+                rec[2 * side + 1] += 1
+
+    def estimate(c):
+        rec = pcost.get((c[2], c[3]))
+        if rec is not None and rec[1] and rec[3]:
+            return rec[0] / rec[1] * c[5], rec[2] / rec[3] * (1 - c[5]), True
+        obs = [r for r in pcost.values() if r[1] and r[3]]
+        if not obs:
+            return 0.0, 0.0, False
+        dn = np.mean([r[0] / r[1] for r in obs])
+        up = np.mean([r[2] / r[3] for r in obs])
+        return dn * c[5], up * (1 - c[5]), False
+
+    def _expand(b, nd, z, prices, Q):
+        """Reliability branching (strong branching on candidates without pseudo-costs, product
+        score); a strong-branching child that holds nothing better than the incumbent reduces the
+        node to its sibling (same partition argument as item 2 of the module docstring)."""
+        lo, hi, glo, ghi = nd
+        cands = _candidates(z, lo, hi, groups, glo, ghi)
+        best = None  # (score, candidate, kids)
+        n_strong = stale = 0
+        for c in cands[:max_candidates]:
+            d0, d1, reliable = estimate(c)
+            kids = None
+            if not reliable and n_strong < max_strong and stale < lookahead and time.perf_counter() < deadline:
+                kids = [child(nd, c, side, b, z, prices, Q) for side in (0, 1)]
+                n_strong += 1
+                learn(c, b, kids)
+                if kids[0] is None or kids[1] is None:  # one side is closed: the node is its sibling
+                    for kid in kids:
+                        push(kid)
+                    return
+                d0, d1 = kids[0][1] - b, kids[1][1] - b
+            score = max(d0, eps) * max(d1, eps)
+            if best is None or score > best[0]:
+                best, stale = (score, c, kids), 0
+            elif kids is not None:
+                stale += 1
+        if best is None:
+            return
+        _, c, kids = best
+        if kids is None:
+            kids = [child(nd, c, side, b, z, prices, Q) for side in (0, 1)]
+            learn(c, b, kids)
+        for kid in kids:
+            push(kid)
 
     status = "deadline"
     while True:
+        if external is not None:
+            ext[0] = min(ext[0], float(external()))  # a feasible value (its selection stays with the caller)
         lb = lower()
         if on_bound is not None:
             on_bound(lb, best_v, nodes, len(heap) + len(stuck), best_sel)
         if not heap:
             status = "complete" if not stuck else "stuck"
             break
-        if best_v <= (1 + gap_tol) * lb:
+        if cutoff() <= (1 + gap_tol) * lb:
             status = "gap reached"
             break
         if time.perf_counter() >= deadline:
@@ -337,8 +446,8 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         if max_nodes is not None and nodes >= max_nodes:
             status = "node limit"
             break
-        b, _, nd, z, expandable = heapq.heappop(heap)
-        if b >= best_v:
+        b, _, nd, z, expandable, prices, Q = heapq.heappop(heap)
+        if b >= cutoff():
             continue  # nothing better than the incumbent in here
         if not expandable:
             stuck.append(b)
@@ -348,34 +457,11 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         if sel is not None:
             offer(sel)  # a single selection: its exact value closes the node
             continue
-        kind, j, fl = _branch(z, lo, hi, groups, glo, ghi)
-        for side in (0, 1):
-            clo, chi, cglo, cghi = lo.copy(), hi.copy(), glo.copy(), ghi.copy()
-            if kind == "site":
-                (clo if side else chi)[j] = float(side)
-            elif side == 0:
-                cghi[j] = fl  # sum over the group <= floor
-                if fl <= 0:
-                    chi[groups[j]] = 0.0  # none of the group
-            else:
-                cglo[j] = fl + 1  # sum over the group >= floor + 1
-                if fl + 1 >= len(groups[j]):
-                    clo[groups[j]] = 1.0  # all of the group
-            dsel = _decided(clo, chi, k)
-            if dsel is not None:
-                offer(dsel)
-                continue
-            cb, cz, cexp = solve((clo, chi, cglo, cghi), b, z)
-            if not np.isfinite(cb):
-                continue
-            if cz is not None:
-                _offer_integral(cz, offer, k)
-            if cb < best_v:
-                heapq.heappush(heap, (cb, next(counter), (clo, chi, cglo, cghi), z if cz is None else cz, cexp))
+        _expand(b, nd, z, prices, Q)
     lb = lower()
     complete = status == "complete"
     return BnbResult(float(lb), float(best_v), best_sel, nodes, len(heap) + len(stuck), complete,
-                     status, time.perf_counter() - t0, len(rel.poses))
+                     status, time.perf_counter() - t0, n_poses)
 
 
 def _offer_integral(z, offer, k):

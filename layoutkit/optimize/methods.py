@@ -43,9 +43,13 @@ class Context:
     #: search it may keep the rest of the time while the gap exceeds ``bnb_gap``) or "off"
     bnb: str = "auto"
     #: after the search, B&B keeps running only while the gap exceeds this, for at most
-    #: ``bnb_wait`` times the time spent so far (at least 2 s) and never past the deadline
+    #: ``bnb_wait`` times the time spent so far (at least 2 s) and never past the deadline; past
+    #: that, on until the deadline while its bound still closes at least ``bnb_progress`` of the
+    #: remaining gap per ``bnb_window`` seconds (a stalled tree stops, a converging one finishes)
     bnb_gap: float = 0.01
     bnb_wait: float = 1.0
+    bnb_progress: float = 0.02
+    bnb_window: float = 10.0
     #: B&B is started only if at least this many seconds are left after the relaxation
     bnb_min_s: float = 2.0
     #: method "polish": also try 2-swaps at a 1-swap local optimum (slower, better)
@@ -269,8 +273,10 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
     starts = []
     bnb = None
     try:
+        bnb = _start_bnb(problem, ctx)  # B&B solves its own root (:mod:`layoutkit.optimize.conic`) meanwhile
         r = _relax(problem, ctx, ctx.relax_share)
-        bnb = _start_bnb(problem, ctx, r)
+        if bnb is not None:
+            bnb.set_root(r)
         if ctx.warm_start is not None:
             w = repair(problem, np.asarray(ctx.warm_start, int), r.z)
             if w is not None:
@@ -306,9 +312,13 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
             seen.add(tuple(s2))
             if val < bv * (1 - 1e-9):
                 best, bv = s2, val
+                if bnb is not None:
+                    bnb.offer(bv)
                 return True
             return False
 
+        if bnb is not None and np.isfinite(bv):
+            bnb.offer(bv)
         for i, s in enumerate(starts):
             if time.perf_counter() > ctx.deadline:
                 break
@@ -347,16 +357,17 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
     return MethodOutput(best, r, info=info)
 
 
-def _start_bnb(problem: Problem, ctx: Context, r: RelaxResult):
-    """Start branch-and-bound in a forked child when it can help (worst case, relaxation bound,
-    finite deadline with room left); None otherwise."""
+def _start_bnb(problem: Problem, ctx: Context):
+    """Start branch-and-bound in a forked child when it can help (worst case with full coverage,
+    finite deadline with room left); None otherwise. It starts before the pipeline's relaxation and
+    solves its own root."""
     from .bnb import bnb_applicable
 
-    if ctx.bnb == "off" or not bnb_applicable(problem) or r.certified_by != "relaxation":
+    if ctx.bnb == "off" or not bnb_applicable(problem):
         return None
     if not math.isfinite(ctx.deadline) or ctx.deadline - time.perf_counter() < ctx.bnb_min_s:
         return None
-    return _BnbChild(problem, r, ctx.deadline)
+    return _BnbChild(problem, ctx.deadline)
 
 
 class _BnbChild:
@@ -365,17 +376,23 @@ class _BnbChild:
     blocks on the parent and may be killed at any moment: every published bound is valid on its
     own (:mod:`layoutkit.optimize.bnb`)."""
 
-    def __init__(self, problem: Problem, r: RelaxResult, deadline: float):
+    def __init__(self, problem: Problem, deadline: float):
         import multiprocessing as mp
 
         mpc = mp.get_context("fork")
-        self.root = float(r.bound)
-        self.state = mpc.Array("d", [self.root, math.inf, 0.0, 1.0, 0.0], lock=False)
+        self.root = -math.inf  # the pipeline's relaxation bound, once known (:meth:`set_root`)
+        # lower bound, B&B incumbent value, nodes, open nodes, done, the search's incumbent value
+        self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf], lock=False)
         self.sel = mpc.Array("l", [-1] * problem.k, lock=False)
         self.summary = {}
-        self.proc = mpc.Process(target=_bnb_child, args=(problem, r, deadline, self.state, self.sel),
+        self.proc = mpc.Process(target=_bnb_child, args=(problem, deadline, self.state, self.sel),
                                 daemon=True)
         self.proc.start()
+
+    def set_root(self, r: RelaxResult):
+        """The pipeline's relaxation: its certified bound is also a floor of the certificate."""
+        if r.certified_by == "relaxation" and np.isfinite(r.bound):
+            self.root = float(r.bound)
 
     def stop(self):
         if self.proc.is_alive():
@@ -385,16 +402,35 @@ class _BnbChild:
     def done(self) -> bool:
         return self.state[4] > 0 or not self.proc.is_alive()
 
+    def offer(self, value: float):
+        """Tell the child the value of a feasible layout the search found (it prunes with it)."""
+        if value < self.state[5]:
+            self.state[5] = float(value)
+
     def finish(self, problem: Problem, ctx: Context, best, bv, r: RelaxResult, t_start: float):
         """Wait (while the gap exceeds ``ctx.bnb_gap``, for at most ``ctx.bnb_wait`` times the time
         since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
         bound into the result."""
         now = time.perf_counter()
         until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
+        history = []  # (time, bound) while waiting
+
+        def progressing(t):
+            lb = max(self.state[0], self.root)
+            history.append((t, lb))
+            if t < until:
+                return True
+            if t >= ctx.deadline:
+                return False
+            old = [b for (s, b) in history if s <= t - ctx.bnb_window]
+            if not old:
+                return True
+            return lb - old[-1] >= ctx.bnb_progress * (bv - lb)
+
         try:
             if ctx.interrupted is None and best is not None:
-                while (time.perf_counter() < until and not self.done()
-                       and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)):
+                while (not self.done() and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)
+                       and progressing(time.perf_counter())):
                     time.sleep(0.05)
         except (Interrupted, KeyboardInterrupt) as exc:
             ctx.interrupted = getattr(exc, "signame", "SIGINT")
@@ -404,16 +440,17 @@ class _BnbChild:
         # only the bound is taken: the layout stays the search's (B&B's progress depends on timing,
         # the selection of a run that finishes before its deadline must not)
         lb, v, nodes, n_open = (float(x) for x in self.state[:4])
-        self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": self.root,
-                        "bound": max(lb, self.root), "complete": bool(self.state[4] > 1)}
-        ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {self.root:.6g} -> "
-                         f"{max(lb, self.root):.6g}")
-        if lb > self.root:
+        root = self.root if np.isfinite(self.root) else lb
+        self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
+                        "bound": max(lb, root), "complete": bool(self.state[4] > 1)}
+        ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
+                         f"{max(lb, root):.6g}")
+        if np.isfinite(lb) and (lb > r.bound or not np.isfinite(r.bound)):
             r = dataclasses.replace(r, bound=lb, certified_by="branch-and-bound")
         return best, bv, r
 
 
-def _bnb_child(problem, r, deadline, state, sel):  # pragma: no cover - runs in the forked child
+def _bnb_child(problem, deadline, state, sel):  # pragma: no cover - runs in the forked child
     import signal
 
     from .bnb import branch_and_bound
@@ -430,8 +467,7 @@ def _bnb_child(problem, r, deadline, state, sel):  # pragma: no cover - runs in 
         if lb > state[0]:
             state[0] = lb  # one 8-byte store: the certificate is never torn
 
-    res = branch_and_bound(problem, root_bound=r.bound, root_z=r.z, poses=r.active, deadline=deadline,
-                           on_bound=publish)
+    res = branch_and_bound(problem, deadline=deadline, on_bound=publish, external=lambda: state[5])
     publish(res.bound, res.value, res.nodes, res.open_nodes, res.incumbent)
     state[4] = 2.0 if res.complete else 1.0
 
