@@ -5,31 +5,38 @@ Worst-case objective with full coverage only (``objective.aggregate == "worst"``
 Why every number this module reports is a lower bound on the optimum ``d* = min over feasible 0/1
 selections z of max_p d_p(z)`` (design §6; Joshi & Boyd 2009 for the relaxation idea):
 
-1. **Node relaxation.** A node fixes some sites to 1 (``lo``) and some to 0 (``hi``). Its relaxation
-   is the problem of :mod:`layoutkit.optimize.relaxation` (matrix-concave GLS information
-   ``F_p(z)``, Gauss–Markov ``H_p ⪰ F_p(z)^-1``, valid cuts ``sum z = k``, coverage
-   ``lit @ z >= m``, spacing ``z_i + z_j <= 1``) with ``lo <= z <= hi`` instead of ``0 <= z <= 1``.
-   Every feasible 0/1 point of the node is feasible in it, and its objective ``max_p trace(W F_p)^-1``
-   is ``<=`` the exact worst DOP there, so the node optimum is a lower bound on every selection in
-   the node. The epigraph is taken over a working set of poses only: a maximum over fewer poses is
-   smaller, so the bound stays valid (pose generation adds poses when the node's z violates them,
-   which only tightens it). Only solves with solver status ``optimal`` count; the value is shrunk by
-   the same relative safety margin as the root relaxation (solver tolerance).
-2. **Children.** Branching on a free site i splits a node into ``z_i = 0`` and ``z_i = 1``: every 0/1
-   point of the parent lies in exactly one child, and each child's region is a subset of the
-   parent's, so ``max(parent bound, child relaxation)`` bounds the child. A child whose solve is not
-   ``optimal`` keeps the parent's bound and is never expanded (it stays open: conservative). A child
-   the solver proves infeasible (or that violates ``#fixed-1 <= k <= #free + #fixed-1``) contains no
-   feasible selection and is dropped.
+1. **Node relaxation.** A node fixes some sites to 1 (``lo``) and some to 0 (``hi``) and bounds how
+   many sensors some groups of sites hold (``glo <= sum_g z <= ghi``). Its relaxation is the problem
+   of :mod:`layoutkit.optimize.relaxation` (matrix-concave GLS information ``F_p(z)``, Gauss–Markov
+   ``H_p ⪰ F_p(z)^-1``, valid cuts ``sum z = k``, coverage ``lit @ z >= m``, spacing
+   ``z_i + z_j <= 1``) with those bounds instead of ``0 <= z <= 1``. Every feasible 0/1 point of the
+   node is feasible in it, and its objective ``max_p trace(W F_p)^-1`` is ``<=`` the exact worst DOP
+   there, so the node optimum is a lower bound on every selection in the node. The epigraph is taken
+   over a pose working set only: a maximum over fewer poses is smaller, so the bound stays valid
+   (pose generation adds poses the node's z violates, which only tightens it). The number used is
+   the Lagrangian dual bound of :mod:`layoutkit.optimize.conic`, valid for any dual point, hence
+   for any solver outcome (time limit, inaccurate solve, a restricted site set).
+2. **Children.** A disjunction splits a node in two: ``z_i = 0`` / ``z_i = 1`` for a free site, or
+   ``sum_g z <= f`` / ``sum_g z >= f + 1`` for a group. Every 0/1 point of the parent lies in exactly
+   one child, and each child's region is a subset of the parent's, so ``max(parent bound, child
+   relaxation)`` bounds the child. A child the solver proves infeasible over all sites (or that
+   violates ``#fixed-1 <= k <= #free + #fixed-1``) contains no feasible selection and is dropped.
 3. **Leaves and pruning.** A node with every site decided is one selection: its exact value (Chen
    eq. 18, the objective itself) replaces its bound and it is an incumbent. A node whose bound is
-   ``>=`` the incumbent value holds nothing better than the incumbent and is closed.
+   ``>=`` the incumbent value — B&B's own or the value of a layout the search found (``external``)
+   — holds nothing better than the incumbent and is closed. When one child of a strong-branching
+   probe is closed that way, the node's remaining selections are exactly those of the other child,
+   which replaces it (the partition of item 2 again).
 4. **Certificate.** The nodes that are open (or closed with their exact value) partition the feasible
    set, so ``min(incumbent, min over open node bounds)`` is a lower bound on ``d*`` at any moment
    (best-first: the node with the smallest bound is expanded next, so this number only rises).
 
-Cost: every node is one conic solve (Clarabel) of a parametrised cvxpy problem compiled once per
-working set (DPP: only ``lo``/``hi`` change between nodes, cvxpy reuses its canonicalisation).
+Branching: reliability branching — the candidates (fractional sites and groups of
+:func:`site_groups`) are scored by the product of the two children's bound gains, measured by
+strong branching (both children solved) for candidates without pseudo-costs and estimated from
+pseudo-costs (mean gain per unit of rounding, learned from every branching) otherwise.
+Cost: every node is one or a few conic solves (Clarabel, assembled directly; column generation over
+sites), each over the node's own pose set (its parent's near-critical poses plus violated ones).
 """
 from __future__ import annotations
 
@@ -37,14 +44,13 @@ import heapq
 import itertools
 import math
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from .problem import Problem
 from .conic import DirectRelaxation
-from .relaxation import _SAFETY, _pose_information, _weight_matrix, _whitening, relaxed_pose_values
+from .problem import Problem
+from .relaxation import relaxed_pose_values
 from .search import evaluate_subsets
 
 __all__ = ["BnbResult", "branch_and_bound", "bnb_applicable", "site_groups"]
@@ -79,72 +85,6 @@ def bnb_applicable(problem: Problem) -> bool:
     return problem.objective.aggregate == "worst" and problem.n_cover >= problem.P
 
 
-class _NodeRelaxation:
-    """The relaxation over a pose working set with site bounds ``lo <= z <= hi`` as cvxpy Parameters."""
-
-    def __init__(self, problem: Problem, poses, groups=None, use_rho=True, weights=None):
-        import cvxpy as cp
-        import scipy.sparse as sp
-
-        self.cp = cp
-        self.problem = problem
-        self.poses = np.sort(np.unique(np.asarray(poses, int)))
-        self.groups = groups
-        N, k = problem.N, problem.k
-        E = _weight_matrix(problem.objective)
-        self.z = cp.Variable(N)
-        self.lo = cp.Parameter(N)
-        self.hi = cp.Parameter(N)
-        cons = [self.z >= self.lo, self.z <= self.hi, cp.sum(self.z) == k]
-        if groups is not None and len(groups):
-            self.glo = cp.Parameter(len(groups))
-            self.ghi = cp.Parameter(len(groups))
-            rows = np.concatenate([np.full(len(g), r) for r, g in enumerate(groups)])
-            cols = np.concatenate(groups)
-            Gm = sp.csr_matrix((np.ones(len(cols)), (rows, cols)), shape=(len(groups), N))
-            cons += [Gm @ self.z >= self.glo, Gm @ self.z <= self.ghi]
-        cons.append(problem.lit.astype(float) @ self.z >= problem.m)
-        if problem.conflict is not None:
-            i, j = np.nonzero(np.triu(problem.conflict, 1))
-            if len(i):
-                cons.append(self.z[i] + self.z[j] <= 1)
-        use_gls = use_rho and problem.rho > 0
-        self.use_rho = use_rho
-        Ds, cs = _whitening(problem, self.poses, E, weights)
-        self.cbar = float(np.median(cs))
-        self.t = cp.Variable()
-        for q, p in enumerate(self.poses):
-            idx = np.flatnonzero(problem.vis[p].any(axis=0))
-            if len(idx) == 0:
-                continue
-            info, fac, extra = _pose_information(cp, problem, p, self.z[idx], idx, Ds[q], use_gls)
-            cons += extra
-            cons.append((fac * cs[q] / self.cbar) * cp.matrix_frac(Ds[q] @ E / np.sqrt(cs[q]), info) <= self.t)
-        self.prob = cp.Problem(cp.Minimize(self.t), cons)
-
-    def solve(self, lo, hi, glo=None, ghi=None, time_limit=None, solver="CLARABEL"):
-        """``(status, bound, z)``: bound (d units, safety margin applied) only for status optimal.
-        lo, hi : (N,) site bounds; glo, ghi : (G,) bounds on the group counts ``sum_{i in g} z_i``."""
-        cp = self.cp
-        self.lo.value = np.asarray(lo, float)
-        self.hi.value = np.asarray(hi, float)
-        if self.groups is not None and len(self.groups):
-            self.glo.value = np.asarray(glo, float)
-            self.ghi.value = np.asarray(ghi, float)
-        kw = {} if time_limit is None else {"time_limit": max(float(time_limit), 0.05)}
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                self.prob.solve(solver=solver, **kw)
-            status = str(self.prob.status)
-        except cp.error.SolverError as exc:
-            return f"solver_error: {exc}", float("nan"), None
-        if status == "optimal" and self.prob.value is not None and np.isfinite(self.prob.value):
-            b = float(np.sqrt(max(self.prob.value, 0.0) * self.cbar * (1 - _SAFETY)))
-            return status, b, np.clip(np.asarray(self.z.value, float), 0.0, 1.0)
-        return status, float("nan"), None
-
-
 def site_groups(problem: Problem, min_size=2, max_groups=256):
     """Groups of sites for branching: the clusters (size >= ``min_size``, at most ``max_groups``
     largest) of a Ward hierarchy over the sites' lit patterns (P,) — sites lit at the same poses
@@ -166,21 +106,6 @@ def site_groups(problem: Problem, min_size=2, max_groups=256):
             out.append(np.asarray(sorted(m), int))
     out.sort(key=len, reverse=True)
     return out[:max_groups]
-
-
-def _region_weights(lo, hi, k, z=None):
-    """Site weights inside a node: fixed ones 1, free sites share the remaining sensors (half
-    uniformly, half by ``z`` if given), forbidden sites 0."""
-    free = (lo < 0.5) & (hi > 0.5)
-    w = (lo > 0.5).astype(float)
-    rest = max(k - w.sum(), 0.0)
-    if free.any() and rest > 0:
-        u = np.where(free, 1.0, 0.0)
-        u = u / u.sum()
-        if z is not None and (zf := np.where(free, z, 0.0)).sum() > 0:
-            u = 0.5 * u + 0.5 * zf / zf.sum()
-        w = w + rest * u
-    return w
 
 
 def _decided(lo, hi, k):
@@ -244,7 +169,7 @@ def _child_node(nd, groups, c, side):
 def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=None, incumbent=None,
                      deadline=None, max_nodes=None, gap_tol=0.0, on_bound=None, use_rho=True,
                      initial_poses=24, max_poses_per_round=8, groups=None, solver="CLARABEL",
-                     max_candidates=10, max_strong=6, lookahead=3, external=None,
+                     max_candidates=16, max_strong=10, lookahead=3, external=None,
                      pose_margin=0.1) -> BnbResult:
     """Best-first branch-and-bound on the relaxation; certified lower bound (module docstring).
 

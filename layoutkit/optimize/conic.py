@@ -231,14 +231,15 @@ class DirectRelaxation:
 
     # ------------------------------------------------------------------ solve
     def solve(self, poses, lo, hi, glo=None, ghi=None, hint=None, prices=None, time_limit=None,
-              max_rounds=6, add=64, initial_extra=None) -> NodeSolve:
+              max_rounds=6, add=64, initial_extra=None, max_iter=None) -> NodeSolve:
         """Certified bound of the node ``lo <= z <= hi``, group counts ``glo <= sum_g z <= ghi``,
         over the pose working set ``poses`` (a bound over fewer poses is smaller: still valid).
 
         hint : (N,) a point whose support starts the site set (the parent's z); prices : (N,)
-        reduced prices from the parent (the ``initial_extra`` best-priced free sites join too, default
-        2k). Column generation: up to ``max_rounds`` restricted solves, each adding the ``add`` sites
-        whose prices lower the bound most; stops once no site lowers it by more than 2e-4 relative in total.
+        reduced prices from the parent (the ``initial_extra`` best-priced free sites join too,
+        default 4k). max_iter : Clarabel's iteration cap (default its own). Column generation: up
+        to ``max_rounds`` restricted solves, each adding the ``add`` sites whose prices lower the
+        bound most; it stops once the sites left out lower it by less than 2e-4 relative in total.
         """
         import clarabel
         import scipy.sparse as sp
@@ -293,6 +294,8 @@ class DirectRelaxation:
             st.verbose = False
             st.tol_gap_rel = _GAP_TOL
             st.tol_gap_abs = _GAP_TOL
+            if max_iter is not None:
+                st.max_iter = int(max_iter)
             if time_limit is not None:
                 st.time_limit = max(float(time_limit) - (time.perf_counter() - t0), 0.05)
             P0 = sp.csc_matrix((nT + nS, nT + nS))

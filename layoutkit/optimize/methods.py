@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
@@ -152,6 +153,10 @@ def _relax_child(problem, deadline, active, conn):  # pragma: no cover - runs in
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        os.nice(10)  # a busy machine gives its cores to the search first (the layout), B&B second
+    except OSError:
+        pass
     try:
         conn.send(relax(problem, deadline=deadline, active_poses=active))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as a status
@@ -443,8 +448,11 @@ class _BnbChild:
         root = self.root if np.isfinite(self.root) else lb
         self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
                         "bound": max(lb, root), "complete": bool(self.state[4] > 1)}
-        ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
-                         f"{max(lb, root):.6g}")
+        if np.isfinite(max(lb, root)):
+            ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
+                             f"{max(lb, root):.6g}")
+        else:
+            ctx.notes.append("branch-and-bound: no bound (its root relaxation did not finish before the deadline)")
         if np.isfinite(lb) and (lb > r.bound or not np.isfinite(r.bound)):
             r = dataclasses.replace(r, bound=lb, certified_by="branch-and-bound")
         return best, bv, r
@@ -457,6 +465,10 @@ def _bnb_child(problem, deadline, state, sel):  # pragma: no cover - runs in the
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        os.nice(10)  # a busy machine gives its cores to the search first (the layout), B&B second
+    except OSError:
+        pass
 
     def publish(lb, value, nodes, n_open, inc=None):
         if inc is not None:

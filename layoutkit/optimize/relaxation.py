@@ -200,13 +200,16 @@ def fallback_bound(problem: Problem) -> float:
 
 
 def relaxed_pose_values(problem: Problem, z, use_rho=True) -> np.ndarray:
-    """Per-pose relaxed squared values ``trace(W F_p(z)^-1)`` (P,) at a fractional z (numpy)."""
+    """Per-pose relaxed squared values ``trace(W F_p(z)^-1)`` (P,) at a fractional z (numpy); only
+    the sites with z != 0 are summed (z is sparse in branch-and-bound)."""
     rho = problem.rho
-    A = np.einsum("pnij,n->pij", problem.G, z)
+    nz = np.flatnonzero(np.asarray(z) != 0)
+    z = np.asarray(z, float)[nz]
+    A = np.einsum("pnij,n->pij", problem.G[:, nz], z)
     if use_rho and rho > 0:
-        b = np.einsum("pncj,n->pcj", problem.U, z)
+        b = np.einsum("pncj,n->pcj", problem.U[:, nz], z)
         C = b.shape[1]
-        n_s = np.einsum("psn,n->ps", problem.vis.astype(float), z)[:, np.arange(C) // 2]
+        n_s = np.einsum("psn,n->ps", problem.vis[:, :, nz].astype(float), z)[:, np.arange(C) // 2]
         A = A - rho * np.einsum("pci,pcj,pc->pij", b, b, 1.0 / (1 - rho + rho * n_s))
         fac = 1 - rho
     else:
