@@ -51,8 +51,9 @@ class Context:
     bnb_wait: float = 1.0
     bnb_progress: float = 0.02
     bnb_window: float = 10.0
-    #: B&B is started only if at least this many seconds are left after the relaxation
-    bnb_min_s: float = 2.0
+    #: B&B is started only if the time limit leaves at least this many seconds (a shorter run
+    #: would only share its cores with a tree that cannot get far)
+    bnb_min_s: float = 5.0
     #: method "polish": also try 2-swaps at a 1-swap local optimum (slower, better)
     two_swap: bool = True
 
