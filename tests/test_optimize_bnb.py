@@ -16,12 +16,12 @@ import pytest
 
 from layoutkit.optimize import optimize_layout
 from layoutkit.optimize.bnb import branch_and_bound, site_groups
-from layoutkit.optimize.conic import DirectRelaxation
+from layoutkit.optimize.conic import _PRICE_TOL, DirectRelaxation
 from layoutkit.optimize.core import candidate_jacobians
 from layoutkit.optimize.instances import synthetic_instance
 from layoutkit.optimize.objectives import parse_objective
 from layoutkit.optimize.problem import build_problem
-from layoutkit.optimize.relaxation import _pose_information, _weight_matrix, _whitening, relax
+from layoutkit.optimize.relaxation import _pose_information, _weight_matrix, _whitening, relax, relaxed_pose_values
 from layoutkit.optimize.search import evaluate_subsets, exhaustive
 from layoutkit.units import RHO_PAPER
 
@@ -63,6 +63,9 @@ def _cvxpy_node_value(pb, lo, hi, groups, glo, ghi):
     E = _weight_matrix(pb.objective)
     z = cp.Variable(pb.N)
     cons = [z >= lo, z <= hi, cp.sum(z) == pb.k, pb.lit.astype(float) @ z >= pb.m]
+    if pb.conflict is not None:
+        i, j = np.nonzero(np.triu(pb.conflict, 1))
+        cons.append(z[i] + z[j] <= 1)
     for r, g in enumerate(groups):
         cons += [cp.sum(z[g]) >= glo[r], cp.sum(z[g]) <= ghi[r]]
     Ds, cs = _whitening(pb, np.arange(pb.P), E)
@@ -80,6 +83,25 @@ def _cvxpy_node_value(pb, lo, hi, groups, glo, ghi):
     return float(np.sqrt(prob.value * cbar)) if prob.status == "optimal" else None
 
 
+def _problem_two_stations_with_spacing(seed):
+    """Two stations 0.8 m apart (the second sees the same poses shifted) and random spacing
+    conflicts between sites: the multi-column LMI (one s entry per station and axis) and the
+    spacing rows of the direct assembly."""
+    from layoutkit.optimize.instances import cone_visibility
+
+    inst = _inst(seed)
+    pos, nor, R, t = inst["positions"], inst["normals"], inst["rotations"], inst["translations"]
+    t2 = t - np.array([0.8, 0.0, 0.0])
+    jac = np.stack([candidate_jacobians(pos, R, t)[:, 0], candidate_jacobians(pos, R, t2)[:, 0]], axis=1)
+    vis = np.stack([inst["visible"], cone_visibility(pos, nor, R, t2, half_angle_deg=89)], axis=1)
+    rng = np.random.default_rng(seed)
+    conflict = np.zeros((N, N), bool)
+    for i, j in rng.choice(N, (4, 2)):
+        if i != j:
+            conflict[i, j] = conflict[j, i] = True
+    return build_problem(jac, vis, RHO_PAPER, K, 4, parse_objective("worst-adop"), conflict=conflict)
+
+
 def _random_nodes(rng, groups, n):
     for _ in range(n):
         lo, hi = np.zeros(N), np.ones(N)
@@ -95,6 +117,8 @@ def _random_nodes(rng, groups, n):
 def _exhaustive_nodes(pb, groups):
     subs = np.array(list(itertools.combinations(range(N), K)))
     v, feas = evaluate_subsets(pb, subs)
+    if pb.conflict is not None:  # spacing: no two selected sites in conflict
+        feas &= ~np.array([pb.conflict[np.ix_(s_, s_)].any() for s_ in subs])
     Z = np.zeros((len(subs), N))
     np.put_along_axis(Z, subs, 1.0, axis=1)
     counts = np.stack([Z[:, g].sum(axis=1) for g in groups], axis=1)
@@ -106,11 +130,14 @@ def _exhaustive_nodes(pb, groups):
     return node_min
 
 
-def test_node_bound_matches_cvxpy_and_stays_below_exhaustive_node_optimum():
-    """Random nodes (sites fixed to 0/1, group counts bounded): the direct node bound equals the
-    cvxpy formulation's optimum (to solver tolerance) and is <= the exhaustive minimum over the
-    k-subsets that satisfy the node's constraints."""
-    pb = _problem(_inst(1), RHO_PAPER)
+@pytest.mark.parametrize("two_stations", [False, True])
+def test_node_bound_matches_cvxpy_and_stays_below_exhaustive_node_optimum(two_stations):
+    """Random nodes (sites fixed to 0/1, group counts bounded), one station and two stations with
+    spacing: the direct node bound is <= the exhaustive minimum over the k-subsets that satisfy the
+    node's constraints; with all sites it is within 2e-5 of the relaxed value (numpy closed form) at
+    its own z — so it is the relaxation optimum — and matches the cvxpy formulation's optimum;
+    column generation loses at most its stopping tolerance."""
+    pb = _problem_two_stations_with_spacing(1) if two_stations else _problem(_inst(1), RHO_PAPER)
     groups = site_groups(pb)
     assert groups and all(2 <= len(g) < N for g in groups)
     rel = DirectRelaxation(pb, groups)
@@ -123,10 +150,18 @@ def test_node_bound_matches_cvxpy_and_stays_below_exhaustive_node_optimum():
             assert not np.isfinite(opt)
             continue
         assert res.bound <= opt * (1 + 1e-9)
+        every = rel.solve(np.arange(P), lo, hi, glo, ghi, hint=np.ones(N))  # all sites from the start
+        if every.status != "optimal":
+            continue
+        # sandwich: dual bound <= relaxation optimum <= relaxed value at the solver's z (numpy)
+        f = np.sqrt(relaxed_pose_values(pb, every.z).max())
+        assert every.bound <= f * (1 + 1e-9) and f <= every.bound * (1 + 2e-5)
+        # column generation stops once the left-out sites cost < _PRICE_TOL of the bound
+        assert every.bound * (1 - _PRICE_TOL - 2e-5) <= res.bound <= every.bound * (1 + 2e-6)  # solver tolerance
         ref = _cvxpy_node_value(pb, lo, hi, groups, glo, ghi)
-        if ref is not None and res.status == "optimal":
-            assert res.bound == pytest.approx(ref, rel=2e-5)
-            compared += 1
+        if ref is not None:  # cvxpy's solution is sometimes 5e-5 off (two stations): loose
+            assert every.bound == pytest.approx(ref, rel=1e-4)
+        compared += 1
     assert compared >= 6
 
 

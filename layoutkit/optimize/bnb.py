@@ -239,8 +239,8 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
             if res.status == "infeasible":
                 return math.inf, None, False, None, None  # the solver's certificate over all sites (module docstring 2)
             b = max(res.bound, parent_bound)
-            if res.z is None:
-                return b, None, False, None, Q
+            if res.z is None:  # "almost infeasible": no bound of its own, split further (parent's z)
+                return b, None, res.status == "almost_infeasible", None, Q
             pr = rel.last_prices
             v = np.sqrt(relaxed_pose_values(problem, res.z, use_rho))
             viol = np.setdiff1d(np.flatnonzero(v > res.bound * (1 + _POSE_TOL)), Q)

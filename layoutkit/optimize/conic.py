@@ -51,8 +51,8 @@ _GAP_TOL = 1e-6
 
 @dataclass(frozen=True)
 class NodeSolve:
-    """status : Clarabel's status of the last restricted solve ("infeasible" only when the full
-    site set was used); bound : certified lower bound (d units) or -inf; z : (N,) primal point of
+    """status : Clarabel's status of the last restricted solve ("infeasible" only for Clarabel's
+    primal infeasibility certificate over the full site set; "almost_infeasible" gives no bound); bound : certified lower bound (d units) or -inf; z : (N,) primal point of
     the restricted problem (zeros outside it) or None; rounds : column-generation solves;
     sites : size of the final site set; time_s : wall time."""
 
@@ -302,11 +302,14 @@ class DirectRelaxation:
             sol = clarabel.DefaultSolver(P0, q, A, b, cones, st).solve()
             rounds += 1
             status = str(sol.status)
-            if "Infeasible" in status and "Dual" not in status:
-                if full:
-                    return NodeSolve("infeasible", math.inf, None, rounds, nS, time.perf_counter() - t0)
-                S |= set(np.flatnonzero(free).tolist())  # restricted infeasibility proves nothing
-                continue
+            if status == "PrimalInfeasible" and full:
+                return NodeSolve("infeasible", math.inf, None, rounds, nS, time.perf_counter() - t0)
+            if "PrimalInfeasible" in status:
+                if not full:  # restricted infeasibility proves nothing: all sites
+                    S |= set(np.flatnonzero(free).tolist())
+                    continue
+                # only "almost" infeasible: no certificate, no bound beyond the parent's
+                return NodeSolve("almost_infeasible", -math.inf, None, rounds, nS, time.perf_counter() - t0)
             y = np.asarray(sol.z, float)
             y_lin = y[:L]
             y_t = y[L + 2 * nS:L + 2 * nS + A_t.shape[0]]
