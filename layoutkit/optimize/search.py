@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 
+from .kernels import move_values
 from .problem import Problem, aggregate, feasible_counts, pose_values_from_info, subset_info
 
 __all__ = [
@@ -55,9 +56,14 @@ def evaluate_subsets(problem: Problem, Z, chunk=2048):
     Z = np.asarray(Z, int)
     out = np.empty(len(Z))
     feas = np.empty(len(Z), bool)
+    A0 = np.zeros((problem.P, 6, 6))
+    b0 = np.zeros((problem.P,) + problem.U.shape[2:])
+    allp = np.arange(problem.P)
     for s in range(0, len(Z), chunk):
-        A, b, n = subset_info(problem, Z[s:s + chunk])
-        v = pose_values_from_info(A, b, problem.rho, problem.objective.w)
+        z = Z[s:s + chunk]
+        n = problem.lit[:, z].sum(axis=2).T
+        v = move_values(A0, b0, problem.G, problem.U, allp, np.zeros((len(z), 0), int), z, problem.rho,
+                        problem.objective.w)
         out[s:s + chunk] = aggregate(problem, np.sqrt(v), n)
         feas[s:s + chunk] = feasible_counts(problem, n)
     return out, feas
@@ -251,10 +257,9 @@ def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline):
             return None
         rr = np.array([c[0] for c in cand])
         jj = np.array([c[1] for c in cand])
-        # full evaluation of the short list by direct inverse (exact)
-        A = st.A[None] - problem.G[:, st.sel[rr]].transpose(1, 0, 2, 3) + problem.G[:, adds[jj]].transpose(1, 0, 2, 3)
-        b = st.b[None] - problem.U[:, st.sel[rr]].transpose(1, 0, 2, 3) + problem.U[:, adds[jj]].transpose(1, 0, 2, 3)
-        v = np.sqrt(pose_values_from_info(A, b, problem.rho, problem.objective.w))  # (L, P)
+        # full evaluation of the short list by direct factorisation (exact; fused kernel)
+        v = np.sqrt(move_values(st.A, st.b, problem.G, problem.U, np.arange(P), st.sel[rr][:, None],
+                                adds[jj][:, None], problem.rho, problem.objective.w))  # (L, P)
         full = v.max(axis=1)
         best = int(np.argmin(full))
         if full[best] < cur * (1 - _EPS):
@@ -304,12 +309,8 @@ def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline,
     cur = st.value
 
     def vals_at(sub, poses):
-        G, U = problem.G[poses], problem.U[poses]
-        A = (st.A[poses][None] - G[:, out1[sub]].transpose(1, 0, 2, 3) - G[:, out2[sub]].transpose(1, 0, 2, 3)
-             + G[:, in1[sub]].transpose(1, 0, 2, 3) + G[:, in2[sub]].transpose(1, 0, 2, 3))
-        b = (st.b[poses][None] - U[:, out1[sub]].transpose(1, 0, 2, 3) - U[:, out2[sub]].transpose(1, 0, 2, 3)
-             + U[:, in1[sub]].transpose(1, 0, 2, 3) + U[:, in2[sub]].transpose(1, 0, 2, 3))
-        return np.sqrt(pose_values_from_info(A, b, problem.rho, problem.objective.w))
+        return np.sqrt(move_values(st.A, st.b, problem.G, problem.U, poses, np.c_[out1[sub], out2[sub]],
+                                   np.c_[in1[sub], in2[sub]], problem.rho, problem.objective.w))
 
     if not worst:
         best, bv = None, cur * (1 - _EPS)
@@ -492,9 +493,8 @@ def greedy(problem: Problem, rng=None, deadline=None):
             if deadline is not None and time.perf_counter() > deadline:
                 return None
             c = cand[s:s + 256]
-            An = A[None] + problem.G[:, c].transpose(1, 0, 2, 3)
-            bn = b[None] + problem.U[:, c].transpose(1, 0, 2, 3)
-            v = np.sqrt(pose_values_from_info(An, bn, problem.rho, problem.objective.w))
+            v = np.sqrt(move_values(A, b, problem.G, problem.U, np.arange(problem.P), np.zeros((len(c), 0), int),
+                                    c[:, None], problem.rho, problem.objective.w))
             vals[s:s + 256] = problem.objective.aggregate_values(v)
         j = cand[np.lexsort((vals, d))[0]]
         sel.append(int(j))
