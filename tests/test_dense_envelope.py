@@ -121,3 +121,52 @@ def test_farthest_point_poses_is_maximin_greedy():
         assert d[j] == pytest.approx(d.max())
         chosen.append(int(j))
     assert len(set(got.tolist()) | set(start.tolist())) == 12
+
+
+@pytest.fixture(scope="module")
+def whole_run():
+    from layoutkit.workflows.dense import dense_optimize
+    from layoutkit.workflows.optimize import prepare_problem
+
+    hull, cand = _visor(0.016)
+    env = _envelope(40, 5)
+    prep = prepare_problem(hull, env, candidates=cand)
+    kw = dict(objective="worst-adop", rho=RHO, min_visible=4, method="polish",
+              ctx_options={"patience": 1, "two_swap": False})
+    dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=3, coverage_poses=3000,
+                                 patience=2, later_patience=1)  # seed_poses="all": the whole dense set
+    return hull, cand, env, prep, dense, info
+
+
+def test_whole_dense_set_loop_is_a_true_one_swap_optimum_on_it(whole_run):
+    """Default seed_poses="all" and a dense set that fits: the working set is the whole dense set (plus any
+    coverage poses that joined), the reported dense value equals a pose_dop recount, and the layout is a
+    1-swap local optimum over its 1,500+ working poses — checked by brute force over every feasible 1-swap
+    with the independent fused DOP kernel of ``layoutkit.dop_batch`` (not the search's Woodbury screening
+    or its 6 x 6 kernels): no swap lowers the worst case."""
+    from layoutkit.dop_batch import batch_dop
+    from layoutkit.visibility import envelope_visibility
+    from layoutkit.workflows.score import envelope_set
+
+    hull, cand, env, prep, dense, info = whole_run
+    _, Rd, td = envelope_set(env, count=1500, seed=env.seed + 1)
+    RD, tD = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
+    assert info["seed_poses"] == 1500 - info["uncoverable_dense_poses"] and info["uncovered_dense_poses"] == 0
+    a = _independent_adop(hull, cand, dense.selected, RD, tD, env.stations)
+    assert info["dense_value"] == pytest.approx(a.max(), rel=1e-7)
+    W, Wt = info["working_rotations"], info["working_translations"]
+    assert len(W) >= 1540 - info["uncoverable_dense_poses"]
+    aw = _independent_adop(hull, cand, dense.selected, W, Wt, env.stations)
+    assert info["working_value"] == pytest.approx(aw.max(), rel=1e-7)
+    vis = envelope_visibility(hull, cand.positions, cand.normals, W, Wt, env.stations, sensor_half_angle_deg=60.0)
+    lit = vis.any(axis=1)
+    sel = np.asarray(dense.selected)
+    best = np.inf
+    for r in sel:
+        for j in np.setdiff1d(np.arange(cand.n), sel):
+            s2 = np.sort(np.r_[sel[sel != r], j])
+            if (lit[:, s2].sum(axis=1) < 4).any():
+                continue
+            d = batch_dop(cand.positions[s2], W, Wt, rho=RHO, visible=vis[:, :, s2], stations=env.stations)
+            best = min(best, float(np.max(np.where(d.success, d.adop, np.inf))))
+    assert np.isfinite(best) and best >= info["working_value"] * (1 - 1e-7)

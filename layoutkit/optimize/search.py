@@ -288,12 +288,15 @@ def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline,
     out1, out2 = sel[R2[ri, 0]], sel[R2[ri, 1]]
     in1, in2 = pool[J2[ji, 0]], pool[J2[ji, 1]]
     lit = problem.lit
-    # coverage (all poses), chunked
+    # coverage, chunked; only poses a 2-swap can push below m are counted (the others stay covered)
+    risk = np.flatnonzero(st.n - 2 * int(lit.max(initial=1)) < problem.m)
+    safe = problem.P - len(risk)
+    lr = lit[risk]
     ok = np.empty(len(ri), bool)
     for s in range(0, len(ri), 8192):
         sl = slice(s, s + 8192)
-        n2 = (st.n[None] - lit[:, out1[sl]].T - lit[:, out2[sl]].T + lit[:, in1[sl]].T + lit[:, in2[sl]].T)
-        ok[sl] = feasible_counts(problem, n2)
+        n2 = (st.n[risk][None] - lr[:, out1[sl]].T - lr[:, out2[sl]].T + lr[:, in1[sl]].T + lr[:, in2[sl]].T)
+        ok[sl] = (n2 >= problem.m).sum(axis=-1) + safe >= problem.n_cover
     if problem.conflict is not None:
         cf = problem.conflict
         for idx in range(len(ri)):
@@ -452,7 +455,11 @@ def repair(problem: Problem, sel, score=None, max_iter=None):
         best = None
         for r in removable:
             base = st_n - lit[:, sel[r]]
-            d = _deficit(problem, base[None] + lit[:, adds].T)
+            if problem.n_cover >= problem.P:  # only poses short after the removal add to the shortfall
+                short = np.flatnonzero(base < problem.m)
+                d = np.maximum(problem.m - (base[short][None] + lit[short][:, adds].T), 0).sum(axis=1)
+            else:
+                d = _deficit(problem, base[None] + lit[:, adds].T)
             if problem.conflict is not None:
                 rest = sel[sel != sel[r]]
                 d = np.where(problem.conflict[np.ix_(adds, rest)].any(axis=1), np.iinfo(np.int64).max, d)

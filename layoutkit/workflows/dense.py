@@ -38,7 +38,8 @@ import time
 
 import numpy as np
 
-__all__ = ["dense_optimize", "evaluate_selection", "pose_descriptors", "farthest_point_poses"]
+__all__ = ["dense_optimize", "evaluate_selection", "pose_descriptors", "farthest_point_poses",
+           "working_capacity", "WORKING_BYTES"]
 
 
 def evaluate_selection(prep, sel, R, t, rho, min_visible, coverage):
@@ -142,9 +143,20 @@ def _spread_pick(order, desc, add, min_sep):
     return np.asarray(picked + skipped[: max(0, add - len(picked))], int)
 
 
+#: bytes of search arrays (Jacobians, U, G: 60 doubles per pose, station and candidate) the working set may hold
+WORKING_BYTES = 2.0e9
+
+
+def working_capacity(n_candidates, n_stations, budget_bytes=WORKING_BYTES):
+    """Largest working set (poses) whose search arrays fit ``budget_bytes``: the selection problem holds
+    ``jac`` and ``U`` (12 doubles) and ``G`` (36 doubles) per pose, station and candidate
+    (:class:`layoutkit.optimize.problem.Problem`), about 480 B × S × N per pose."""
+    return max(1, int(budget_bytes // (480 * max(1, int(n_stations)) * max(1, int(n_candidates)))))
+
+
 def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
-                   seed_poses=256, coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=2000,
-                   first_share=0.3, later_method="polish", later_patience=2, later_two_swap=False,
+                   seed_poses="all", coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=None,
+                   first_share=None, later_method="polish", later_patience=2, later_two_swap=False,
                    time_limit=None, echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
@@ -155,16 +167,22 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     design poses, form the dense set. coverage_poses : more poses (seed ``envelope.seed + 3``) on which
     only the coverage rule is checked every round (cheap: visibility of k sensors); uncovered ones join
     the working set like violators, so coverage holds on a set much denser than the DOP set (a fresh
-    pose between dense poses can otherwise lose its m-th lit sensor). seed_poses : dense poses added to the working set before round 0
-    by farthest-point sampling of :func:`pose_descriptors` (0: design poses only). add : violators
+    pose between dense poses can otherwise lose its m-th lit sensor). seed_poses : dense poses added to the working
+    set before round 0 by farthest-point sampling of :func:`pose_descriptors` (0: design poses only; "all"
+    (default): every dense pose that fits ``max_working`` with room left for violators — the whole dense set
+    when it fits, since the search itself generates poses: the relaxation's active poses and the local
+    search's critical poses, every move confirmed on all working poses). add : violators
     added per round; min_sep : their minimum descriptor distance (~rad). tol : a round whose dense
     worst is within ``tol`` of its working-set value adds no poses (polish round). patience : rounds
-    without a better dense value before stopping. max_working : cap on the working set (memory).
+    without a better dense value before stopping. max_working : cap on the working set (memory; None:
+    :func:`working_capacity` of :data:`WORKING_BYTES`).
     later_method : method of the rounds after round 0 (default "polish": local search and kicks from
     the incumbent, no relaxation — a round then costs seconds, not minutes; None: ``kw["method"]``),
     with ``later_patience`` random kicks in a row without improvement ending a round and 2-swaps only
     if ``later_two_swap`` (1-swaps keep the rounds short, so more violators are seen in the budget).
-    time_limit : total budget of all rounds (s); round 0 gets ``first_share`` of it, every later round
+    time_limit : total budget of all rounds (s); round 0 gets ``first_share`` of it (None: 0.6 with
+    ``seed_poses="all"`` — the pipeline's relaxation and roundings on thousands of poses are the strongest
+    search available and need minutes; else 0.3), every later round
     half of what is left (the last round the rest); None: each round uses the optimiser's default.
     Returns ``(result, info)``: the OptimizeResult of the best round (its per-pose arrays are for the
     working set of that round) and a dict with per-round values, the dense-set per-pose DOP, the
@@ -216,10 +234,19 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         order.extend(int(i) for i in idx)
 
     order = list(range(len(Rw)))  # dense-set index of every working-set row
-    n_seed = max(0, min(int(seed_poses), int(max_working) - len(Rw)))
+    if max_working is None:
+        max_working = working_capacity(cand.n, len(prep["stations"]))
+    if seed_poses == "all":  # room for the dense set, leaving a tenth of the capacity for violators
+        n_seed = max(0, min(nD - len(Rw), int(0.9 * int(max_working)) - len(Rw)))
+    else:
+        n_seed = max(0, min(int(seed_poses), int(max_working) - len(Rw)))
+    whole = n_seed >= nD - len(Rw)  # the working set starts as the whole dense set
+    if first_share is None:  # a large working set: its relaxation alone takes minutes
+        first_share = 0.6 if seed_poses == "all" else 0.3
     seed_idx = np.zeros(0, int)
     if n_seed:
-        idx = farthest_point_poses(desc[:nD], n_seed, start=np.arange(len(Rw)))
+        idx = (np.arange(len(Rw), nD) if whole
+               else farthest_point_poses(desc[:nD], n_seed, start=np.arange(len(Rw))))
         vc, ok = lit_all(idx)
         seed_idx = idx[ok]
         grow(seed_idx, vc[ok])

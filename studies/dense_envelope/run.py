@@ -23,8 +23,10 @@ Layouts compared on 2,000 held-out poses (envelope seed + 2, never seen by any o
   set, or a held-out pose between dense poses can lose its 4th lit sensor).
 Statistics: worst ADOP over ALL held-out poses with an untracked pose (< 4 lit) counted as
 infinite, worst over the poses every layout tracks, coverage, p99, median. The dense loop's
-"design-set value" is its value on its working set (the poses it was finally tuned on); its value on
-the original 200 design poses is reported too.
+design-set value: the dense set is the set whose worst it minimises and reports (design + dense poses and
+the coverage poses that joined); its working set (the poses it was finally tuned on: with the default
+``seed_poses="all"`` the whole dense set when it fits in memory) and the original 200 design poses are
+reported too; held-out / dense and held-out / working set are both written.
 Bounds (``--skip-bounds`` to leave out): the joint relaxation bound of the k-subset problem over the
 2,000 held-out poses (no k-layout tracking every held-out pose can have a smaller held-out worst ADOP)
 and per-pose relaxation bounds at every layout's worst held-out poses.
@@ -224,11 +226,14 @@ def main():
         "improvement_x_vs_best_hand": hands[best_hand]["heldout"]["worst_adop"] / O["heldout"]["worst_adop"],
         "working_set_poses": info["working_set_poses"], "working_set_worst": O["working"]["worst_adop"],
         "heldout_over_working": O["heldout"]["worst_adop"] / O["working"]["worst_adop"],
+        "dense_set_poses": O["dense"]["poses"], "dense_set_worst": O["dense"]["worst_adop"],
+        "heldout_over_dense": O["heldout"]["worst_adop"] / O["dense"]["worst_adop"],
         "design200_worst": O["design"]["worst_adop"],
         "heldout_over_design200": O["heldout"]["worst_adop"] / O["design"]["worst_adop"]}
     ms = res["must_show"]
     ms["met_2x"] = bool(ms["improvement_x_vs_best_hand"] >= 2.0)
     ms["met_within_15pct_of_working_set"] = bool(ms["heldout_over_working"] <= 1.15)
+    ms["met_within_15pct_of_dense_set"] = bool(ms["heldout_over_dense"] <= 1.15)
     print(json.dumps(ms, indent=1), flush=True)
 
     if not args.skip_bounds:  # what no k-layout can beat on the held-out poses
@@ -329,6 +334,7 @@ def main():
                      f"{f(h['worst_adop_over_poses_all_layouts_track'])} | {f(h['p99_adop'])} | {f(h['median_adop'])} |")
     lines += ["", f"working set of the dense loop: {info['working_set_poses']} poses; "
               f"held-out / working-set worst = {ms['heldout_over_working']:.3f}; "
+              f"held-out / dense-set ({ms['dense_set_poses']} poses) worst = {ms['heldout_over_dense']:.3f}; "
               f"held-out / original-200 worst = {ms['heldout_over_design200']:.3f}; "
               f"best hand / dense loop on held-out = {ms['improvement_x_vs_best_hand']:.2f}×"]
     if "bounds" in res:
