@@ -6,11 +6,14 @@ Here the optimiser works on a *working set* of poses, the incumbent is evaluated
 of the same envelope (design poses + ``dense_poses`` more from seed ``envelope.seed + 1``, by the
 fused kernel :func:`layoutkit.dop_batch.batch_dop`), and the loop is
 
-1. working set = design poses + ``seed_poses`` dense poses chosen by farthest-point sampling of
-   the pose descriptors (:func:`pose_descriptors`: direction of every station in the body frame and
-   the range) — a space-filling design of the envelope that reaches its rim from the start;
+1. working set = design poses + dense poses: by default (``seed_poses="all"``) as many as fit the memory
+   budget :data:`WORKING_BYTES` — the whole dense set when it fits, since the search generates poses
+   itself (the relaxation's active poses, the local search's critical poses with every move confirmed on
+   all working poses by the fused kernels of :mod:`layoutkit.optimize.kernels`); a subset is chosen by
+   farthest-point sampling of the pose descriptors (:func:`pose_descriptors`: direction of every station
+   in the body frame and the range) — a space-filling design of the envelope that reaches its rim;
 2. round 0: the caller's method (the pipeline: relaxation, roundings, local search) on the working
-   set with ``first_share`` of the budget; later rounds: method ``polish`` (1-swap local search and
+   set with ``first_share`` of the budget; later rounds: method ``polish`` (local search and
    random kicks from the best layout so far, no relaxation — seconds per round, so many rounds fit);
 3. evaluate the round's layout on the dense set (DOP) and on ``coverage_poses`` more poses (coverage
    only), add up to ``add`` poses: uncovered coverable ones first, then dense poses above the
@@ -20,7 +23,8 @@ fused kernel :func:`layoutkit.dop_batch.batch_dop`), and the loop is
 
 A round in which no dense pose exceeds the working-set value by more than ``tol`` adds nothing
 and the next round is a full *polish* of that working set (1- and 2-swaps, the full kick patience).
-The loop stops when the dense-set worst case has not improved for ``patience`` rounds, the working
+The loop stops when the dense-set worst case has not improved for ``patience`` rounds (rounds on a
+working set that grew before them do not count), the working
 set reaches ``max_working`` poses (bounded memory: the optimiser holds O(working set × candidates)),
 k cannot cover the working set, or the budget (``time_limit``) ends; Ctrl-C / SIGTERM keeps the best
 finished round. The layout with the best dense-set value (fewest uncovered poses first) is kept;
@@ -157,7 +161,7 @@ def working_capacity(n_candidates, n_stations, budget_bytes=WORKING_BYTES):
 def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
                    seed_poses="all", coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=None,
                    first_share=None, later_method="polish", later_patience=2, later_two_swap=False,
-                   time_limit=None, echo=None):
+                   join_above=None, time_limit=None, echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
@@ -174,7 +178,10 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     search's critical poses, every move confirmed on all working poses). add : violators
     added per round; min_sep : their minimum descriptor distance (~rad). tol : a round whose dense
     worst is within ``tol`` of its working-set value adds no poses (polish round). patience : rounds
-    without a better dense value before stopping. max_working : cap on the working set (memory; None:
+    without a better dense value before stopping; a round whose working set grew before it (new poses:
+    progress of the pose generation) does not count. join_above : poses whose value exceeds ``join_above`` ×
+    the working-set value join the working set (None: ``1 + tol``; below 1: near-violators too, poses a small
+    change of the layout makes critical). max_working : cap on the working set (memory; None:
     :func:`working_capacity` of :data:`WORKING_BYTES`).
     later_method : method of the rounds after round 0 (default "polish": local search and kicks from
     the incumbent, no relaxation — a round then costs seconds, not minutes; None: ``kw["method"]``),
@@ -254,6 +261,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     hist = []
     warm, active = None, None
     stall = 0
+    grew = False  # the working set grew after the last round
     note = ""
     interrupted = None
     converged = False  # some round's dense worst was within tol of its working-set value
@@ -309,8 +317,9 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             if best is None or dval[0] < best[1][0] or (dval[0] == best[1][0] and dval[1] < best[1][1] * (1 - 1e-3)):
                 best = (res, dval, a, p, cov, cov_all, np.array(order, int), (ae, pe, ce))
                 stall = 0
-            else:
+            elif not grew:  # a round on a grown working set is progress of the pose generation
                 stall += 1
+            grew = False
             warm = best[0].selected
             active = None
             if isinstance(res.info, dict) and res.info.get("active_poses") is not None:
@@ -325,6 +334,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + tol)))
             room = int(max_working) - n_work
             polish = len(viol) == 0
+            if join_above is not None:
+                viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * float(join_above)))
             if polish:
                 converged = True
             if len(viol) == 0 or room <= 0:
@@ -346,6 +357,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             new = np.asarray(new)
             pick = _spread_pick(np.arange(len(new)), desc[new], want, min_sep)
             grow(new[pick], np.asarray(v_new)[pick])
+            grew = True
             hist[-1]["added"] = [int(x) for x in new[pick]]
     except (Interrupted, KeyboardInterrupt) as exc:
         interrupted = getattr(exc, "signame", "SIGINT")

@@ -123,6 +123,8 @@ def main():
     ap.add_argument("--time-limit-s", type=float, default=360.0, help="budget of the dense loop (design-only: half)")
     ap.add_argument("--design-time-limit-s", type=float, default=None,
                     help="budget of the design-only run (default: half of --time-limit-s)")
+    ap.add_argument("--join-above", type=float, default=None,
+                    help="dense loop: poses above this × the working-set value join it (default 1 + tol)")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--fit-heldout-s", type=float, default=0.0,
@@ -175,7 +177,7 @@ def main():
         sets["optimised on the 200 design poses"] = r_design.selected
     t0 = time.perf_counter()
     r_dense, info = dense_optimize(prep, k, kw, dense_poses=args.dense_poses, coverage_poses=args.coverage_poses,
-                                   time_limit=T, echo=print)
+                                   join_above=args.join_above, time_limit=T, echo=print)
     t_dense = time.perf_counter() - t0
     print("dense:", r_dense.message, flush=True)
     DENSE = "optimised by the dense loop"
