@@ -294,6 +294,7 @@ class DirectRelaxation:
             st.verbose = False
             st.tol_gap_rel = _GAP_TOL
             st.tol_gap_abs = _GAP_TOL
+            st.iterative_refinement_enable = False  # ~25 % faster, same iterations; the dual bound needs no more
             if max_iter is not None:
                 st.max_iter = int(max_iter)
             if time_limit is not None:
