@@ -166,11 +166,63 @@ def _child_node(nd, groups, c, side):
     return clo, chi, cglo, cghi
 
 
+def _solve_node(problem, rel, nd, parent_bound, zp, prices, poses, deadline, use_rho, max_poses_per_round,
+                pose_margin):
+    """Node relaxation with pose generation: ``(bound, z or None, expandable, prices, poses,
+    solves, largest pose set)``. The bound is the dual one of :mod:`layoutkit.optimize.conic` —
+    certified for any solver outcome — and never below the parent's (the child's region is a subset
+    of the parent's). The node's pose set starts from the parent's near-critical poses; poses whose
+    relaxed value at the node's z exceeds its bound join and the node is solved again."""
+    k = problem.k
+    lo, hi, glo, ghi = nd
+    if lo.sum() > k + 0.5 or hi.sum() < k - 0.5 or np.any(glo > ghi + 0.5):
+        return math.inf, None, False, None, None, 0, 0  # no k-subset in this node
+    Q = np.asarray(poses, int)
+    n = 0
+    while True:
+        tl = None if not math.isfinite(deadline) else deadline - time.perf_counter()
+        if tl is not None and tl <= 0:
+            return parent_bound, None, False, None, Q, n, len(Q)
+        res = rel.solve(Q, lo, hi, glo, ghi, hint=zp, prices=prices, time_limit=tl)
+        n += 1
+        if res.status == "infeasible":  # the solver's certificate over all sites (module docstring 2)
+            return math.inf, None, False, None, None, n, len(Q)
+        b = max(res.bound, parent_bound)
+        if res.z is None:  # "almost infeasible": no bound of its own, split further (parent's z)
+            return b, None, res.status == "almost_infeasible", None, Q, n, len(Q)
+        pr = rel.last_prices
+        v = np.sqrt(relaxed_pose_values(problem, res.z, use_rho))
+        viol = np.setdiff1d(np.flatnonzero(v > res.bound * (1 + _POSE_TOL)), Q)
+        if len(viol) == 0 or (tl is not None and tl < 1.0):
+            keep = np.union1d(np.flatnonzero(v >= res.bound * (1 - pose_margin)),
+                              Q[v[Q] >= res.bound * (1 - pose_margin)])
+            return b, res.z, True, pr, keep, n, len(Q)
+        Q = np.union1d(Q, viol[np.argsort(-v[viol])][:max_poses_per_round])
+        zp, prices, parent_bound = res.z, pr, b
+
+
+class NodeServer:
+    """Solves node relaxations for a branch-and-bound running in another process (the pipeline's
+    parent, once its search is done, so that both cores work on the tree): :meth:`serve` takes the
+    request tuple the ``remote`` of :func:`branch_and_bound` sends."""
+
+    def __init__(self, problem: Problem, use_rho=True, groups=None):
+        self.problem = problem
+        self.use_rho = use_rho
+        groups = site_groups(problem) if groups is None else groups
+        self.rel = DirectRelaxation(problem, groups, use_rho)
+
+    def serve(self, req):
+        nd, parent_bound, zp, prices, poses, deadline, max_poses_per_round, pose_margin = req
+        return _solve_node(self.problem, self.rel, nd, parent_bound, zp, prices, poses, deadline,
+                           self.use_rho, max_poses_per_round, pose_margin)
+
+
 def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=None, incumbent=None,
                      deadline=None, max_nodes=None, gap_tol=0.0, on_bound=None, use_rho=True,
                      initial_poses=24, max_poses_per_round=8, groups=None, solver="CLARABEL",
                      max_candidates=16, max_strong=10, lookahead=3, external=None,
-                     pose_margin=0.1) -> BnbResult:
+                     pose_margin=0.1, remote=None) -> BnbResult:
     """Best-first branch-and-bound on the relaxation; certified lower bound (module docstring).
 
     problem : worst-case objective with full coverage (:func:`bnb_applicable`).
@@ -190,6 +242,9 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
     max_candidates, max_strong, lookahead : reliability branching (strong branching on at most
     ``max_strong`` of the ``max_candidates`` best heuristic candidates without pseudo-costs,
     stopping after ``lookahead`` that do not improve the best score).
+    remote : optional second solver of node relaxations (``available()``, ``submit(request)``,
+    ``get()``; a :class:`NodeServer` on the other side): while it is available, the two children
+    of a disjunction are solved at once, one here and one there.
     """
     if not bnb_applicable(problem):
         raise ValueError("branch_and_bound: only the worst-case objective with full coverage is supported")
@@ -220,36 +275,12 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         return None if not math.isfinite(deadline) else deadline - time.perf_counter()
 
     def solve(nd, parent_bound, zp=None, prices=None, poses=None):
-        """Node relaxation with pose generation: ``(bound, z or None, expandable, prices, poses)``.
-        The bound is the dual one of :mod:`layoutkit.optimize.conic` — certified for any solver
-        outcome — and never below the parent's (the child's region is a subset of the parent's).
-        The node's pose set starts from the parent's near-critical poses; poses whose relaxed value
-        at the node's z exceeds its bound join and the node is solved again."""
         nonlocal nodes, n_poses
-        lo, hi, glo, ghi = nd
-        if lo.sum() > k + 0.5 or hi.sum() < k - 0.5 or np.any(glo > ghi + 0.5):
-            return math.inf, None, False, None, None  # no k-subset in this node
-        Q = np.asarray(work if poses is None else poses, int)
-        while True:
-            tl = left()
-            if tl is not None and tl <= 0:
-                return parent_bound, None, False, None, Q
-            res = rel.solve(Q, lo, hi, glo, ghi, hint=zp, prices=prices, time_limit=tl)
-            nodes += 1
-            if res.status == "infeasible":
-                return math.inf, None, False, None, None  # the solver's certificate over all sites (module docstring 2)
-            b = max(res.bound, parent_bound)
-            if res.z is None:  # "almost infeasible": no bound of its own, split further (parent's z)
-                return b, None, res.status == "almost_infeasible", None, Q
-            pr = rel.last_prices
-            v = np.sqrt(relaxed_pose_values(problem, res.z, use_rho))
-            viol = np.setdiff1d(np.flatnonzero(v > res.bound * (1 + _POSE_TOL)), Q)
-            if len(viol) == 0 or (tl is not None and tl < 1.0):
-                keep = np.flatnonzero(v >= res.bound * (1 - pose_margin))
-                n_poses = max(n_poses, len(Q))
-                return b, res.z, True, pr, np.union1d(keep, Q[v[Q] >= res.bound * (1 - pose_margin)])
-            Q = np.union1d(Q, viol[np.argsort(-v[viol])][:max_poses_per_round])
-            zp, prices, parent_bound = res.z, pr, b
+        out = _solve_node(problem, rel, nd, parent_bound, zp, prices, work if poses is None else poses,
+                          deadline, use_rho, max_poses_per_round, pose_margin)
+        nodes += out[5]
+        n_poses = max(n_poses, out[6])
+        return out[:5]
 
     counter = itertools.count()
     heap = []  # (bound, tie, node arrays, z, expandable)
@@ -280,21 +311,38 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
     pcost = {}  # pseudo-costs: (kind, j) -> [down gain sum, n, up gain sum, n] per unit of rounding
     eps = 1e-6 * max(abs(heap[0][0]) if heap else 1.0, 1e-12)
 
-    def child(nd, c, side, b, z, prices, Q):
-        """Solve one child; ``(node arrays, bound, z, expandable, prices)`` or None if it holds no
-        selection better than the incumbent (decided children are offered and closed here)."""
-        cnd = _child_node(nd, groups, c, side)
-        dsel = _decided(cnd[0], cnd[1], k)
-        if dsel is not None:
-            offer(dsel)
-            return None
-        cb, cz, cexp, cpr, cQ = solve(cnd, b, z, prices, Q)
-        if cz is not None:
-            _offer_integral(cz, offer, k)
-        if not np.isfinite(cb) or cb >= cutoff():
-            return None
-        return (cnd, cb, z if cz is None else cz, cexp, None if cpr is None else cpr.astype(np.float32),
-                Q if cQ is None else cQ)
+    def pair(nd, c, b, z, prices, Q):
+        """Solve both children of disjunction ``c`` (one remotely if a remote solver is free); each
+        ``(node arrays, bound, z, expandable, prices, poses)`` or None if it holds no selection
+        better than the incumbent (decided children are offered and closed here)."""
+        nonlocal nodes, n_poses
+        cnds = [_child_node(nd, groups, c, side) for side in (0, 1)]
+        todo = []
+        for side, cnd in enumerate(cnds):
+            dsel = _decided(cnd[0], cnd[1], k)
+            if dsel is not None:
+                offer(dsel)
+            else:
+                todo.append(side)
+        outs = {}
+        if len(todo) == 2 and remote is not None and remote.available():
+            remote.submit((cnds[1], b, z, prices, Q, deadline, max_poses_per_round, pose_margin))
+            outs[0] = solve(cnds[0], b, z, prices, Q)
+            r1 = remote.get()
+            nodes += r1[5]
+            n_poses = max(n_poses, r1[6])
+            outs[1] = r1[:5]
+        else:
+            for side in todo:
+                outs[side] = solve(cnds[side], b, z, prices, Q)
+        kids = [None, None]
+        for side, (cb, cz, cexp, cpr, cQ) in outs.items():
+            if cz is not None:
+                _offer_integral(cz, offer, k)
+            if np.isfinite(cb) and cb < cutoff():
+                kids[side] = (cnds[side], cb, z if cz is None else cz, cexp,
+                              None if cpr is None else cpr.astype(np.float32), Q if cQ is None else cQ)
+        return kids
 
     def push(kid):
         if kid is not None and kid[1] < cutoff():
@@ -331,7 +379,7 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
             d0, d1, reliable = estimate(c)
             kids = None
             if not reliable and n_strong < max_strong and stale < lookahead and time.perf_counter() < deadline:
-                kids = [child(nd, c, side, b, z, prices, Q) for side in (0, 1)]
+                kids = pair(nd, c, b, z, prices, Q)
                 n_strong += 1
                 learn(c, b, kids)
                 if kids[0] is None or kids[1] is None:  # one side is closed: the node is its sibling
@@ -348,7 +396,7 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
             return
         _, c, kids = best
         if kids is None:
-            kids = [child(nd, c, side, b, z, prices, Q) for side in (0, 1)]
+            kids = pair(nd, c, b, z, prices, Q)
             learn(c, b, kids)
         for kid in kids:
             push(kid)

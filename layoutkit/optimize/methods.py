@@ -387,11 +387,14 @@ class _BnbChild:
 
         mpc = mp.get_context("fork")
         self.root = -math.inf  # the pipeline's relaxation bound, once known (:meth:`set_root`)
-        # lower bound, B&B incumbent value, nodes, open nodes, done, the search's incumbent value
-        self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf], lock=False)
+        # lower bound, B&B incumbent value, nodes, open nodes, done, the search's incumbent value,
+        # the parent serves node relaxations (1) or not (0)
+        self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf, 0.0], lock=False)
         self.sel = mpc.Array("l", [-1] * problem.k, lock=False)
         self.summary = {}
-        self.proc = mpc.Process(target=_bnb_child, args=(problem, deadline, self.state, self.sel),
+        self.conn, child_conn = mpc.Pipe()
+        self.served = 0
+        self.proc = mpc.Process(target=_bnb_child, args=(problem, deadline, self.state, self.sel, child_conn),
                                 daemon=True)
         self.proc.start()
 
@@ -435,20 +438,30 @@ class _BnbChild:
 
         try:
             if ctx.interrupted is None and best is not None:
+                server = None
                 while (not self.done() and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)
                        and progressing(time.perf_counter())):
-                    time.sleep(0.05)
+                    if server is None:  # the search is done: this core solves nodes for the tree too
+                        from .bnb import NodeServer
+
+                        server = NodeServer(problem)
+                        self.state[6] = 1.0
+                    if self.conn.poll(0.05):
+                        self.conn.send(server.serve(self.conn.recv()))
+                        self.served += 1
         except (Interrupted, KeyboardInterrupt) as exc:
             ctx.interrupted = getattr(exc, "signame", "SIGINT")
             ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
         finally:
+            self.state[6] = 0.0
             self.stop()
         # only the bound is taken: the layout stays the search's (B&B's progress depends on timing,
         # the selection of a run that finishes before its deadline must not)
         lb, v, nodes, n_open = (float(x) for x in self.state[:4])
         root = self.root if np.isfinite(self.root) else lb
         self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
-                        "bound": max(lb, root), "complete": bool(self.state[4] > 1)}
+                        "bound": max(lb, root), "complete": bool(self.state[4] > 1),
+                        "served_by_parent": self.served}
         if np.isfinite(max(lb, root)):
             ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
                              f"{max(lb, root):.6g}")
@@ -459,7 +472,23 @@ class _BnbChild:
         return best, bv, r
 
 
-def _bnb_child(problem, deadline, state, sel):  # pragma: no cover - runs in the forked child
+class _ParentSolver:
+    """The child's view of the parent as a second node solver (:class:`layoutkit.optimize.bnb.NodeServer`)."""
+
+    def __init__(self, conn, state):
+        self.conn, self.state = conn, state
+
+    def available(self):
+        return self.state[6] > 0
+
+    def submit(self, request):
+        self.conn.send(request)
+
+    def get(self):
+        return self.conn.recv()  # the parent answers, or kills this process
+
+
+def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs in the forked child
     import signal
 
     from .bnb import branch_and_bound
@@ -480,7 +509,8 @@ def _bnb_child(problem, deadline, state, sel):  # pragma: no cover - runs in the
         if lb > state[0]:
             state[0] = lb  # one 8-byte store: the certificate is never torn
 
-    res = branch_and_bound(problem, deadline=deadline, on_bound=publish, external=lambda: state[5])
+    res = branch_and_bound(problem, deadline=deadline, on_bound=publish, external=lambda: state[5],
+                           remote=_ParentSolver(conn, state))
     publish(res.bound, res.value, res.nodes, res.open_nodes, res.incumbent)
     state[4] = 2.0 if res.complete else 1.0
 
