@@ -49,7 +49,7 @@ class Context:
     #: remaining gap per ``bnb_window`` seconds (a stalled tree stops, a converging one finishes)
     bnb_gap: float = 0.01
     bnb_wait: float = 1.0
-    bnb_progress: float = 0.02
+    bnb_progress: float = 0.005
     bnb_window: float = 10.0
     #: B&B is started only if the time limit leaves at least this many seconds (a shorter run
     #: would only share its cores with a tree that cannot get far)
