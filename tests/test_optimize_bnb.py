@@ -130,6 +130,38 @@ def _exhaustive_nodes(pb, groups):
     return node_min
 
 
+class _InProcessRemote:
+    """The remote-solver protocol of branch_and_bound served by a NodeServer in this process."""
+
+    def __init__(self, pb):
+        from layoutkit.optimize.bnb import NodeServer
+
+        self.server, self.out, self.calls = NodeServer(pb), None, 0
+
+    def available(self):
+        return True
+
+    def submit(self, request):
+        self.out = self.server.serve(request)
+        self.calls += 1
+
+    def get(self):
+        return self.out
+
+
+def test_bnb_with_remote_solver_returns_exhaustive_optimum():
+    """One child of every disjunction solved by a NodeServer (the pipeline's parent in real runs):
+    same exhaustive optimum, bounds never above it."""
+    pb = _problem(_inst(1), RHO_PAPER)
+    sel, opt, _ = exhaustive(pb)
+    remote = _InProcessRemote(pb)
+    seen = []
+    b = branch_and_bound(pb, remote=remote, on_bound=lambda lb, v, n, o, s: seen.append(lb))
+    assert remote.calls > 0
+    assert b.value == pytest.approx(opt, rel=1e-9) and max(seen) <= opt * (1 + 1e-9)
+    assert b.bound >= opt * (1 - 1e-4)
+
+
 @pytest.mark.parametrize("two_stations", [False, True])
 def test_node_bound_matches_cvxpy_and_stays_below_exhaustive_node_optimum(two_stations):
     """Random nodes (sites fixed to 0/1, group counts bounded), one station and two stations with

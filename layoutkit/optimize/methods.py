@@ -398,6 +398,7 @@ class _BnbChild:
         self.proc = mpc.Process(target=_bnb_child, args=(problem, deadline, self.state, self.sel, child_conn),
                                 daemon=True)
         self.proc.start()
+        child_conn.close()  # the child's end lives in the child: EOF here once it exits
 
     def set_root(self, r: RelaxResult):
         """The pipeline's relaxation: its certified bound is also a floor of the certificate."""
@@ -448,7 +449,11 @@ class _BnbChild:
                         server = NodeServer(problem)
                         self.state[6] = 1.0
                     if self.conn.poll(0.05):
-                        self.conn.send(server.serve(self.conn.recv()))
+                        try:
+                            req = self.conn.recv()
+                        except (EOFError, OSError):  # the child has finished (its end is closed)
+                            break
+                        self.conn.send(server.serve(req))
                         self.served += 1
         except (Interrupted, KeyboardInterrupt) as exc:
             ctx.interrupted = getattr(exc, "signame", "SIGINT")
