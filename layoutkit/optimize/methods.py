@@ -155,10 +155,6 @@ def _relax_child(problem, deadline, active, conn):  # pragma: no cover - runs in
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        os.nice(10)  # a busy machine gives its cores to the search first (the layout), B&B second
-    except OSError:
-        pass
-    try:
         conn.send(relax(problem, deadline=deadline, active_poses=active))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as a status
         conn.send(f"{type(exc).__name__}: {exc}")
