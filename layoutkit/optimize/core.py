@@ -337,6 +337,8 @@ def _finish(problem, obj, out, method, t0, t1, t2, notes, P):
         timings["relaxation_s"] = out.relaxation.time_s
         if out.relaxation.active is not None and len(out.relaxation.active):
             info["active_poses"] = np.asarray(out.relaxation.active, int)
+        if how in ("relaxation", "branch-and-bound"):  # the fractional z: a site ranking for later searches
+            info["relaxation_z"] = np.asarray(out.relaxation.z, float)
     return OptimizeResult(sel, value, float(bound), float(gap), True, status, msg, adop, pdop, n_lit,
                           method, obj.name, how, None, empty, timings, info)
 

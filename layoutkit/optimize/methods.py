@@ -56,6 +56,10 @@ class Context:
     bnb_min_s: float = 5.0
     #: method "polish": also try 2-swaps at a 1-swap local optimum (slower, better)
     two_swap: bool = True
+    #: method "polish": a site ranking in [0, 1] (N,), e.g. the relaxed z of an earlier pipeline run on a
+    #: similar problem; its kicks then draw sites like the pipeline's (half ∝ z, half uniform) and its 2-swap
+    #: pool takes the top z as well. None: uniform
+    z_hint: "np.ndarray | None" = None
 
     def report(self, stage, fraction=None, best=None):
         if self.progress is not None:
@@ -520,11 +524,17 @@ def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs 
 @register_method("polish")
 def _m_polish(problem: Problem, ctx: Context) -> MethodOutput:
     """No relaxation: 1- and 2-swap (``ctx.two_swap``) local search from ``ctx.warm_start`` (repaired to coverage; greedy
-    without one), then random kicks (2–3 sensors, uniform) around the incumbent until ``patience``
+    without one), then random kicks (2–3 sensors, uniform or half ∝ ``ctx.z_hint``) around the incumbent until ``patience``
     kicks in a row bring nothing or the time is up. For re-optimising an incumbent after a small change
     of the problem (the dense-envelope loop adds poses); the bound is the closed-form trace bound."""
     t_start = time.perf_counter()
     z = np.full(problem.N, problem.k / problem.N)
+    hint = None
+    if ctx.z_hint is not None:
+        hint = np.asarray(ctx.z_hint, float)
+        if hint.shape != (problem.N,) or not np.all(np.isfinite(hint)):
+            raise ValueError(f"z_hint: expected {problem.N} finite values, got shape {hint.shape}")
+        z = np.clip(hint, 0.0, 1.0)
     best, bv, n_ls = None, np.inf, 0
     try:
         s0 = repair(problem, np.asarray(ctx.warm_start, int), z) if ctx.warm_start is not None else None
@@ -533,7 +543,7 @@ def _m_polish(problem: Problem, ctx: Context) -> MethodOutput:
         if s0 is None:
             return MethodOutput(None)
         best = s0
-        best, bv, _ = local_search(problem, s0, deadline=ctx.deadline, two_swap=ctx.two_swap)
+        best, bv, _ = local_search(problem, s0, deadline=ctx.deadline, two_swap=ctx.two_swap, z=hint)
         n_ls = 1
         ctx.report("polish", 0.0, bv)
         fails = 0
@@ -541,7 +551,7 @@ def _m_polish(problem: Problem, ctx: Context) -> MethodOutput:
             kick = _kick(problem, best, ctx.rng, z)
             if kick is None:
                 break
-            s2, val, _ = local_search(problem, kick, deadline=ctx.deadline, two_swap=ctx.two_swap)
+            s2, val, _ = local_search(problem, kick, deadline=ctx.deadline, two_swap=ctx.two_swap, z=hint)
             n_ls += 1
             if val < bv * (1 - 1e-9):
                 best, bv, fails = s2, val, 0

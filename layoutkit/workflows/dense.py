@@ -184,7 +184,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     change of the layout makes critical). max_working : cap on the working set (memory; None:
     :func:`working_capacity` of :data:`WORKING_BYTES`).
     later_method : method of the rounds after round 0 (default "polish": local search and kicks from
-    the incumbent, no relaxation — a round then costs seconds, not minutes; None: ``kw["method"]``),
+    the incumbent, no relaxation — a round then costs seconds, not minutes; its kicks and 2-swap pool use
+    round 0's relaxed z like the pipeline's; None: ``kw["method"]``),
     with ``later_patience`` random kicks in a row without improvement ending a round and 2-swaps only
     if ``later_two_swap`` (1-swaps keep the rounds short, so more violators are seen in the budget).
     time_limit : total budget of all rounds (s); round 0 gets ``first_share`` of it (None: 0.6 with
@@ -260,6 +261,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     best = None
     hist = []
     warm, active = None, None
+    z_relax = None  # the fractional z of the last round that solved the relaxation
     stall = 0
     grew = False  # the working set grew after the last round
     note = ""
@@ -280,6 +282,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             opts = {"warm_start": warm, "active_poses": active}
             if rnd > 0 and later_method:
                 kwr["method"] = later_method
+                if later_method == "polish" and z_relax is not None:
+                    opts["z_hint"] = z_relax  # kicks and 2-swap pool ranked by the last relaxation
                 # after a converged round: a full polish (2-swaps, the default kick patience) of the
                 # working set that holds the dense worst; else short 1-swap rounds
                 opts["patience"] = (kw.get("ctx_options") or {}).get("patience", 6) if polish else later_patience
@@ -324,6 +328,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             active = None
             if isinstance(res.info, dict) and res.info.get("active_poses") is not None:
                 active = res.info["active_poses"]
+            if isinstance(res.info, dict) and res.info.get("relaxation_z") is not None:
+                z_relax = res.info["relaxation_z"]
             if res.status == "interrupted":
                 interrupted = res.info.get("interrupted", "SIGINT")
                 break
