@@ -70,3 +70,36 @@ def test_move_values_match_gathered_information(rho):
             np.testing.assert_allclose(got[l][np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-9)
     with pytest.raises(ValueError, match="same number of moves"):
         move_values(Ab, bb, G, U, poses, np.zeros((2, 1), int), np.zeros((3, 1), int), rho, w)
+
+
+def test_polish_z_hint_is_validated_and_used_for_kicks():
+    """The polish method's site ranking: a wrong-length hint is a clear error; the kick rule the hint feeds
+    (``_kick``) given a z that puts all weight
+    on four sites outside the selection makes kicks draw them far more often than uniform kicks do (the
+    pipeline's rule: half ∝ z, half uniform), counted over 400 kicks each."""
+    from layoutkit.optimize import candidate_jacobians, optimize_stations
+    from layoutkit.optimize.instances import synthetic_instance
+    from layoutkit.optimize.methods import _kick
+    from layoutkit.optimize.objectives import parse_objective
+    from layoutkit.optimize.problem import build_problem
+
+    inst = synthetic_instance(40, 12, rng=3, cone_deg=30, half_angle_deg=70)
+    jac = candidate_jacobians(inst["positions"], inst["rotations"], inst["translations"])
+    vis = inst["visible"][:, None]
+    with pytest.raises(ValueError, match="z_hint: expected 40 finite values"):
+        optimize_stations(jac, vis, 8, method="polish", ctx_options={"z_hint": np.ones(3)})
+    pr = build_problem(jac, vis, 0.0, 8, 4, parse_objective("worst-adop"))
+    ok = optimize_stations(jac, vis, 8, method="polish", rng=0)
+    assert ok.success
+    sel = np.asarray(ok.selected)
+    hot = np.setdiff1d(np.arange(pr.N), sel)[:4]
+    z = np.zeros(pr.N)
+    z[hot] = 1.0
+    rng = np.random.default_rng(0)
+    hits_z = hits_u = 0
+    for _ in range(400):
+        a = _kick(pr, sel, rng, z)
+        b = _kick(pr, sel, rng, np.full(pr.N, 8 / pr.N))
+        hits_z += 0 if a is None else int(np.isin(a, hot).sum())
+        hits_u += 0 if b is None else int(np.isin(b, hot).sum())
+    assert hits_z > 3 * max(hits_u, 1)
