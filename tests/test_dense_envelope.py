@@ -134,13 +134,14 @@ def whole_run():
     kw = dict(objective="worst-adop", rho=RHO, min_visible=4, method="polish",
               ctx_options={"patience": 1, "two_swap": False})
     dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=3, coverage_poses=3000,
-                                 patience=2, later_patience=1)  # seed_poses="all": the whole dense set
+                                 patience=2, later_patience=1, coverage_dop=True)  # seed_poses="all"
     return hull, cand, env, prep, dense, info
 
 
 def test_whole_dense_set_loop_is_a_true_one_swap_optimum_on_it(whole_run):
     """Default seed_poses="all" and a dense set that fits: the working set is the whole dense set (plus any
-    coverage poses that joined), the reported dense value equals a pose_dop recount, and the layout is a
+    coverage poses that joined), the reported dense value equals a pose_dop recount over design, dense and
+    (coverage_dop=True) coverage poses, and the layout is a
     1-swap local optimum over its 1,500+ working poses — checked by brute force over every feasible 1-swap
     with the independent fused DOP kernel of ``layoutkit.dop_batch`` (not the search's Woodbury screening
     or its 6 x 6 kernels): no swap lowers the worst case."""
@@ -152,7 +153,10 @@ def test_whole_dense_set_loop_is_a_true_one_swap_optimum_on_it(whole_run):
     _, Rd, td = envelope_set(env, count=1500, seed=env.seed + 1)
     RD, tD = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
     assert info["seed_poses"] == 1500 - info["uncoverable_dense_poses"] and info["uncovered_dense_poses"] == 0
-    a = _independent_adop(hull, cand, dense.selected, RD, tD, env.stations)
+    assert info["dense_set_poses"] == 4540 and len(info["dense_adop"]) == 1540
+    _, Rc, tc = envelope_set(env, count=3000, seed=env.seed + 3)
+    a = _independent_adop(hull, cand, dense.selected, np.concatenate([RD, Rc]), np.concatenate([tD, tc]),
+                          env.stations)
     assert info["dense_value"] == pytest.approx(a.max(), rel=1e-7)
     W, Wt = info["working_rotations"], info["working_translations"]
     assert len(W) >= 1540 - info["uncoverable_dense_poses"]

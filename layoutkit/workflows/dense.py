@@ -161,7 +161,7 @@ def working_capacity(n_candidates, n_stations, budget_bytes=WORKING_BYTES):
 def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
                    seed_poses="all", coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=None,
                    first_share=None, later_method="polish", later_patience=2, later_two_swap=False,
-                   join_above=None, time_limit=None, echo=None):
+                   join_above=None, coverage_dop=False, time_limit=None, echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
@@ -178,7 +178,9 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     search's critical poses, every move confirmed on all working poses). add : violators
     added per round; min_sep : their minimum descriptor distance (~rad). tol : a round whose dense
     worst is within ``tol`` of its working-set value adds no poses (polish round). patience : rounds
-    without a better dense value before stopping; a round whose working set grew before it (new poses:
+    without a better dense value before stopping. coverage_dop : evaluate the coverage poses for the
+    DOP as well (cheap: the fused kernel), so they are dense poses — the dense value is taken over all of
+    them and their DOP violators join the working set; a round whose working set grew before it (new poses:
     progress of the pose generation) does not count. join_above : poses whose value exceeds ``join_above`` ×
     the working-set value join the working set (None: ``1 + tol``; below 1: near-violators too, poses a small
     change of the layout makes critical). max_working : cap on the working set (memory; None:
@@ -262,6 +264,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     hist = []
     warm, active = None, None
     z_relax = None  # the fractional z of the last round that solved the relaxation
+    last_fail = None  # the last failed round's result
     stall = 0
     grew = False  # the working set grew after the last round
     note = ""
@@ -290,6 +293,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 opts["two_swap"] = True if polish else later_two_swap
             kwr["ctx_options"] = {**(kw.get("ctx_options") or {}), **opts}
             res = optimize_stations(jac, vis, k, rng=seed + rnd, coverage=coverage, **kwr)
+            if not res.success:
+                last_fail = res
             if not res.success and best is None and len(order) > len(Rw):
                 # the seeded working set was too hard for round 0 (k at its minimum, a short budget):
                 # retry on the design poses alone, adding violators from there
@@ -305,9 +310,13 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 note = f"round {rnd}: {res.status}: {res.message}"
                 break
             a, p, cov = evaluate_selection(prep, res.selected, RD[:nD], tD[:nD], rho, m, coverage)
-            cov_all = np.concatenate([cov, _covered_only(prep, res.selected, RD[nD:], tD[nD:], m, coverage)])
-            ext = np.flatnonzero(in_work[nD:]) + nD  # coverage poses in the working set count as dense poses
-            ae, pe, ce = evaluate_selection(prep, res.selected, RD[ext], tD[ext], rho, m, coverage)
+            if coverage_dop:  # the coverage poses are dense poses too (DOP and coverage)
+                ae, pe, ce = evaluate_selection(prep, res.selected, RD[nD:], tD[nD:], rho, m, coverage)
+                cov_all = np.concatenate([cov, ce])
+            else:
+                cov_all = np.concatenate([cov, _covered_only(prep, res.selected, RD[nD:], tD[nD:], m, coverage)])
+                ext = np.flatnonzero(in_work[nD:]) + nD  # coverage poses in the working set count as dense poses
+                ae, pe, ce = evaluate_selection(prep, res.selected, RD[ext], tD[ext], rho, m, coverage)
             dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all, uncoverable)
             n_work = int(in_work.sum())
             hist.append({"round": rnd, "working_poses": n_work, "working_value": res.value,
@@ -336,6 +345,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
             if stall >= patience:
                 break
             score = np.concatenate([np.where(cov, obj.from_dop(a, p), np.inf),
+                                    np.where(ce, obj.from_dop(ae, pe), np.inf) if coverage_dop else
                                     np.where(cov_all[nD:], -np.inf, np.inf)])  # coverage-only rows: coverage
             viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + tol)))
             room = int(max_working) - n_work
@@ -370,6 +380,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         if best is None:
             raise
         note = f"interrupted by {interrupted}: best layout of the finished rounds"
+    if best is None:  # no round produced a layout (round 0 failed and the budget ended before a retry)
+        return last_fail, {"rounds": hist, "dense_set_poses": int(nD), "note": note or "no round produced a layout"}
     res, dval, a, p, cov, cov_all, work_rows, (ae, pe, ce) = best
     # poses found uncoverable after the best round: its value over the coverable ones
     short, dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all, uncoverable)
@@ -386,7 +398,8 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": interrupted},
                                   message=res.message + " [interrupted: best dense round so far]")
     gap = dval / res.bound - 1 if np.isfinite(res.bound) and res.bound > 0 else float("nan")
-    info = {"rounds": hist, "dense_set_poses": int(nD), "coverage_poses": int(len(RD) - nD),
+    info = {"rounds": hist, "dense_set_poses": int(len(RD) if coverage_dop else nD),
+            "coverage_poses": int(len(RD) - nD), "coverage_dop": bool(coverage_dop),
             "working_set_poses": int(len(work_rows)),
             "final_working_set_poses": int(in_work.sum()), "seed_poses": n_seed,
             "seed_indices": seed_idx, "converged": converged,
