@@ -390,7 +390,9 @@ class _BnbChild:
         self.root = -math.inf  # the pipeline's relaxation bound, once known (:meth:`set_root`)
         # lower bound, B&B incumbent value, nodes, open nodes, done, the search's incumbent value,
         # the parent serves node relaxations (1) or not (0)
-        self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf, 0.0], lock=False)
+        self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf, 0.0, 0.0], lock=False)
+        self.mpc = mpc
+        self.server = None
         self.sel = mpc.Array("l", [-1] * problem.k, lock=False)
         self.summary = {}
         self.conn, child_conn = mpc.Pipe()
@@ -406,9 +408,11 @@ class _BnbChild:
             self.root = float(r.bound)
 
     def stop(self):
-        if self.proc.is_alive():
-            self.proc.kill()
-        self.proc.join()
+        for proc in (self.proc, self.server):
+            if proc is not None:
+                if proc.is_alive():
+                    proc.kill()
+                proc.join()
 
     def done(self) -> bool:
         return self.state[4] > 0 or not self.proc.is_alive()
@@ -440,21 +444,16 @@ class _BnbChild:
 
         try:
             if ctx.interrupted is None and best is not None:
-                server = None
                 while (not self.done() and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)
                        and progressing(time.perf_counter())):
-                    if server is None:  # the search is done: this core solves nodes for the tree too
-                        from .bnb import NodeServer
-
-                        server = NodeServer(problem)
+                    if self.server is None:  # the search is done: its core solves nodes for the tree too,
+                        # in a forked process (solver thread pools in this process would not survive the
+                        # forks of later runs)
+                        self.server = self.mpc.Process(target=_serve_child, args=(problem, self.conn, self.state),
+                                                       daemon=True)
+                        self.server.start()
                         self.state[6] = 1.0
-                    if self.conn.poll(0.05):
-                        try:
-                            req = self.conn.recv()
-                        except (EOFError, OSError):  # the child has finished (its end is closed)
-                            break
-                        self.conn.send(server.serve(req))
-                        self.served += 1
+                    time.sleep(0.05)
         except (Interrupted, KeyboardInterrupt) as exc:
             ctx.interrupted = getattr(exc, "signame", "SIGINT")
             ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
@@ -463,6 +462,7 @@ class _BnbChild:
             self.stop()
         # only the bound is taken: the layout stays the search's (B&B's progress depends on timing,
         # the selection of a run that finishes before its deadline must not)
+        self.served = int(self.state[7])
         lb, v, nodes, n_open = (float(x) for x in self.state[:4])
         root = self.root if np.isfinite(self.root) else lb
         self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
@@ -492,6 +492,28 @@ class _ParentSolver:
 
     def get(self):
         return self.conn.recv()  # the parent answers, or kills this process
+
+
+def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked child
+    """Node relaxations for the B&B child (:class:`layoutkit.optimize.bnb.NodeServer`) until its pipe closes."""
+    import signal
+
+    from .bnb import NodeServer
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+    server = NodeServer(problem)
+    while True:
+        try:
+            req = conn.recv()
+        except (EOFError, OSError):
+            return
+        conn.send(server.serve(req))
+        state[7] += 1
 
 
 def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs in the forked child
