@@ -6,15 +6,14 @@ and tuning knobs (``n_random``, ``n_round``, ``patience``).
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import numpy as np
 
+from .bnb_process import _start_bnb
 from .problem import Problem
 from .relaxation import RelaxResult, relax
 from .search import evaluate_subsets, exhaustive, greedy, local_search, repair
@@ -362,185 +361,6 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
     if bnb is not None:
         info["branch_and_bound"] = bnb.summary
     return MethodOutput(best, r, info=info)
-
-
-def _start_bnb(problem: Problem, ctx: Context):
-    """Start branch-and-bound in a forked child when it can help (worst case with full coverage,
-    finite deadline with room left); None otherwise. It starts before the pipeline's relaxation and
-    solves its own root."""
-    from .bnb import bnb_applicable
-
-    if ctx.bnb == "off" or not bnb_applicable(problem):
-        return None
-    if not math.isfinite(ctx.deadline) or ctx.deadline - time.perf_counter() < ctx.bnb_min_s:
-        return None
-    return _BnbChild(problem, ctx.deadline)
-
-
-class _BnbChild:
-    """Branch-and-bound in a forked process; its certificate is published through shared memory
-    (lower bound, B&B's own incumbent value and selection, nodes, open nodes, done), so the child never
-    blocks on the parent and may be killed at any moment: every published bound is valid on its
-    own (:mod:`layoutkit.optimize.bnb`)."""
-
-    def __init__(self, problem: Problem, deadline: float):
-        import multiprocessing as mp
-
-        mpc = mp.get_context("fork")
-        self.root = -math.inf  # the pipeline's relaxation bound, once known (:meth:`set_root`)
-        # lower bound, B&B incumbent value, nodes, open nodes, done, the search's incumbent value,
-        # the parent serves node relaxations (1) or not (0)
-        self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf, 0.0, 0.0], lock=False)
-        self.mpc = mpc
-        self.server = None
-        self.sel = mpc.Array("l", [-1] * problem.k, lock=False)
-        self.summary = {}
-        self.conn, child_conn = mpc.Pipe()
-        self.served = 0
-        self.proc = mpc.Process(target=_bnb_child, args=(problem, deadline, self.state, self.sel, child_conn),
-                                daemon=True)
-        self.proc.start()
-        child_conn.close()  # the child's end lives in the child: EOF here once it exits
-
-    def set_root(self, r: RelaxResult):
-        """The pipeline's relaxation: its certified bound is also a floor of the certificate."""
-        if r.certified_by == "relaxation" and np.isfinite(r.bound):
-            self.root = float(r.bound)
-
-    def stop(self):
-        for proc in (self.proc, self.server):
-            if proc is not None:
-                if proc.is_alive():
-                    proc.kill()
-                proc.join()
-
-    def done(self) -> bool:
-        return self.state[4] > 0 or not self.proc.is_alive()
-
-    def offer(self, value: float):
-        """Tell the child the value of a feasible layout the search found (it prunes with it)."""
-        if value < self.state[5]:
-            self.state[5] = float(value)
-
-    def finish(self, problem: Problem, ctx: Context, best, bv, r: RelaxResult, t_start: float):
-        """Wait (while the gap exceeds ``ctx.bnb_gap``, for at most ``ctx.bnb_wait`` times the time
-        since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
-        bound into the result."""
-        now = time.perf_counter()
-        until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
-        history = []  # (time, bound) while waiting
-
-        def progressing(t):
-            lb = max(self.state[0], self.root)
-            history.append((t, lb))
-            if t < until:
-                return True
-            if t >= ctx.deadline:
-                return False
-            old = [b for (s, b) in history if s <= t - ctx.bnb_window]
-            if not old:
-                return True
-            return lb - old[-1] >= ctx.bnb_progress * (bv - lb)
-
-        try:
-            if ctx.interrupted is None and best is not None:
-                while (not self.done() and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)
-                       and progressing(time.perf_counter())):
-                    if self.server is None:  # the search is done: its core solves nodes for the tree too,
-                        # in a forked process (solver thread pools in this process would not survive the
-                        # forks of later runs)
-                        self.server = self.mpc.Process(target=_serve_child, args=(problem, self.conn, self.state),
-                                                       daemon=True)
-                        self.server.start()
-                        self.state[6] = 1.0
-                    time.sleep(0.05)
-        except (Interrupted, KeyboardInterrupt) as exc:
-            ctx.interrupted = getattr(exc, "signame", "SIGINT")
-            ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
-        finally:
-            self.state[6] = 0.0
-            self.stop()
-        # only the bound is taken: the layout stays the search's (B&B's progress depends on timing,
-        # the selection of a run that finishes before its deadline must not)
-        self.served = int(self.state[7])
-        lb, v, nodes, n_open = (float(x) for x in self.state[:4])
-        root = self.root if np.isfinite(self.root) else lb
-        self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
-                        "bound": max(lb, root), "complete": bool(self.state[4] > 1),
-                        "served_by_parent": self.served}
-        if np.isfinite(max(lb, root)):
-            ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
-                             f"{max(lb, root):.6g}")
-        else:
-            ctx.notes.append("branch-and-bound: no bound (its root relaxation did not finish before the deadline)")
-        if np.isfinite(lb) and (lb > r.bound or not np.isfinite(r.bound)):
-            r = dataclasses.replace(r, bound=lb, certified_by="branch-and-bound")
-        return best, bv, r
-
-
-class _ParentSolver:
-    """The child's view of the parent as a second node solver (:class:`layoutkit.optimize.bnb.NodeServer`)."""
-
-    def __init__(self, conn, state):
-        self.conn, self.state = conn, state
-
-    def available(self):
-        return self.state[6] > 0
-
-    def submit(self, request):
-        self.conn.send(request)
-
-    def get(self):
-        return self.conn.recv()  # the parent answers, or kills this process
-
-
-def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked child
-    """Node relaxations for the B&B child (:class:`layoutkit.optimize.bnb.NodeServer`) until its pipe closes."""
-    import signal
-
-    from .bnb import NodeServer
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.nice(10)
-    except OSError:
-        pass
-    server = NodeServer(problem)
-    while True:
-        try:
-            req = conn.recv()
-        except (EOFError, OSError):
-            return
-        conn.send(server.serve(req))
-        state[7] += 1
-
-
-def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs in the forked child
-    import signal
-
-    from .bnb import branch_and_bound
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.nice(10)  # a busy machine gives its cores to the search first (the layout), B&B second
-    except OSError:
-        pass
-
-    def publish(lb, value, nodes, n_open, inc=None):
-        if inc is not None:
-            sel[:] = [int(x) for x in inc]
-        state[1] = value
-        state[2] = nodes
-        state[3] = n_open
-        if lb > state[0]:
-            state[0] = lb  # one 8-byte store: the certificate is never torn
-
-    res = branch_and_bound(problem, deadline=deadline, on_bound=publish, external=lambda: state[5],
-                           remote=_ParentSolver(conn, state))
-    publish(res.bound, res.value, res.nodes, res.open_nodes, res.incumbent)
-    state[4] = 2.0 if res.complete else 1.0
 
 
 @register_method("polish")
