@@ -190,7 +190,7 @@ def _solve_node(problem, rel, nd, parent_bound, zp, prices, poses, deadline, use
         b = max(res.bound, parent_bound)
         if res.z is None:  # "almost infeasible": no bound of its own, split further (parent's z)
             return b, None, res.status == "almost_infeasible", None, Q, n, len(Q)
-        pr = rel.last_prices
+        pr = res.prices
         v = np.sqrt(relaxed_pose_values(problem, res.z, use_rho))
         viol = np.setdiff1d(np.flatnonzero(v > res.bound * (1 + _POSE_TOL)), Q)
         if len(viol) == 0 or (tl is not None and tl < 1.0):
@@ -220,7 +220,7 @@ class NodeServer:
 
 def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=None, incumbent=None,
                      deadline=None, max_nodes=None, gap_tol=0.0, on_bound=None, use_rho=True,
-                     initial_poses=24, max_poses_per_round=8, groups=None, solver="CLARABEL",
+                     initial_poses=24, max_poses_per_round=8, groups=None,
                      max_candidates=16, max_strong=10, lookahead=3, external=None,
                      pose_margin=0.1, remote=None) -> BnbResult:
     """Best-first branch-and-bound on the relaxation; certified lower bound (module docstring).
@@ -271,19 +271,19 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         if feas[0] and v[0] < best_v:
             best_sel, best_v = np.sort(np.asarray(sel, int)), float(v[0])
 
-    def left():
-        return None if not math.isfinite(deadline) else deadline - time.perf_counter()
-
-    def solve(nd, parent_bound, zp=None, prices=None, poses=None):
+    def tally(out):
+        """Count a node solve's relaxations (here or remote); its ``(bound, z, expandable, prices, poses)``."""
         nonlocal nodes, n_poses
-        out = _solve_node(problem, rel, nd, parent_bound, zp, prices, work if poses is None else poses,
-                          deadline, use_rho, max_poses_per_round, pose_margin)
         nodes += out[5]
         n_poses = max(n_poses, out[6])
         return out[:5]
 
+    def solve(nd, parent_bound, zp=None, prices=None, poses=None):
+        return tally(_solve_node(problem, rel, nd, parent_bound, zp, prices, work if poses is None else poses,
+                                 deadline, use_rho, max_poses_per_round, pose_margin))
+
     counter = itertools.count()
-    heap = []  # (bound, tie, node arrays, z, expandable)
+    heap = []  # (bound, tie, node arrays, z, expandable, prices, poses)
     lo0 = np.zeros(N)
     hi0 = np.ones(N)
     lo0[problem.fixed] = 1.0
@@ -315,7 +315,6 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         """Solve both children of disjunction ``c`` (one remotely if a remote solver is free); each
         ``(node arrays, bound, z, expandable, prices, poses)`` or None if it holds no selection
         better than the incumbent (decided children are offered and closed here)."""
-        nonlocal nodes, n_poses
         cnds = [_child_node(nd, groups, c, side) for side in (0, 1)]
         todo = []
         for side, cnd in enumerate(cnds):
@@ -328,10 +327,7 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         if len(todo) == 2 and remote is not None and remote.available():
             remote.submit((cnds[1], b, z, prices, Q, deadline, max_poses_per_round, pose_margin))
             outs[0] = solve(cnds[0], b, z, prices, Q)
-            r1 = remote.get()
-            nodes += r1[5]
-            n_poses = max(n_poses, r1[6])
-            outs[1] = r1[:5]
+            outs[1] = tally(remote.get())
         else:
             for side in todo:
                 outs[side] = solve(cnds[side], b, z, prices, Q)

@@ -52,9 +52,11 @@ _GAP_TOL = 1e-6
 @dataclass(frozen=True)
 class NodeSolve:
     """status : Clarabel's status of the last restricted solve ("infeasible" only for Clarabel's
-    primal infeasibility certificate over the full site set; "almost_infeasible" gives no bound); bound : certified lower bound (d units) or -inf; z : (N,) primal point of
-    the restricted problem (zeros outside it) or None; rounds : column-generation solves;
-    sites : size of the final site set; time_s : wall time."""
+    primal infeasibility certificate over the full site set; "almost_infeasible" gives no bound);
+    bound : certified lower bound (d units) or -inf; z : (N,) primal point of the last restricted
+    problem (zeros outside it) or None; rounds : column-generation solves;
+    sites : size of the final site set; time_s : wall time; prices : (N,) reduced prices of all
+    sites at the last dual point (they seed a child's site set) or None."""
 
     status: str
     bound: float
@@ -62,6 +64,7 @@ class NodeSolve:
     rounds: int
     sites: int
     time_s: float
+    prices: "np.ndarray | None" = None
 
 
 def _svec_index(n):
@@ -81,16 +84,14 @@ class DirectRelaxation:
         self.E = _weight_matrix(problem.objective)
         self.w = self.E.shape[1]
         self.use_gls = bool(use_rho and problem.rho > 0)
-        self.weights = weights
-        _, cs = _whitening(problem, np.arange(problem.P), self.E, weights)
-        self.cbar = float(np.median(cs))  # one scale of t for every pose set
+        self._D, self._c = _whitening(problem, np.arange(problem.P), self.E, weights)  # per pose, once
+        self.cbar = float(np.median(self._c))  # one scale of t for every pose set
         self._cache = {}
         self.lit = problem.lit.astype(float)
         self.conflict_pairs = None
         if problem.conflict is not None:
             i, j = np.nonzero(np.triu(problem.conflict, 1))
             self.conflict_pairs = (i, j)
-        self.last_prices = None
 
     def _pose(self, p):
         """``(A columns (m, N), b (m,), n, tfac)`` of pose p's LMI (module docstring), cached."""
@@ -100,8 +101,7 @@ class DirectRelaxation:
         N, rho = problem.N, problem.rho
         n0 = max(problem.m, 1)
         g = math.sqrt(rho / (1 - rho + rho * n0)) if self.use_gls else 0.0
-        Ds, cs = _whitening(problem, [p], E, self.weights)
-        D, c = Ds[0], cs[0]
+        D, c = self._D[p], self._c[p]
         cols = [j for j in range(problem.U.shape[2]) if problem.vis[p, j // 2].any()] if self.use_gls else []
         C = len(cols)
         n = 6 + w + C
@@ -167,7 +167,7 @@ class DirectRelaxation:
         return A_T, A_t, nT
 
     def _linear_rows(self, lo, hi, glo, ghi, S):
-        """Dualised linear rows over all sites: (A (L, N) dense, b (L,), kinds) — sum z = k (zero
+        """Dualised linear rows over all sites: (A (L, N) dense, b (L,)) — sum z = k (zero
         cone, first), then nonnegative rows: non-trivial group bounds, coverage, spacing in S."""
         N, k = self.problem.N, self.problem.k
         A = [np.ones((1, N))]
@@ -264,10 +264,10 @@ class DirectRelaxation:
             S |= set(cand[np.argsort(-self.lit[:, cand].sum(axis=0))][: 2 * k].tolist())
         self._assemble(np.asarray(poses, int))
         A_T, A_t, nT = self._T_part()
-        best = (-math.inf, None)
+        best_g = -math.inf
         status = "not solved"
         rounds = 0
-        zfull = None
+        z_last = prices_last = None
         full = False
         while True:
             Sa = np.array(sorted(S), int)
@@ -321,12 +321,10 @@ class DirectRelaxation:
             if r is None:
                 break
             x = np.asarray(sol.x, float)
-            zc = np.zeros(N)
-            zc[Sa] = np.clip(x[nT:], 0.0, 1.0)
-            if gval > best[0]:
-                best = (gval, zc)
-            zfull = zc
-            self.last_prices = r
+            z_last = np.zeros(N)
+            z_last[Sa] = np.clip(x[nT:], 0.0, 1.0)
+            best_g = max(best_g, gval)  # every round's dual bound is valid: keep the best
+            prices_last = r
             # column generation: free sites outside S whose price lowers the bound
             out = np.setdiff1d(np.flatnonzero(free & (lo < 0.5)), Sa)
             if len(out) == 0 or rounds >= max_rounds or (time_limit is not None and time.perf_counter() - t0 > time_limit):
@@ -335,8 +333,6 @@ class DirectRelaxation:
             if -(r[neg] * hi[neg]).sum() <= _PRICE_TOL * max(abs(gval), 1e-12):
                 break
             S |= set(neg[np.argsort(r[neg])][:add].tolist())
-        gval, zbest = best
-        bound = math.sqrt(max(gval, 0.0) * self.cbar * (1 - _ROUNDOFF)) if np.isfinite(gval) else -math.inf
+        bound = math.sqrt(max(best_g, 0.0) * self.cbar * (1 - _ROUNDOFF)) if np.isfinite(best_g) else -math.inf
         status = {"Solved": "optimal", "AlmostSolved": "optimal_inaccurate"}.get(status, status)
-        return NodeSolve(status, bound, zfull if zfull is not None else zbest, rounds, len(S),
-                         time.perf_counter() - t0)
+        return NodeSolve(status, bound, z_last, rounds, len(S), time.perf_counter() - t0, prices_last)
