@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import time
 
 import numpy as np
 
 from .problem import Problem
 from .relaxation import RelaxResult
+
 
 def _start_bnb(problem: Problem, ctx):
     """Start branch-and-bound in a forked child when it can help (worst case with full coverage,
@@ -43,14 +43,13 @@ class _BnbChild:
         mpc = mp.get_context("fork")
         self.root = -math.inf  # the pipeline's relaxation bound, once known (:meth:`set_root`)
         # lower bound, B&B incumbent value, nodes, open nodes, done, the search's incumbent value,
-        # the parent serves node relaxations (1) or not (0)
+        # a node server is running (1) or not (0), node solves the server has answered
         self.state = mpc.Array("d", [-math.inf, math.inf, 0.0, 1.0, 0.0, math.inf, 0.0, 0.0], lock=False)
         self.mpc = mpc
         self.server = None
         self.sel = mpc.Array("l", [-1] * problem.k, lock=False)
         self.summary = {}
         self.conn, child_conn = mpc.Pipe()
-        self.served = 0
         self.proc = mpc.Process(target=_bnb_child, args=(problem, deadline, self.state, self.sel, child_conn),
                                 daemon=True)
         self.proc.start()
@@ -118,12 +117,11 @@ class _BnbChild:
             self.stop()
         # only the bound is taken: the layout stays the search's (B&B's progress depends on timing,
         # the selection of a run that finishes before its deadline must not)
-        self.served = int(self.state[7])
         lb, v, nodes, n_open = (float(x) for x in self.state[:4])
         root = self.root if np.isfinite(self.root) else lb
         self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
                         "bound": max(lb, root), "complete": bool(self.state[4] > 1),
-                        "served_by_parent": self.served}
+                        "served_by_parent": int(self.state[7])}  # by the node server, on the parent's core
         if np.isfinite(max(lb, root)):
             ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
                              f"{max(lb, root):.6g}")
@@ -134,8 +132,8 @@ class _BnbChild:
         return best, bv, r
 
 
-class _ParentSolver:
-    """The child's view of the parent as a second node solver (:class:`layoutkit.optimize.bnb.NodeServer`)."""
+class _ServerSolver:
+    """The B&B child's view of the node server process (:func:`_serve_child`) as its ``remote``."""
 
     def __init__(self, conn, state):
         self.conn, self.state = conn, state
@@ -147,21 +145,15 @@ class _ParentSolver:
         self.conn.send(request)
 
     def get(self):
-        return self.conn.recv()  # the parent answers, or kills this process
+        return self.conn.recv()  # the server answers, or the parent kills this process
 
 
 def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked child
     """Node relaxations for the B&B child (:class:`layoutkit.optimize.bnb.NodeServer`) until its pipe closes."""
-    import signal
-
     from .bnb import NodeServer
+    from .methods import worker_setup
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.nice(10)
-    except OSError:
-        pass
+    worker_setup(nice=10)
     server = NodeServer(problem)
     while True:
         try:
@@ -173,16 +165,10 @@ def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked c
 
 
 def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs in the forked child
-    import signal
-
     from .bnb import branch_and_bound
+    from .methods import worker_setup
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    try:
-        os.nice(10)  # a busy machine gives its cores to the search first (the layout), B&B second
-    except OSError:
-        pass
+    worker_setup(nice=10)  # a busy machine gives its cores to the search first (the layout), B&B second
 
     def publish(lb, value, nodes, n_open, inc=None):
         if inc is not None:
@@ -194,6 +180,6 @@ def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs 
             state[0] = lb  # one 8-byte store: the certificate is never torn
 
     res = branch_and_bound(problem, deadline=deadline, on_bound=publish, external=lambda: state[5],
-                           remote=_ParentSolver(conn, state))
+                           remote=_ServerSolver(conn, state))
     publish(res.bound, res.value, res.nodes, res.open_nodes, res.incumbent)
     state[4] = 2.0 if res.complete else 1.0

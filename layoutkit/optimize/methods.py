@@ -152,11 +152,23 @@ def _relax(problem: Problem, ctx: Context, share=None) -> RelaxResult:
     return r
 
 
-def _relax_child(problem, deadline, active, conn):  # pragma: no cover - runs in the forked child
+def worker_setup(nice=0):  # pragma: no cover - runs in forked children
+    """Signals of a forked worker: the parent decides (Ctrl-C ignored here, the parent kills this
+    process; SIGTERM ends it). ``nice`` > 0: a busy machine gives its cores to the parent's search first."""
+    import os
     import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills this process
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+
+
+def _relax_child(problem, deadline, active, conn):  # pragma: no cover - runs in the forked child
+    worker_setup()
     try:
         conn.send(relax(problem, deadline=deadline, active_poses=active))
     except BaseException as exc:  # noqa: BLE001 - reported to the parent as a status
