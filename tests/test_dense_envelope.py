@@ -44,10 +44,9 @@ def _independent_adop(hull, cand, sel, R, t, stations):
     return np.where(vis.any(axis=1).sum(axis=1) >= 4, np.asarray(d.adop), np.inf)
 
 
-@pytest.fixture(scope="module")
-def run():
-    from layoutkit.optimize import optimize_stations
-    from layoutkit.workflows.dense import dense_optimize
+def _visor_problem():
+    """The small visor both dense-loop fixtures optimise: hull, candidates, envelope, prepared
+    problem and the (fast, deterministic) optimiser keywords."""
     from layoutkit.workflows.optimize import prepare_problem
 
     hull, cand = _visor(0.016)
@@ -55,6 +54,15 @@ def run():
     prep = prepare_problem(hull, env, candidates=cand)
     kw = dict(objective="worst-adop", rho=RHO, min_visible=4, method="polish",
               ctx_options={"patience": 1, "two_swap": False})
+    return hull, cand, env, prep, kw
+
+
+@pytest.fixture(scope="module")
+def run():
+    from layoutkit.optimize import optimize_stations
+    from layoutkit.workflows.dense import dense_optimize
+
+    hull, cand, env, prep, kw = _visor_problem()
     design = optimize_stations(prep["jac"], prep["visible"], 24, rng=0, **kw)
     dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=4, add=24, seed_poses=40,
                                  min_sep=0.0, patience=4, later_patience=1)
@@ -126,13 +134,8 @@ def test_farthest_point_poses_is_maximin_greedy():
 @pytest.fixture(scope="module")
 def whole_run():
     from layoutkit.workflows.dense import dense_optimize
-    from layoutkit.workflows.optimize import prepare_problem
 
-    hull, cand = _visor(0.016)
-    env = _envelope(40, 5)
-    prep = prepare_problem(hull, env, candidates=cand)
-    kw = dict(objective="worst-adop", rho=RHO, min_visible=4, method="polish",
-              ctx_options={"patience": 1, "two_swap": False})
+    hull, cand, env, prep, kw = _visor_problem()
     dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=3, coverage_poses=3000,
                                  patience=2, later_patience=1, coverage_dop=True)  # seed_poses="all"
     return hull, cand, env, prep, dense, info
