@@ -126,6 +126,41 @@ def test_gls_relaxed_value_below_exact_at_integer_points(rho):
         assert np.all(L[ok] <= d[ok] * (1 + 1e-9))
 
 
+def _greedy_trap():
+    """Set cover where greedy needs 3 of the 3 candidates and 2 suffice (m = 1): the largest set (2)
+    overlaps both halves {0..3} (0) and {4..7} (1)."""
+    lit = np.zeros((8, 3), bool)
+    lit[[0, 1, 2, 3], 0] = True
+    lit[[4, 5, 6, 7], 1] = True
+    lit[[0, 1, 4, 5, 6], 2] = True
+    return lit
+
+
+def test_coverage_is_infeasible_only_when_proven():
+    """A set-multicover MILP stopped at its time limit proves nothing below its dual bound: the report
+    is 'undecided' (feasible, decided False), never 'infeasible' (regression: 50,200 poses, 30 s limit,
+    the incumbent of 121 sensors was reported as the smallest k and a 24-sensor layout that covers them
+    all was refused). Checked against exhaustive enumeration of the 2³ subsets."""
+    from layoutkit.optimize.coverage import analyse_coverage, greedy_cover_size
+
+    lit = _greedy_trap()
+    assert greedy_cover_size(lit, 1) == 3  # the fast path cannot decide k = 2
+    exact = min(len(s) for r in range(4) for s in itertools.combinations(range(3), r)
+                if (lit[:, list(s)].sum(1) >= 1).all())
+    kup, sel, klow = minimum_k(lit, 1, return_bound=True)
+    assert exact == 2 and kup == klow == 2 and list(sel) == [0, 1]
+    for k in (1, 2):
+        rep = analyse_coverage(lit, k, 1, time_limit=0.0)  # stops before any cover is proven
+        assert rep.feasible and rep.status == "ok" and not rep.decided and "undecided" in rep.message
+        rep = analyse_coverage(lit, k, 1)
+        assert rep.decided and rep.feasible == (k >= exact)
+    # a covering warm start is the proof without the MILP; a non-covering one proves nothing
+    rep = analyse_coverage(lit, 2, 1, witness=[0, 1], time_limit=0.0)
+    assert rep.feasible and rep.decided and "given 2-sensor selection" in rep.message
+    assert not analyse_coverage(lit, 2, 1, witness=[0, 2], time_limit=0.0).decided
+    assert not analyse_coverage(lit, 1, 1, witness=[0, 1], time_limit=0.0).decided  # too many sensors
+
+
 def test_impossible_request_names_poses_and_smallest_k():
     """k too small: status with the poses left short and the smallest k, checked by brute force."""
     inst = synthetic_instance(16, 12, rng=3, cone_deg=60, half_angle_deg=60)

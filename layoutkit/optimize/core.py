@@ -259,7 +259,9 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
     if len(fixed) and conflict is not None and conflict[np.ix_(fixed, fixed)].any():
         return fail("infeasible", "two fixed sensors are closer than the minimum spacing")
     # coverage first (exact set-multicover MILP, fast): an impossible request is a status
-    cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict)
+    # (a warm start that covers is the proof without the MILP, e.g. the dense loop's later rounds)
+    cov = analyse_coverage(problem.lit, k, problem.m, n_cover, fixed, conflict,
+                           witness=(ctx_options or {}).get("warm_start"))
     if not cov.feasible:
         return fail(cov.status, cov.message, cov)
     if k == N:  # one selection only (scoring an existing layout): its value is the optimum
@@ -274,6 +276,8 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
     deadline = (math.inf if time_limit is None
                 else t0 + float(time_limit) - min(max(_FINISH_RESERVE_S, 0.08 * float(time_limit)), 2.0))
     ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
+    if not cov.decided:
+        ctx.notes.append(cov.message)
     t1 = time.perf_counter()
     try:
         out = METHODS[method](problem, ctx)

@@ -22,9 +22,10 @@ class CoverageReport:
     """Result of :func:`analyse_coverage`.
 
     feasible : whether k sensors can keep m lit at the required poses; min_k : smallest k that can
-    (None if no k can); uncoverable : (U,) pose indices with fewer than m lit candidates at all;
+    (None if no k can or it was not computed exactly); uncoverable : (U,) pose indices with fewer than m lit candidates at all;
     status : "ok" | "infeasible" | "uncoverable"; success : ``status == "ok"``; message :
-    plain-language explanation.
+    plain-language explanation; decided : False when the MILP stopped at its time limit before it could
+    prove or refute feasibility (``feasible`` is then True: not proven infeasible).
     """
 
     feasible: bool
@@ -32,6 +33,7 @@ class CoverageReport:
     uncoverable: np.ndarray
     status: str
     message: str
+    decided: bool = True
 
     @property
     def success(self) -> bool:
@@ -45,12 +47,16 @@ def _counts(lit):
     return lit if lit.dtype == bool else lit.astype(np.int16)
 
 
-def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0):
+def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0, return_bound=False):
     """Smallest number of sensors keeping ``m`` lit at ``n_cover`` poses (exact MILP).
 
     lit : (P, N) bool; m : int; n_cover : poses that must be covered (default all P);
     fixed : indices forced in; conflict : (N, N) bool pairs that cannot both be chosen.
-    Returns ``(k_min, selection)`` or ``(None, None)`` if no selection works.
+    Returns ``(k_min, selection)`` or ``(None, None)`` if no selection works (or none was found within
+    ``time_limit`` s). When HiGHS stops at the time limit its incumbent is only an upper bound on the
+    smallest k: with ``return_bound`` the result is ``(k_upper, selection, k_lower)``, ``k_lower`` the
+    MILP's proven lower bound (``k_upper == k_lower`` when solved to optimality; ``k_upper`` None when
+    no cover was found in time, ``k_lower`` None when none exists).
     """
     from scipy.optimize import Bounds, LinearConstraint, milp
     from scipy.sparse import csr_matrix, hstack, vstack, identity, coo_matrix
@@ -90,17 +96,30 @@ def minimum_k(lit, m, n_cover=None, fixed=(), conflict=None, time_limit=30.0):
     cons = LinearConstraint(vstack(rows).tocsr(), np.concatenate(lo), np.concatenate(hi))
     res = milp(c, constraints=cons, integrality=np.ones(nvar), bounds=Bounds(lb, ub),
                options={"time_limit": float(time_limit)})
+    lower = None
+    if res.status == 0:
+        lower = int(round(res.fun))
+    elif res.status == 1:  # time limit: the dual bound is what is proven (at least m, and the fixed sensors)
+        dual = getattr(res, "mip_dual_bound", None)
+        lower = max(len(np.unique(np.asarray(fixed, int))), int(m) if n_cover > 0 else 0,
+                    int(np.ceil(dual - 1e-6)) if dual is not None and np.isfinite(dual) else 0)
     if res.x is None or res.status not in (0, 1):
-        return None, None
+        return (None, None, lower) if return_bound else (None, None)
     z = np.rint(res.x[:N]).astype(bool)
-    return int(z.sum()), np.flatnonzero(z)
+    out = (int(z.sum()), np.flatnonzero(z))
+    return out + (lower,) if return_bound else out
 
 
-def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None) -> CoverageReport:
+def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None, witness=None,
+                     time_limit=30.0) -> CoverageReport:
     """Can ``k`` sensors keep ``m`` lit at the required poses? Explain if not.
 
     lit : (P, N) bool. Poses with fewer than m lit candidates in total are ``uncoverable``; the
-    smallest workable k comes from :func:`minimum_k`.
+    smallest workable k comes from :func:`minimum_k` (``time_limit`` s). witness : an index selection
+    (e.g. the caller's warm start) that proves feasibility without the MILP when it has at most k
+    sensors, holds the fixed ones, respects ``conflict`` and covers the required poses. "infeasible" is
+    reported only when proven: a MILP stopped at its time limit whose lower bound is at most k leaves
+    the request undecided, which is reported feasible (the search then finds a cover or says it found none).
     """
     lit = _counts(lit)
     P, N = lit.shape
@@ -113,24 +132,52 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None) -> Covera
                               f"{len(unc)} pose(s) have fewer than {m} lit candidate sites at all, so no "
                               f"layout covers them: poses {show}. Add candidate sites that these poses "
                               f"see, lower --min-visible, or drop these poses from the envelope.")
+    if witness is not None and _witness_covers(lit, k, m, n_cover, fixed, conflict, witness):
+        return CoverageReport(True, None, unc, "ok", f"coverage feasible (the given {len(witness)}-sensor "
+                              "selection covers the required poses)")
     if n_cover >= P and conflict is None:
         g = greedy_cover_size(lit, m, fixed)
         if g is not None and g <= k:  # a greedy cover fits: feasible without the exact MILP (fast path)
             return CoverageReport(True, None, unc, "ok", f"coverage feasible (a greedy cover uses {g} sensors)")
-    kmin, _ = minimum_k(lit, m, n_cover, fixed, conflict)
+    kmin, _, klow = minimum_k(lit, m, n_cover, fixed, conflict, time_limit=time_limit, return_bound=True)
+    if kmin is not None and kmin <= k:
+        exact = klow == kmin
+        return CoverageReport(True, kmin if exact else None, unc, "ok",
+                              f"coverage feasible (smallest k = {kmin})" if exact else
+                              f"coverage feasible (a {kmin}-sensor cover exists)")
+    if klow is not None and klow <= k:  # time limit before the MILP decided: not proven infeasible
+        return CoverageReport(True, None, unc, "ok",
+                              f"coverage undecided: the set-multicover MILP stopped at its {time_limit:g} s "
+                              f"time limit (smallest k " + (f"between {klow} and {kmin}" if kmin is not None
+                                                            else f"at least {klow}, no cover found yet") +
+                              f"); the search will show whether "
+                              f"{k} sensors can cover the required poses", decided=False)
     if kmin is None:
         return CoverageReport(False, None, unc, "infeasible",
                               f"no selection keeps {m} sensors lit at {n_cover} of {P} poses with the "
                               f"fixed sensors and spacing given")
-    if kmin <= k:
-        return CoverageReport(True, kmin, unc, "ok", f"coverage feasible (smallest k = {kmin})")
+    # proven (klow > k): every cover needs more than k sensors
+    need = (f"the smallest k that works is {kmin}" if klow == kmin else
+            f"every cover needs at least {klow} (a {kmin}-sensor cover exists; the MILP stopped at its "
+            f"{time_limit:g} s time limit)")
     # which poses cannot be covered with k sensors: the best k-cover leaves them short
     short = _poses_short_with_k(lit, k, m, fixed)
     show = ", ".join(str(p) for p in short[:20]) + (" ..." if len(short) > 20 else "")
-    return CoverageReport(False, kmin, unc, "infeasible",
-                          f"{k} sensors cannot keep {m} lit at every required pose: the smallest k "
-                          f"that works is {kmin}. Poses left with fewer than {m} lit by the best "
-                          f"{k}-sensor cover: {show} ({len(short)} pose(s)).")
+    return CoverageReport(False, kmin if klow == kmin else None, unc, "infeasible",
+                          f"{k} sensors cannot keep {m} lit at every required pose: {need}. Poses left "
+                          f"with fewer than {m} lit by the best {k}-sensor cover: {show} ({len(short)} pose(s)).")
+
+
+def _witness_covers(lit, k, m, n_cover, fixed, conflict, witness):
+    """Whether index selection ``witness`` proves the request feasible (see :func:`analyse_coverage`)."""
+    w = np.unique(np.asarray(witness, int))
+    N = lit.shape[1]
+    if not len(w) or w.min() < 0 or w.max() >= N or len(np.union1d(w, np.asarray(fixed, int))) > k:
+        return False
+    if conflict is not None and np.asarray(conflict, bool)[np.ix_(w, w)][~np.eye(len(w), dtype=bool)].any():
+        return False
+    w = np.union1d(w, np.asarray(fixed, int))
+    return int((lit[:, w].sum(axis=1) >= m).sum()) >= n_cover
 
 
 def greedy_cover_size(lit, m, fixed=()):
