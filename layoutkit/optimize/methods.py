@@ -194,6 +194,7 @@ def relax_until(problem: Problem, deadline: float, active_poses=None) -> RelaxRe
     mpc = mp.get_context("fork")
     recv, send = mpc.Pipe(duplex=False)
     proc = mpc.Process(target=_relax_child, args=(problem, deadline, active_poses, send), daemon=True)
+    t_start = time.perf_counter()
     proc.start()
     send.close()
     got = None
@@ -210,13 +211,13 @@ def relax_until(problem: Problem, deadline: float, active_poses=None) -> RelaxRe
     if isinstance(got, RelaxResult):
         return got
     why = got if isinstance(got, str) else "relaxation stopped at the time limit"
-    return _no_relaxation(problem, why)
+    return _no_relaxation(problem, why, time.perf_counter() - t_start)  # the time it had, not 0 s
 
 
-def _no_relaxation(problem: Problem, why: str) -> RelaxResult:
+def _no_relaxation(problem: Problem, why: str, time_s: float = 0.0) -> RelaxResult:
     from .relaxation import fallback_bound
 
-    return RelaxResult(np.full(problem.N, problem.k / problem.N), float("nan"), "none", why, 0.0,
+    return RelaxResult(np.full(problem.N, problem.k / problem.N), float("nan"), "none", why, float(time_s),
                        fallback_bound(problem))
 
 

@@ -43,7 +43,7 @@ import time
 import numpy as np
 
 __all__ = ["dense_optimize", "evaluate_selection", "pose_descriptors", "farthest_point_poses",
-           "working_capacity", "WORKING_BYTES"]
+           "far_range_poses", "working_capacity", "WORKING_BYTES"]
 
 
 def evaluate_selection(prep, sel, R, t, rho, min_visible, coverage):
@@ -108,6 +108,28 @@ def farthest_point_poses(desc, count, start=()):
     return np.asarray(out, int)
 
 
+def far_range_poses(env, R, t):
+    """Copies of poses ``R (P, 3, 3), t (P, 3)`` moved along their bearing from the envelope's reference
+    station to its maximum range (``env.range_m[1]``): same attitude, same bearing, so the
+    same body-frame direction of that station.
+
+    Range dominance: the sweep-angle Jacobian of a sensor scales as 1/range, so with the same lit sensors
+    the DOP of a pose grows (about linearly) with its range; the copy is then at least as bad for every
+    layout (measured: with the same lit set, copy DOP ≥ DOP on every pose, and ≥ 0.96 × the range ratio ×
+    DOP). What breaks it is parallax — a sensor near its half-angle lit at one range and not the other
+    (~1.5 % of poses per layout) — so the originals stay in the dense set. A working set of far-range copies
+    samples the binding part of the envelope (for each attitude, its far end) instead of one range per
+    attitude: a layout tuned on random ranges leaves attitude pockets whose samples all happen to be near,
+    and fresh poses there at far range exceed the tuned value (issue 13). Measured on the study device it
+    did not lower the held-out worst case (parallax pockets at nearer ranges took over; docs/optimize.md).
+    """
+    ref = env.stations[env.reference_station]
+    s = np.asarray(ref.translation, float)
+    d = np.asarray(t, float) - s
+    r = np.linalg.norm(d, axis=1, keepdims=True)
+    return np.asarray(R, float).copy(), s + d * (float(env.range_m[1]) / np.maximum(r, 1e-300))
+
+
 def _dense_value(obj, adop, pdop, cov, cov_all, need_all, uncoverable):
     """``(short, value)``: dense and coverage-only poses left uncovered (``cov_all``) that are not known
     to be uncoverable (with full coverage required; else 0), and the objective over the covered dense
@@ -161,7 +183,7 @@ def working_capacity(n_candidates, n_stations, budget_bytes=WORKING_BYTES):
 def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
                    seed_poses="all", coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=None,
                    first_share=None, later_method="polish", later_patience=2, later_two_swap=False,
-                   join_above=None, coverage_dop=False, time_limit=None, echo=None):
+                   join_above=None, coverage_dop=False, far_range=False, time_limit=None, echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
@@ -183,7 +205,11 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     them and their DOP violators join the working set; a round whose working set grew before it (new poses:
     progress of the pose generation) does not count. join_above : poses whose value exceeds ``join_above`` ×
     the working-set value join the working set (None: ``1 + tol``; below 1: near-violators too, poses a small
-    change of the layout makes critical). max_working : cap on the working set (memory; None:
+    change of the layout makes critical). far_range : add to the dense set a copy of every design and dense
+    pose at the envelope's maximum range (:func:`far_range_poses`: same attitude and bearing) and seed the
+    working set with these copies first (the originals join as violators); the dense set then holds
+    ``2 ×`` (design + dense) poses, all in the envelope, so the bound argument below is unchanged.
+    Not for trajectory envelopes (their poses carry their own ranges). max_working : cap on the working set (memory; None:
     :func:`working_capacity` of :data:`WORKING_BYTES`).
     later_method : method of the rounds after round 0 (default "polish": local search and kicks from
     the incumbent, no relaxation — a round then costs seconds, not minutes; its kicks and 2-swap pool use
@@ -212,9 +238,15 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
 
     t0 = time.perf_counter()
     env = prep["envelope"]
+    if far_range and env.attitude == "trajectory":
+        raise ValueError("far_range: a trajectory envelope gives every pose its own range; nothing to move")
     _, Rd, td = envelope_set(env, count=int(dense_poses), seed=env.seed + 1)
     Rw, tw = prep["rotations"], prep["translations"]
+    if far_range:
+        Rf, tf = far_range_poses(env, np.concatenate([Rw, Rd]), np.concatenate([tw, td]))
+        Rd, td = np.concatenate([Rd, Rf]), np.concatenate([td, tf])
     nD = len(Rw) + len(Rd)  # rows [0, nD): dense set ⊇ design set; rows [nD, ...): coverage-only poses
+    n_far = len(Rw) + int(dense_poses) if far_range else 0  # rows [nD - n_far, nD): far-range copies
     Rc, tc = (envelope_set(env, count=int(coverage_poses), seed=env.seed + 3)[1:] if coverage_poses
               else (np.zeros((0, 3, 3)), np.zeros((0, 3))))
     RD, tD = np.concatenate([Rw, Rd, Rc]), np.concatenate([tw, td, tc])
@@ -255,8 +287,14 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         first_share = 0.6 if seed_poses == "all" else 0.3
     seed_idx = np.zeros(0, int)
     if n_seed:
-        idx = (np.arange(len(Rw), nD) if whole
-               else farthest_point_poses(desc[:nD], n_seed, start=np.arange(len(Rw))))
+        if whole:
+            idx = np.arange(len(Rw), nD)
+        elif far_range:  # the far-range copies first, then originals
+            far = np.arange(nD - n_far, nD)
+            idx = far[:n_seed] if n_seed <= len(far) else np.r_[far, farthest_point_poses(
+                desc[:nD - n_far], n_seed - len(far), start=np.arange(len(Rw)))]
+        else:
+            idx = farthest_point_poses(desc[:nD], n_seed, start=np.arange(len(Rw)))
         vc, ok = lit_all(idx)
         seed_idx = idx[ok]
         grow(seed_idx, vc[ok])

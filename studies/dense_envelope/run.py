@@ -129,6 +129,9 @@ def main():
                     help="dense loop: poses above this × the working-set value join it (default 1 + tol)")
     ap.add_argument("--coverage-dop", action="store_true",
                     help="dense loop: the coverage poses count for the DOP too (dense set = design + dense + coverage)")
+    ap.add_argument("--far-range", action="store_true",
+                    help="dense loop: far-range copies of the dense poses (same attitude and bearing at 3 m, counting "
+                         "the sensors lit at both range ends) seed the working set")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--fit-heldout-s", type=float, default=0.0,
@@ -181,7 +184,8 @@ def main():
         sets["optimised on the 200 design poses"] = r_design.selected
     t0 = time.perf_counter()
     r_dense, info = dense_optimize(prep, k, kw, dense_poses=args.dense_poses, coverage_poses=args.coverage_poses,
-                                   join_above=args.join_above, coverage_dop=args.coverage_dop, time_limit=T,
+                                   join_above=args.join_above, coverage_dop=args.coverage_dop, far_range=args.far_range,
+                                   time_limit=T,
                                    echo=print)
     t_dense = time.perf_counter() - t0
     print("dense:", r_dense.message, flush=True)
