@@ -1,0 +1,113 @@
+"""Session 20 diagnostics of the dense-envelope study (docs/optimize.md, "what the held-out pockets are").
+
+    .venv/bin/python studies/dense_envelope/diagnostics.py polish-all [--time-limit-s 400] [--coverage-poses 40000]
+    .venv/bin/python studies/dense_envelope/diagnostics.py pockets [--layout polish_all.json]
+
+``polish-all``: polish (1- and 2-swaps, kicks) from the committed dense-loop layout (results.json) with the whole
+dense set — design + 10,000 dense + ``--coverage-poses`` coverage poses, ~9 GB of search arrays at 40,000 — as
+the working set; prints its worst there and on the 2,000 held-out poses, writes ``polish_all.json`` (to
+``--out``). ``pockets``: for the five worst held-out poses of a layout (``--layout`` JSON with "selected", default
+the committed dense-loop layout) the nearest poses of that dense set by station direction in the body frame:
+angle, range, lit sensors, ADOP and ADOP × 3 m / range (the range-dominance check).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE))
+
+RHO, K, M = 0.8717, 24, 4
+
+
+def _setup(n_cov):
+    from run import device, envelope
+
+    from layoutkit.workflows.optimize import prepare_problem
+    from layoutkit.workflows.score import envelope_set
+
+    hull, cand = device(0.010)
+    env = envelope(200, 13)
+    prep = prepare_problem(hull, env, candidates=cand)
+    _, Rd, td = envelope_set(env, count=10000, seed=env.seed + 1)
+    _, Rc, tc = envelope_set(env, count=int(n_cov), seed=env.seed + 3)
+    _, Rh, th = envelope_set(env, count=2000, seed=env.seed + 2)
+    R = np.concatenate([prep["rotations"], Rd, Rc])
+    t = np.concatenate([prep["translations"], td, tc])
+    return hull, cand, prep, R, t, Rh, th
+
+
+def _committed():
+    r = json.loads((HERE / "results.json").read_text())
+    return np.array(r["layouts"]["optimised by the dense loop"]["sensors"])
+
+
+def polish_all(args):
+    from layoutkit.coverage_rule import covered, layout_counts
+    from layoutkit.optimize import candidate_jacobians, optimize_stations
+    from layoutkit.visibility import envelope_visibility
+    from layoutkit.workflows.dense import evaluate_selection
+
+    hull, cand, prep, R, t, Rh, th = _setup(args.coverage_poses)
+    vis = envelope_visibility(hull, cand.positions, cand.normals, R, t, prep["stations"], sensor_half_angle_deg=60.0)
+    ok = covered(layout_counts(vis, "any-station"), M)
+    R, t, vis = R[ok], t[ok], vis[ok]
+    sel0 = _committed()
+    t0 = time.perf_counter()
+    res = optimize_stations(candidate_jacobians(cand.positions, R, t, prep["stations"]), vis, K, rng=0,
+                            time_limit=args.time_limit_s, objective="worst-adop", rho=RHO, min_visible=M,
+                            branch_and_bound="off", method="polish",
+                            ctx_options={"warm_start": sel0, "patience": 6, "two_swap": True})
+    out = {"working_poses": int(len(R)), "time_s": time.perf_counter() - t0, "message": res.message}
+    for lab, sel in (("start", sel0), ("polished", res.selected)):
+        a, _, cov = evaluate_selection(prep, sel, R, t, RHO, M, "any-station")
+        ah, _, ch = evaluate_selection(prep, sel, Rh, th, RHO, M, "any-station")
+        out[lab] = {"working_worst": float(a[cov].max()) if cov.all() else float("inf"),
+                    "heldout_worst": float(ah[ch].max()) if ch.all() else float("inf"),
+                    "selected": [int(x) for x in sel]}
+    print(json.dumps(out, indent=1))
+    (Path(args.out) / "polish_all.json").write_text(json.dumps({**out, "selected": out["polished"]["selected"]}) + "\n")
+
+
+def pockets(args):
+    from layoutkit.workflows.dense import evaluate_selection, pose_descriptors
+    from layoutkit.workflows.score import layout_visibility
+
+    hull, cand, prep, R, t, Rh, th = _setup(args.coverage_poses)
+    st = prep["stations"]
+    sel = np.array(json.loads(Path(args.layout).read_text())["selected"]) if args.layout else _committed()
+    a, _, _ = evaluate_selection(prep, sel, Rh, th, RHO, M, "any-station")
+    aw, _, _ = evaluate_selection(prep, sel, R, t, RHO, M, "any-station")
+    dh, dw = pose_descriptors(Rh, th, st)[:, :3], pose_descriptors(R, t, st)[:, :3]
+    rh = np.linalg.norm(th - st[0].translation, axis=1)
+    rw = np.linalg.norm(t - st[0].translation, axis=1)
+    vh = layout_visibility(hull, cand.positions[sel], cand.normals[sel], Rh, th, st, 60.0)[:, 0]
+    vw = layout_visibility(hull, cand.positions[sel], cand.normals[sel], R, t, st, 60.0)[:, 0]
+    for i in np.argsort(-a)[:5]:
+        ang = np.degrees(np.arccos(np.clip(dw @ dh[i], -1, 1)))
+        print(f"held-out {i}: ADOP {a[i]:.0f}, range {rh[i]:.2f} m, lit {np.flatnonzero(vh[i]).tolist()}, "
+              f"ADOP x 3/r {a[i] * 3 / rh[i]:.0f}")
+        for j in np.argsort(ang)[:5]:
+            print(f"    dense {j}: {ang[j]:.2f} deg away, ADOP {aw[j]:.0f}, range {rw[j]:.2f} m, "
+                  f"lit {np.flatnonzero(vw[j]).tolist()}, ADOP x 3/r {aw[j] * 3 / rw[j]:.0f}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mode", choices=("polish-all", "pockets"))
+    ap.add_argument("--time-limit-s", type=float, default=400.0)
+    ap.add_argument("--coverage-poses", type=int, default=40000)
+    ap.add_argument("--layout", default=None)
+    ap.add_argument("--out", default=str(HERE))
+    args = ap.parse_args()
+    (polish_all if args.mode == "polish-all" else pockets)(args)
+
+
+if __name__ == "__main__":
+    main()
