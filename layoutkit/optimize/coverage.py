@@ -170,13 +170,11 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None, witness=N
 
 def _witness_covers(lit, k, m, n_cover, fixed, conflict, witness):
     """Whether index selection ``witness`` proves the request feasible (see :func:`analyse_coverage`)."""
-    w = np.unique(np.asarray(witness, int))
-    N = lit.shape[1]
-    if not len(w) or w.min() < 0 or w.max() >= N or len(np.union1d(w, np.asarray(fixed, int))) > k:
+    w = np.union1d(np.asarray(witness, int), np.asarray(fixed, int))  # sorted, unique, the fixed ones held
+    if not len(w) or w[0] < 0 or w[-1] >= lit.shape[1] or len(w) > k:
         return False
     if conflict is not None and np.asarray(conflict, bool)[np.ix_(w, w)][~np.eye(len(w), dtype=bool)].any():
         return False
-    w = np.union1d(w, np.asarray(fixed, int))
     return int((lit[:, w].sum(axis=1) >= m).sum()) >= n_cover
 
 
