@@ -152,14 +152,15 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None, witness=N
                                                             else f"at least {klow}, no cover found yet") +
                               f"); the search will show whether "
                               f"{k} sensors can cover the required poses", decided=False)
-    if kmin is None:
+    if klow is None:  # the MILP proved that no selection covers them
         return CoverageReport(False, None, unc, "infeasible",
                               f"no selection keeps {m} sensors lit at {n_cover} of {P} poses with the "
                               f"fixed sensors and spacing given")
     # proven (klow > k): every cover needs more than k sensors
     need = (f"the smallest k that works is {kmin}" if klow == kmin else
-            f"every cover needs at least {klow} (a {kmin}-sensor cover exists; the MILP stopped at its "
-            f"{time_limit:g} s time limit)")
+            f"every cover needs at least {klow} (" + (f"a {kmin}-sensor cover exists" if kmin is not None else
+                                                      "none found yet") +
+            f"; the MILP stopped at its {time_limit:g} s time limit)")
     # which poses cannot be covered with k sensors: the best k-cover leaves them short
     short = _poses_short_with_k(lit, k, m, fixed)
     show = ", ".join(str(p) for p in short[:20]) + (" ..." if len(short) > 20 else "")

@@ -242,11 +242,11 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         raise ValueError("far_range: a trajectory envelope gives every pose its own range; nothing to move")
     _, Rd, td = envelope_set(env, count=int(dense_poses), seed=env.seed + 1)
     Rw, tw = prep["rotations"], prep["translations"]
+    n_far = 0  # rows [nD - n_far, nD): far-range copies of the design and dense poses
     if far_range:
         Rf, tf = far_range_poses(env, np.concatenate([Rw, Rd]), np.concatenate([tw, td]))
-        Rd, td = np.concatenate([Rd, Rf]), np.concatenate([td, tf])
+        Rd, td, n_far = np.concatenate([Rd, Rf]), np.concatenate([td, tf]), len(Rf)
     nD = len(Rw) + len(Rd)  # rows [0, nD): dense set ⊇ design set; rows [nD, ...): coverage-only poses
-    n_far = len(Rw) + int(dense_poses) if far_range else 0  # rows [nD - n_far, nD): far-range copies
     Rc, tc = (envelope_set(env, count=int(coverage_poses), seed=env.seed + 3)[1:] if coverage_poses
               else (np.zeros((0, 3, 3)), np.zeros((0, 3))))
     RD, tD = np.concatenate([Rw, Rd, Rc]), np.concatenate([tw, td, tc])

@@ -72,7 +72,10 @@ def polish_all(args):
                     "heldout_worst": float(ah[ch].max()) if ch.all() else float("inf"),
                     "selected": [int(x) for x in sel]}
     print(json.dumps(out, indent=1))
-    (Path(args.out) / "polish_all.json").write_text(json.dumps({**out, "selected": out["polished"]["selected"]}) + "\n")
+    from layoutkit.io.atomic import atomic_write_text
+
+    atomic_write_text(Path(args.out) / "polish_all.json",
+                      json.dumps({**out, "selected": out["polished"]["selected"]}) + "\n")
 
 
 def pockets(args):

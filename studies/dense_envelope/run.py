@@ -130,8 +130,8 @@ def main():
     ap.add_argument("--coverage-dop", action="store_true",
                     help="dense loop: the coverage poses count for the DOP too (dense set = design + dense + coverage)")
     ap.add_argument("--far-range", action="store_true",
-                    help="dense loop: far-range copies of the dense poses (same attitude and bearing at 3 m, counting "
-                         "the sensors lit at both range ends) seed the working set")
+                    help="dense loop: far-range copies of the design and dense poses (same attitude and bearing at 3 m, "
+                         "their own visibility there) join the dense set and seed the working set")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--fit-heldout-s", type=float, default=0.0,
