@@ -43,7 +43,7 @@ import time
 import numpy as np
 
 __all__ = ["dense_optimize", "evaluate_selection", "pose_descriptors", "farthest_point_poses",
-           "far_range_poses", "working_capacity", "WORKING_BYTES"]
+           "far_range_poses", "range_sweep_poses", "working_capacity", "WORKING_BYTES"]
 
 
 def evaluate_selection(prep, sel, R, t, rho, min_visible, coverage):
@@ -60,14 +60,15 @@ def evaluate_selection(prep, sel, R, t, rho, min_visible, coverage):
     return d.adop, d.pdop, cov
 
 
-def pose_descriptors(R, t, stations, range_weight=0.5):
+def pose_descriptors(R, t, stations, range_weight=0.5, range_span=None):
     """Pose descriptors ``(P, 3 S + 1)`` for space-filling pose designs.
 
     R (P, 3, 3), t (P, 3): body poses in the world frame (``p_world = R p + t``, m); stations: list
     of :class:`layoutkit.lighthouse.Station`. Per station the unit direction from the body origin to
     the station in the BODY frame (what decides which sites are lit and how they are foreshortened),
     then the range to the first station scaled to [0, ``range_weight``] over the set (ADOP grows
-    with range). Euclidean distance between descriptors ~ angle (rad) between attitudes.
+    with range). Euclidean distance between descriptors ~ angle (rad) between attitudes. range_span :
+    ``(r_min, r_max)`` of the scaling (None: the set's own; give it to add poses to an existing set).
     """
     R = np.asarray(R, float)
     t = np.asarray(t, float)
@@ -77,8 +78,9 @@ def pose_descriptors(R, t, stations, range_weight=0.5):
         db = np.einsum("pji,pj->pi", R, d)  # R^T d
         cols.append(db / np.maximum(np.linalg.norm(db, axis=1, keepdims=True), 1e-300))
     r = np.linalg.norm(np.asarray(stations[0].translation, float)[None] - t, axis=1)
-    span = r.max() - r.min() if len(r) else 0.0
-    cols.append((range_weight * (r - r.min()) / span if span > 0 else np.zeros_like(r))[:, None])
+    lo, hi = (r.min(), r.max()) if range_span is None and len(r) else (range_span or (0.0, 0.0))
+    span = hi - lo
+    cols.append((range_weight * (r - lo) / span if span > 0 else np.zeros_like(r))[:, None])
     return np.concatenate(cols, axis=1)
 
 
@@ -128,6 +130,55 @@ def far_range_poses(env, R, t):
     d = np.asarray(t, float) - s
     r = np.linalg.norm(d, axis=1, keepdims=True)
     return np.asarray(R, float).copy(), s + d * (float(env.range_m[1]) / np.maximum(r, 1e-300))
+
+
+def range_sweep_poses(env, R, t, positions, normals, half_angle_deg=60.0, delta=1e-4):
+    """The poses along each pose's range segment where the lit set of a layout can change.
+
+    R (P, 3, 3), t (P, 3): world poses of ``env`` (the ray of a pose: same attitude, bearing from the
+    envelope's reference station, range over ``env.range_m``); positions, normals (n, 3): the layout's
+    sensors in the body frame (m, unit). Along a ray the body-frame direction ``b`` of the station is
+    fixed and the sensor-to-station vector is ``-(p + r b)``, so sensor ``p, n`` faces the station
+    (angle to its normal ≤ ``half_angle_deg``, :func:`layoutkit.visibility.facing_mask`) iff
+    ``a + β r ≥ c |p + r b|`` with ``a = -n·p``, ``β = -n·b``, ``c = cos(half-angle)``: squared, a quadratic
+    in r whose roots (on the cone's front sheet) are the crossing ranges. Between crossings the lit set
+    is fixed and the DOP grows with range (the Jacobian of a sweep angle scales as 1/r:
+    :func:`far_range_poses`), so the worst case of the segment is at its ends; the poses returned are, for
+    every ray, both ends of the range interval and ``r_c (1 ∓ delta)`` on both sides of each crossing
+    ``r_c`` inside it. All are poses of the envelope, so the values there are values of the
+    envelope. Occlusion and other stations are not swept (their visibility is evaluated at these points;
+    exact facing geometry of the reference station only). Returns ``(R_s, t_s, src)`` with ``src`` (M,)
+    the index of the source pose of every returned pose.
+    """
+    ref = env.stations[env.reference_station]
+    s = np.asarray(ref.translation, float)
+    R = np.asarray(R, float)
+    d = np.asarray(t, float) - s
+    r = np.linalg.norm(d, axis=1, keepdims=True)
+    u = d / np.maximum(r, 1e-300)  # world bearing station -> body
+    b = np.einsum("pji,pj->pi", R, u)  # body frame; the station is at -r b from the body origin
+    pos, nor = np.asarray(positions, float), np.asarray(normals, float)
+    c2 = math.cos(math.radians(float(half_angle_deg))) ** 2
+    al = -np.sum(nor * pos, axis=1)[None]  # (1, n)
+    be = -(b @ nor.T)  # (P, n)
+    qa = be * be - c2  # (a + β r)^2 - c^2 (|p|^2 + 2 r p·b + r^2) = qa r^2 + qb r + qc
+    qb = 2.0 * (al * be - c2 * (b @ pos.T))
+    qc = al * al - c2 * np.sum(pos * pos, axis=1)[None]
+    disc = qb * qb - 4.0 * qa * qc
+    lin = np.abs(qa) < 1e-12
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    r0, r1 = (float(x) for x in env.range_m)
+    cols = [np.full((len(R), 1), r1), np.full((len(R), 1), r0)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        quad = ~lin & (disc >= 0)
+        for root in (np.where(quad, (-qb - sq) / (2 * qa), np.nan), np.where(quad, (-qb + sq) / (2 * qa), np.nan),
+                     np.where(lin, -qc / qb, np.nan)):
+            ok = np.isfinite(root) & (root > r0) & (root < r1) & (al + be * root >= 0)
+            for f in (1.0 - delta, 1.0 + delta):
+                cols.append(np.where(ok, np.clip(root * f, r0, r1), np.nan))
+    rr = np.concatenate(cols, axis=1)  # (P, 2 + 6 n)
+    src, col = np.nonzero(np.isfinite(rr))
+    return R[src].copy(), s + u[src] * rr[src, col][:, None], src
 
 
 def _dense_value(obj, adop, pdop, cov, cov_all, need_all, uncoverable):
@@ -183,7 +234,8 @@ def working_capacity(n_candidates, n_stations, budget_bytes=WORKING_BYTES):
 def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", rounds=40, add=192,
                    seed_poses="all", coverage_poses=0, min_sep=0.05, tol=0.02, patience=8, max_working=None,
                    first_share=None, later_method="polish", later_patience=2, later_two_swap=False,
-                   join_above=None, coverage_dop=False, far_range=False, time_limit=None, echo=None):
+                   join_above=None, coverage_dop=False, far_range=False, range_sweep=False, time_limit=None,
+                   echo=None):
     """Adaptive pose generation around :func:`layoutkit.optimize.optimize_stations` (module docstring).
 
     prep : :func:`layoutkit.workflows.optimize.prepare_problem` output (its poses = design set);
@@ -209,7 +261,13 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     pose at the envelope's maximum range (:func:`far_range_poses`: same attitude and bearing) and seed the
     working set with these copies first (the originals join as violators); the dense set then holds
     ``2 ×`` (design + dense) poses, all in the envelope, so the bound argument below is unchanged.
-    Not for trajectory envelopes (their poses carry their own ranges). max_working : cap on the working set (memory; None:
+    Not for trajectory envelopes (their poses carry their own ranges). range_sweep : every round, evaluate
+    the round's layout along the whole range segment of every dense pose (its *ray*: same attitude and
+    bearing, :func:`range_sweep_poses` — both ends and both sides of every range where one of its sensors
+    crosses its half-angle, so the worst case of each ray), and let the worst swept poses join the dense set
+    and the working set like violators (up to ``8 × add`` new dense poses a round); the dense value is taken
+    over the swept poses too. Each swept pose is a pose of the envelope, so the bound argument is unchanged.
+    Not for trajectory envelopes. max_working : cap on the working set (memory; None:
     :func:`working_capacity` of :data:`WORKING_BYTES`).
     later_method : method of the rounds after round 0 (default "polish": local search and kicks from
     the incumbent, no relaxation — a round then costs seconds, not minutes; its kicks and 2-swap pool use
@@ -238,8 +296,9 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
 
     t0 = time.perf_counter()
     env = prep["envelope"]
-    if far_range and env.attitude == "trajectory":
-        raise ValueError("far_range: a trajectory envelope gives every pose its own range; nothing to move")
+    for flag, on in (("far_range", far_range), ("range_sweep", range_sweep)):
+        if on and env.attitude == "trajectory":
+            raise ValueError(f"{flag}: a trajectory envelope gives every pose its own range; nothing to move")
     _, Rd, td = envelope_set(env, count=int(dense_poses), seed=env.seed + 1)
     Rw, tw = prep["rotations"], prep["translations"]
     n_far = 0  # rows [nD - n_far, nD): far-range copies of the design and dense poses
@@ -257,16 +316,33 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     rho, m = kw.get("rho", 0.0), kw.get("min_visible", 4)
     need_all = kw.get("coverage_fraction", 1.0) >= 1.0
     cand = prep["candidates"]
-    desc = pose_descriptors(RD, tD, prep["stations"])
+    desc = pose_descriptors(RD, tD, prep["stations"], range_span=tuple(float(x) for x in env.range_m))
     uncoverable = np.zeros(len(RD), bool)  # dense poses with fewer than m lit candidates (by the rule)
+    n_rays = nD + (len(Rc) if coverage_dop else 0)  # range_sweep: the poses whose rays are swept
+    swept = set()  # (ray, range) of the swept poses that joined the dense set
+
+    def lit_full(R, t):
+        """Full-candidate visibility at poses ``R, t`` and whether the rule can cover them."""
+        vc = envelope_visibility(prep["mesh"], cand.positions, cand.normals, R, t,
+                                 prep["stations"], sensor_half_angle_deg=prep["sensor_half_angle_deg"])
+        return vc, covered(layout_counts(vc, coverage), m)
 
     def lit_all(idx):
         """Full-candidate visibility of dense poses ``idx`` and whether the rule can cover them."""
-        vc = envelope_visibility(prep["mesh"], cand.positions, cand.normals, RD[idx], tD[idx],
-                                 prep["stations"], sensor_half_angle_deg=prep["sensor_half_angle_deg"])
-        ok = covered(layout_counts(vc, coverage), m)
+        vc, ok = lit_full(RD[idx], tD[idx])
         uncoverable[idx[~ok]] = True
         return vc, ok
+
+    def join_dense(Rn, tn):
+        """Append poses to the dense set; returns their dense indices."""
+        nonlocal RD, tD, desc, in_work, uncoverable
+        i0 = len(RD)
+        RD, tD = np.concatenate([RD, Rn]), np.concatenate([tD, tn])
+        desc = np.concatenate([desc, pose_descriptors(Rn, tn, prep["stations"],
+                                                      range_span=tuple(float(x) for x in env.range_m))])
+        in_work = np.concatenate([in_work, np.zeros(len(Rn), bool)])
+        uncoverable = np.concatenate([uncoverable, np.zeros(len(Rn), bool)])
+        return np.arange(i0, len(RD))
 
     def grow(idx, vc):
         nonlocal jac, vis
@@ -355,18 +431,31 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 cov_all = np.concatenate([cov, _covered_only(prep, res.selected, RD[nD:], tD[nD:], m, coverage)])
                 ext = np.flatnonzero(in_work[nD:]) + nD  # coverage poses in the working set count as dense poses
                 ae, pe, ce = evaluate_selection(prep, res.selected, RD[ext], tD[ext], rho, m, coverage)
-            dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all, uncoverable)
+            n_rows = len(RD)
+            if range_sweep:  # the worst case along every ray (range segment) of the dense poses
+                Rs, ts, src = range_sweep_poses(env, RD[:n_rays], tD[:n_rays], cand.positions[res.selected],
+                                                cand.normals[res.selected], prep["sensor_half_angle_deg"])
+                as_, ps_, cs_ = evaluate_selection(prep, res.selected, Rs, ts, rho, m, coverage)
+                sunc = np.zeros(len(Rs), bool)  # swept poses no layout can cover
+                if need_all and not cs_.all():
+                    sunc[~cs_] = ~lit_full(Rs[~cs_], ts[~cs_])[1]
+                ae, pe, ce = np.r_[ae, as_], np.r_[pe, ps_], np.r_[ce, cs_]
+                cov_all = np.r_[cov_all, cs_]
+            else:
+                Rs, ts, src, sunc, cs_ = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, bool), None
+            dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all,
+                                np.r_[uncoverable, sunc])
             n_work = int(in_work.sum())
             hist.append({"round": rnd, "working_poses": n_work, "working_value": res.value,
                          "dense_value_covered": dval[1], "dense_uncovered": dval[0], "bound": res.bound,
-                         "status": res.status, "time_s": time.perf_counter() - t0,
+                         "status": res.status, "time_s": time.perf_counter() - t0, "swept_poses": int(len(Rs)),
                          "selected": [int(x) for x in res.selected], "added": []})
             if echo is not None:
                 echo(f"dense round {rnd}: working set {n_work} poses, value {res.value:.5g}, "
                      f"dense-set value {dval[1]:.5g} over covered poses, {dval[0]} coverable poses uncovered "
                      f"({time.perf_counter() - t0:.0f} s)")
             if best is None or dval[0] < best[1][0] or (dval[0] == best[1][0] and dval[1] < best[1][1] * (1 - 1e-3)):
-                best = (res, dval, a, p, cov, cov_all, np.array(order, int), (ae, pe, ce))
+                best = (res, dval, a, p, cov, cov_all, np.array(order, int), (ae, pe, ce), (n_rows, sunc))
                 stall = 0
             elif not grew:  # a round on a grown working set is progress of the pose generation
                 stall += 1
@@ -382,14 +471,18 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 break
             if stall >= patience:
                 break
+            ns = len(Rs)
             score = np.concatenate([np.where(cov, obj.from_dop(a, p), np.inf),
-                                    np.where(ce, obj.from_dop(ae, pe), np.inf) if coverage_dop else
-                                    np.where(cov_all[nD:], -np.inf, np.inf)])  # coverage-only rows: coverage
-            viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * (1 + tol)))
+                                    np.where(ce[:len(ce) - ns], obj.from_dop(ae[:len(ae) - ns], pe[:len(pe) - ns]), np.inf)
+                                    if coverage_dop else np.where(cov_all[nD:n_rows], -np.inf, np.inf),  # coverage only
+                                    np.where(cs_, obj.from_dop(ae[len(ae) - ns:], pe[len(pe) - ns:]), np.inf)
+                                    if ns else np.zeros(0)])  # rows [n_rows, n_rows + ns): swept poses
+            open_ = np.r_[~in_work & ~uncoverable, ~sunc]
+            viol = np.flatnonzero(open_ & (score > res.value * (1 + tol)))
             room = int(max_working) - n_work
             polish = len(viol) == 0
             if join_above is not None:
-                viol = np.flatnonzero(~in_work & ~uncoverable & (score > res.value * float(join_above)))
+                viol = np.flatnonzero(open_ & (score > res.value * float(join_above)))
             if polish:
                 converged = True
             if len(viol) == 0 or room <= 0:
@@ -397,8 +490,19 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                     note = f"working set reached max_working = {max_working} poses"
                 continue  # polish round: same working set, fresh kicks, warm start from the best layout
             srt = viol[np.argsort(-score[viol], kind="stable")]
-            new, v_new = [], []
             want = min(int(add), room)
+            if ns:  # the worst swept poses join the dense set (at most 8 × add a round), the rest are dropped
+                sw = srt[srt >= n_rows][: 8 * int(add)] - n_rows
+                rng_s = np.linalg.norm(ts[sw] - np.asarray(env.stations[env.reference_station].translation), axis=1)
+                key = [(int(src[j]), round(float(x), 9)) for j, x in zip(sw, rng_s)]
+                fresh = np.array([kk not in swept for kk in key], bool)
+                swept.update(kk for kk, f in zip(key, fresh) if f)
+                sw = sw[fresh] if len(sw) else sw
+                rows = srt[srt < n_rows]
+                ids = join_dense(Rs[sw], ts[sw]) if len(sw) else np.zeros(0, int)
+                # rows and the swept poses that joined, worst first
+                srt = np.r_[rows, ids][np.argsort(-np.r_[score[rows], score[n_rows + sw]], kind="stable")]
+            new, v_new = [], []
             for s0 in range(0, len(srt), 4 * want):  # skip poses no layout can cover (too few lit candidates)
                 chunk = srt[s0:s0 + 4 * want]
                 vc, ok = lit_all(chunk)
@@ -420,9 +524,10 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         note = f"interrupted by {interrupted}: best layout of the finished rounds"
     if best is None:  # no round produced a layout (round 0 failed and the budget ended before a retry)
         return last_fail, {"rounds": hist, "dense_set_poses": int(nD), "note": note or "no round produced a layout"}
-    res, dval, a, p, cov, cov_all, work_rows, (ae, pe, ce) = best
+    res, dval, a, p, cov, cov_all, work_rows, (ae, pe, ce), (n_rows, sunc) = best
     # poses found uncoverable after the best round: its value over the coverable ones
-    short, dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all, uncoverable)
+    short, dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all,
+                               np.r_[uncoverable[:n_rows], sunc])
     if short:
         dval = math.inf
     # every round's working set is a subset of the dense set: the largest round bound holds for it
@@ -437,7 +542,9 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                                   message=res.message + " [interrupted: best dense round so far]")
     gap = dval / res.bound - 1 if np.isfinite(res.bound) and res.bound > 0 else float("nan")
     info = {"rounds": hist, "dense_set_poses": int(len(RD) if coverage_dop else nD),
-            "coverage_poses": int(len(RD) - nD), "coverage_dop": bool(coverage_dop),
+            "coverage_poses": int(len(Rc)), "coverage_dop": bool(coverage_dop),
+            "range_sweep": bool(range_sweep), "swept_poses": int(len(sunc)),
+            "joined_swept_poses": int(len(RD) - nD - len(Rc)),
             "working_set_poses": int(len(work_rows)),
             "final_working_set_poses": int(in_work.sum()), "seed_poses": n_seed,
             "seed_indices": seed_idx, "converged": converged,

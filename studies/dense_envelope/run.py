@@ -132,6 +132,12 @@ def main():
     ap.add_argument("--far-range", action="store_true",
                     help="dense loop: far-range copies of the design and dense poses (same attitude and bearing at 3 m, "
                          "their own visibility there) join the dense set and seed the working set")
+    ap.add_argument("--range-sweep", action="store_true",
+                    help="dense loop: every round, the layout is evaluated along the whole 1–3 m range of every dense "
+                         "pose's ray (both ends and both sides of each half-angle crossing) and the worst swept poses "
+                         "join the dense and working sets")
+    ap.add_argument("--max-working", type=int, default=None,
+                    help="dense loop: cap on the working set (poses; default: what fits 2 GB of search arrays)")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--fit-heldout-s", type=float, default=0.0,
@@ -148,7 +154,7 @@ def main():
     from layoutkit.optimize.problem import build_problem
     from layoutkit.optimize.relaxation import pose_relaxation_bounds, relax
     from layoutkit.visibility import envelope_visibility
-    from layoutkit.workflows.dense import dense_optimize, evaluate_selection
+    from layoutkit.workflows.dense import dense_optimize, evaluate_selection, range_sweep_poses
     from layoutkit.workflows.optimize import prepare_problem
     from layoutkit.workflows.score import envelope_set, layout_visibility
 
@@ -185,7 +191,7 @@ def main():
     t0 = time.perf_counter()
     r_dense, info = dense_optimize(prep, k, kw, dense_poses=args.dense_poses, coverage_poses=args.coverage_poses,
                                    join_above=args.join_above, coverage_dop=args.coverage_dop, far_range=args.far_range,
-                                   time_limit=T,
+                                   range_sweep=args.range_sweep, max_working=args.max_working, time_limit=T,
                                    echo=print)
     t_dense = time.perf_counter() - t0
     print("dense:", r_dense.message, flush=True)
@@ -210,6 +216,12 @@ def main():
                         "worst_pdop_over_tracked": float(p[cov].max()) if len(x) else None}
             if lab == "heldout":
                 per[name] = (a, cov)
+        # the held-out rays: each held-out pose's attitude and bearing over the whole 1–3 m range (its swept poses)
+        Rs, ts, _ = range_sweep_poses(env, Rh, th, cand.positions[sel], cand.normals[sel], 60.0)
+        a, p, cov = evaluate_selection(prep, sel, Rs, ts, rho, m, "any-station")
+        row["heldout_rays"] = {"poses": int(len(a)), "covered_fraction": float(cov.mean()),
+                               "worst_adop": float(a.max()) if cov.all() else math.inf,
+                               "worst_adop_over_tracked": float(a[cov].max()) if cov.any() else None}
         res["layouts"][name] = row
     both = np.logical_and.reduce([c for _, c in per.values()])
     for name, (a, cov) in per.items():
@@ -339,12 +351,14 @@ def main():
     lines = [f"k = {k}, {N} candidate sites; ADOP deg/rad; worst over all poses with an untracked pose = ∞; "
              f"'common' = worst over the {res['heldout_poses_all_layouts_track']} held-out poses every layout tracks.", "",
              "| layout | design (200) worst | working set worst | dense worst | held-out worst | held-out tracked | "
-             "held-out worst (common) | held-out p99 | held-out median |", "|---|---|---|---|---|---|---|---|---|"]
+             "held-out worst (common) | held-out p99 | held-out median | held-out rays worst (1–3 m) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, row in res["layouts"].items():
         h = row["heldout"]
         lines.append(f"| {name} | {f(row['design']['worst_adop'])} | {f(row['working']['worst_adop'])} | "
                      f"{f(row['dense']['worst_adop'])} | {f(h['worst_adop'])} | {100 * h['covered_fraction']:.2f} % | "
-                     f"{f(h['worst_adop_over_poses_all_layouts_track'])} | {f(h['p99_adop'])} | {f(h['median_adop'])} |")
+                     f"{f(h['worst_adop_over_poses_all_layouts_track'])} | {f(h['p99_adop'])} | {f(h['median_adop'])} | "
+                     f"{f(row['heldout_rays']['worst_adop'])} |")
     lines += ["", f"working set of the dense loop: {info['working_set_poses']} poses; "
               f"held-out / working-set worst = {ms['heldout_over_working']:.3f}; "
               f"held-out / dense-set ({ms['dense_set_poses']} poses) worst = {ms['heldout_over_dense']:.3f}; "
