@@ -31,8 +31,11 @@ def test_spacing_surface_and_outward_normals(dock):
     assert dist.max() < 1e-9
     face = np.array([e["face"] for e in lay.extra])
     np.testing.assert_allclose(lay.normals, dock.face_normals[face])
-    # outward: a point just outside along the normal is not inside the closed mesh, just inside is
-    assert not dock.contains(lay.positions + 1e-3 * lay.normals).any()
+    # outward: a point 1 mm along the normal is outside the closed mesh. Checked by the exact signed
+    # distance (closest point; > 0 inside), not the ray-parity mesh.contains: under embree its float32 rays
+    # can graze an edge and miscount (a one-off failure of this test in a full parallel run)
+    sd = trimesh.proximity.signed_distance(dock, lay.positions + 1e-3 * lay.normals)
+    assert np.all(sd < 0)
 
 
 def test_candidates_cover_the_surface(dock):
