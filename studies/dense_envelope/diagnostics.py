@@ -2,13 +2,18 @@
 
     .venv/bin/python studies/dense_envelope/diagnostics.py polish-all [--time-limit-s 400] [--coverage-poses 40000]
     .venv/bin/python studies/dense_envelope/diagnostics.py pockets [--layout polish_all.json]
+    .venv/bin/python studies/dense_envelope/diagnostics.py rays [--results results.json ...]
 
 ``polish-all``: polish (1- and 2-swaps, kicks) from the committed dense-loop layout (results.json) with the whole
 dense set — design + 10,000 dense + ``--coverage-poses`` coverage poses, ~9 GB of search arrays at 40,000 — as
 the working set; prints its worst there and on the 2,000 held-out poses, writes ``polish_all.json`` (to
 ``--out``). ``pockets``: for the five worst held-out poses of a layout (``--layout`` JSON with "selected", default
 the committed dense-loop layout) the nearest poses of that dense set by station direction in the body frame:
-angle, range, lit sensors, ADOP and ADOP × 3 m / range (the range-dominance check).
+angle, range, lit sensors, ADOP and ADOP × 3 m / range (the range-dominance check). ``rays`` (session 21): every
+layout of the given study results (default the committed results.json) on the 2,000 held-out poses and on their
+*rays* — each held-out attitude and bearing over the whole 1–3 m range, by
+:func:`layoutkit.workflows.dense.range_sweep_poses` (both ends and both sides of every half-angle crossing of the
+layout's sensors: the worst case along each ray) — and on the rays of the 10,000 dense poses; writes ``rays.json``.
 """
 from __future__ import annotations
 
@@ -101,15 +106,46 @@ def pockets(args):
                   f"lit {np.flatnonzero(vw[j]).tolist()}, ADOP x 3/r {aw[j] * 3 / rw[j]:.0f}")
 
 
+def rays(args):
+    from layoutkit.workflows.dense import evaluate_selection, range_sweep_poses
+    from layoutkit.workflows.score import envelope_set
+
+    hull, cand, prep, R, t, Rh, th = _setup(1)
+    env = prep["envelope"]
+    _, Rd, td = envelope_set(env, count=10000, seed=env.seed + 1)
+
+    def worst(sel, R_, t_, sweep):
+        if sweep:
+            R_, t_, _ = range_sweep_poses(env, R_, t_, cand.positions[sel], cand.normals[sel], 60.0)
+        a, _, cov = evaluate_selection(prep, sel, R_, t_, RHO, M, "any-station")
+        return {"poses": int(len(a)), "untracked": int((~cov).sum()),
+                "worst_adop": float(a.max()) if cov.all() else float("inf"),
+                "worst_adop_over_tracked": float(a[cov].max())}
+
+    out = {}
+    for path in args.results or [str(HERE / "results.json")]:
+        for name, row in json.loads(Path(path).read_text())["layouts"].items():
+            sel = np.array(row["sensors"])
+            key = name if len(args.results or []) <= 1 else f"{Path(path).parent.name}: {name}"
+            out[key] = {"heldout": worst(sel, Rh, th, False), "heldout_rays": worst(sel, Rh, th, True),
+                        "dense_rays": worst(sel, Rd, td, True)}
+            print(f"{key}: " + ", ".join(f"{lab} {v['worst_adop']:.0f} ({v['untracked']} untracked, tracked worst "
+                                         f"{v['worst_adop_over_tracked']:.0f})" for lab, v in out[key].items()), flush=True)
+    from layoutkit.io.atomic import atomic_write_text
+
+    atomic_write_text(Path(args.out) / "rays.json", json.dumps(out, indent=1) + "\n")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("polish-all", "pockets"))
+    ap.add_argument("mode", choices=("polish-all", "pockets", "rays"))
+    ap.add_argument("--results", nargs="*", default=None, help="rays: study results.json files (layouts to score)")
     ap.add_argument("--time-limit-s", type=float, default=400.0)
     ap.add_argument("--coverage-poses", type=int, default=40000)
     ap.add_argument("--layout", default=None)
     ap.add_argument("--out", default=str(HERE))
     args = ap.parse_args()
-    (polish_all if args.mode == "polish-all" else pockets)(args)
+    {"polish-all": polish_all, "pockets": pockets, "rays": rays}[args.mode](args)
 
 
 if __name__ == "__main__":
