@@ -316,7 +316,9 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
     rho, m = kw.get("rho", 0.0), kw.get("min_visible", 4)
     need_all = kw.get("coverage_fraction", 1.0) >= 1.0
     cand = prep["candidates"]
-    desc = pose_descriptors(RD, tD, prep["stations"], range_span=tuple(float(x) for x in env.range_m))
+    span = tuple(float(x) for x in env.range_m)
+    s_ref = np.asarray(env.stations[env.reference_station].translation, float)
+    desc = pose_descriptors(RD, tD, prep["stations"], range_span=span)
     uncoverable = np.zeros(len(RD), bool)  # dense poses with fewer than m lit candidates (by the rule)
     n_rays = nD + (len(Rc) if coverage_dop else 0)  # range_sweep: the poses whose rays are swept
     swept = set()  # (ray, range) of the swept poses that joined the dense set
@@ -338,8 +340,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         nonlocal RD, tD, desc, in_work, uncoverable
         i0 = len(RD)
         RD, tD = np.concatenate([RD, Rn]), np.concatenate([tD, tn])
-        desc = np.concatenate([desc, pose_descriptors(Rn, tn, prep["stations"],
-                                                      range_span=tuple(float(x) for x in env.range_m))])
+        desc = np.concatenate([desc, pose_descriptors(Rn, tn, prep["stations"], range_span=span)])
         in_work = np.concatenate([in_work, np.zeros(len(Rn), bool)])
         uncoverable = np.concatenate([uncoverable, np.zeros(len(Rn), bool)])
         return np.arange(i0, len(RD))
@@ -439,12 +440,11 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 sunc = np.zeros(len(Rs), bool)  # swept poses no layout can cover
                 if need_all and not cs_.all():
                     sunc[~cs_] = ~lit_full(Rs[~cs_], ts[~cs_])[1]
-                ae, pe, ce = np.r_[ae, as_], np.r_[pe, ps_], np.r_[ce, cs_]
-                cov_all = np.r_[cov_all, cs_]
             else:
-                Rs, ts, src, sunc, cs_ = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, bool), None
-            dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all,
-                                np.r_[uncoverable, sunc])
+                Rs, ts, src = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, int)
+                as_, ps_, cs_, sunc = np.zeros(0), np.zeros(0), np.zeros(0, bool), np.zeros(0, bool)
+            dval = _dense_value(obj, np.r_[a, ae, as_], np.r_[p, pe, ps_], np.r_[cov, ce, cs_], np.r_[cov_all, cs_],
+                                need_all, np.r_[uncoverable, sunc])
             n_work = int(in_work.sum())
             hist.append({"round": rnd, "working_poses": n_work, "working_value": res.value,
                          "dense_value_covered": dval[1], "dense_uncovered": dval[0], "bound": res.bound,
@@ -455,7 +455,7 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                      f"dense-set value {dval[1]:.5g} over covered poses, {dval[0]} coverable poses uncovered "
                      f"({time.perf_counter() - t0:.0f} s)")
             if best is None or dval[0] < best[1][0] or (dval[0] == best[1][0] and dval[1] < best[1][1] * (1 - 1e-3)):
-                best = (res, dval, a, p, cov, cov_all, np.array(order, int), (ae, pe, ce), (n_rows, sunc))
+                best = (res, dval, a, p, cov, cov_all, np.array(order, int), (ae, pe, ce), (n_rows, as_, ps_, cs_, sunc))
                 stall = 0
             elif not grew:  # a round on a grown working set is progress of the pose generation
                 stall += 1
@@ -471,12 +471,10 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 break
             if stall >= patience:
                 break
-            ns = len(Rs)
             score = np.concatenate([np.where(cov, obj.from_dop(a, p), np.inf),
-                                    np.where(ce[:len(ce) - ns], obj.from_dop(ae[:len(ae) - ns], pe[:len(pe) - ns]), np.inf)
-                                    if coverage_dop else np.where(cov_all[nD:n_rows], -np.inf, np.inf),  # coverage only
-                                    np.where(cs_, obj.from_dop(ae[len(ae) - ns:], pe[len(pe) - ns:]), np.inf)
-                                    if ns else np.zeros(0)])  # rows [n_rows, n_rows + ns): swept poses
+                                    np.where(ce, obj.from_dop(ae, pe), np.inf) if coverage_dop else
+                                    np.where(cov_all[nD:], -np.inf, np.inf),  # coverage-only rows: coverage
+                                    np.where(cs_, obj.from_dop(as_, ps_), np.inf)])  # [n_rows, ...): swept poses
             open_ = np.r_[~in_work & ~uncoverable, ~sunc]
             viol = np.flatnonzero(open_ & (score > res.value * (1 + tol)))
             room = int(max_working) - n_work
@@ -491,13 +489,13 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
                 continue  # polish round: same working set, fresh kicks, warm start from the best layout
             srt = viol[np.argsort(-score[viol], kind="stable")]
             want = min(int(add), room)
-            if ns:  # the worst swept poses join the dense set (at most 8 × add a round), the rest are dropped
+            if len(Rs):  # the worst swept poses join the dense set (at most 8 × add a round), the rest are dropped
                 sw = srt[srt >= n_rows][: 8 * int(add)] - n_rows
-                rng_s = np.linalg.norm(ts[sw] - np.asarray(env.stations[env.reference_station].translation), axis=1)
+                rng_s = np.linalg.norm(ts[sw] - s_ref, axis=1)
                 key = [(int(src[j]), round(float(x), 9)) for j, x in zip(sw, rng_s)]
                 fresh = np.array([kk not in swept for kk in key], bool)
                 swept.update(kk for kk, f in zip(key, fresh) if f)
-                sw = sw[fresh] if len(sw) else sw
+                sw = sw[fresh]
                 rows = srt[srt < n_rows]
                 ids = join_dense(Rs[sw], ts[sw]) if len(sw) else np.zeros(0, int)
                 # rows and the swept poses that joined, worst first
@@ -524,10 +522,10 @@ def dense_optimize(prep, k, kw, *, dense_poses, seed=0, coverage="any-station", 
         note = f"interrupted by {interrupted}: best layout of the finished rounds"
     if best is None:  # no round produced a layout (round 0 failed and the budget ended before a retry)
         return last_fail, {"rounds": hist, "dense_set_poses": int(nD), "note": note or "no round produced a layout"}
-    res, dval, a, p, cov, cov_all, work_rows, (ae, pe, ce), (n_rows, sunc) = best
+    res, dval, a, p, cov, cov_all, work_rows, (ae, pe, ce), (n_rows, as_, ps_, cs_, sunc) = best
     # poses found uncoverable after the best round: its value over the coverable ones
-    short, dval = _dense_value(obj, np.r_[a, ae], np.r_[p, pe], np.r_[cov, ce], cov_all, need_all,
-                               np.r_[uncoverable[:n_rows], sunc])
+    short, dval = _dense_value(obj, np.r_[a, ae, as_], np.r_[p, pe, ps_], np.r_[cov, ce, cs_], np.r_[cov_all, cs_],
+                               need_all, np.r_[uncoverable[:n_rows], sunc])
     if short:
         dval = math.inf
     # every round's working set is a subset of the dense set: the largest round bound holds for it
