@@ -143,3 +143,37 @@ def test_cli_dense_tilt_coverage_flags_and_heldout_matches_score(tmp_path):
     assert r2.exit_code == 0, r2.output
     sc = json.loads(r2.output)
     assert sc["worst_adop"] == pytest.approx(sets["heldout"]["worst_adop"], rel=1e-9)
+
+
+def test_cli_tilt_toward_station_writes_meridional_axes_and_rejects_a_zero_axis(tmp_path):
+    """optimize --max-tilt-deg --tilt-toward station: every tilted sensor of the written layout has its
+    axis at 15° from its site's surface normal, in the plane of that normal and the mean body-frame
+    station direction (recomputed here from the envelope's poses); a zero axis is refused by name."""
+    import json
+
+    from click.testing import CliRunner
+
+    from layoutkit.cli import main
+    from layoutkit.workflows.optimize import mean_station_direction, prepare_problem
+
+    env = tmp_path / "env.toml"
+    env.write_text(open("models/chen_envelope.toml").read().replace("count = 200", "count = 30"))
+    out = tmp_path / "lay.json"
+    args = ["optimize", "models/chen_target.stl", "--sensors", "10", "--envelope", str(env), "--out", str(out),
+            "--spacing-mm", "16", "--max-tilt-deg", "15", "--time-limit-s", "10", "--no-render", "--json"]
+    bad = CliRunner().invoke(main, args + ["--tilt-toward", "0,0,0"])
+    assert bad.exit_code == 2 and "--tilt-toward" in bad.output and not out.exists()
+    r = CliRunner().invoke(main, args + ["--tilt-toward", "station"])
+    assert r.exit_code in (0, 1), r.output
+    s = json.loads(r.output)
+    assert s["tilt_toward"] == "station" and s["max_tilt_deg"] == 15.0
+    assert s["tilted_sensors"] >= 1  # (6 on this instance): the checks below see tilted axes
+    plain = prepare_problem("models/chen_target.stl", str(env), spacing=0.016)
+    w = mean_station_direction(plain["rotations"], plain["translations"], plain["stations"])
+    normal = dict(zip(plain["candidates"].ids, plain["candidates"].normals))
+    lay = json.loads(out.read_text())
+    for x in lay["sensors"]:
+        n, a = normal[x["x-site"]], np.asarray(x["normal"], float)
+        assert np.degrees(np.arccos(np.clip(n @ a, -1, 1))) == pytest.approx(x["x-tilt-deg"], abs=1e-6)
+        assert x["x-tilt-deg"] in (0.0, pytest.approx(15.0))
+        assert abs(np.linalg.det(np.stack([n, a, w]))) < 1e-9

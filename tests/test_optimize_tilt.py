@@ -16,9 +16,9 @@ from layoutkit.optimize.tilt import site_conflicts, tilt_orientations
 from layoutkit.optimize.tilt_instance import leaning_instance
 
 
-def _solve(tilt, method, k=4):
+def _solve(tilt, method, k=4, toward=None):
     pos, nor, R, t = leaning_instance()
-    p2, a2, site, tl = tilt_orientations(pos, nor, tilt, 2)
+    p2, a2, site, tl = tilt_orientations(pos, nor, tilt, 2, toward=toward)
     vis = cone_visibility(p2, a2, R, t, half_angle_deg=60)
     jac = candidate_jacobians(p2, R, t)
     r = optimize_stations(jac, vis[:, None], k, rho=0.8717, method=method, conflict=site_conflicts(site),
@@ -76,3 +76,51 @@ def test_optimize_layout_max_tilt_keyword_matches_stations_path():
     ex, site, tl, _ = _solve(30.0, "exhaustive")
     assert r.value == pytest.approx(ex.value, rel=1e-12)
     assert sorted(r.info["site"].tolist()) == sorted(site[ex.selected].tolist())
+
+
+def test_meridional_tilts_lie_in_the_plane_of_normal_and_axis():
+    """Closed-form geometry of ``toward``: each tilted axis is a unit vector at the tilt angle from its
+    normal, coplanar with the normal and the axis, the first block closer to the axis and the second
+    farther; a site whose normal is the axis has no tilted orientation."""
+    rng = np.random.default_rng(3)
+    nor = rng.normal(size=(40, 3))
+    nor /= np.linalg.norm(nor, axis=1, keepdims=True)
+    w = np.array([0.2, -0.1, 1.0])
+    nor[7] = w / np.linalg.norm(w)
+    pos = rng.normal(size=(40, 3))
+    p2, a2, site, tl = tilt_orientations(pos, nor, 20.0, toward=w, levels=(0.5, 1.0))
+    assert len(p2) == 40 + 4 * 39 and 7 not in site[40:]
+    np.testing.assert_array_equal(site[:40], np.arange(40))
+    np.testing.assert_allclose(p2, pos[site])
+    n = nor[site]
+    np.testing.assert_allclose(np.linalg.norm(a2, axis=1), 1.0)
+    np.testing.assert_allclose(np.degrees(np.arccos(np.clip(np.sum(a2 * n, axis=1), -1, 1))), tl, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.det(np.stack([n, a2, np.broadcast_to(w, n.shape)], axis=1)), 0.0,
+                               atol=1e-12)
+    ang = lambda a: np.degrees(np.arccos(np.clip(a @ (w / np.linalg.norm(w)), -1, 1)))  # angle to the axis
+    th = ang(n)
+    # in the plane, towards the axis: |theta - tilt|; away: theta + tilt (folded past 180)
+    towards = np.tile(np.repeat([True, False], 39), 2)
+    want = np.where(towards, np.abs(th[40:] - tl[40:]), 180 - np.abs(180 - th[40:] - tl[40:]))
+    np.testing.assert_allclose(ang(a2[40:]), want, atol=1e-6)
+    with pytest.raises(ValueError, match="toward"):
+        tilt_orientations(pos, nor, 20.0, toward=[0, 0, 0])
+
+
+def test_meridional_tilt_toward_the_station_finds_the_exhaustive_optimum():
+    """Exhaustive search with the 2 meridional orientations towards/away from the mean station direction
+    (body frame, from the instance's poses): the pipeline equals it, and it beats the untilted optimum."""
+    from layoutkit.lighthouse import Station
+    from layoutkit.workflows.optimize import mean_station_direction
+
+    _, _, R, t = leaning_instance()
+    w = mean_station_direction(R, t, [Station()])
+    d = np.array([Ri.T @ (np.zeros(3) - ti) / np.linalg.norm(ti) for Ri, ti in zip(R, t)])  # station at 0
+    np.testing.assert_allclose(w, d.mean(0) / np.linalg.norm(d.mean(0)), atol=1e-12)
+    assert np.degrees(np.arccos(d @ w)).max() < 30  # the instance's 25° cone (+ parallax) about it
+    r0, *_ = _solve(0.0, "exhaustive")
+    ex, site, tl, _ = _solve(30.0, "exhaustive", toward=w)
+    pl, site_p, _, _ = _solve(30.0, "pipeline", toward=w)
+    assert ex.success and pl.success and ex.value < 0.5 * r0.value
+    assert pl.value == pytest.approx(ex.value, rel=1e-9)
+    assert len(set(site_p[pl.selected])) == len(pl.selected)

@@ -1,6 +1,8 @@
 """CLI command ``layoutkit optimize`` (the demo is wired by the core CLI to workflows.optimize.run_demo)."""
 from __future__ import annotations
 
+import math
+
 import click
 
 from ._common import echo_json, fail
@@ -19,6 +21,18 @@ def _k_range(ctx, param, value):
     if not 1 <= a <= b:
         raise click.BadParameter(f"expected 1 <= KMIN <= KMAX, got {value!r}")
     return a, b
+
+
+def _tilt_toward(ctx, param, value):
+    if value is None or value == "station":
+        return value
+    try:
+        v = [float(x) for x in value.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3 or not all(map(math.isfinite, v)) or not any(v):
+        raise click.BadParameter(f"expected 'station' or a non-zero body axis X,Y,Z (e.g. 0,0,1), got {value!r}")
+    return v
 
 
 @click.command("optimize", short_help="Choose K photodiode sites minimising DOP (certified gap).")
@@ -58,6 +72,10 @@ def _k_range(ctx, param, value):
 @coverage_option
 @click.option("--max-tilt-deg", type=click.FloatRange(0.0, 90.0, max_open=True), default=0.0, show_default=True,
               help="Sensors may be tilted from the surface normal up to this angle (one orientation per site).")
+@click.option("--tilt-toward", default=None, callback=_tilt_toward, metavar="station|X,Y,Z",
+              help="With --max-tilt-deg: tilt only in the plane of the normal and this body axis, towards it and "
+                   "away from it ('station': the mean body-frame direction to the stations over the envelope); "
+                   "default: 4 azimuths about the normal.")
 @click.option("--dense-poses", type=click.IntRange(min=1), default=None, metavar="N",
               help="Adaptive pose generation against N extra envelope poses (dense set); report with a "
                    "held-out set. --time-limit-s is then the budget of all rounds.")
@@ -67,7 +85,7 @@ def _k_range(ctx, param, value):
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                  half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json,
-                 coverage, max_tilt_deg, dense_poses, bnb):
+                 coverage, max_tilt_deg, tilt_toward, dense_poses, bnb):
     """Choose K photodiode sites on MESH minimising DOP over the envelope, with a certified gap."""
     import warnings
 
@@ -84,7 +102,7 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
             s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                           spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                           half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize,
-                          dict(coverage=coverage, max_tilt_deg=max_tilt_deg, dense_poses=dense_poses,
+                          dict(coverage=coverage, max_tilt_deg=max_tilt_deg, tilt_toward=tilt_toward, dense_poses=dense_poses,
                                branch_and_bound="auto" if bnb else "off"))
         except MeshUnitsWarning as exc:
             fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")

@@ -13,14 +13,25 @@ import numpy as np
 
 from ..units import RHO_PAPER
 
-__all__ = ["prepare_problem", "run_optimize", "write_report", "run_demo", "evaluate_layout"]
+__all__ = ["prepare_problem", "mean_station_direction", "run_optimize", "write_report", "run_demo", "evaluate_layout"]
 
 REPO = Path(__file__).resolve().parents[2]
 
 
+def mean_station_direction(rotations, translations, stations):
+    """Mean unit direction (3,) from the body to the stations, body frame, over poses
+    ``rotations (P, 3, 3)``, ``translations (P, 3)`` (body-to-world, m) and every station: the axis the
+    envelope looks at the body from (for meridional tilts, ``tilt_toward="station"``)."""
+    R, t = np.asarray(rotations, float), np.asarray(translations, float)
+    d = np.stack([np.einsum("pji,pj->pi", R, st.translation[None, :] - t) for st in stations])
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    m = d.reshape(-1, 3).mean(axis=0)
+    return m / np.linalg.norm(m)
+
+
 def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=(), units="m",
                     sensor_half_angle_deg=60.0, seed=0, max_candidates=None, max_tilt_deg=0.0,
-                    tilt_directions=4):
+                    tilt_directions=4, tilt_toward=None):
     """Load/sample everything the optimiser needs.
 
     mesh : path or ``trimesh.Trimesh`` (m); envelope : path or :class:`layoutkit.envelope.Envelope`;
@@ -28,7 +39,9 @@ def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=()
     Returns a dict: mesh, envelope, candidates (Layout), rotations (P,3,3), translations (P,3) (world),
     stations, visible (P, S, N) bool, jac (P, S, N, 2, 6), site (N,) site index of each candidate
     and tilt_deg (N,) (``max_tilt_deg > 0``: every site also carries its normal tilted by that angle
-    towards ``tilt_directions`` azimuths, :mod:`layoutkit.optimize.tilt`; ids ``<site>~t<j>``).
+    towards ``tilt_directions`` azimuths, or towards and away from the body axis ``tilt_toward`` (3,) if
+    given — ``"station"``: :func:`mean_station_direction` over the envelope —,
+    :mod:`layoutkit.optimize.tilt`; ids ``<site>~t<j>``, j = 1, 2, ... per site).
     """
     from ..candidates import sample_candidates
     from ..envelope import Envelope, load_envelope
@@ -50,15 +63,24 @@ def prepare_problem(mesh, envelope, *, candidates=None, spacing=None, keepout=()
         cand = load_layout(candidates)
     site = np.arange(cand.n)
     tilt = np.zeros(cand.n)
+    R, t = env.poses()
     if max_tilt_deg and max_tilt_deg > 0:
         from ..optimize.tilt import tilt_orientations
 
+        if isinstance(tilt_toward, str):
+            if tilt_toward != "station":
+                raise ValueError(f"tilt_toward: expected 'station' or a 3-vector, got {tilt_toward!r}")
+            tilt_toward = mean_station_direction(R, t, env.stations)
         pos, axes, site, tilt = tilt_orientations(cand.positions, cand.normals, float(max_tilt_deg),
-                                                  int(tilt_directions))
-        ids = tuple(cand.ids[s] if i < cand.n else f"{cand.ids[s]}~t{i // cand.n}" for i, s in enumerate(site))
+                                                  int(tilt_directions), toward=tilt_toward)
+        occ = np.zeros(cand.n, int)
+        ids = []
+        for s in site:  # the plain sites come first, then each site's tilted orientations in order
+            ids.append(cand.ids[s] if occ[s] == 0 else f"{cand.ids[s]}~t{occ[s]}")
+            occ[s] += 1
+        ids = tuple(ids)
         cand = Layout(pos, axes, ids, dict(cand.metadata),
                       tuple({"x-site": cand.ids[s], "x-tilt-deg": float(tt)} for s, tt in zip(site, tilt)))
-    R, t = env.poses()
     vis = envelope_visibility(mesh, cand.positions, cand.normals, R, t, env.stations,
                               sensor_half_angle_deg=sensor_half_angle_deg)
     jac = candidate_jacobians(cand.positions, R, t, env.stations)
@@ -99,14 +121,15 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
                  min_visible=4, k_range=None, seed=0, units="m", min_spacing=0.0,
                  coverage_fraction=1.0, time_limit=None, progress=None, sensor_half_angle_deg=60.0,
                  max_candidates=None, render=True, echo=print, coverage="any-station", max_tilt_deg=0.0,
-                 tilt_directions=4, dense_poses=None, heldout_poses=2000, dense_rounds=40,
+                 tilt_directions=4, tilt_toward=None, dense_poses=None, heldout_poses=2000, dense_rounds=40,
                  dense_coverage_poses=None, branch_and_bound="auto"):
     """Optimise a k-sensor layout on ``mesh`` over ``envelope``; write layout JSON and a report.
 
     k_range : optional (k_min, k_max) — also the best layout for every k in the range (DOP vs k).
     fixed_ids : candidate ids placed in advance. coverage : coverage rule (:mod:`layoutkit.coverage_rule`).
     max_tilt_deg : sensors may be tilted from the surface normal up to this angle (one orientation
-    per site; :mod:`layoutkit.optimize.tilt`). dense_poses : adaptive pose generation against a
+    per site; :mod:`layoutkit.optimize.tilt`); tilt_toward : None (``tilt_directions`` azimuths),
+    ``"station"`` or a body axis (3,): meridional tilts only (:func:`prepare_problem`). dense_poses : adaptive pose generation against a
     dense set of the envelope (:mod:`layoutkit.workflows.dense`; ``time_limit`` is then the budget of
     all rounds; coverage also checked on ``dense_coverage_poses`` more poses, default 4 × dense_poses),
     reported with design-set, working-set, dense-set and held-out (``heldout_poses``, fresh seed)
@@ -123,7 +146,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
     prep = prepare_problem(mesh, envelope, candidates=candidates, spacing=spacing, keepout=keepout,
                            units=units, sensor_half_angle_deg=sensor_half_angle_deg, seed=seed,
                            max_candidates=max_candidates, max_tilt_deg=max_tilt_deg,
-                           tilt_directions=tilt_directions)
+                           tilt_directions=tilt_directions, tilt_toward=tilt_toward)
     cand = prep["candidates"]
     idmap = {c: i for i, c in enumerate(cand.ids)}
     missing = [f for f in fixed_ids if f not in idmap]
@@ -192,6 +215,7 @@ def run_optimize(mesh, envelope, k, *, out=None, report=None, objective="worst-a
         "selected_ids": [cand.ids[i] for i in res.selected],
         "stats": res.stats() if res.success else None, "k_sweep": sweep,
         "interrupted": interrupted, "coverage_rule": coverage, "max_tilt_deg": float(max_tilt_deg or 0.0),
+        "tilt_toward": tilt_toward if isinstance(tilt_toward, (str, type(None))) else [float(x) for x in tilt_toward],
     }
     if res.success:
         summary["tilted_sensors"] = int(np.sum(prep["tilt_deg"][res.selected] > 0))
