@@ -138,6 +138,12 @@ def main():
                          "join the dense and working sets")
     ap.add_argument("--max-working", type=int, default=None,
                     help="dense loop: cap on the working set (poses; default: what fits 2 GB of search arrays)")
+    ap.add_argument("--max-tilt-deg", type=float, default=0.0,
+                    help="sensor tilt as a design variable (layoutkit.optimize.tilt): every site also carries its "
+                         "normal tilted by this angle; the hand layouts keep their surface normals")
+    ap.add_argument("--tilt-toward", default=None,
+                    help="with --max-tilt-deg: 'station' (meridional tilts towards/away from the mean station "
+                         "direction) or X,Y,Z; default: 4 azimuths")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--fit-heldout-s", type=float, default=0.0,
@@ -163,7 +169,11 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     hull, cand = device(args.spacing_mm * 1e-3)
     env = envelope(200, 13)
-    prep = prepare_problem(hull, env, candidates=cand)
+    toward = (args.tilt_toward if args.tilt_toward in (None, "station")
+              else [float(x) for x in args.tilt_toward.split(",")])
+    prep = prepare_problem(hull, env, candidates=cand, max_tilt_deg=args.max_tilt_deg, tilt_toward=toward)
+    plain = cand  # the surface sites (the hand layouts' choices); tilted candidates follow them in prep
+    cand = prep["candidates"]  # its first plain.n candidates are the plain sites, in order
     N, k, rho, m = cand.n, args.k, 0.8717, 4
     _, Rh, th = envelope_set(env, count=2000, seed=env.seed + 2)
     res = {"device": {"candidates": N, "k": k, "spacing_mm": args.spacing_mm,
@@ -177,9 +187,20 @@ def main():
 
     sets = {}
     for i, (name, lat) in enumerate(RING_LATITUDES.items()):
-        sets[f"hand: {name}"] = ring_layout(cand, k, lat, crown="no crown" not in name)
-    sets["hand: farthest-point (v1)"] = fps_layout(cand, k)
+        sets[f"hand: {name}"] = ring_layout(plain, k, lat, crown="no crown" not in name)
+    sets["hand: farthest-point (v1)"] = fps_layout(plain, k)
+    if args.max_tilt_deg > 0 and toward is not None:  # the same hand layouts, every sensor tilted towards the axis
+        idx = {c: i for i, c in enumerate(cand.ids)}  # "<site>~t1": the first tilted orientation = towards
+        for name in list(sets):
+            sets[f"{name}, tilted {args.max_tilt_deg:g}° towards"] = np.array(
+                sorted(idx.get(f"{plain.ids[i]}~t1", i) for i in sets[name]))
     kw = dict(objective="worst-adop", rho=rho, min_visible=m)
+    if args.max_tilt_deg > 0:  # one orientation per site
+        from layoutkit.optimize.tilt import site_conflicts
+
+        kw["conflict"] = site_conflicts(prep["site"])
+        res["device"].update(max_tilt_deg=args.max_tilt_deg, tilt_toward=toward, oriented_candidates=N,
+                             sites=plain.n)
     T = args.time_limit_s
     t0 = time.perf_counter()
     r_design = optimize_stations(prep["jac"], prep["visible"], k, rng=0,
@@ -202,7 +223,7 @@ def main():
 
     per = {}
     for name, sel in sets.items():
-        row = {"sensors": [int(x) for x in sel]}
+        row = {"sensors": [int(x) for x in sel], "tilted_sensors": int((prep["tilt_deg"][sel] > 0).sum())}
         for lab, R, t in (("design", prep["rotations"], prep["translations"]), ("working", Rw, tw),
                           ("dense", np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])),
                           ("heldout", Rh, th)):
@@ -290,6 +311,7 @@ def main():
         st = [{"id": "A", "position_m": [-0.5, 0.0, 0.0], "look_at_m": [0.0, 0.0, 2.0]},
               {"id": "B", "position_m": [0.5, 0.0, 0.0], "look_at_m": [0.0, 0.0, 2.0]}]
         env2 = envelope(200, 21, st)
+        cand = plain  # two stations: surface normals only
         prep2 = prepare_problem(hull, env2, candidates=cand)
         T2 = min(T, 90.0)
         r2, info2 = dense_optimize(prep2, k, kw, dense_poses=args.dense_poses, coverage="each-station",
@@ -348,17 +370,19 @@ def main():
     def f(v):
         return "∞" if v is None or not np.isfinite(v) else f"{v:.0f}"
 
-    lines = [f"k = {k}, {N} candidate sites; ADOP deg/rad; worst over all poses with an untracked pose = ∞; "
+    tilt_txt = (f" ({plain.n} sites × orientations up to {args.max_tilt_deg:g}° from the normal, "
+                f"towards {toward or '4 azimuths'}; hand layouts untilted)" if args.max_tilt_deg > 0 else "")
+    lines = [f"k = {k}, {N} candidate sites{tilt_txt}; ADOP deg/rad; worst over all poses with an untracked pose = ∞; "
              f"'common' = worst over the {res['heldout_poses_all_layouts_track']} held-out poses every layout tracks.", "",
              "| layout | design (200) worst | working set worst | dense worst | held-out worst | held-out tracked | "
-             "held-out worst (common) | held-out p99 | held-out median | held-out rays worst (1–3 m) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "held-out worst (common) | held-out p99 | held-out median | held-out rays worst (1–3 m) | tilted |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, row in res["layouts"].items():
         h = row["heldout"]
         lines.append(f"| {name} | {f(row['design']['worst_adop'])} | {f(row['working']['worst_adop'])} | "
                      f"{f(row['dense']['worst_adop'])} | {f(h['worst_adop'])} | {100 * h['covered_fraction']:.2f} % | "
                      f"{f(h['worst_adop_over_poses_all_layouts_track'])} | {f(h['p99_adop'])} | {f(h['median_adop'])} | "
-                     f"{f(row['heldout_rays']['worst_adop'])} |")
+                     f"{f(row['heldout_rays']['worst_adop'])} | {row['tilted_sensors']} |")
     lines += ["", f"working set of the dense loop: {info['working_set_poses']} poses; "
               f"held-out / working-set worst = {ms['heldout_over_working']:.3f}; "
               f"held-out / dense-set ({ms['dense_set_poses']} poses) worst = {ms['heldout_over_dense']:.3f}; "
