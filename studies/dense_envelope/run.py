@@ -144,6 +144,9 @@ def main():
     ap.add_argument("--tilt-toward", default=None,
                     help="with --max-tilt-deg: 'station' (meridional tilts towards/away from the mean station "
                          "direction) or X,Y,Z; default: 4 azimuths")
+    ap.add_argument("--design-min-visible", type=int, default=None,
+                    help="lit sensors the optimisers require at every pose (default 4); a pose still counts as "
+                         "tracked with 4 when scored: 5 leaves a spare sensor against pockets between sampled poses")
     ap.add_argument("--skip-two-stations", action="store_true")
     ap.add_argument("--skip-bounds", action="store_true")
     ap.add_argument("--fit-heldout-s", type=float, default=0.0,
@@ -194,7 +197,8 @@ def main():
         for name in list(sets):
             sets[f"{name}, tilted {args.max_tilt_deg:g}° towards"] = np.array(
                 sorted(idx.get(f"{plain.ids[i]}~t1", i) for i in sets[name]))
-    kw = dict(objective="worst-adop", rho=rho, min_visible=m)
+    kw = dict(objective="worst-adop", rho=rho, min_visible=args.design_min_visible or m)
+    res["device"]["design_min_visible"] = kw["min_visible"]
     if args.max_tilt_deg > 0:  # one orientation per site
         from layoutkit.optimize.tilt import site_conflicts
 
@@ -312,6 +316,7 @@ def main():
               {"id": "B", "position_m": [0.5, 0.0, 0.0], "look_at_m": [0.0, 0.0, 2.0]}]
         env2 = envelope(200, 21, st)
         cand = plain  # two stations: surface normals only
+        kw = {x: v for x, v in kw.items() if x != "conflict"}
         prep2 = prepare_problem(hull, env2, candidates=cand)
         T2 = min(T, 90.0)
         r2, info2 = dense_optimize(prep2, k, kw, dense_poses=args.dense_poses, coverage="each-station",
