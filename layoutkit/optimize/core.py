@@ -294,6 +294,8 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
         if not cov.feasible:
             return fail(cov.status, cov.message, cov)
         why = ("; ".join(ctx.notes) + "; ") if ctx.notes else ""
+        if not cov.decided:  # the MILP's time limit: a k-cover is neither found nor ruled out
+            return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout; {cov.message}", cov)
         from .coverage import minimum_k
 
         kmin = cov.min_k if cov.min_k is not None else minimum_k(problem.lit, problem.m, n_cover, fixed, conflict)[0]

@@ -3,6 +3,7 @@
     .venv/bin/python studies/dense_envelope/diagnostics.py polish-all [--time-limit-s 400] [--coverage-poses 40000]
     .venv/bin/python studies/dense_envelope/diagnostics.py pockets [--layout polish_all.json]
     .venv/bin/python studies/dense_envelope/diagnostics.py rays [--results results.json ...]
+    .venv/bin/python studies/dense_envelope/diagnostics.py fresh [--results tilt/results.json]
 
 ``polish-all``: polish (1- and 2-swaps, kicks) from the committed dense-loop layout (results.json) with the whole
 dense set — design + 10,000 dense + ``--coverage-poses`` coverage poses, ~9 GB of search arrays at 40,000 — as
@@ -14,6 +15,9 @@ layout of the given study results (default the committed results.json) on the 2,
 *rays* — each held-out attitude and bearing over the whole 1–3 m range, by
 :func:`layoutkit.workflows.dense.range_sweep_poses` (both ends and both sides of every half-angle crossing of the
 layout's sensors: the worst case along each ray) — and on the rays of the 10,000 dense poses; writes ``rays.json``.
+``fresh`` (session 22): every layout of one study results file (its device, tilt included) on five more fresh
+2,000-pose sets of the envelope (seeds envelope seed + 100 … + 104, never used by any optimiser) and one fresh
+20,000-pose set (seed + 200): is the held-out comparison one lucky draw? Writes ``fresh.json`` beside the results.
 """
 from __future__ import annotations
 
@@ -136,16 +140,53 @@ def rays(args):
     atomic_write_text(Path(args.out) / "rays.json", json.dumps(out, indent=1) + "\n")
 
 
+def fresh(args):
+    from run import device, envelope
+
+    from layoutkit.workflows.dense import evaluate_selection
+    from layoutkit.workflows.optimize import prepare_problem
+    from layoutkit.workflows.score import envelope_set
+
+    path = Path((args.results or [str(HERE / "results.json")])[0])
+    res = json.loads(path.read_text())
+    dev = res["device"]
+    hull, cand = device(dev["spacing_mm"] * 1e-3)
+    env = envelope(200, 13)
+    prep = prepare_problem(hull, env, candidates=cand, max_tilt_deg=dev.get("max_tilt_deg", 0.0),
+                           tilt_toward=dev.get("tilt_toward"))
+    sets = [(f"seed+{d}", 2000, env.seed + d) for d in range(100, 105)] + [("seed+200", 20000, env.seed + 200)]
+    out = {"results": str(path), "sets": {lab: {"poses": n, "seed": sd} for lab, n, sd in sets}, "layouts": {}}
+    for lab, n, sd in sets:
+        _, R, t = envelope_set(env, count=n, seed=sd)
+        for name, row in res["layouts"].items():
+            a, _, cov = evaluate_selection(prep, np.array(row["sensors"]), R, t, RHO, M, "any-station")
+            out["layouts"].setdefault(name, {})[lab] = {
+                "untracked": int((~cov).sum()), "worst_adop": float(a.max()) if cov.all() else float("inf"),
+                "worst_adop_over_tracked": float(a[cov].max())}
+    opt = "optimised by the dense loop"
+    hands = [x for x in out["layouts"] if x.startswith("hand")]
+    ratio = {}
+    for lab, _, _ in sets:
+        best = min(out["layouts"][h][lab]["worst_adop"] for h in hands)
+        ratio[lab] = best / out["layouts"][opt][lab]["worst_adop"]
+        print(f"{lab}: dense loop {out['layouts'][opt][lab]['worst_adop']:.0f}, best hand {best:.0f} "
+              f"({ratio[lab]:.2f}x)", flush=True)
+    out["best_hand_over_dense_loop"] = ratio
+    from layoutkit.io.atomic import atomic_write_text
+
+    atomic_write_text(path.parent / "fresh.json", json.dumps(out, indent=1) + "\n")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("polish-all", "pockets", "rays"))
+    ap.add_argument("mode", choices=("polish-all", "pockets", "rays", "fresh"))
     ap.add_argument("--results", nargs="*", default=None, help="rays: study results.json files (layouts to score)")
     ap.add_argument("--time-limit-s", type=float, default=400.0)
     ap.add_argument("--coverage-poses", type=int, default=40000)
     ap.add_argument("--layout", default=None)
     ap.add_argument("--out", default=str(HERE))
     args = ap.parse_args()
-    {"polish-all": polish_all, "pockets": pockets, "rays": rays}[args.mode](args)
+    {"polish-all": polish_all, "pockets": pockets, "rays": rays, "fresh": fresh}[args.mode](args)
 
 
 if __name__ == "__main__":

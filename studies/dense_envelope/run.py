@@ -277,7 +277,10 @@ def main():
         "dense_set_poses": O["dense"]["poses"], "dense_set_worst": O["dense"]["worst_adop"],
         "heldout_over_dense": O["heldout"]["worst_adop"] / O["dense"]["worst_adop"],
         "loop_dense_set_poses": info["dense_set_poses"], "loop_dense_value": info["dense_value"],
-        "heldout_over_loop_dense": O["heldout"]["worst_adop"] / info["dense_value"],
+        # the loop's own dense value is ∞ when a loop dense pose has fewer lit than the loop requires
+        # (--design-min-visible): no ratio then
+        "heldout_over_loop_dense": (O["heldout"]["worst_adop"] / info["dense_value"]
+                                    if math.isfinite(info["dense_value"]) else None),
         "design200_worst": O["design"]["worst_adop"],
         "heldout_over_design200": O["heldout"]["worst_adop"] / O["design"]["worst_adop"]}
     ms = res["must_show"]
