@@ -57,7 +57,8 @@ def tilt_orientations(positions, normals, max_tilt_deg, n_directions=4, levels=(
         w = np.asarray(toward, float).reshape(3)
         if not np.all(np.isfinite(w)) or np.linalg.norm(w) == 0:
             raise ValueError(f"toward: expected a finite non-zero 3-vector, got {toward!r}")
-        m = w / np.linalg.norm(w) - (n @ (w / np.linalg.norm(w)))[:, None] * n  # meridian direction
+        w = w / np.linalg.norm(w)
+        m = w - (n @ w)[:, None] * n  # meridian direction (the axis's part orthogonal to the normal)
         mn = np.linalg.norm(m, axis=1)
         ok = mn > 1e-6
         m = m / np.where(ok, mn, 1.0)[:, None]
