@@ -52,6 +52,16 @@ def _setup(n_cov):
     return hull, cand, prep, R, t, Rh, th
 
 
+def _worst(prep, sel, R, t):
+    """A layout's worst ADOP over poses ``R, t`` (∞ if any has < 4 lit), over the tracked ones, and the counts."""
+    from layoutkit.workflows.dense import evaluate_selection
+
+    a, _, cov = evaluate_selection(prep, sel, R, t, RHO, M, "any-station")
+    return {"poses": int(len(a)), "untracked": int((~cov).sum()),
+            "worst_adop": float(a.max()) if cov.all() else float("inf"),
+            "worst_adop_over_tracked": float(a[cov].max())}
+
+
 def _committed():
     r = json.loads((HERE / "results.json").read_text())
     return np.array(r["layouts"]["optimised by the dense loop"]["sensors"])
@@ -111,7 +121,7 @@ def pockets(args):
 
 
 def rays(args):
-    from layoutkit.workflows.dense import evaluate_selection, range_sweep_poses
+    from layoutkit.workflows.dense import range_sweep_poses
     from layoutkit.workflows.score import envelope_set
 
     hull, cand, prep, R, t, Rh, th = _setup(1)
@@ -121,10 +131,7 @@ def rays(args):
     def worst(sel, R_, t_, sweep):
         if sweep:
             R_, t_, _ = range_sweep_poses(env, R_, t_, cand.positions[sel], cand.normals[sel], 60.0)
-        a, _, cov = evaluate_selection(prep, sel, R_, t_, RHO, M, "any-station")
-        return {"poses": int(len(a)), "untracked": int((~cov).sum()),
-                "worst_adop": float(a.max()) if cov.all() else float("inf"),
-                "worst_adop_over_tracked": float(a[cov].max())}
+        return _worst(prep, sel, R_, t_)
 
     out = {}
     for path in args.results or [str(HERE / "results.json")]:
@@ -143,7 +150,6 @@ def rays(args):
 def fresh(args):
     from run import device, envelope
 
-    from layoutkit.workflows.dense import evaluate_selection
     from layoutkit.workflows.optimize import prepare_problem
     from layoutkit.workflows.score import envelope_set
 
@@ -159,10 +165,7 @@ def fresh(args):
     for lab, n, sd in sets:
         _, R, t = envelope_set(env, count=n, seed=sd)
         for name, row in res["layouts"].items():
-            a, _, cov = evaluate_selection(prep, np.array(row["sensors"]), R, t, RHO, M, "any-station")
-            out["layouts"].setdefault(name, {})[lab] = {
-                "untracked": int((~cov).sum()), "worst_adop": float(a.max()) if cov.all() else float("inf"),
-                "worst_adop_over_tracked": float(a[cov].max())}
+            out["layouts"].setdefault(name, {})[lab] = _worst(prep, np.array(row["sensors"]), R, t)
     opt = "optimised by the dense loop"
     hands = [x for x in out["layouts"] if x.startswith("hand")]
     ratio = {}
