@@ -1,6 +1,8 @@
-"""The result of a batched pose solve (:class:`PnPResult`), shared by the LH1 solver
-(:mod:`layoutkit.pnp_lh1`), the forward-model joint solver (:mod:`layoutkit.joint`) and their
-public front :func:`layoutkit.pnp.solve_pnp`; it sits below all three so none imports another for it.
+"""The result of a batched pose solve, :class:`PnPResult`.
+
+Shared by the LH1 solver (:mod:`layoutkit.pnp_lh1`), the forward-model joint solver
+(:mod:`layoutkit.joint`) and their public front :func:`layoutkit.pnp.solve_pnp`; it sits below all
+three so none imports another for it.
 """
 from __future__ import annotations
 

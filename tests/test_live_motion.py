@@ -15,7 +15,7 @@ from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.live.frames import SweepMeasurement
 from layoutkit.live.pipeline import STATUS_OK, PipelineConfig, PosePipeline
 from layoutkit.live.simulator import simulate_sweeps, spin_motion
-from layoutkit.noise import SIGMA_THETA_PAPER
+from layoutkit.units import SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 
 WARM_UP_S = 0.5  # frames before this have no (or a start-up) velocity estimate; not evaluated

@@ -12,7 +12,8 @@ import pytest
 from layoutkit.dop import angle_jacobian, pose_dop
 from layoutkit.geometry import attitude_error, random_rotations, transform_points
 from layoutkit.lighthouse import in_field_of_view, sweep_angles
-from layoutkit.noise import SIGMA_THETA_PAPER, sample_angle_noise
+from layoutkit.noise import sample_angle_noise
+from layoutkit.units import SIGMA_THETA_PAPER
 from layoutkit import pnp_lh1
 from layoutkit.pnp import (PNP_SOLVERS, STATUS_DEGENERATE, STATUS_INVALID_ANGLE, STATUS_NO_START, STATUS_OK,
                            STATUS_TOO_FEW, PnPResult,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
+from ..io.jsonfile import to_jsonable
 from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
