@@ -10,7 +10,7 @@ Two variants: the default one installs the wheel alone (``--no-deps``) and lends
 environment the third-party packages of the running one (a ``.pth`` line, which adds their folder
 but runs none of its ``.pth`` files, so the checkout's editable hook stays out); the ``slow`` one
 lets pip install every dependency into the fresh environment (minutes: from pip's cache and the
-configured indexes).
+configured indexes; marked ``install``, run by ``make test-install`` only).
 """
 from __future__ import annotations
 
@@ -119,6 +119,7 @@ def test_wheel_runs_demo_outside_checkout(lent_venv, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.install
 def test_wheel_with_dependencies_in_fresh_venv(wheel, tmp_path):
     python = _fresh_venv(tmp_path / "venv", with_pip=True)
     r = subprocess.run([str(python), "-m", "pip", "install", "-q", str(wheel)], capture_output=True, text=True)

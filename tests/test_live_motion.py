@@ -85,6 +85,7 @@ def test_noise_free_constant_velocity_is_removed(layout):
     assert out[True][0].max() < 0.05 and out[True][1].max() < 0.05
 
 
+@pytest.mark.slow
 def test_compensation_chunking_and_gaps(layout):
     """1-frame chunks (live) and 500-frame chunks (replay) agree far below the noise (0.02 σ); the
     first frames of the stream and of the track after a 1 s gap (no velocity yet) are not
