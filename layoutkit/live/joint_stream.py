@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import status as _status
 from ..io.poses import JOINT
 from ..joint import WINDOW_S
 
@@ -230,7 +231,9 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             pd = np.where(ok, d.pdop, np.inf)
         else:
             ad = pd = np.full(idx.size, np.inf)
-        st = np.where(~ok, np.where(np.asarray(sol.status) == PNP_TOO_FEW, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED),
+        s0 = np.asarray(sol.status)  # too few / low redundancy keep their names (layoutkit.status)
+        st = np.where(~ok, np.where(s0 == PNP_TOO_FEW, STATUS_TOO_FEW_LIT,
+                                    np.where(s0 == _status.LOW_REDUNDANCY, s0, STATUS_SOLVER_FAILED)),
                       np.where(rr > limit, STATUS_HIGH_RESIDUAL, STATUS_OK))
         st, cand = _continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
         state["jump"] = cand

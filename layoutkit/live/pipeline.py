@@ -63,8 +63,10 @@ STATUS_HIGH_RESIDUAL = _status.HIGH_RESIDUAL
 STATUS_JUMP = _status.JUMP
 STATUS_AMBIGUOUS = _status.AMBIGUOUS  # two poses fit the angles equally well (planar ambiguity, layoutkit.pnp)
 #: The pipeline's statuses by name: the codes and names of the one table, :mod:`layoutkit.status`.
+STATUS_LOW_REDUNDANCY = _status.LOW_REDUNDANCY  # solved from 6-7 angles: cannot check itself (layoutkit.status)
 STATUS_NAMES = {c: _status.NAMES[c] for c in (STATUS_OK, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED,
-                                               STATUS_HIGH_RESIDUAL, STATUS_JUMP, STATUS_AMBIGUOUS)}
+                                               STATUS_HIGH_RESIDUAL, STATUS_JUMP, STATUS_AMBIGUOUS,
+                                               STATUS_LOW_REDUNDANCY)}
 
 LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
 #: ``LiveConfig.solve`` values (the CLI's ``--solve`` choices, :data:`layoutkit.cli.options.SOLVE_MODES`).
@@ -520,9 +522,10 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
         ad, pd = np.array(dop[0]), np.array(dop[1])
     else:
         ad, pd = _dop(P, Rs, ts, ok, lit, config, cal)
-    from ..pnp import STATUS_AMBIGUOUS as PNP_AMBIGUOUS
+    from ..pnp import STATUS_AMBIGUOUS as PNP_AMBIGUOUS, STATUS_LOW_REDUNDANCY as PNP_LOW
 
-    failed = np.where(np.asarray(sol.status) == PNP_AMBIGUOUS, STATUS_AMBIGUOUS, STATUS_SOLVER_FAILED)
+    failed = np.where(np.asarray(sol.status) == PNP_AMBIGUOUS, STATUS_AMBIGUOUS,
+                      np.where(np.asarray(sol.status) == PNP_LOW, STATUS_LOW_REDUNDANCY, STATUS_SOLVER_FAILED))
     stat = np.where(~ok, failed,
                     np.where(rr > config.max_residual_sigma * config.sigma_theta, STATUS_HIGH_RESIDUAL, STATUS_OK))
     return Rs, ts, ok, rr, ad, pd, stat

@@ -349,7 +349,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     residual_rms, success``.
     """
     from ..dop import GROSS_FAILURE_DEG, gross_failures, pose_dop, pose_errors, predicted_precision, rms
-    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES, STATUS_NO_START, STATUS_OK
+    from ..pnp import STATUS_AMBIGUOUS, STATUS_LOW_REDUNDANCY, STATUS_NAMES, STATUS_NO_START, STATUS_OK
 
     seen = ~np.isnan(fr.angles)
     st = fr.stations()
@@ -373,7 +373,8 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     names = {int(k): STATUS_NAMES.get(int(k), str(k)) for k in np.unique(status)}
     counts = {names[int(k)]: int(v) for k, v in zip(*np.unique(status, return_counts=True))}
     rv = np.full((len(fr.t), 3), np.nan)
-    has_pose = ok | amb  # an ambiguous frame keeps its best candidate (its status says so)
+    # an ambiguous frame keeps its best candidate, a low-redundancy one its pose (their statuses say so)
+    has_pose = ok | amb | (status == STATUS_LOW_REDUNDANCY)
     if has_pose.any():
         rv[has_pose] = matrix_to_rotvec(R[has_pose])
     # what was wrong with the input, by reason
