@@ -105,7 +105,7 @@ def crossing_beam(sc, windows):
     """The firmware's crossing-beam position of every window with both stations: (t (W,), pos (W, 3))."""
     from layoutkit.live.joint_stream import crossing_beam_windows
 
-    # stations by system-config id: the channel's exact rotor period (as read_system_config gives)
+    # stations by system-config id: the channel's exact rotor period (as load_system_config gives)
     return crossing_beam_windows(windows, sc["stations"], 4)
 
 def truth_position(sc, t):
