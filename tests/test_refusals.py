@@ -49,3 +49,26 @@ def test_simulate_with_a_layout_that_cannot_light_four_says_so_at_once(tmp_path,
     assert r.exit_code == 2 and r.output.startswith("error: ") and message in r.output, r.output
     assert time.perf_counter() - t0 < 20
     assert not (tmp_path / "f.csv").exists()
+
+
+def test_truncated_binary_stl_names_the_cut(tmp_path):
+    """A binary STL cut short said "no faces"; the header's triangle count gives the real reason."""
+    p = tmp_path / "cut.stl"
+    p.write_bytes((REPO / "models" / "chen_target.stl").read_bytes()[:500])
+    r = _run(["mesh-info", p])
+    assert r.exit_code == 2
+    assert r.output.startswith(f"error: {p}: truncated binary STL: the header announces 20 triangles (1084 bytes), "
+                               "the file has 500 bytes (8 whole triangles)"), r.output
+    assert _run(["mesh-info", REPO / "models" / "chen_target.stl"]).exit_code == 0
+
+
+def test_envelope_range_in_millimetres_is_refused_naming_file_and_unit(tmp_path, small_envelope):
+    """``range_m = [1000, 3000]`` (mm written as m) was scored without a word (PDOP 1.8e7)."""
+    p = tmp_path / "env_mm.toml"
+    p.write_text(Path(small_envelope).read_text().replace("range_m = [1.0, 2.0]", "range_m = [1000.0, 3000.0]"))
+    r = _run(["score", LAYOUT, "--envelope", p, "--json"])
+    assert r.exit_code == 2
+    assert r.output.startswith(f"error: {p}: range_m [1000.0, 3000.0]: 3000 m is farther than any lighthouse "
+                               "reaches (<= 30 m): the numbers are probably millimetres (3 m?)"), r.output
+    ok = _run(["score", LAYOUT, "--envelope", p, "--json", "--allow-odd-size"])
+    assert ok.exit_code == 0 and "warning:" in ok.output  # let through on request, still said
