@@ -15,7 +15,7 @@ from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.live.frames import SweepMeasurement
 from layoutkit.live.pipeline import STATUS_OK, PipelineConfig, PosePipeline
 from layoutkit.live.simulator import simulate_sweeps, spin_motion
-from layoutkit.noise import SIGMA_THETA_PAPER
+from layoutkit.units import SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 
 WARM_UP_S = 0.5  # frames before this have no (or a start-up) velocity estimate; not evaluated
@@ -85,6 +85,7 @@ def test_noise_free_constant_velocity_is_removed(layout):
     assert out[True][0].max() < 0.05 and out[True][1].max() < 0.05
 
 
+@pytest.mark.slow
 def test_compensation_chunking_and_gaps(layout):
     """1-frame chunks (live) and 500-frame chunks (replay) agree far below the noise (0.02 σ); the
     first frames of the stream and of the track after a 1 s gap (no velocity yet) are not

@@ -14,7 +14,8 @@ from layoutkit.lighthouse import in_field_of_view, lh2_sweep_angles, sweep_angle
 from layoutkit.live.frames import SweepMeasurement
 from layoutkit.live.pipeline import (STATUS_JUMP, STATUS_OK, STATUS_TOO_FEW_LIT, PipelineConfig, PosePipeline,
                                      SweepPairer, lh2_to_lh1_angles)
-from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
+from layoutkit.noise import sample_angle_noise
+from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 from layoutkit.visibility import facing_mask
 

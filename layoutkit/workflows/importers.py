@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
+from ..io.jsonfile import to_jsonable
 from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
@@ -190,19 +190,13 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
 
 # ---------------------------------------------------------------- cfusdlog
 
-DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
-
-
 def _deck_layout() -> Layout:
     """The Lighthouse deck's 4 sensors (``models/crazyflie_lighthouse_deck.layout.json``; the
     firmware's ``sensorDeckPositions``)."""
     from ..layout import load_layout
+    from ..resources import model_path
 
-    if DECK_LAYOUT.exists():
-        return load_layout(DECK_LAYOUT)
-    L, W = 0.015, 0.0075  # installed without the models folder: the same numbers
-    P = np.array([[-L, W, 0.0], [-L, -W, 0.0], [L, W, 0.0], [L, -W, 0.0]])
-    return Layout(P, np.tile([0.0, 0.0, 1.0], (4, 1)), ("0", "1", "2", "3"))
+    return load_layout(model_path("crazyflie_lighthouse_deck.layout.json"))
 
 
 def _unwrap24(ts) -> np.ndarray:
