@@ -99,7 +99,7 @@ def _add(options):
 
 
 def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, filter_settings=None):
-    from ..workflows.live import LiveOptions
+    from ..live.pipeline import LiveConfig
 
     kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation)
     if filter_settings is not None:
@@ -111,7 +111,7 @@ def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, fi
             from ._common import fail
 
             fail(f"--filter: {exc}")
-    return LiveOptions(**kw)
+    return LiveConfig(**kw)
 
 
 def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:

@@ -20,7 +20,8 @@ from ..geometry import rotvec_to_matrix
 from ..io.poses import POSE_COLUMNS, PoseTable, PoseWriter
 from ..io.sidecar import CaptureSidecar
 from ..layout import Layout
-from .pipeline import STATUS_NAMES, LiveConfig, PoseChunk, PosePipeline
+from .pipeline import LiveConfig, PosePipeline
+from .posechunk import STATUS_NAMES, PoseChunk
 from .stats import DecimatedSeries, ErrorAccumulator, StaticGroupTracker
 
 __all__ = ["LiveConfig", "LiveSession", "POSES_EXTRAS", "POSES_HEADER", "make_decoder", "session_for",

@@ -61,7 +61,7 @@ def _simulate_station_frames(layout, frames, stations, rng, *, sigma, rho, half_
     """:func:`simulate_frames` with stations (see there); ValueError when no pose in front of station 0
     lights ``min_lit`` sensors of every station."""
     from ..geometry import transform_points
-    from ..lighthouse import lh2_to_lh1_angles, measure, quantize_angles, sweep_angles
+    from ..lighthouse import measure, quantize_angles, sweep_angles, to_sweep_angles
     from ..noise import sample_angle_noise
     from ..simulate import poses_in_front
     from ..visibility import facing_mask
@@ -98,7 +98,7 @@ def _simulate_station_frames(layout, frames, stations, rng, *, sigma, rho, half_
             else measure(p, st.calibration)
         a = a + sample_angle_noise(a.shape[:-1], sigma, rho, rng)
         if st.kind == "lh2":
-            a = lh2_to_lh1_angles(a)
+            a = to_sweep_angles(a, "lh2")
         elif quantize:
             a = quantize_angles(a, st.rotor_rpm, st.clock_hz)
         a[~v[:, q]] = np.nan
@@ -277,15 +277,12 @@ def _solve_calibrated(layout, angles, seen, cal, noise, initial=None):
     test kept: the ideal solver with its test runs on the undistorted angles (the same geometry); a
     frame it calls ambiguous stays ``STATUS_AMBIGUOUS`` and its runner-up is refined through the model.
     angles : the frame table's LH1-equivalent angles (LH2 rows turned into light-plane angles here)."""
-    from ..lighthouse import lh2_to_lh1_angles, sweep_to_lh2_angles, undistort
+    from ..lighthouse import sweep_to_lh2_angles, to_sweep_angles
     from ..pnp import STATUS_AMBIGUOUS, STATUS_NO_START, solve_pnp
 
     a_model = sweep_to_lh2_angles(angles) if cal.kind == "lh2" else np.asarray(angles, float)
     a_model = np.where(seen, a_model, np.nan)
-    with np.errstate(invalid="ignore"):
-        ideal = undistort(a_model, cal, max_iterations=20, tol=1e-9)
-    if cal.kind == "lh2":
-        ideal = lh2_to_lh1_angles(ideal)
+    ideal = to_sweep_angles(a_model, cal.kind, cal)
     ref = solve_pnp(layout.positions, ideal, seen & np.isfinite(ideal), initial=initial, **noise)
     have = np.all(np.isfinite(ref.translation), 1) & np.all(np.isfinite(ref.rotation), (1, 2))
     ini = (np.where(have[:, None, None], ref.rotation, np.nan), np.where(have[:, None], ref.translation, np.nan))

@@ -50,10 +50,11 @@ def import_vive_config(path, out) -> dict:
 # ---------------------------------------------------------------- libsurvive
 
 def _quat_rotvec(q_wxyz) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    """libsurvive pose quaternions ``(N, 4)`` ``[w, x, y, z]`` → rotation vectors ``(N, 3)`` rad."""
+    from ..geometry import matrix_to_rotvec
+    from ..rotations import quaternion_to_matrix
 
-    q = np.asarray(q_wxyz, float).reshape(-1, 4)
-    return Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_rotvec()
+    return matrix_to_rotvec(quaternion_to_matrix(np.asarray(q_wxyz, float).reshape(-1, 4), scalar_first=True))
 
 
 def _libsurvive_stations(rec, cfg: dict) -> tuple[list, list[dict], dict, dict]:
@@ -540,12 +541,12 @@ def import_reference(path, out, *, units: str = "m") -> dict:
     """A motion-capture reference (pose or position only; CSV or .npy) → a pose table ``out``
     (station ``joint`` = the reference's own world frame; position-only rows have an empty
     rotation). Any clock origin is kept as it is: the replay's offset search handles hours."""
-    from ..importers.mocap import read_reference
-    from ..io.poses import JOINT, PoseTable, write_poses
+    from ..io.poses import JOINT, PoseTable, read_reference, write_poses
 
     ref = read_reference(path, units)
     n = len(ref.t)
     rv = np.full((n, 3), np.nan) if ref.rotvec is None else ref.rotvec
-    write_poses(out, PoseTable(ref.t, rv, ref.position, station=np.full(n, JOINT), status=np.zeros(n, int)))
+    pos = np.full((n, 3), np.nan) if ref.translation is None else ref.translation
+    write_poses(out, PoseTable(ref.t, rv, pos, station=np.full(n, JOINT), status=np.zeros(n, int)))
     return {"file": str(path), "out": str(out), "rows": n, "dropped_rows": ref.dropped,
-            "position_only": ref.rotvec is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}
+            "position_only": ref.rotvec is None, "attitude_only": ref.translation is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}

@@ -23,7 +23,6 @@ from ..units import SIGMA_THETA_PAPER
 
 __all__ = [
     "LiveConfig",
-    "LiveOptions",
     "LiveSession",
     "POSES_HEADER",
     "POSES_EXTRAS",
@@ -35,10 +34,6 @@ __all__ = [
 ]
 
 _READ_BYTES = 1 << 16
-
-
-#: Old name of :class:`layoutkit.live.pipeline.LiveConfig` (the one live/replay config).
-LiveOptions = LiveConfig
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -85,6 +80,15 @@ def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA
     return out
 
 
+def _track(path, units: str = "m"):
+    """A reference file (TRUTH.csv, motion capture, camera attitude) as a
+    :class:`~layoutkit.live.reference.PoseTrack` (:func:`layoutkit.io.poses.read_reference`)."""
+    from ..io.poses import read_reference
+    from ..live.reference import PoseTrack
+
+    return PoseTrack.from_reference(read_reference(path, units))
+
+
 def _layout_from(layout, sidecar: CaptureSidecar) -> Layout:
     if isinstance(layout, Layout):
         return layout
@@ -109,11 +113,9 @@ def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, option
 
     sidecar : :class:`~layoutkit.io.sidecar.CaptureSidecar` or its dict.
     """
-    from ..live.reference import read_pose_csv
-
     sidecar = CaptureSidecar.from_dict(sidecar)
     lay = _layout_from(layout, sidecar)
-    tr = read_pose_csv(truth) if isinstance(truth, (str, Path)) else truth
+    tr = _track(truth) if isinstance(truth, (str, Path)) else truth
     sink = None
     if options is not None and options.filter is not None:  # the per-sweep EKF beside the frames
         from .filter import FilterSink
@@ -136,15 +138,13 @@ def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, option
 
 def _finish_run(session: LiveSession, summary: dict, *, reference=None, reference_units="m", camera=None,
                 report_dir=None, reference_offset=None, camera_frames=None) -> dict:
-    from ..live.reference import read_pose_csv
-
     sample = session.pose_track()
     extra_series = {}
     for key, path, units, tau in (("reference", reference, reference_units, reference_offset),
                                   ("camera", camera, "m", None)):
         if path is None:
             continue
-        tr = read_pose_csv(path, units=units)
+        tr = _track(path, units)
         if key == "camera":
             tr = type(tr)(tr.t, tr.rotation, None)
         res = reference_accuracy(session.poses_path, tr, sigma_theta=session.options.sigma_theta, sample=sample,
