@@ -32,6 +32,9 @@ whose rotations all stay below pi degrees cannot be told from radians; name the 
 Writing is atomic (:func:`layoutkit.io.atomic.atomic_write`); :class:`PoseWriter` streams chunks
 of a long run into one file that appears complete when the writer closes. Reading streams too
 (:func:`iter_poses`), so memory stays bounded for any length.
+
+Why one module of ~610 lines: the pose table and the foreign reference streams share the column
+rules (unit tags, the degrees check) — one reader of every pose file.
 """
 from __future__ import annotations
 
