@@ -21,7 +21,7 @@ from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.layout import load_layout
 from layoutkit.lighthouse import Station, lh2_sweep_angles, sweep_angles
 from layoutkit.live.simulator import simulate_sweeps
-from layoutkit.workflows import filter_scenarios as wf
+from layoutkit.studies import filter_scenarios as wf
 
 LAYOUT = "tests/data/chen_layout.json"
 

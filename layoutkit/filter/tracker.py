@@ -213,7 +213,8 @@ class SweepTracker:
 
     def _try_init(self, s: int, t: float, st: Station) -> bool:
         """PnP on the recent angles of station ``s`` (see the module docstring); True when started."""
-        from ..pnp import STATUS_AMBIGUOUS, solve_pnp
+        from ..pnp import solve_pnp
+        from ..status import AMBIGUOUS as STATUS_AMBIGUOUS
 
         rec = self._recent.get(s)
         if rec is None:

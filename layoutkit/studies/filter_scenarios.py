@@ -19,7 +19,7 @@ from ..filter.consistency import consistency, nees, pose_error, run_sweeps
 from ..geometry import attitude_error, look_at_rotation, rotvec_to_matrix
 from ..lighthouse import Station
 from ..units import RAD2DEG
-from .filter import filter_frames
+from ..workflows.filter import filter_frames
 
 __all__ = [
     "TUMBLE_CONFIG", "second_station", "measured", "track", "frame_by_frame", "errors_of",
@@ -311,7 +311,8 @@ def replay_throughput(layout, *, duration: float = 30.0, rounds: int = 5, seed: 
     from pathlib import Path
 
     from ..live.simulator import run_fake_fpga, simulate_stream
-    from .live import LiveConfig, replay_capture
+    from ..live.pipeline import LiveConfig
+    from ..workflows.live import replay_capture
 
     with tempfile.TemporaryDirectory() as tmp:
         cap = Path(tmp) / "cap.bin"
