@@ -1,10 +1,11 @@
 """A live or replay run in memory: decoder set-up, pose pipeline and sinks (JSON lines, the
 poses table, static-group precision, truth errors, decimated series for the report).
 
-:class:`LiveSession` takes bytes and gives :class:`~layoutkit.live.pipeline.PoseChunk` s; it is
+:class:`LiveSession` takes bytes and gives :class:`~layoutkit.live.posechunk.PoseChunk` s; it is
 configured by ONE :class:`~layoutkit.live.pipeline.LiveConfig`. :func:`make_decoder` builds the
 registered decoder from the station set-up (:data:`layoutkit.live.protocols.PROTOCOLS`), and
-:func:`session_for` a whole session from a capture sidecar. What a command does with files
+:func:`session_for` a whole session from a :class:`RunSetup` (the run's frozen configuration; a
+capture's sidecar records it). What a command does with files
 (reading captures, ports, reference files, writing reports) is :mod:`layoutkit.workflows.live`.
 """
 from __future__ import annotations
