@@ -334,7 +334,7 @@ def length_mm_option(flag: str, dest: str, *, default: float | None = None, requ
     def to_m(ctx, param, value):
         return None if value is None else float(value) * LENGTH_UNITS["mm"]
 
-    return option(flag, dest, type=click.FloatRange(min=0.0, min_open=not allow_zero), default=default,
+    return option(flag, dest, type=Number(0.0, min_open=not allow_zero), default=default,
                   show_default=default is not None, required=required, callback=to_m, help=help)
 
 
