@@ -367,7 +367,7 @@ def real_static_jitter(frames_path, layout_path, stations_path, *, zupt: bool = 
     from ..dop import precision
     from ..io.stations import read_stations
     from ..layout import load_layout
-    from .frames import read_frames, solve_frames
+    from ..workflows.frames import read_frames, solve_frames
 
     lay = load_layout(layout_path)
     fr = read_frames(frames_path, lay)
