@@ -37,15 +37,19 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
     from ..visibility import facing_mask
 
     rng = np.random.default_rng(seed)
+    if len(layout.ids) < min_lit:
+        raise ValueError(f"the layout has {len(layout.ids)} sensors: no pose can light the {min_lit} a frame needs")
     if stations is None:
         Rs, ts, vs = [], [], []
-        n_have = 0
+        n_have = n_drawn = 0
         while n_have < frames:
             R, t = poses_in_front(max(64, 2 * frames), rng)
             v = facing_mask(layout.positions, layout.normals, R, t, half_angle_deg=half_angle_deg)
             k = v.sum(1) >= min_lit
             Rs.append(R[k]); ts.append(t[k]); vs.append(v[k])
             n_have += int(k.sum())
+            n_drawn += len(k)
+            _check_acceptance(n_have, n_drawn, frames, min_lit, half_angle_deg)
         R = np.concatenate(Rs)[:frames]
         t = np.concatenate(ts)[:frames]
         v = np.concatenate(vs)[:frames]
@@ -54,6 +58,20 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
         return Frames(np.arange(frames) / rate_hz, ang, layout.ids, R, t)
     return _simulate_station_frames(layout, frames, list(stations), rng, sigma=sigma, rho=rho,
                                     half_angle_deg=half_angle_deg, min_lit=min_lit, rate_hz=rate_hz, quantize=quantize)
+
+
+def _check_acceptance(n_have: int, n_drawn: int, frames: int, min_lit: int, half_angle_deg: float,
+                      max_draws: int = 10_000_000) -> None:
+    """Bounded work for the pose draws: a layout that (almost) never lights ``min_lit`` sensors at
+    a pose of the area in front of the station is refused at once instead of drawing forever."""
+    if n_drawn < 2000:
+        return
+    if n_have == 0:
+        raise ValueError(f"no pose of {n_drawn} drawn in front of the station lights {min_lit} sensors of this "
+                         f"layout (half-angle {half_angle_deg:g} deg): can it ever? check the normals")
+    if frames * n_drawn / n_have > max_draws:
+        raise ValueError(f"only {n_have} of {n_drawn} poses drawn in front of the station light {min_lit} sensors of "
+                         f"this layout: {frames} frames would need ~{frames * n_drawn / n_have:.3g} draws")
 
 
 def _simulate_station_frames(layout, frames, stations, rng, *, sigma, rho, half_angle_deg, min_lit, rate_hz,
