@@ -6,6 +6,7 @@ import sys
 
 import click
 
+from .options import POSITIVE, Requires, flag_rules
 from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
                       units_option)
@@ -271,14 +272,15 @@ def _quiet_exit():
                    "sidecar). An existing capture is never overwritten: the run is refused (exit 2) unless "
                    "--overwrite.")
 @overwrite_option(what="an existing --record capture (and its .idx/.json)")
-@click.option("--duration", type=float, default=None, help="Stop after this many seconds (wall clock) [default: Ctrl-C].")
-@click.option("--idle-timeout", type=float, default=None,
+@click.option("--duration", type=POSITIVE, default=None, help="Stop after this many seconds (wall clock) [default: Ctrl-C].")
+@click.option("--idle-timeout", type=POSITIVE, default=None,
               help="Stop when no byte arrived for this many seconds after the first byte.")
-@click.option("--baudrate", type=int, default=None, help="Baud rate [default: 921600].")
+@click.option("--baudrate", type=click.IntRange(min=1), default=None, help="Baud rate [default: 921600].")
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
 @filter_options
 @camera_options
+@flag_rules(Requires("--overwrite", "--record", "only a --record capture can be replaced"))
 def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
              as_json, system_config, stations_path, filter_settings, camera_device, focal_length_px, principal_point_px,

@@ -275,9 +275,9 @@ def calibrated_setup(stations: list, protocol_options: dict, mode: str = "model"
     cals = {k: st.calibration for k, st in enumerate(stations) if st.calibration is not None}
     cfg_path = opts.get("system_config")
     if cfg_path:
-        from .protocols.bitcraze import load_system_config
+        from ..io.systemconfig import read_system_config
 
-        cfg = load_system_config(cfg_path)
+        cfg = read_system_config(cfg_path)
         kind = "lh1" if cfg.system_type == 1 else "lh2"
         for sid, cal in cfg.calibs.items():
             if sid < len(stations):

@@ -296,9 +296,9 @@ def _log_kind(ul, ev, stations, system_config) -> str | None:
     if ev is not None and ev.kind is not None:
         return ev.kind
     if system_config is not None:
-        from ..live.protocols.bitcraze import load_system_config
+        from ..io.systemconfig import read_system_config
 
-        return "lh1" if load_system_config(system_config).system_type == 1 else "lh2"
+        return "lh1" if read_system_config(system_config).system_type == 1 else "lh2"
     kinds = {st.kind for st in stations or ()}
     return kinds.pop() if len(kinds) == 1 else None
 
@@ -432,7 +432,7 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     from ..importers.cfusdlog import read_cfusdlog, sweep_events
     from ..io.atomic import atomic_write_bytes
     from ..io.sidecar import CaptureSidecar, sidecar_path, write_sidecar
-    from ..live.protocols.bitcraze import DECK_CLOCK_HZ, load_system_config
+    from ..io.systemconfig import DECK_CLOCK_HZ, read_system_config
 
     log = Path(log)
     out = Path(out_dir)
@@ -442,7 +442,7 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     if not has_uart and sweeps is None:
         raise ValueError(f"{log}: no lighthouse sweep data: found {_found(ul)}; log lhAngle or estSweepAngle "
                          "events ('on:lhAngle' in the card's config.txt) or, for LH2, lhUartFrame events")
-    cfg = load_system_config(system_config) if system_config else None
+    cfg = read_system_config(system_config) if system_config else None
     cap = out / "capture.bin"
     if cap.exists() or (out / "frames.csv").exists():
         raise ValueError(f"{out}: holds an import already (capture.bin / frames.csv); imports are never "

@@ -184,9 +184,9 @@ def stations_from_files(stations_path=None, system_config=None):
 
         return list(read_stations(stations_path))
     if system_config:
-        from ..live.protocols.bitcraze import load_system_config
+        from ..io.systemconfig import read_system_config
 
-        cfg = load_system_config(system_config)
+        cfg = read_system_config(system_config)
         ids = sorted(cfg.stations)
         if ids != list(range(len(ids))):
             raise ValueError(f"{system_config}: base-station ids {ids} are not 0..k-1; give --stations")

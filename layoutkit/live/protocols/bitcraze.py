@@ -43,17 +43,18 @@ LH2: the firmware's angles are already the ``lh2_sweep_angles`` light-plane angl
 clock fit, :func:`layoutkit.importers.cfusdlog.fit_deck_clock`; 0 and 1 otherwise); ``station`` is the
 LH1 station (0/1) or LH2 channel (0-15).
 
-Length (~730 lines): one module per wire protocol — frame layout, both pulse processors, the
-reference encoders and the system-config reader belong together and share the frame constants.
+Length (~650 lines): one module per wire protocol — frame layout, both pulse processors, the
+reference encoders belong together and share the frame constants (the system-config YAML is
+:mod:`layoutkit.io.systemconfig`'s).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..._validate import read_structured
+from ...io.systemconfig import (DECK_CLOCK_HZ, LH2_CYCLE_PERIODS, SystemConfig,  # noqa: F401  (the owner: io)
+                                read_system_config, system_config_dict)
 from ...lighthouse import (StationCalibration, SweepCalibration, calibrate_lh1, calibrate_lh2,  # noqa: F401
                            lh1_model, lh2_model)
 from ..frames import DecodeStats, SweepMeasurement
@@ -67,7 +68,6 @@ __all__ = [
     "DeckPulse",
     "SweepCalibration",
     "StationCalibration",
-    "SystemConfig",
     "encode_pulse",
     "parse_frame",
     "lh1_deck_stream",
@@ -79,13 +79,11 @@ __all__ = [
     "lh2_model",
     "calibrate_lh1",
     "calibrate_lh2",
-    "load_system_config",
     "BitcrazeDecoder",
     "BitcrazeLh1Decoder",
     "BitcrazeLh2Decoder",
 ]
 
-DECK_CLOCK_HZ = 24e6
 FRAME_SIZE = 12
 SYNC_FRAME = b"\xff" * FRAME_SIZE
 _TS_MOD = 1 << 24
@@ -138,74 +136,8 @@ def parse_frame(b: bytes) -> DeckPulse | None:
 
 # --------------------------------------------------------------------------------- calibration
 # The firmware's calibration records and model live in the core (layoutkit.lighthouse, one
-# internal model for both public conventions; docs/calibration.md); re-exported here.
-
-
-@dataclass(frozen=True)
-class SystemConfig:
-    """A Crazyflie lighthouse system configuration: stations (layoutkit frames) and calibrations.
-
-    stations : dict id → :class:`layoutkit.lighthouse.Station` (station pose in the Crazyflie
-    world frame, station frame in layoutkit's convention z = boresight); calibs : dict id →
-    :class:`StationCalibration`; system_type : 1 (LH1) or 2 (LH2).
-    """
-
-    stations: dict = field(default_factory=dict)
-    calibs: dict = field(default_factory=dict)
-    system_type: int = 2
-
-
-# layoutkit station frame → Bitcraze station frame: x_bc = z, y_bc = x, z_bc = y
-_LK_TO_BC = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-
-def _lh2_rpm(channel: int) -> float:
-    """Rotor speed (rpm) of LH2 channel ``channel`` (its cycle period; 3000 outside 0-15)."""
-    return 60.0 * DECK_CLOCK_HZ / LH2_CYCLE_PERIODS[channel] if 0 <= channel < len(LH2_CYCLE_PERIODS) else 3000.0
-
-
-def load_system_config(source) -> SystemConfig:
-    """Read a Crazyflie system-configuration YAML (``type: lighthouse_system_configuration``).
-
-    source : path or an already-parsed dict. ``geos: {id: {origin, rotation}}`` → stations with
-    ``rotation = R_bc @ M`` (M maps layoutkit station axes to Bitcraze's), ``translation = origin``;
-    ``calibs: {id: {sweeps: [{phase, tilt, curve, gibmag, gibphase, ogeemag, ogeephase}] * 2, uid}}``.
-    Raises ValueError naming what is wrong.
-    """
-    from ...geometry import nearest_rotation
-    from ...lighthouse import Station
-
-    if isinstance(source, dict):
-        data, name = source, "system config"
-    else:
-        import yaml
-
-        path = Path(source)
-        name = str(path)
-        data = read_structured(path, "system configuration", "YAML", yaml.safe_load, yaml.YAMLError)
-    if not isinstance(data, dict) or data.get("type") != "lighthouse_system_configuration":
-        raise ValueError(f"{name}: expected 'type: lighthouse_system_configuration'")
-    if str(data.get("version")) != "1":
-        raise ValueError(f"{name}: unsupported version {data.get('version')!r} (expected '1')")
-    system_type = int(data.get("systemType", 2))
-    kind = "lh1" if system_type == 1 else "lh2"
-    stations, calibs = {}, {}
-    try:
-        for sid, geo in (data.get("geos") or {}).items():
-            R = nearest_rotation(np.asarray(geo["rotation"], float))
-            stations[int(sid)] = Station(id=str(sid), rotation=R @ _LK_TO_BC,
-                                         translation=np.asarray(geo["origin"], float), kind=kind,
-                                         rotor_rpm=3600.0 if kind == "lh1" else _lh2_rpm(int(sid)),
-                                         clock_hz=DECK_CLOCK_HZ)
-        for sid, cal in (data.get("calibs") or {}).items():
-            sw = tuple(SweepCalibration(**{k: float(s.get(k, 0.0)) for k in SweepCalibration.__dataclass_fields__})
-                       for s in cal["sweeps"][:2])
-            if len(sw) != 2:
-                raise ValueError("two sweeps required")
-            calibs[int(sid)] = StationCalibration(sw, int(cal.get("uid", 0)))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: bad geos/calibs entry ({exc})") from None
-    return SystemConfig(stations, calibs, system_type)
+# internal model for both public conventions; docs/calibration.md); re-exported here. The system
+# configuration file is read and written by its owner, layoutkit.io.systemconfig.
 
 
 # ----------------------------------------------------------------------- reference encoders
@@ -382,21 +314,6 @@ def lh2_deck_session(points_body, motion, stations, *, duration: float, channels
     return b"".join(out), info
 
 
-def system_config_dict(stations: dict, calibs: dict | None = None, system_type: int = 2) -> dict:
-    """A cflib/Crazyflie system configuration (``type: lighthouse_system_configuration``) as a dict
-    for ``yaml.safe_dump``: the inverse of :func:`load_system_config`. stations : id →
-    :class:`~layoutkit.lighthouse.Station` (world pose, layoutkit station frame); calibs : id →
-    :class:`StationCalibration` (firmware convention)."""
-    geos = {int(k): {"origin": [float(v) for v in st.translation],
-                     "rotation": [[float(v) for v in row] for row in st.rotation @ _LK_TO_BC.T]}
-            for k, st in stations.items()}
-    cal = {int(k): {"uid": int(c.uid), "sweeps": [{f: float(getattr(sw, f)) for f in SweepCalibration.__dataclass_fields__}
-                                                 for sw in c.sweeps]}
-           for k, c in (calibs or {}).items()}
-    return {"type": "lighthouse_system_configuration", "version": "1", "systemType": int(system_type),
-            "geos": geos, "calibs": cal}
-
-
 # ------------------------------------------------------------------------------------ decoder
 class BitcrazeDecoder:
     """Incremental decoder of the Lighthouse deck UART stream; never raises on any bytes.
@@ -432,7 +349,7 @@ class BitcrazeDecoder:
         self.time_rate = float(time_rate)
         cfg = system_config
         if cfg is not None and not isinstance(cfg, SystemConfig):
-            cfg = load_system_config(cfg)
+            cfg = read_system_config(cfg)
         self.config = cfg
         self.calibs = dict(cfg.calibs) if (cfg is not None and calibrate) else {}
         self.stats = DecodeStats()
