@@ -41,8 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.systemconfig import DECK_CLOCK_HZ
+
 __all__ = ["MAGIC", "UsdLog", "read_cfusdlog", "SWEEP_EVENTS", "SweepEvents", "sweep_events", "firmware_positions",
-           "UartFrames", "uart_frames", "no_channel_value", "DeckClock", "fit_deck_clock", "DECK_TICK_HZ",
+           "UartFrames", "uart_frames", "no_channel_value", "DeckClock", "fit_deck_clock",
            "UART_FRAME_S"]
 
 MAGIC = 0xBC
@@ -263,8 +265,6 @@ def firmware_positions(log: UsdLog) -> dict:
 
 
 # ------------------------------------------------------------------------------ deck UART frames
-#: the deck's timestamp clock (Hz)
-DECK_TICK_HZ = 24e6
 #: time one 12-byte deck frame takes on the 230400-baud UART (10 bits per byte)
 UART_FRAME_S = 12 * 10 / 230400
 #: a frame is "isolated" (logged with an empty UART queue) when the previous one is this much older
@@ -293,7 +293,7 @@ class UartFrames:
     @property
     def deck_s(self) -> np.ndarray:
         """(N,) s, the deck clock (unwrapped ticks / 24 MHz)."""
-        return self.ticks / DECK_TICK_HZ
+        return self.ticks / DECK_CLOCK_HZ
 
 
 def no_channel_value(basestation, offset) -> int | None:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..io.systemconfig import DECK_CLOCK_HZ, LH2_CYCLE_PERIODS
 from ..lighthouse import LH1_ROTOR_RPM, lh2_to_lh1_angles
 from .frames import DecodeStats
 from .pipeline import AngleFrame
@@ -63,8 +64,6 @@ REPEAT_REASON = "repeat of the station's previous angles (the firmware logs ever
 
 
 def _lh2_period(station: int, periods: dict) -> float:
-    from .protocols.bitcraze import DECK_CLOCK_HZ, LH2_CYCLE_PERIODS
-
     if station in periods:
         return float(periods[station])
     if 0 <= station < len(LH2_CYCLE_PERIODS):
@@ -216,7 +215,7 @@ def firmware_angle_check(log, *, pulse_processor: str = "firmware", n_sensors: i
     rots += proc.flush()
     by_ch: dict = {}
     for r in rots:
-        by_ch.setdefault(r.channel, []).append((float(clock.to_log(r.t0 / 24e6)), plane_angles(r.offsets, r.channel)))
+        by_ch.setdefault(r.channel, []).append((float(clock.to_log(r.t0 / DECK_CLOCK_HZ)), plane_angles(r.offsets, r.channel)))
     fstats = DecodeStats()
     frames = [f for f in event_frames(ev, "lh2", n_sensors, stats=fstats)]
     matched, diffs = 0, []

@@ -58,7 +58,7 @@ from ...io.systemconfig import (DECK_CLOCK_HZ, LH2_CYCLE_PERIODS, SystemConfig, 
 from ...lighthouse import (StationCalibration, SweepCalibration, calibrate_lh1, calibrate_lh2,  # noqa: F401
                            lh1_model, lh2_model)
 from ..frames import DecodeStats, SweepMeasurement
-from .bitcraze_lh2 import LH2_CYCLE_PERIODS, PROCESSORS, plane_angles
+from .bitcraze_lh2 import PROCESSORS, plane_angles
 
 __all__ = [
     "DECK_CLOCK_HZ",

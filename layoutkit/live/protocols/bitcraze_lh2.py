@@ -52,14 +52,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...io.systemconfig import LH2_CYCLE_PERIODS
 from ..frames import DecodeStats
 
 __all__ = ["LH2_CYCLE_PERIODS", "Rotation", "FirmwareLh2", "PhaseLh2", "plane_angles", "PROCESSORS", "MAX_TICKS_SENSOR_TO_SENSOR",
            "BLOCK_SPAN", "PHASE_TOL"]
 
-#: LH2 cycle periods per channel, firmware CYCLE_PERIODS (48 MHz values / 2 → 24 MHz ticks)
-LH2_CYCLE_PERIODS = tuple(p // 2 for p in (959000, 957000, 953000, 949000, 947000, 943000, 941000, 939000,
-                                           937000, 929000, 919000, 911000, 907000, 901000, 893000, 887000))
 #: pulses further apart than this (ticks) start a new workspace (firmware MAX_TICKS_SENSOR_TO_SENSOR)
 MAX_TICKS_SENSOR_TO_SENSOR = 10000
 #: firmware e9ff096 MAX_TICKS_BETWEEN_SWEEP_STARTS_TWO_BLOCKS (later firmware: 100)
