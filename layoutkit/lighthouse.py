@@ -41,6 +41,7 @@ __all__ = [
     "measure_jacobian",
     "distort",
     "undistort",
+    "to_sweep_angles",
     "calibration_from_libsurvive",
     "calibration_from_crazyflie",
     "calibration_from_dict",
@@ -504,6 +505,24 @@ def undistort(measured, calib: Calibration, *, max_iterations: int = 5, tol: flo
         est[active] = est[active] + d
         active[active] = np.any(~(np.abs(d) < tol), -1)
     return est
+
+
+def to_sweep_angles(measured, kind: str, calibration: Calibration | None = None, *, max_iterations: int = 20,
+                    tol: float = 1e-9) -> np.ndarray:
+    """A station's angles ``(..., 2)`` rad in its own convention (``kind`` "lh1": sweep angles,
+    "lh2": light-plane angles) → LH1-equivalent sweep angles ``[theta_x, theta_y]``; with a
+    ``calibration``, the ideal ones.
+
+    The one path from what a decoder measures to what the ideal PnP fits: the calibration's
+    fixed-point inverse (:func:`undistort`, to ``tol`` or ``max_iterations`` steps; the firmware's
+    own is 5 steps / 5e-4 rad) when ``calibration`` is given, then for LH2 the light planes → sweep
+    angles (:func:`lh2_to_lh1_angles`). NaN (a sensor not seen) stays NaN.
+    """
+    a = np.asarray(measured, float)
+    if calibration is not None:
+        with np.errstate(invalid="ignore"):
+            a = undistort(a, calibration, max_iterations=max_iterations, tol=tol)
+    return lh2_to_lh1_angles(a) if kind == "lh2" else a
 
 
 # -------------------------------------------------------------- the two public conventions

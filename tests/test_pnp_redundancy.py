@@ -162,3 +162,35 @@ def test_libsurvive_lh2_sample_low_redundancy_frames(libsurvive_dir, tmp_path):
     assert counts[str(STATUS_LOW_REDUNDANCY)] == low.sum() == 12 and ok.sum() == 288
     assert np.all((n_ang[low] >= 6) & (n_ang[low] <= 7)) and not np.any(ok & (n_ang < 8))
     assert np.all(poses.residual_rms[low] < 1e-9) and np.median(poses.residual_rms[ok]) > 1e-5
+
+
+def test_live_pipeline_reports_low_redundancy_not_solver_failed():
+    """Replay/live path: with ``min_lit=3`` a 3-sensor frame tracked from the previous pose is solved but
+    reported ``low_redundancy`` (counted by name, its record says so), never ``ok`` or ``solver_failed``."""
+    from layoutkit.live.frames import SweepMeasurement
+    from layoutkit.live.pipeline import LiveConfig, PosePipeline
+    from layoutkit.shapes import chen_target
+    from layoutkit.visibility import facing_mask
+
+    lay = chen_target()[1]
+    F = 20
+    t = np.arange(F) / 60.0
+    R = np.tile(np.diag([1.0, -1.0, -1.0]), (F, 1, 1))                  # top face towards the station
+    tr = np.column_stack([0.1 + 0.001 * t, 0.05 + 0 * t, 2.0 + 0 * t])
+    lit = facing_mask(lay.positions, lay.normals, R, tr)
+    ang = sweep_angles(np.einsum("fij,nj->fni", R, lay.positions) + tr[:, None])
+    ang = np.where(lit[..., None], ang, np.nan)
+    keep3 = np.flatnonzero(lit[0])[:3]
+    ang[10:, np.setdiff1d(np.arange(lay.n), keep3)] = np.nan           # the last 10 frames: 3 sensors
+    sw = []
+    for k in range(F):
+        sw.append(SweepMeasurement(t[k], 0, 0, ang[k, :, 0], 2 * k))
+        sw.append(SweepMeasurement(t[k] + 1 / 120, 0, 1, ang[k, :, 1], 2 * k + 1))
+    pipe = PosePipeline(lay.positions, LiveConfig(n_sensors=lay.n, min_lit=3))
+    # two chunks: the second (3 sensors) starts from the first's last pose
+    chunks = pipe.feed(sw[:20]) + pipe.flush() + pipe.feed(sw[20:]) + pipe.flush(end_of_stream=True)
+    st = np.concatenate([c.status for c in chunks])
+    assert (st[:10] == STATUS_OK).all() and (st[10:] == STATUS_LOW_REDUNDANCY).all()
+    assert pipe.counters.by_status.get("low_redundancy") == 10
+    recs = [r for c in chunks for r in c.records()]
+    assert sum(r["status"] == "low_redundancy" for r in recs) == 10
