@@ -876,8 +876,58 @@ def _with_redundancy(r: PnPResult, n_angles) -> PnPResult:
     return replace(r, status=st, success=st == STATUS_OK)
 
 
-#: Registry of batched PnP solvers (the names the CLI offers).
-PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_lm}
+#: Frames from which the compiled solver spreads a chunk over threads (below, one thread: the
+#: thread pool's start-up costs more than it saves), and frames per thread task.
+PARALLEL_MIN_FRAMES = 256
+PARALLEL_BLOCK = 32
+
+
+def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: int = 20, sigma: float | None = None,
+                       rho: float = RHO_PAPER) -> PnPResult:
+    """:func:`solve_pnp_lm` compiled: the same algorithm per frame in one numba kernel
+    (:mod:`layoutkit.pnp_numba`; shapes as :class:`PnPSolver`). Same statuses and poses as the numpy
+    reference to rounding (``tests/test_pnp_compiled.py``); chunks of at least
+    :data:`PARALLEL_MIN_FRAMES` frames run on numba's threads. Compiled on first use, cached on disk."""
+    from . import pnp_numba
+
+    P = np.asarray(points_body, float)
+    ang = np.ascontiguousarray(angles, dtype=float)
+    lit = np.asarray(lit, bool)
+    if lit.ndim == 2:
+        lit = np.repeat(lit[..., None], 2, -1)
+    lit = np.ascontiguousarray(lit)
+    F = lit.shape[0]
+    R0 = np.zeros((F, 3, 3))
+    t0 = np.zeros((F, 3))
+    has = np.zeros(F, bool)
+    if initial is not None:
+        Ri = np.array(initial[0], float)
+        ti = np.asarray(initial[1], float)
+        has = np.all(np.isfinite(Ri), (1, 2)) & np.all(np.isfinite(ti), 1)
+        idx = np.flatnonzero(has)
+        if idx.size:
+            Rs = Ri[idx]
+            off = np.abs(np.matmul(Rs, Rs.transpose(0, 2, 1)) - np.eye(3)).max((1, 2)) > 1e-9
+            if off.any():  # not a rotation: start from the nearest one (as solve_pnp_lm)
+                Rs[off] = nearest_rotation(Rs[off])
+            R0[idx], t0[idx] = Rs, ti[idx]
+    consts = np.array([MIN_ANGLES, MIN_SENSORS, MIN_START_SENSORS, PLANARITY_THRESHOLD, COPLANAR_THRESHOLD,
+                       COLLINEAR_THRESHOLD, RETRY_RESIDUAL, np.cos(DISTINCT_ANGLE), AMBIGUITY_LR], float)
+    out = (np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F, np.int64), np.empty(F), np.empty(F, np.int64),
+           np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F))
+    args = (np.ascontiguousarray(P[None] if P.ndim == 2 else P), P.ndim == 2, ang, lit, R0, t0, has,
+            int(max_iterations), np.nan if sigma is None else float(sigma), float(rho), consts)
+    if F >= PARALLEL_MIN_FRAMES:
+        pnp_numba.solve_batch_parallel(*args, PARALLEL_BLOCK, *out)
+    else:
+        pnp_numba.solve_batch(*args, *out)
+    R, t, st, res, it, aR, at, ares = out  # runner-ups: NaN except ambiguous frames (as solve_pnp_lm)
+    return PnPResult(R, t, st == STATUS_OK, st, res, it, aR, at, ares)
+
+
+#: Registry of batched PnP solvers (the names the CLI offers): ``lm`` the compiled kernel,
+#: ``lm-numpy`` the numpy reference it is tested against (the same algorithm, frames-last arrays).
+PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_compiled, "lm-numpy": solve_pnp_lm}
 
 
 def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterations: int = 20,
