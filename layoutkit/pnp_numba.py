@@ -1,6 +1,6 @@
 """Compiled batched PnP: the LH1 solver of :mod:`layoutkit.pnp_lh1` as one numba kernel per frame.
 
-Why one module of ~840 lines: the per-frame solver (counts and geometry tests, POSIT and IPPE
+Why one module of ~900 lines: the per-frame solver (counts and geometry tests, POSIT and IPPE
 starts, Levenberg–Marquardt with the factor reuse, the candidate bookkeeping and the ambiguity
 test) is one compiled call graph over shared scratch arrays; split, its parts could not be
 compiled together.
@@ -491,10 +491,37 @@ def _ippe_pair(Px, Py, Pz, ux, uy, w, n, nl, c, ra, ta, rb, tb, sc):
         for a in range(3):
             for b in range(3):
                 S3[a, b] += q[a] * q[b]
-    _, V = np.linalg.eigh(S3)
-    e1 = (V[0, 2], V[1, 2], V[2, 2])
-    e2 = (V[0, 1], V[1, 1], V[2, 1])
-    e0 = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
+    # the plane's normal e0: the eigenvector of the smallest eigenvalue (closed form: the largest cross
+    # product of two rows of S - lambda_min I); e1, e2 any orthonormal pair in the plane with
+    # e1 x e2 = e0 (the reference takes the principal axes; the pose does not depend on the in-plane
+    # basis, which may be degenerate — a square face)
+    lo, _, _ = _sym3_eigvals(S3[0, 0], S3[1, 1], S3[2, 2], S3[0, 1], S3[0, 2], S3[1, 2])
+    best = -1.0
+    n0 = n1 = n2 = 0.0
+    for ia in range(3):
+        for ib in range(ia + 1, 3):
+            a0, a1, a2 = S3[ia, 0] - (lo if ia == 0 else 0.0), S3[ia, 1] - (lo if ia == 1 else 0.0), \
+                S3[ia, 2] - (lo if ia == 2 else 0.0)
+            b0, b1, b2 = S3[ib, 0] - (lo if ib == 0 else 0.0), S3[ib, 1] - (lo if ib == 1 else 0.0), \
+                S3[ib, 2] - (lo if ib == 2 else 0.0)
+            c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+            nn = c0 * c0 + c1 * c1 + c2 * c2
+            if nn > best:
+                best, n0, n1, n2 = nn, c0, c1, c2
+    if not best > 0.0:
+        n0, n1, n2 = 0.0, 0.0, 1.0
+    n0, n1, n2, _ = _unit3(n0, n1, n2)
+    # e1: the coordinate axis least aligned with the normal, made orthogonal to it
+    if abs(n0) <= abs(n1) and abs(n0) <= abs(n2):
+        u0, u1, u2 = 1.0 - n0 * n0, -n0 * n1, -n0 * n2
+    elif abs(n1) <= abs(n2):
+        u0, u1, u2 = -n1 * n0, 1.0 - n1 * n1, -n1 * n2
+    else:
+        u0, u1, u2 = -n2 * n0, -n2 * n1, 1.0 - n2 * n2
+    u0, u1, u2, _ = _unit3(u0, u1, u2)
+    e0 = (n0, n1, n2)
+    e1 = (u0, u1, u2)
+    e2 = (n1 * u2 - n2 * u1, n2 * u0 - n0 * u2, n0 * u1 - n1 * u0)   # e0 x e1, so e1 x e2 = e0
     nlm = nl if nl > 1.0 else 1.0
     sa, sb = sc.rx2, sc.ry2
     acc = 0.0
@@ -547,7 +574,28 @@ def _ippe_pair(Px, Py, Pz, ux, uy, w, n, nl, c, ra, ta, rb, tb, sc):
                 rhs[a] += ra_ * v
                 for b in range(8):
                     AtA[a, b] += ra_ * row[b]
-    h = np.linalg.solve(AtA, rhs)
+    h = sc.h8
+    for cc in range(8):           # Cholesky of the SPD normal matrix (ridge 1e-14), in place, then solve
+        d = AtA[cc, cc]
+        for q_ in range(cc):
+            d -= AtA[cc, q_] * AtA[cc, q_]
+        d = math.sqrt(d) if d > 0.0 else 1e-300
+        AtA[cc, cc] = d
+        for i in range(cc + 1, 8):
+            v = AtA[i, cc]
+            for q_ in range(cc):
+                v -= AtA[i, q_] * AtA[cc, q_]
+            AtA[i, cc] = v / d
+    for i in range(8):
+        v = rhs[i]
+        for q_ in range(i):
+            v -= AtA[i, q_] * h[q_]
+        h[i] = v / AtA[i, i]
+    for i in range(7, -1, -1):
+        v = h[i]
+        for q_ in range(i + 1, 8):
+            v -= AtA[q_, i] * h[q_]
+        h[i] = v / AtA[i, i]
     hx, hy = h[2], h[5]
     km = k / m
     j00 = (h[0] - hx * h[6]) * km
@@ -776,7 +824,7 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
 
 Scratch = namedtuple("Scratch", ["rx", "ry", "zz", "rx2", "ry2", "zz2", "qx", "qy", "qz", "A", "L", "inv", "g", "y",
                                  "step", "E", "rn", "tn", "rc", "tc", "out", "oR", "ot", "c", "c2", "S", "Sa", "S3",
-                                 "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2"])
+                                 "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2", "h8"])
 Best = namedtuple("Best", ["best_R", "best_t", "alt_R", "alt_t", "vals"])
 
 
@@ -787,7 +835,7 @@ def _scratch(n):
                    np.zeros(6), np.zeros(9), np.zeros(9), np.zeros(3), np.zeros(9), np.zeros(3), np.zeros(6),
                    np.zeros(9), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(6), np.zeros(6), np.zeros((3, 3)),
                    np.zeros((8, 8)), np.zeros(8), np.zeros(8), np.zeros(9), np.zeros(3), np.zeros(9), np.zeros(3),
-                   np.zeros(6), np.zeros(2), np.zeros(2))
+                   np.zeros(6), np.zeros(2), np.zeros(2), np.zeros(8))
 
 
 @numba.njit(**_JIT)
