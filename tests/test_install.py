@@ -6,11 +6,13 @@ the checkout nor its ``models/`` is reachable, so the bundled mesh and envelope 
 the installed package. The independent reference for "every model is bundled" is the checkout's
 own ``models/`` folder.
 
-Two variants: the default one installs the wheel alone (``--no-deps``) and lends the fresh
-environment the third-party packages of the running one (a ``.pth`` line, which adds their folder
-but runs none of its ``.pth`` files, so the checkout's editable hook stays out); the ``slow`` one
-lets pip install every dependency into the fresh environment (minutes: from pip's cache and the
-configured indexes; marked ``install``, run by ``make test-install`` only).
+Three tests: the wheel installed alone (``--no-deps``) into a fresh environment that borrows the
+third-party packages of the running one (a ``.pth`` line, which adds their folder but runs none of
+its ``.pth`` files, so the checkout's editable hook stays out) carries every model and loads them
+from outside the checkout (``slow``: in ``make test``); the same environment runs ``layoutkit demo``
+outside the checkout, and pip installs the wheel with every dependency into a fresh environment and
+runs the demo there (both ``install``: ``make test-install`` only — a fresh install compiles the
+numba kernels, ~1-2 minutes of CPU each, and the full install fetches ~1 GB from pip's cache).
 """
 from __future__ import annotations
 
@@ -115,6 +117,7 @@ def test_wheel_carries_the_models(lent_venv, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.install
 def test_wheel_runs_demo_outside_checkout(lent_venv, tmp_path):
     _run_demo_outside(lent_venv, tmp_path)
 
