@@ -115,12 +115,16 @@ def line_corner_covariance(points, dirs, var_offset, var_angle, h: float = 1e-4)
     return (J * var) @ J.T
 
 
-def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
+def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None, to_image=None):
+    """One refinement round (module docstring, steps 3-4). ``quad`` and every returned coordinate
+    are in the *ideal* image; ``to_image`` maps ideal pixels ``(..., 2)`` to the observed image
+    where the intensities are sampled (a lens, :mod:`layoutkit.camera.lens`; None = identity), so
+    profiles run along the ideal (straight) sides and their offsets are in ideal pixels."""
     import cv2
     from scipy.ndimage import map_coordinates
 
     cen = quad.mean(0)
-    pts_all, dirs, nps, resid, var_off, var_ang = [], [], [], [], [], []
+    pts_all, dirs, nps, resid, var_off, var_ang, contr = [], [], [], [], [], [], []
     offs = np.arange(-half, half + 1e-9, 0.25)
     for i in range(4):
         p0, p1 = quad[i], quad[(i + 1) % 4]
@@ -135,6 +139,8 @@ def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
             return None
         base = p0 + s[:, None] * d  # (m, 2)
         xy = base[:, None, :] + offs[None, :, None] * n  # (m, k, 2)
+        if to_image is not None:
+            xy = to_image(xy)
         prof = map_coordinates(img, [xy[..., 1].ravel(), xy[..., 0].ravel()], order=1, mode="nearest")
         prof = prof.reshape(xy.shape[:2])
         lin = prof[:, :3].mean(1)
@@ -157,7 +163,9 @@ def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
                 c = np.where(offs[None, :] <= offs[j][:, None], c, 0.0)
                 e = -half + np.trapezoid(c, offs, axis=1)
         pts = base + e[:, None] * n
-        pts = pts[good & (np.abs(e) < half - 0.5)]
+        keep = good & (np.abs(e) < half - 0.5)
+        pts = pts[keep]
+        contr.append(float(np.median(contrast[keep])) if keep.any() else 0.0)  # inside - outside
         if len(pts) < 3:
             return None
         vx, vy, x0, y0 = cv2.fitLine(pts.astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
@@ -179,7 +187,7 @@ def _refine(img, quad, margin, half, step_px, min_contrast, outer_px=None):
         return None
     rms = float(np.sqrt(np.mean(np.concatenate(resid) ** 2)))
     cov = line_corner_covariance(np.array(pts_all), np.array(dirs), np.array(var_off), np.array(var_ang))
-    return corners, rms, tuple(nps), cov
+    return corners, rms, tuple(nps), cov, contr
 
 
 def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, invert: bool = False,
@@ -244,7 +252,7 @@ def detect_quadrilateral(image, *, mask=None, threshold: float | None = None, in
         out = _refine(img, quad, corner_margin, profile_half_px, 0.5, min_contrast, outer_px)
         if out is None:
             return _fail("refine_failed", "too few edge points on a side", quad0)
-        quad, rms, nps, cov = out
+        quad, rms, nps, cov, _ = out
     if max_shift_px is None:
         max_shift_px = 3.0 + 0.03 * float(np.mean(np.linalg.norm(quad0 - np.roll(quad0, 1, axis=0), axis=1)))
     if np.max(np.linalg.norm(quad - quad0, axis=1)) > max_shift_px:
