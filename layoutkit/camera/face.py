@@ -213,7 +213,8 @@ def attitude_jacobian_camera(corners_px, K, dist, rotation, method: str = "zhai"
 
 def face_attitude(corners_px, K, dist=None, *, method: str = "zhai", aspect_ratio: float | None = None,
                   ordered: bool = False, corner_cov_px=None, corner_sigma_px: float | None = None,
-                  camera_std=None, reference=None, ambiguity_ratio: float = 2.0) -> FaceAttitude:
+                  camera_std=None, camera_cov=None, reference=None, ambiguity_ratio: float = 2.0,
+                  predict: bool = True) -> FaceAttitude:
     """Attitude of a rectangular face from its observed pixel corners through a real lens.
 
     corners_px : (4, 2) observed pixels (x right, y down), going round the face in any order, or
@@ -221,9 +222,12 @@ def face_attitude(corners_px, K, dist=None, *, method: str = "zhai", aspect_rati
     method : a rectangle solver name; aspect_ratio : L/W for "ippe" (default 1).
     corner_cov_px : (8, 8) covariance of ``corners_px`` (x1, y1, ..., as given) in px², or
         corner_sigma_px for i.i.d. noise; neither → ``sigma_deg`` NaN (``sigma_deg_per_px`` is
-        always given). camera_std : (18,) standard deviations of the camera parameters (OpenCV's
-        order, NaN/0 = exact) → their share of the covariance.
+        always given). camera_cov : (p, p) covariance of (fx, fy, cx, cy, distortion...) (p = 4 +
+        len(dist), a calibration's :func:`layoutkit.camera.calibration.intrinsics_covariance`) →
+        its share of the covariance; or camera_std : (18,) standard deviations (OpenCV's order,
+        NaN/0 = exact) taken as independent when no covariance is known.
     reference : (3, 3) a prior attitude for the labelling (and the IPPE branch when ambiguous).
+    predict : False skips the covariance (NaN; for Monte-Carlo loops).
 
     Status: "ok"; "ambiguous" when IPPE's two branches fit within ``ambiguity_ratio`` of each
     other (both returned: ``alternative``); the solver's "degenerate" / "mirrored" otherwise.
@@ -267,11 +271,20 @@ def face_attitude(corners_px, K, dist=None, *, method: str = "zhai", aspect_rati
     if tilt < FACE_ON_DEG:
         msg = (msg if status != "ok" else "solved") + (f"; face within {FACE_ON_DEG:g} deg of face-on "
                                                        f"({tilt:.1f} deg): tilt sign nearly unobservable")
+    if not predict:
+        return FaceAttitude(R, True, status, msg, method, f, matrix_to_rotvec(R),
+                            matrix_to_rotvec(PAPER_FROM_CV.T @ R), c, ideal, uv, float(aspect), pos, tilt,
+                            alternative=alt, reprojection_px=rep)
     # predicted covariance (module docstring)
     J_px = attitude_jacobian_pixels(c, Km, D, R, method, aspect_ratio)
     per_px = float(np.degrees(np.sqrt(np.trace(J_px @ J_px.T))))
     C_cam = np.zeros((3, 3))
-    if camera_std is not None:
+    if camera_cov is not None:
+        Ct = np.asarray(camera_cov, float)
+        p = Ct.shape[0]
+        J_t = attitude_jacobian_camera(c, Km, D, R, method, aspect_ratio, range(p))[:, :p]
+        C_cam = J_t @ Ct @ J_t.T
+    elif camera_std is not None:
         sd = np.nan_to_num(np.asarray(camera_std, float).ravel(), nan=0.0)
         sd = np.concatenate([sd, np.zeros(18 - sd.size)])[:18]
         which = [i for i in range(18) if sd[i] > 0]

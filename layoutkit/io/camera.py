@@ -12,11 +12,12 @@ deviations and the RMS reprojection error. Files:
   ``image_height``; also accepted on reading: ``cameraMatrix``/``K`` and
   ``dist_coeffs``/``distCoeffs``/``D``, and the ROS ``{rows, cols, data}`` maps). ``layoutkit camera
   calibrate`` adds ``intrinsics_std_dev`` (18 values in OpenCV's order fx, fy, cx, cy, k1, k2, p1,
-  p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty), ``avg_reprojection_error`` and
+  p2, k3, k4, k5, k6, s1, s2, s3, s4, tx, ty), ``intrinsics_covariance`` (the full p x p
+  covariance of fx, fy, cx, cy and the distortion terms), ``avg_reprojection_error`` and
   ``per_view_reprojection_errors``.
 - our JSON (``.json``): ``{"format": "layoutkit-camera-model", "version": 1, "camera_matrix":
   [[...], [...], [...]], "distortion": [...], "image_size": [w, h], "std_dev": [...],
-  "rms_px": ..., "source": ...}``; unknown keys are rejected.
+  "covariance": [[...]], "rms_px": ..., "source": ...}``; unknown keys are rejected.
 
 
 **Capture folder**. Layout of a folder ``DIR`` (written by ``layoutkit live --camera-device ... --record CAP`` into
@@ -87,6 +88,8 @@ class CameraModel:
     image_size : (width, height) px or None. std_dev : (18,) standard deviations in
     :data:`STD_DEV_NAMES` order (NaN where not estimated) or None. rms_px : RMS reprojection error
     of the calibration (px) or None. source : where it came from (a file path, "calibrate", ...).
+    covariance : (p, p) px²/unit² of (fx, fy, cx, cy, distortion...) with p = 4 + len(distortion),
+    the calibration's full covariance (correlations included), or None.
     Validated on construction (``ValueError`` naming the field).
     """
 
@@ -96,6 +99,7 @@ class CameraModel:
     std_dev: np.ndarray | None = None
     rms_px: float | None = None
     source: str = ""
+    covariance: np.ndarray | None = None
 
     def __post_init__(self):
         where = self.source or "camera model"
@@ -130,6 +134,15 @@ class CameraModel:
             object.__setattr__(self, "std_dev", _readonly(sd))
         if self.rms_px is not None:
             object.__setattr__(self, "rms_px", float(self.rms_px))
+        if self.covariance is not None:
+            C = np.asarray(self.covariance, dtype=float)
+            p = 4 + D.size
+            if C.ndim == 1 and C.size == p * p:
+                C = C.reshape(p, p)
+            if C.shape != (p, p) or not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-6, atol=0):
+                raise ValueError(f"{where}: covariance: expected a finite symmetric {p} x {p} matrix of (fx, fy, cx, cy"
+                                 f"{', ' + ', '.join(STD_DEV_NAMES[4:p]) if p > 4 else ''}), got shape {C.shape}")
+            object.__setattr__(self, "covariance", _readonly(C))
 
     # -- views ------------------------------------------------------------------------------
     @property
@@ -175,7 +188,8 @@ class CameraModel:
                 "image_size": None if self.image_size is None else list(self.image_size),
                 "std_dev": None if self.std_dev is None else [None if not np.isfinite(v) else float(v)
                                                                for v in self.std_dev],
-                "rms_px": self.rms_px, "source": self.source}
+                "rms_px": self.rms_px, "source": self.source,
+                "covariance": None if self.covariance is None else self.covariance.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict, path="camera model") -> "CameraModel":
@@ -188,7 +202,7 @@ class CameraModel:
         version = d.pop("version", 1)
         if version != 1:
             raise ValueError(f"{path}: version: expected 1, got {version!r}")
-        known = {"camera_matrix", "distortion", "image_size", "std_dev", "rms_px", "source"}
+        known = {"camera_matrix", "distortion", "image_size", "std_dev", "rms_px", "source", "covariance"}
         unknown = sorted(set(d) - known)
         if unknown:
             raise ValueError(f"{path}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
@@ -201,7 +215,12 @@ class CameraModel:
             sd = None if sd is None else np.array([np.nan if v is None else v for v in sd], dtype=float)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: camera_matrix / distortion / std_dev: not numbers ({exc})") from None
-        return cls(K, D, d.get("image_size"), sd, d.get("rms_px"), str(d.get("source") or path))
+        cov = d.get("covariance")
+        try:
+            cov = None if cov is None else np.array(cov, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: covariance: not numbers ({exc})") from None
+        return cls(K, D, d.get("image_size"), sd, d.get("rms_px"), str(d.get("source") or path), cov)
 
 
 def _fs_node_array(fs, keys, path, required: bool):
@@ -253,8 +272,9 @@ def read_camera_model(path) -> CameraModel:
 
     try:
         fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "parse error"
+    except (cv2.error, SystemError) as exc:  # a parse error; the binding sometimes wraps it in SystemError
+        cause = exc.__cause__ or exc.__context__ or exc
+        msg = str(cause).strip().splitlines()[-1] if str(cause).strip() else "parse error"
         raise ValueError(f"{p}: not an OpenCV YAML/XML file ({msg})") from None
     if not fs.isOpened():
         raise ValueError(f"{p}: not an OpenCV YAML/XML file")
@@ -265,11 +285,12 @@ def read_camera_model(path) -> CameraModel:
         _, dist = _fs_node_array(fs, _DIST_KEYS, p, False)
         w, h = _fs_number(fs, "image_width"), _fs_number(fs, "image_height")
         _, sd = _fs_node_array(fs, ("intrinsics_std_dev",), p, False)
+        _, cov = _fs_node_array(fs, ("intrinsics_covariance",), p, False)
         rms = _fs_number(fs, "avg_reprojection_error")
     finally:
         fs.release()
     size = (int(w), int(h)) if w is not None and h is not None else None
-    return CameraModel(k.reshape(3, 3), np.zeros(0) if dist is None else dist, size, sd, rms, str(p))
+    return CameraModel(k.reshape(3, 3), np.zeros(0) if dist is None else dist, size, sd, rms, str(p), cov)
 
 
 def write_camera_model(path, model: CameraModel, *, per_view_rms_px=None) -> Path:
@@ -303,6 +324,8 @@ def write_camera_model(path, model: CameraModel, *, per_view_rms_px=None) -> Pat
         fs.write("distortion_coefficients", np.asarray(model.distortion, float).reshape(-1, 1))
         if model.std_dev is not None:
             fs.write("intrinsics_std_dev", np.nan_to_num(np.asarray(model.std_dev, float), nan=0.0).reshape(-1, 1))
+        if model.covariance is not None:
+            fs.write("intrinsics_covariance", np.asarray(model.covariance, float))
         if model.rms_px is not None:
             fs.write("avg_reprojection_error", float(model.rms_px))
         if per_view_rms_px is not None:
