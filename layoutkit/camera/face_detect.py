@@ -223,7 +223,7 @@ def detect_face(image, camera_matrix=None, distortion=None, *, polarity: str = "
         quad = q
         out = None
         for _ in range(2):
-            out = _refine(gf, quad, corner_margin, profile_half_px, 0.5, min_contrast, 2.0, to_image)
+            out = _refine(gf, quad, corner_margin, profile_half_px, 0.5, min_contrast, 2.0, to_image, "measured")
             if out is None:
                 break
             quad = out[0]
