@@ -51,7 +51,7 @@ def camera_attitude(input, focal_length_px, principal_point, method, aspect_rati
         click.echo(f"{fr['t_s']:10.3f} {fr['status']:>16} {vals}")
 
 
-@click.group("camera", short_help="Real cameras: calibrate (lens distortion), face attitude in a photo.")
+@click.group("camera", short_help="Real camera: calibrate its lens; face attitude in photos.")
 def camera_group():
     """A real camera: its intrinsics and lens distortion from pattern photos (calibrate), and the
     attitude of a rectangular face in a photograph through that lens (attitude)."""
@@ -132,7 +132,7 @@ def _print_calibration(res):
     click.echo(f"wrote {res['out']} and {res['figure']}")
 
 
-@camera_group.command("attitude", short_help="Attitude of a rectangular face in one photo (real lens).")
+@camera_group.command("attitude", short_help="Rectangular-face attitude in one photo (real lens).")
 @click.argument("image", type=click.Path(exists=True, dir_okay=False))
 @camera_model_option(flags=("--camera",), required=True)
 @click.option("--corners", default=None, metavar="x,y;x,y;x,y;x,y",
