@@ -6,22 +6,24 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
+from .options import POSITIVE, Conflict, Number, Requires, flag_rules
 from .options import camera_model_option, corner_sigma_option, json_flag, registry_choice
 
 
 @click.command("camera-attitude", short_help="Rectangle-face attitude from images or video (Zhai).")
 @click.argument("input", metavar="INPUT")
-@click.option("--focal-length-px", "focal_length_px", type=float, required=True, help="Focal length (pixels).")
+@click.option("--focal-length-px", "focal_length_px", type=POSITIVE, required=True, help="Focal length (pixels).")
 @click.option("--principal-point-px", "principal_point", type=(float, float), default=None,
               help="Principal point cx cy (pixels); default the image centre (images) or 0 0 (CSV).")
 @click.option("--method", type=registry_choice("layoutkit.camera.rectangle:RECTANGLE_SOLVERS"), default="zhai",
               show_default=True,
               help="Rectangle solver (zhai and homography are size-free; ippe needs --aspect-ratio).")
-@click.option("--aspect-ratio", type=float, default=None, help="Face L/W for --method ippe (default 1).")
-@click.option("--fps", type=float, default=None, help="Frame rate for an image folder (timestamps).")
-@click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
-@click.option("--threshold", type=float, default=None, help="Grey level of the face (default: Otsu).")
+@click.option("--aspect-ratio", type=POSITIVE, default=None, help="Face L/W for --method ippe (default 1).")
+@click.option("--fps", type=POSITIVE, default=None, help="Frame rate for an image folder (timestamps).")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Stop after this many frames.")
+@click.option("--threshold", type=Number(0.0, 255.0, what="a grey level"), default=None, help="Grey level of the face (default: Otsu).")
 @json_flag
+@flag_rules(Requires("--aspect-ratio", "--method=ippe", "zhai and homography are size-free"))
 def camera_attitude(input, focal_length_px, principal_point, method, aspect_ratio, fps, max_frames, threshold,
                     as_json):
     """Attitude of a rectangular face from INPUT (Zhai et al, 2014).
@@ -72,9 +74,9 @@ def _inner(ctx, param, value):
               help="Calibration pattern.")
 @click.option("--inner", "inner", default="9x6", show_default=True, callback=_inner, metavar="WxH",
               help="Inner chessboard corners per row x per column (a ChArUco board has (W+1) x (H+1) squares).")
-@click.option("--square-mm", "square_mm", type=click.FloatRange(min=0.0, min_open=True), default=25.0,
+@click.option("--square-mm", "square_mm", type=POSITIVE, default=25.0,
               show_default=True, help="Side of one square, mm.")
-@click.option("--marker-mm", "marker_mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
+@click.option("--marker-mm", "marker_mm", type=POSITIVE, default=None,
               help="ChArUco marker side, mm (--pattern charuco).")
 @click.option("--dictionary", default="DICT_5X5_100", show_default=True,
               help="ChArUco marker dictionary (a cv2.aruco name).")
@@ -87,6 +89,8 @@ def _inner(ctx, param, value):
 @click.option("--figure", type=click.Path(dir_okay=False), default=None, metavar="PNG",
               help="Residual figure [default: <CAM>_residuals.png beside --out].")
 @json_flag
+@flag_rules(Requires("--marker-mm", "--pattern=charuco", "markers are a ChArUco thing"),
+            Requires("--dictionary", "--pattern=charuco", "markers are a ChArUco thing"))
 def calibrate_cmd(images, pattern, inner, square_mm, marker_mm, dictionary, model, drop_outliers, out, figure, as_json):
     """Calibrate a camera from IMAGES (files or folders) of a planar pattern (OpenCV).
 
@@ -143,7 +147,7 @@ def _print_calibration(res):
               help="Inner corners of the chessboard (--detect chessboard).")
 @click.option("--method", type=registry_choice("layoutkit.camera.rectangle:RECTANGLE_SOLVERS"), default="zhai",
               show_default=True, help="Rectangle solver (zhai, homography: size-free; ippe: with --aspect-ratio).")
-@click.option("--aspect-ratio", type=click.FloatRange(min=0.0, min_open=True), default=None,
+@click.option("--aspect-ratio", type=POSITIVE, default=None,
               help="Face L/W for --method ippe [default: the chessboard's, else 1].")
 @corner_sigma_option(help="Corner noise per coordinate, px, for the predicted sigma [default: the detector's "
                           "line fits (face) or the grid's homography residuals (chessboard)].")
@@ -153,6 +157,11 @@ def _print_calibration(res):
               help="Picture with the corners drawn [default: <IMAGE stem>_attitude.png in the current folder].")
 @click.option("--no-picture", is_flag=True, help="Write no picture.")
 @json_flag
+@flag_rules(Conflict("--corners", "--detect", "given corners are not detected"),
+            Requires("--inner", "--detect=chessboard"),
+            Requires("--polarity", "--detect=face"),
+            Requires("--aspect-ratio", "--method=ippe", "zhai and homography are size-free"),
+            Conflict("--picture", "--no-picture"))
 def attitude_cmd(image, camera_model, corners, detect, inner, method, aspect_ratio, corner_sigma_px, polarity,
                  picture, no_picture, as_json):
     """Attitude of a rectangular face in IMAGE seen through the camera of --camera (lens distortion
