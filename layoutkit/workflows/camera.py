@@ -23,13 +23,19 @@ DETECTORS = ("face", "chessboard")
 
 
 def read_image(path) -> np.ndarray:
-    """Grey uint8 image of ``path``; ValueError naming the file when it is not a readable image."""
+    """Grey uint8 image of ``path``; ValueError naming the file when it is not a readable image or
+    a JPEG / PNG cut short (OpenCV decodes those partially, with the rest grey, and says nothing)."""
     import cv2
 
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{p}: no such image file")
-    img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+    data = p.read_bytes()
+    if data[:3] == b"\xff\xd8\xff" and not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        raise ValueError(f"{p}: truncated JPEG (no end-of-image marker)")
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-16:]:
+        raise ValueError(f"{p}: truncated PNG (no IEND chunk)")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
     if img is None:
         raise ValueError(f"{p}: not a readable image")
     return img
