@@ -252,8 +252,10 @@ def _write_picture(img, fa, corners, path, message, K, D) -> Path:
                  (f"sigma {fa.sigma_deg:.3f} deg" if np.isfinite(fa.sigma_deg) else "sigma unknown (no corner noise)")
                  + f"  tilt {fa.tilt_deg:.1f} deg  aspect {fa.aspect_ratio:.3f}"]
     for k, ln in enumerate(lines):
-        cv2.putText(vis, ln, (8, 18 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(vis, ln, (8, 18 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 255), 1, cv2.LINE_AA)
+        (w, h), base = cv2.getTextSize(ln, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+        y = 18 + 18 * k
+        cv2.rectangle(vis, (4, y - h - 4), (12 + w, y + base), (0, 0, 0), -1)
+        cv2.putText(vis, ln, (8, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 255), 1, cv2.LINE_AA)
     okenc, buf = cv2.imencode(".png", vis)
     if not okenc:
         raise ValueError(f"{path}: could not encode the picture")
