@@ -111,7 +111,7 @@ def test_meridional_tilt_toward_the_station_finds_the_exhaustive_optimum():
     """Exhaustive search with the 2 meridional orientations towards/away from the mean station direction
     (body frame, from the instance's poses): the pipeline equals it, and it beats the untilted optimum."""
     from layoutkit.lighthouse import Station
-    from layoutkit.workflows.optimize import mean_station_direction
+    from layoutkit.optimize.design import mean_station_direction
 
     _, _, R, t = leaning_instance()
     w = mean_station_direction(R, t, [Station()])
