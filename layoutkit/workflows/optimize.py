@@ -17,8 +17,6 @@ from ..units import RHO_PAPER
 
 __all__ = ["run_optimize", "write_report", "run_demo", "envelope_set_stats"]
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def run_optimize(problem, spec, *, out=None, report=None, k_range=None, progress=None, render=True, echo=print):
     """Optimise ``spec.k`` sensors on ``problem``; write the layout JSON and a report; return a summary.
@@ -254,13 +252,14 @@ def run_demo(out_dir, quick=True, echo=print, progress=None, seed: int = 0):
     Writes ``out_dir/layout.json`` and the report folder ``out_dir/report``; returns the summary."""
     from ..envelope import load_envelope
     from ..optimize import DesignProblem, OptimizeSpec
+    from ..resources import model_path
 
     out_dir = Path(out_dir)
-    env = load_envelope(REPO / "models" / "chen_envelope.toml")
+    env = load_envelope(model_path("chen_envelope.toml"))
     if quick:
         env = dataclasses.replace(env, count=min(env.count, 100))
     spec = OptimizeSpec(k=12, objective="worst-adop", rho=RHO_PAPER, time_limit_s=60 if quick else None, seed=seed)
-    problem = DesignProblem.for_spec(REPO / "models" / "chen_target.stl", env, spec,
+    problem = DesignProblem.for_spec(model_path("chen_target.stl"), env, spec,
                                      spacing=0.008 if quick else 0.005)
     return run_optimize(problem, spec, out=out_dir / "layout.json", report=out_dir / "report", progress=progress,
                         echo=echo)
