@@ -116,7 +116,7 @@ def spacing_conflicts(positions, min_spacing):
 def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_visible=4,
                       method="pipeline", rng=None, fixed=(), conflict=None, coverage_fraction=1.0,
                       weights=None, time_limit=None, progress=None, ctx_options=None,
-                      coverage="any-station", branch_and_bound="auto") -> OptimizeResult:
+                      coverage="any-station", branch_and_bound="auto", cliques=()) -> OptimizeResult:
     """Choose ``k`` of N candidates from arrays (the core of :func:`layoutkit.optimize.solve`).
 
     jac : (P, S, N, 2, 6) per-candidate angle Jacobians; visible : (P, S, N) bool.
@@ -129,7 +129,9 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     :class:`layoutkit.optimize.spec.OptimizeSpec`; rng : seed or ``np.random.Generator``; fixed : (F,)
     candidate indices placed in advance; conflict : (N, N) bool pairs that cannot both be chosen
     (spacing, one orientation per site) or None; time_limit : s or None; progress : callable
-    ``(stage, fraction, best)``; ctx_options : tuning knobs of :class:`layoutkit.optimize.methods.Context`.
+    ``(stage, fraction, best)``; ctx_options : tuning knobs of :class:`layoutkit.optimize.methods.Context`;
+    cliques : index arrays of which at most one may be chosen (the orientations of one site; their pairs
+    must be in ``conflict`` too): the relaxations state them as one row each, tighter than the pairs.
     """
     from ..coverage_rule import check_rule
 
@@ -145,16 +147,16 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     if coverage == "each-station" and S > 1:
         r = _optimize_core(np.repeat(jac, S, axis=0), np.repeat(visible, S, axis=0), k, objective, rho,
                            min_visible, method, rng, fixed, conflict, coverage_fraction, weights, time_limit,
-                           progress, ctx_options, "_rows")
+                           progress, ctx_options, "_rows", cliques)
         n_lit = r.n_lit.reshape(P, S).min(axis=1) if len(r.n_lit) == P * S else r.n_lit
         return dataclasses.replace(r, adop=r.adop[::S], pdop=r.pdop[::S], n_lit=n_lit,
                                    uncoverable=np.unique(r.uncoverable // S))
     return _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fixed, conflict,
-                          coverage_fraction, weights, time_limit, progress, ctx_options, coverage)
+                          coverage_fraction, weights, time_limit, progress, ctx_options, coverage, cliques)
 
 
 def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fixed, conflict,
-                   coverage_fraction, weights, time_limit, progress, ctx_options, coverage):
+                   coverage_fraction, weights, time_limit, progress, ctx_options, coverage, cliques=()):
     t0 = time.perf_counter()
     P, S, N = jac.shape[:3]
     if coverage == "_rows":  # pose copies p*S + s of each-station: station s's lit sensors
@@ -180,7 +182,7 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
         raise ValueError(f"fixed: {len(fixed)} fixed sensors exceed k = {k}")
     n_cover = int(math.ceil(coverage_fraction * P - 1e-9))
     rng = np.random.default_rng(rng)
-    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover, lit)
+    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover, lit, cliques)
     empty = np.zeros(0, int)
     nan_p = np.full(P, np.inf)
 

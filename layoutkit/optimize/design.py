@@ -267,6 +267,14 @@ class DesignProblem:
             conflict = site_conflicts(self.site, conflict)
         return conflict
 
+    def cliques(self) -> list:
+        """Index arrays of the orientations of each site that has several (at most one may be chosen)."""
+        if self.max_tilt_deg <= 0:
+            return []
+        order = np.argsort(self.site, kind="stable")
+        _, starts, counts = np.unique(self.site[order], return_index=True, return_counts=True)
+        return [order[a:a + c] for a, c in zip(starts, counts) if c >= 2]
+
     def check_spec(self, spec) -> None:
         """``ValueError`` if ``spec`` asks for another half-angle or tilt than this problem was built with."""
         mine = (self.half_angle_deg, self.max_tilt_deg, self.tilt_toward if self.max_tilt_deg > 0 else None,

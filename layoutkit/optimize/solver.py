@@ -53,7 +53,7 @@ def solve(problem: DesignProblem, spec: OptimizeSpec, *, progress=None, rng=None
     kw = dict(objective=spec.objective, weights=spec.weights, rho=spec.rho, min_visible=spec.min_visible,
               method=spec.method, fixed=problem.indices(spec.fixed), conflict=problem.conflicts(spec.min_spacing_m),
               coverage_fraction=spec.coverage_fraction, progress=progress,
-              branch_and_bound=spec.branch_and_bound)
+              branch_and_bound=spec.branch_and_bound, cliques=problem.cliques())
     if tuning:
         kw["ctx_options"] = dict(tuning)
     if spec.dense is not None:
