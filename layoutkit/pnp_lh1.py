@@ -891,21 +891,28 @@ def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: i
     from . import pnp_numba
 
     P = np.asarray(points_body, float)
-    ang = np.ascontiguousarray(angles, dtype=float)
     lit = np.asarray(lit, bool)
     if lit.ndim == 2:
         lit = np.repeat(lit[..., None], 2, -1)
     lit = np.ascontiguousarray(lit)
+    ang = np.asarray(angles, dtype=float)
+    # cot(theta) here, not per frame in the kernel: numpy's SIMD tan is ~10x the scalar libm call the
+    # kernel would make (the values are the reference's, _Frames)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if lit.all():
+            cot = 1.0 / np.tan(ang)
+        else:
+            cot = np.where(lit, 1.0 / np.tan(np.where(lit, ang, 1.0)), 0.0)
     F = lit.shape[0]
-    R0 = np.zeros((F, 3, 3))
-    t0 = np.zeros((F, 3))
     has = np.zeros(F, bool)
+    R0, t0 = np.zeros((1, 3, 3)), np.zeros((1, 3))  # read only where has (no per-frame zeros to fault in)
     if initial is not None:
         Ri = np.array(initial[0], float)
         ti = np.asarray(initial[1], float)
         has = np.all(np.isfinite(Ri), (1, 2)) & np.all(np.isfinite(ti), 1)
         idx = np.flatnonzero(has)
         if idx.size:
+            R0, t0 = np.zeros((F, 3, 3)), np.zeros((F, 3))
             Rs = Ri[idx]
             off = np.abs(np.matmul(Rs, Rs.transpose(0, 2, 1)) - np.eye(3)).max((1, 2)) > 1e-9
             if off.any():  # not a rotation: start from the nearest one (as solve_pnp_lm)
@@ -915,7 +922,7 @@ def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: i
                        COLLINEAR_THRESHOLD, RETRY_RESIDUAL, np.cos(DISTINCT_ANGLE), AMBIGUITY_LR], float)
     out = (np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F, np.int64), np.empty(F), np.empty(F, np.int64),
            np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F))
-    args = (np.ascontiguousarray(P[None] if P.ndim == 2 else P), P.ndim == 2, ang, lit, R0, t0, has,
+    args = (np.ascontiguousarray(P[None] if P.ndim == 2 else P), P.ndim == 2, cot, lit, R0, t0, has,
             int(max_iterations), np.nan if sigma is None else float(sigma), float(rho), consts)
     if F >= PARALLEL_MIN_FRAMES:
         pnp_numba.solve_batch_parallel(*args, PARALLEL_BLOCK, *out)

@@ -839,10 +839,10 @@ def _scratch(n):
 
 
 @numba.njit(**_JIT)
-def _solve_range(lo, hi, P, shared, ang, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
                  R_out, t_out, status, resid, iters, altR, altt, altres):
     """Frames lo..hi-1 with one set of scratch arrays (see :func:`solve_batch`)."""
-    n = ang.shape[1]
+    n = cot.shape[1]
     sc = _scratch(n)
     bs = Best(np.empty(9), np.empty(3), np.empty(9), np.empty(3), np.empty(4))
     Px, Py, Pz = np.empty(n), np.empty(n), np.empty(n)
@@ -857,8 +857,8 @@ def _solve_range(lo, hi, P, shared, ang, lit, R0, t0, has_init, max_iterations, 
             wy[i] = 1.0 if ly else 0.0
             w[i] = wx[i] * wy[i]
             wany[i] = 1.0 if (lx or ly) else 0.0
-            ux[i] = 1.0 / math.tan(ang[f, i, 0]) if lx else 0.0
-            uy[i] = 1.0 / math.tan(ang[f, i, 1]) if ly else 0.0
+            ux[i] = cot[f, i, 0] if lx else 0.0
+            uy[i] = cot[f, i, 1] if ly else 0.0
             if shared:
                 Px[i], Py[i], Pz[i] = P[0, i, 0], P[0, i, 1], P[0, i, 2]
             elif lx or ly:
@@ -886,25 +886,26 @@ def _solve_range(lo, hi, P, shared, ang, lit, R0, t0, has_init, max_iterations, 
 
 
 @numba.njit(**_JIT)
-def solve_batch(P, shared, ang, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+def solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
                 R_out, t_out, status, resid, iters, altR, altt, altres):
     """Solve F frames on one thread; outputs written in place.
 
-    P : (1, n, 3) shared body (``shared``) or (F, n, 3) m; ang : (F, n, 2) rad; lit : (F, n, 2) bool
-    (cleaned as by :func:`layoutkit.pnp_lh1.solve_pnp_lh1`); R0 (F, 3, 3), t0 (F, 3), has_init (F,)
-    the starts; sigma NaN for no ambiguity test; consts the thresholds of pnp_lh1 (in the order of
+    P : (1, n, 3) shared body (``shared``) or (F, n, 3) m; cot : (F, n, 2) the cotangents of the sweep
+    angles (normalised image coordinates, Chen eq. 2; read where lit only); lit : (F, n, 2) bool
+    (cleaned as by :func:`layoutkit.pnp_lh1.solve_pnp_lh1`); has_init (F,) which frames have a start,
+    R0 (F, 3, 3), t0 (F, 3) the starts (read where has_init only: (1, 3, 3), (1, 3) when none has); sigma NaN for no ambiguity test; consts the thresholds of pnp_lh1 (in the order of
     :func:`layoutkit.pnp_lh1.solve_pnp_compiled`). Outputs as :class:`layoutkit.pnp_result.PnPResult`.
     """
-    _solve_range(0, ang.shape[0], P, shared, ang, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+    _solve_range(0, cot.shape[0], P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
                  R_out, t_out, status, resid, iters, altR, altt, altres)
 
 
 @numba.njit(parallel=True, **_JIT)
-def solve_batch_parallel(P, shared, ang, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
+def solve_batch_parallel(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
                          R_out, t_out, status, resid, iters, altR, altt, altres):
     """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads."""
-    F = ang.shape[0]
+    F = cot.shape[0]
     nb = (F + block - 1) // block
     for b in prange(nb):
-        _solve_range(b * block, min(F, (b + 1) * block), P, shared, ang, lit, R0, t0, has_init, max_iterations,
+        _solve_range(b * block, min(F, (b + 1) * block), P, shared, cot, lit, R0, t0, has_init, max_iterations,
                      sigma, rho, consts, R_out, t_out, status, resid, iters, altR, altt, altres)
