@@ -30,7 +30,9 @@ from numba import prange
 # status codes (layoutkit.status; numba needs plain ints)
 OK, TOO_FEW, DEGENERATE, NOT_CONVERGED, BEHIND, AMBIGUOUS, NO_START = 0, 1, 2, 3, 4, 5, 7
 
-_JIT = dict(cache=True, fastmath=False, nogil=True, error_model="numpy")
+# fastmath: fused multiply-add, reciprocals and signed zeros only (no NaN / infinity assumptions: NaN
+# marks unseen sensors and failed frames); poses move by ~5e-15 against strict IEEE order, 11 % faster.
+_JIT = dict(cache=True, fastmath={"contract", "arcp", "nsz"}, nogil=True, error_model="numpy")
 # Functions below the batch loop allocate nothing and keep no array: compiled without the reference
 # counting runtime (numba's private ``_nrt`` flag), so a call does not incref/decref each array argument
 # (~640 runtime calls per frame at n = 12, 27 % of the time measured with perf); only _scratch and the
@@ -764,7 +766,11 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
     _scatter(Px, Py, Pz, w, n, c, S)
     e_lo, _, e_hi = _sym3_eigvals(S[0], S[1], S[2], S[3], S[4], S[5])
     planarity = math.sqrt((e_lo if e_lo > 0.0 else 0.0) / (e_hi if e_hi > 1e-300 else 1e-300))
-    _scatter(Px, Py, Pz, wany, n, sc.c2, Sa)
+    if ns == nl:  # every seen sensor has both angles: wany = w, the same scatter
+        for k in range(6):
+            Sa[k] = S[k]
+    else:
+        _scatter(Px, Py, Pz, wany, n, sc.c2, Sa)
     minors = Sa[0] * Sa[1] - Sa[3] * Sa[3] + Sa[0] * Sa[2] - Sa[4] * Sa[4] + Sa[1] * Sa[2] - Sa[5] * Sa[5]
     trace = Sa[0] + Sa[1] + Sa[2]
     collinear = minors <= collinear_thr * collinear_thr * trace * trace
@@ -869,6 +875,9 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
     wx, wy, w, wany = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     r0, tt0 = np.zeros(9), np.zeros(3)
     res = np.empty(4)
+    if shared:  # the body's points, once for all frames
+        for i in range(n):
+            Px[i], Py[i], Pz[i] = P[0, i, 0], P[0, i, 1], P[0, i, 2]
     for f in range(lo, hi):
         for i in range(n):
             lx, ly = lit[f, i, 0], lit[f, i, 1]
@@ -879,7 +888,7 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
             ux[i] = cot[f, i, 0] if lx else 0.0
             uy[i] = cot[f, i, 1] if ly else 0.0
             if shared:
-                Px[i], Py[i], Pz[i] = P[0, i, 0], P[0, i, 1], P[0, i, 2]
+                pass
             elif lx or ly:
                 Px[i], Py[i], Pz[i] = P[f, i, 0], P[f, i, 1], P[f, i, 2]
             else:  # an unseen sensor's (maybe non-finite) point never enters, as pnp_lh1._Frames
