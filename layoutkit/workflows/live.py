@@ -388,7 +388,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     # the capture first: an existing one is refused before the port is touched
     writer = CaptureWriter(record, setup.sidecar(port=settings, source="live"), overwrite=overwrite) \
         if record is not None else None
-    with stop_on_signals() as stop:
+    with stop_on_signals(interrupt=True) as stop:  # Ctrl-C is a flag too: no frame lost mid-solve
         try:
             src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
             s = open_session(setup, truth=truth, json_out=json_out,
