@@ -109,54 +109,55 @@ def test_camera_folder_of_another_run_is_refused_before_solving(tmp_path):
 # ------------------------------------------------------------------ item 4: honest cross-check statuses
 
 def test_consistency_test_false_alarm_rate_monte_carlo():
-    """Monte-Carlo: disagreements drawn from the predicted model (anisotropic 3-D errors, random
-    per-frame predictions, AR(1)-correlated residuals as camera errors are) are called inconsistent
-    in at most ~0.1 % of sessions (here: 0 to 3 of 1000); 1.5x the prediction over 600 frames always
-    is."""
+    """Monte-Carlo: disagreements drawn from the predicted model, ``E|e|^2 = p^2`` with random
+    per-frame predictions, are called inconsistent at most at the stated 0.1 % rate — in the worst
+    case the test allows for (all the error on one axis, independent frames: 0.1 % exactly; 2 of
+    2000 in a longer run) and far less for anisotropic AR(1)-correlated errors as camera errors
+    are; 1.5x the prediction over 600 frames is always caught."""
+    from scipy.signal import lfilter
+
     from layoutkit.live.crosscheck import consistency_test
 
     rng = np.random.default_rng(7)
-    alarms, caught = 0, 0
-    for _ in range(1000):
-        n = 600
-        p = rng.uniform(0.5e-3, 3e-3, n)
-        w = np.array([0.7, 0.2, 0.1])  # variance shares of the three axes: E|e|^2 = p^2
-        z = np.zeros((n, 3))
-        eps = rng.standard_normal((n, 3))
-        for k in range(n):  # AR(1), rho 0.6: slowly varying errors
-            z[k] = (0.6 * z[k - 1] if k else 0) + np.sqrt(1 - 0.36) * eps[k]
-        e = z * np.sqrt(w) * p[:, None]
-        d = np.linalg.norm(e, axis=1)
-        alarms += not consistency_test(d, p, e)["consistent"]
-        caught += not consistency_test(1.5 * d, p, 1.5 * e)["consistent"]
-    assert alarms <= 3 and caught == 1000
+    n = 600
+    for shares, rho in (([1.0, 0.0, 0.0], 0.0), ([0.7, 0.2, 0.1], 0.6)):
+        alarms, caught = 0, 0
+        for _ in range(500):
+            p = rng.uniform(0.5e-3, 3e-3, n)
+            eps = rng.standard_normal((n + 50, 3))  # AR(1) (50 samples burn-in)
+            z = lfilter([np.sqrt(1 - rho ** 2)], [1.0, -rho], eps, axis=0)[50:]
+            e = z * np.sqrt(shares) * p[:, None]
+            d = np.linalg.norm(e, axis=1)
+            alarms += not consistency_test(d, p, e)["consistent"]
+            caught += not consistency_test(1.5 * d, p, 1.5 * e)["consistent"]
+        assert alarms <= 3 and caught == 500, (shares, rho, alarms, caught)
 
 
-def test_unrelated_attitude_streams_give_a_clock_that_is_not_ok():
-    """Two unrelated attitude streams (the recipe's camera frames of another run): the clock
-    estimate must not come out ``ok`` with a NaN sigma (it did: "offset 2398.129 s ± nan ms")."""
+def test_a_clock_with_no_uncertainty_is_not_ok():
+    """Two unrelated attitude streams (the recipe's camera frames of another run) leave the clock
+    chi² flat at its minimum (every frame at the cost's cap): the estimate came out ``ok`` with
+    "± nan ms". Now its status is ``no_uncertainty`` and the message says the clock is not pinned."""
     from layoutkit.geometry import rotvec_to_matrix
     from layoutkit.live.crosscheck import estimate_camera_clock
 
-    rng = np.random.default_rng(3)
-    t_lh = np.arange(0, 30, 1 / 60)
-    w1, w2 = rng.normal(0, 0.05, 3), rng.normal(0, 0.05, 3)
-    R_lh = rotvec_to_matrix(np.outer(np.sin(0.2 * t_lh), w1) + 0.3)
-    t_cam = np.arange(0, 30, 1 / 15) + 100.0
-    R_cam = rotvec_to_matrix(np.outer(np.cos(0.3 * t_cam), w2) - 0.5)
-    ce = estimate_camera_clock(t_lh, R_lh, np.full(len(t_lh), 2.0), t_cam, R_cam, np.full(len(t_cam), 1e-6),
-                               5e-5)
-    assert not (ce.status == "ok" and not np.isfinite(ce.offset_sigma_s)), ce
-    assert ce.status == "ok" or "do not" in ce.message or "ambiguous" in ce.message
+    t_lh = np.arange(0, 40, 1 / 10)
+    t_cam = np.arange(0, 20, 1 / 5) + 100.0
+    R_lh = rotvec_to_matrix(np.stack([np.sin(0.9 * t_lh), np.cos(0.7 * t_lh), 0.5 * np.sin(0.4 * t_lh)], 1))
+    R_cam = rotvec_to_matrix(np.stack([np.cos(1.1 * t_cam), 0.3 * np.sin(0.5 * t_cam), np.sin(0.8 * t_cam)], 1))
+    ce = estimate_camera_clock(t_lh, R_lh, np.full(len(t_lh), 2.0), t_cam, R_cam, np.full(len(t_cam), 1e-6), 5e-5)
+    assert not np.isfinite(ce.offset_sigma_s)
+    assert ce.status == "no_uncertainty" and "do not pin the clock" in ce.message, ce
 
 
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
-    """4 s of bench session (60 camera frames at 15 fps) and the serial capture of ANOTHER run."""
+    """12 s of bench session (72 camera frames at 6 fps) and the serial capture of ANOTHER run (a
+    4 s session is too short: two 5°/s tumbles are then nearly constant-axis rotations that the
+    fitted camera and face rotations map onto each other — the data cannot tell the runs apart)."""
     d = tmp_path_factory.mktemp("bench")
-    for name, seed, extra in (("cap", 5, ["--camera-out", str(d / "cam"), "--camera-fps", "15", "--camera-size",
+    for name, seed, extra in (("cap", 5, ["--camera-out", str(d / "cam"), "--camera-fps", "6", "--camera-size",
                                           "480x360"]), ("other", 6, [])):
-        r = _run(["fake-fpga", "--layout", LAYOUT, "--out", d / f"{name}.lkcap", "--duration", 4, "--seed", seed,
+        r = _run(["fake-fpga", "--layout", LAYOUT, "--out", d / f"{name}.lkcap", "--duration", 12, "--seed", seed,
                   "--tumble-rate-deg-s", 5, *extra])
         assert r.exit_code == 0, r.output
     return d
@@ -167,23 +168,20 @@ def test_camera_frames_of_another_run_are_not_ok(bench, tmp_path):
     """The live camera recipe run with the pty stream's seed left out compared the camera frames of
     one run with the lighthouse poses of another: 28.48° against 0.22° predicted, both 'ok'. Here
     the same situation (the frames' tie removed, as in a folder recorded before ties existed):
-    the status is not ok and the message says what it means; the right pairing stays ok."""
+    the status is ``inconsistent`` and the message says what it means. (The right pairing stays
+    ``ok``: tests/test_live_camera.py's bench session, 1 ± 0.25 of the prediction.)"""
     cam = tmp_path / "cam"
     shutil.copytree(bench / "cam", cam)
     meta = json.loads((cam / "camera.json").read_text())
     meta["extra"].pop("run")
     (cam / "camera.json").write_text(json.dumps(meta))
-    r = _run(["replay", bench / "other.lkcap", "--camera-device", cam, "--motion-compensation", "--json"])
+    r = _run(["replay", bench / "other.lkcap", "--camera-device", cam, "--motion-compensation", "--report",
+              tmp_path / "rep"])
     assert r.exit_code == 0, r.output
-    c = json.loads(r.output)["camera"]
-    assert c["status"] in ("inconsistent", "clock_no_uncertainty", "clock_ambiguous", "clock_no_overlap"), c
-    assert c["status"] != "ok" and "not a measure of accuracy" in c["message"] or c["disagreement_rms_deg"] is None
-    text = _run(["replay", bench / "other.lkcap", "--camera-device", cam])
-    assert f"lighthouse vs camera: {c['status']}: " in text.output
-    good = _run(["replay", bench / "cap.lkcap", "--camera-device", bench / "cam", "--motion-compensation", "--json"])
-    g = json.loads(good.output)
-    assert g["camera"]["status"] == "ok" and g["camera"]["consistency"]["consistent"], g["camera"]
-    assert [e["status"] for e in g["evidence"]] == ["tied"]
+    c = json.loads((tmp_path / "rep" / "report.json").read_text())["camera"]
+    assert c["status"] == "inconsistent" and "not a measure of accuracy" in c["message"], c
+    assert c["consistency"]["chi2_per_frame"] > c["consistency"]["bound_999"] and c["ratio"] > 2
+    assert f"lighthouse vs camera: inconsistent: {c['used']} frames outside" in r.output
 
 
 def test_camera_attitude_with_no_frame_solved_exits_non_zero(tmp_path):
@@ -221,6 +219,7 @@ def _device_line(proc) -> str:
     return line.split()[1]
 
 
+@pytest.mark.slow
 def test_live_still_waits_for_a_replug_after_the_first_connection(tmp_path):
     """--port-timeout bounds the wait for the FIRST connection only: a board unplugged for longer
     than it (here 1 s for a 3 s gap) is read again when it comes back behind the same link."""
@@ -271,6 +270,7 @@ def test_fake_fpga_waits_for_a_reader_a_bounded_time_and_ends_on_sigterm(tmp_pat
     assert not link.exists() and not link.is_symlink()
 
 
+@pytest.mark.slow
 def test_fake_fpga_sigterm_while_streaming_ends_with_what_was_sent(tmp_path):
     """SIGTERM while a reader is reading: the simulator stops between frames, says how many of the
     frames it sent, exits 143; the reader's capture holds exactly those bytes (no half frame)."""
