@@ -6,10 +6,11 @@ import sys
 
 import click
 
-from .options import POSITIVE, Number, Requires, flag_rules
+from .options import POSITIVE, Requires, flag_rules
 from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
                       units_option)
+from .options import Number
 
 _common_options = [
     layout_option(required=False, help="Layout JSON (sensor positions, m, body frame)."),
