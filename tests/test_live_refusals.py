@@ -104,6 +104,15 @@ def test_camera_folder_of_another_run_is_refused_before_solving(tmp_path):
                   "--camera-out", tmp_path / "cam1"])
     assert again.exit_code == 2 and "a camera capture is already there" in again.output
     assert not (tmp_path / "three.lkcap").exists()
+    # found beside the capture (CAPTURE.camera/, as `live --record` keeps it) rather than given: the
+    # serial replay stands, the camera comparison is flagged 'other_run' and a warning says why
+    shutil.copytree(tmp_path / "cam1", Path(str(cap2) + ".camera"))
+    r = _run(["replay", cap2, "--json"])
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.output)
+    assert s["evidence"][0]["status"] == "other_run" and s["camera"]["status"] == "other_run", s["evidence"]
+    assert "belongs to another run" in s["camera"]["message"] and s["good"] > 0
+    assert "warning: the capture's camera folder" in _run(["replay", cap2]).output
 
 
 # ------------------------------------------------------------------ item 4: honest cross-check statuses

@@ -269,10 +269,22 @@ def check_tie_head(path, option: str, head: HeadHash, port: str) -> dict:
                    "meaningless (the simulator started with another --seed or settings?)", tie)
 
 
-def check_ties(capture, sidecar, files: dict) -> list[dict]:
+def check_ties(capture, sidecar, files: dict, soft=()) -> list[dict]:
     """:func:`check_tie` for each ``{option: path}`` of ``files`` (None paths skipped), before a
-    replay: the first file of another run raises ``ValueError``; returns the results."""
-    return [check_tie(p, opt, capture, sidecar) for opt, p in files.items() if p is not None]
+    replay: the first file of another run raises ``ValueError`` — except for the options in
+    ``soft`` (a file found beside the capture rather than given), whose result is then status
+    ``"other_run"`` with the refusal as its message. Returns the results."""
+    out = []
+    for opt, p in files.items():
+        if p is None:
+            continue
+        try:
+            out.append(check_tie(p, opt, capture, sidecar))
+        except ValueError as exc:
+            if opt not in soft:
+                raise
+            out.append(_result(opt, p, "other_run", str(exc)))
+    return out
 
 
 def check_ties_head(head: HeadHash, port: str, files: dict) -> list[dict]:

@@ -181,8 +181,8 @@ def _mark_other_runs(summary: dict) -> None:
     for ev in summary.get("evidence") or ():
         if ev.get("status") != "other_run":
             continue
-        key = {"--truth": "truth", "--reference": "reference", "--camera": "camera", "--camera-device": "camera"}.get(
-            ev["option"])
+        key = {"--truth": "truth", "--reference": "reference", "--camera": "camera", "--camera-device": "camera",
+               "the capture's camera folder": "camera"}.get(ev["option"])
         if isinstance(summary.get(key), dict):
             summary[key] = {**summary[key], "status": "other_run",
                             "message": ev["message"] + (f"; {summary[key]['message']}" if summary[key].get("message")
@@ -254,7 +254,8 @@ def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_
     sidecar = read_sidecar(capture)
     from ..io.runtie import check_ties
 
-    evidence = check_ties(capture, sidecar, tied or {})  # before any work: another run's file is refused
+    # before any work: another run's file is refused (the camera folder found beside it: flagged)
+    evidence = check_ties(capture, sidecar, tied or {}, soft=("the capture's camera folder",))
     usd = None
     if not sidecar.protocol and _is_cfusdlog(capture):
         from .importers import cfusdlog_replay_source
