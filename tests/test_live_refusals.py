@@ -282,13 +282,16 @@ def test_fake_fpga_waits_for_a_reader_a_bounded_time_and_ends_on_sigterm(tmp_pat
 @pytest.mark.slow
 def test_fake_fpga_sigterm_while_streaming_ends_with_what_was_sent(tmp_path):
     """SIGTERM while a reader is reading: the simulator stops between frames, says how many of the
-    frames it sent, exits 143; the reader's capture holds exactly those bytes (no half frame)."""
+    frames it sent, exits 143; the reader's capture holds exactly those bytes (no half frame).
+    The reader was given the truth of another run: the live run says so (status ``other_run``)."""
+    _, other_truth = _fake_out(tmp_path, "other", 99)
     sim = subprocess.Popen(EXE + ["fake-fpga", "--layout", str(LAYOUT), "--duration", "30", "--seed", "4"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     port = _device_line(sim)
     cap = tmp_path / "c.lkcap"
     live = subprocess.Popen(EXE + ["live", "--layout", str(LAYOUT), "--port", port, "--record", str(cap),
-                                   "--idle-timeout", "2", "--duration", "60", "--no-dashboard", "--json"],
+                                   "--idle-timeout", "2", "--duration", "60", "--no-dashboard", "--json",
+                                   "--truth", str(other_truth)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60
@@ -306,7 +309,10 @@ def test_fake_fpga_sigterm_while_streaming_ends_with_what_was_sent(tmp_path):
     sent = int(err.split("stopped by SIGTERM after ")[1].split(" of ")[0])
     nbytes = int(err.split(" frames (")[1].split(" bytes)")[0].replace(",", ""))
     assert 0 < sent < 1800 and nbytes == cap.stat().st_size == 63 * sent
-    assert json.loads(out)["frames"] == sent // 2
+    s = json.loads(out)
+    assert s["frames"] == sent // 2
+    assert s["evidence"][0]["status"] == "other_run" and s["truth"]["status"] == "other_run", s["evidence"]
+    assert "(fake-fpga --seed 99" in s["truth"]["message"]
 
 
 @pytest.mark.slow
