@@ -208,3 +208,25 @@ def test_score_streams_many_poses_and_agrees_with_the_exact_statistics(monkeypat
     for k in ("median_adop", "p95_adop", "p99_adop", "median_pdop", "p95_pdop"):
         assert abs(res[k] / exact[k] - 1) <= tol, (k, res[k], exact[k])
     assert [u["lit_fraction"] for u in res["per_sensor"]] == pytest.approx([u["lit_fraction"] for u in exact["per_sensor"]])
+
+
+def test_demo_comparison_says_what_the_shipped_layout_leaves_uncovered(tmp_path, small_envelope):
+    """The demo reported a worst ADOP 3.4x the shipped layout's without saying that the shipped one
+    leaves poses uncovered: versus_layout puts coverage beside the DOP. Closed-form reference: the
+    four top sensors with their normals reversed face away from the station in every pose where the
+    shipped top face is lit (the envelope keeps the top face towards the station), so that layout
+    covers no pose at all, and the comparison says so in its message."""
+    from layoutkit.workflows.optimize import versus_layout
+
+    d = json.loads(LAYOUT.read_text())
+    d["sensors"] = [s | {"normal": [-c for c in s["normal"]]} for s in d["sensors"] if s["id"].startswith("T")]
+    away = tmp_path / "away.json"
+    away.write_text(json.dumps(d))
+    v = versus_layout(LAYOUT, away, small_envelope, REPO / "models" / "chen_target.stl", 0.8717)
+    a, b = v["optimised"], v["other"]
+    assert a["poses"] == b["poses"] == 30 and a["covered_poses"] == 30 and b["covered_poses"] == 0
+    assert "30 poses it cannot track at all" in v["message"] and "covers none of the 30 poses" in v["message"]
+    same = versus_layout(LAYOUT, LAYOUT, small_envelope, REPO / "models" / "chen_target.stl", 0.8717)
+    assert {k: v for k, v in same["optimised"].items() if k != "layout"} == \
+           {k: v for k, v in same["other"].items() if k != "layout"}
+    assert "cannot track" not in same["message"]
