@@ -69,7 +69,7 @@ def test_envelope_range_in_millimetres_is_refused_naming_file_and_unit(tmp_path,
     p.write_text(Path(small_envelope).read_text().replace("range_m = [1.0, 2.0]", "range_m = [1000.0, 3000.0]"))
     r = _run(["score", LAYOUT, "--envelope", p, "--json"])
     assert r.exit_code == 2
-    assert r.output.startswith(f"error: {p}: range_m [1000.0, 3000.0]: 3000 m is farther than any lighthouse "
+    assert r.stderr.split("\n")[-2].startswith(f"error: {p}: range_m [1000.0, 3000.0]: 3000 m is farther than any lighthouse "
                                "reaches (<= 30 m): the numbers are probably millimetres (3 m?)"), r.output
     ok = _run(["score", LAYOUT, "--envelope", p, "--json", "--allow-odd-size"])
     assert ok.exit_code == 0 and "warning:" in ok.output  # let through on request, still said
@@ -230,3 +230,21 @@ def test_demo_comparison_says_what_the_shipped_layout_leaves_uncovered(tmp_path,
     assert {k: v for k, v in same["optimised"].items() if k != "layout"} == \
            {k: v for k, v in same["other"].items() if k != "layout"}
     assert "cannot track" not in same["message"]
+
+
+def test_envelope_without_a_station_says_which_station_it_assumed(tmp_path, small_envelope):
+    """An envelope without ``[[station]]`` silently got a default station. Now a warning names the
+    file and the assumed station; the reference for "assumed" is the same envelope with that station
+    written out: identical scores, and no warning."""
+    r = _run(["score", LAYOUT, "--envelope", small_envelope, "--json"])
+    assert r.exit_code == 0
+    warned = [ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]
+    assert len(warned) == 1 and f"{small_envelope}: station: no [[station]] table" in warned[0], r.stderr
+    explicit = tmp_path / "explicit.toml"
+    explicit.write_text(Path(small_envelope).read_text() + '\n[[station]]\nid = "A"\nposition_m = [0.0, 0.0, 0.0]\n'
+                        'rotvec_deg = [0.0, 0.0, 0.0]\nkind = "lh1"\nfov_deg = 120.0\n')
+    r2 = _run(["score", LAYOUT, "--envelope", explicit, "--json"])
+    assert r2.exit_code == 0 and "warning:" not in r2.stderr, r2.stderr
+    a, b = json.loads(r.stdout), json.loads(r2.stdout)
+    assert (a["covered_poses"], a["worst_adop"], a["median_pdop"]) == (b["covered_poses"], b["worst_adop"],
+                                                                        b["median_pdop"])
