@@ -898,11 +898,10 @@ def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: i
     ang = np.asarray(angles, dtype=float)
     # cot(theta) here, not per frame in the kernel: numpy's SIMD tan is ~10x the scalar libm call the
     # kernel would make (the values are the reference's, _Frames)
+    # (in place: a second (F, n, 2) temporary costs more in page faults than the tangents)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        if lit.all():
-            cot = 1.0 / np.tan(ang)
-        else:
-            cot = np.where(lit, 1.0 / np.tan(np.where(lit, ang, 1.0)), 0.0)
+        cot = np.tan(ang) if lit.all() else np.where(lit, np.tan(np.where(lit, ang, 1.0)), 1.0)
+        np.divide(1.0, cot, out=cot)
     F = lit.shape[0]
     has = np.zeros(F, bool)
     R0, t0 = np.zeros((1, 3, 3)), np.zeros((1, 3))  # read only where has (no per-frame zeros to fault in)
@@ -988,13 +987,15 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
             p = P if P.ndim == 2 else P[s:e]
             v = vis[s:e] & ~np.isnan(a)  # NaN = not seen
             good = np.isfinite(a) & (a > 0) & (a < np.pi)
-            invalid = (v & ~good).any((1, 2))  # a seen angle that is inf or outside (0, pi)
+            bad = v & ~good  # a seen angle that is inf or outside (0, pi)
+            invalid = bad.any((1, 2)) if bad.any() else None  # (per frame only when there is one)
             lit = v & good
             if P.ndim == 3:
                 lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
-            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), lit.sum((1, 2)))
-            if invalid.any():
+            n_angles = np.full(e - s, lit[0].size) if lit.all() else lit.sum((1, 2))
+            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), n_angles)
+            if invalid is not None:
                 r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
             parts.append(r)
     return concat_results(parts)
