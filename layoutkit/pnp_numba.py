@@ -478,7 +478,7 @@ def _sym3_eigvals(S00, S11, S22, S01, S02, S12):
     return e_lo, 3.0 * q - e_hi - e_lo, e_hi
 
 
-@numba.njit(**_LEAF)
+@numba.njit(**_VEC)
 def _scatter(Px, Py, Pz, w, n, c, S):
     """Centroid c (3,) and scatter S (6,) = (S00, S11, S22, S01, S02, S12) of the points weighted by
     w (n,) (0/1), as pnp_lh1._scatter (raw moments minus nl c c^T)."""
@@ -487,8 +487,6 @@ def _scatter(Px, Py, Pz, w, n, c, S):
     m00 = m11 = m22 = m01 = m02 = m12 = 0.0
     for i in range(n):
         wi = w[i]
-        if wi == 0.0:
-            continue
         X, Y, Z = Px[i], Py[i], Pz[i]
         nl += wi
         sx += wi * X
@@ -517,7 +515,7 @@ def _unit3(a, b, c):
     return a / nrm, b / nrm, c / nrm, nrm
 
 
-@numba.njit(**_LEAF)
+@numba.njit(**_VEC)
 def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk):
     """POSIT in the virtual camera (pnp_lh1._posit, two iterations) → r (9,), t (3,)."""
     sc = _views(wk)
