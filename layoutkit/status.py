@@ -25,20 +25,24 @@ code  name             meaning
 8     high_residual    solved, but the angle residual is far above the noise (live pipeline)
 9     jump             solved, but inconsistent with the recent track (live continuity gate)
 10    solver_failed    the solver gave no usable pose (live pipeline; PnP's own code is 2–7)
+11    imprecise        solved, but its predicted 1-sigma position (DOP with the run's sigma/rho)
+                       is above the run's limit (e.g. a small deck seen by one station)
+12    uncertain        tracking filter: its own 1-sigma pose is above the configured limits
+13    lost             tracking filter: the innovations reject the state; re-initialising
 ====  ===============  ==========================================================================
 
 Single results use names: the optimiser (``"optimal"``, ``"ok"``, ``"infeasible"``,
 ``"uncoverable"``, ``"no_feasible_found"``, ``"interrupted"``), coverage (``"ok"``,
 ``"infeasible"``, ``"uncoverable"``), camera frames (``"ok"``, ``"degenerate"``, ``"mirrored"``,
 ``"failed"`` and the detector's own names). Results that may be wrong say so
-(``ambiguous``, ``underdetermined``, ``inaccurate``, ``high_residual``, ``jump``).
+(``ambiguous``, ``underdetermined``, ``inaccurate``, ``high_residual``, ``jump``, ``imprecise``).
 """
 from __future__ import annotations
 
 import numpy as np
 
 __all__ = ["OK", "TOO_FEW_LIT", "DEGENERATE", "NOT_CONVERGED", "BEHIND", "AMBIGUOUS", "INVALID_ANGLE", "NO_START",
-           "HIGH_RESIDUAL", "JUMP", "SOLVER_FAILED", "NAMES", "CODES", "DESCRIPTIONS", "summarize"]
+           "HIGH_RESIDUAL", "JUMP", "SOLVER_FAILED", "IMPRECISE", "UNCERTAIN", "LOST", "NAMES", "CODES", "DESCRIPTIONS", "summarize"]
 
 OK = 0
 TOO_FEW_LIT = 1
@@ -51,11 +55,15 @@ NO_START = 7
 HIGH_RESIDUAL = 8
 JUMP = 9
 SOLVER_FAILED = 10
+IMPRECISE = 11
+UNCERTAIN = 12
+LOST = 13
 
 #: Pose status code → name (JSON lines, reports).
 NAMES = {OK: "ok", TOO_FEW_LIT: "too_few_lit", DEGENERATE: "degenerate", NOT_CONVERGED: "not_converged",
          BEHIND: "behind", AMBIGUOUS: "ambiguous", INVALID_ANGLE: "invalid_angle", NO_START: "no_start",
-         HIGH_RESIDUAL: "high_residual", JUMP: "jump", SOLVER_FAILED: "solver_failed"}
+         HIGH_RESIDUAL: "high_residual", JUMP: "jump", SOLVER_FAILED: "solver_failed", IMPRECISE: "imprecise",
+         UNCERTAIN: "uncertain", LOST: "lost"}
 #: Name → code.
 CODES = {v: k for k, v in NAMES.items()}
 #: Code → one-line description (messages).
@@ -71,6 +79,9 @@ DESCRIPTIONS = {
     HIGH_RESIDUAL: "angle residual far above the noise",
     JUMP: "inconsistent with the recent track",
     SOLVER_FAILED: "no usable pose from the solver",
+    IMPRECISE: "predicted precision worse than the run's limit",
+    UNCERTAIN: "filter covariance above its limits",
+    LOST: "filter lost (innovations reject the state)",
 }
 
 

@@ -37,7 +37,7 @@ from .continuity import continuity_gate, motion_history, recent_velocity
 from .posechunk import PoseChunk, empty_pose_arrays
 
 __all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "crossing_beam_windows",
-           "MOTION_MIN_SIGMA"]
+           "MOTION_MIN_SIGMA", "auto_sigma_limit"]
 
 #: a window's motion is modelled (``motion_compensation``) when the known velocity changes its
 #: angles by more than this many sigma_theta (RMS over its measurement times): below, the
@@ -174,7 +174,10 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     Statuses: fewer than ``min_lit`` sensors lit on both axes on every station of the window (no
     station can start the solve) → too_few_lit; the joint solve's own failure (degenerate, behind,
     not converged) → solver_failed; RMS residual above ``max_residual_sigma`` sigma → high_residual;
-    a jump from the recent joint track → jump (the per-station continuity gate, on the joint poses).
+    a predicted 1-sigma position (``PDOP · sigma_theta`` at the pose with the lit sets, Chen eq. 24)
+    above ``max_sigma_position`` (default :func:`auto_sigma_limit`) → imprecise; a jump from the
+    recent joint track → jump (the per-station continuity gate, on the joint poses). The chunk
+    carries ``stations_used`` (stations with a sensor lit on both axes in the window).
     With ``motion_compensation`` each station's angles are modelled at their own time in the window
     (constant body velocity from the recent joint poses, :func:`layoutkit.joint.solve_joint`
     ``dt``/``velocity``) and the window is solved again from the first pose — where the velocity is
@@ -232,6 +235,7 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             ad = pd = np.full(idx.size, np.inf)
         st = np.where(~ok, np.where(np.asarray(sol.status) == _status.TOO_FEW_LIT, _status.TOO_FEW_LIT, _status.SOLVER_FAILED),
                       np.where(rr > limit, _status.HIGH_RESIDUAL, _status.OK))
+        st = _imprecise(st, P, Rs, ts, pd, config, stations)
         st, cand = continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
         state["jump"] = cand
         good = np.flatnonzero(st == _status.OK)
@@ -245,7 +249,46 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         rv[has] = matrix_to_rotvec(R[has])
     return PoseChunk(t=t, station=np.full(W, JOINT), n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
                      status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit.any(1),
-                     n_stations=have.sum(1), lit_by_station=lit.sum(-1))
+                     n_stations=have.sum(1), lit_by_station=lit.sum(-1),
+                     stations_used=(lit.sum(-1) > 0).sum(1), sigma_theta=config.sigma_theta)
+
+
+def auto_sigma_limit(points_body, rotation, translation, stations, rho: float) -> np.ndarray:
+    """The default ``max_sigma_position`` of joint windows, per pose, in units of sigma_theta (m/rad):
+    the geometric mean ``sqrt(PDOP_1 · PDOP_all)`` of the best single station's PDOP and all
+    stations' together, both with every sensor lit, at the pose ``rotation (W, 3, 3)``,
+    ``translation (W, 3)`` m (world). Between the two by construction: a window seen by one station
+    is above it (its PDOP is at least ``PDOP_1``), one seen well by several is below. (W,) m/rad;
+    inf with fewer than two stations (no limit)."""
+    from ..dop import pose_dop
+
+    W, S, n = len(rotation), len(stations), len(points_body)
+    if S < 2 or W == 0:
+        return np.full(W, np.inf)
+    vis = np.ones((W, S, n), bool)
+    d_all = np.asarray(pose_dop(points_body, rotation, translation, rho=rho, visible=vis, stations=stations).pdop)
+    best = np.full(W, np.inf)
+    for s in range(S):
+        vis = np.zeros((W, S, n), bool)
+        vis[:, s] = True
+        d = np.asarray(pose_dop(points_body, rotation, translation, rho=rho, visible=vis, stations=stations).pdop)
+        best = np.minimum(best, np.where(np.isfinite(d), d, np.inf))
+    return np.sqrt(best * d_all)
+
+
+def _imprecise(status, P, R, t, pdop, config, stations):
+    """``status`` with the ok poses whose predicted 1-sigma position exceeds the run's limit
+    (``config.max_sigma_position`` m, else :func:`auto_sigma_limit`) marked imprecise."""
+    k = np.flatnonzero(status == _status.OK)
+    if k.size == 0:
+        return status
+    if config.max_sigma_position is not None:
+        limit = np.full(k.size, config.max_sigma_position)
+    else:
+        limit = auto_sigma_limit(P, R[k], t[k], stations, config.rho) * config.sigma_theta
+    status = status.copy()
+    status[k[pdop[k] * config.sigma_theta > limit]] = _status.IMPRECISE
+    return status
 
 
 def _compensate(P, a, dt, Rs, ts, rr, use, w, v, stations, solve_joint):

@@ -215,6 +215,10 @@ class LiveSession:
             "frames_per_s": c.frames / wall if wall > 0 else None,
             "mean_lit": self.lit_sum / c.frames if c.frames else 0.0,
             "sigma_theta_rad": self.options.sigma_theta, "rho": self.options.rho,
+            "max_sigma_position_m": self.options.max_sigma_position if self.options.max_sigma_position is not None
+            else ("auto: per window, the geometric mean of the best single station's and all stations' predicted "
+                  "1-sigma position at that pose" if self.options.solve == "joint" and len(self.stations or ()) >= 2
+                  else None),
             "static_groups": [g.as_dict() for g in groups],
             "truth": None if self.truth_err is None or self.truth_err.n == 0 else self.truth_err.summary().as_dict(),
             "status_names": STATUS_NAMES,

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from .. import status as _status
 from ..filter import EkfConfig, SweepTracker
 from ..filter.consistency import nees, pose_error
 from ..geometry import rotvec_to_matrix
@@ -37,7 +38,7 @@ class FilterSink:
     station is used with an identity pose, so poses are in its frame as the pipeline's are);
     config : :class:`EkfConfig`; truth : optional :class:`layoutkit.live.reference.PoseTrack` in the
     same frame; json_out : text stream or None; poses_path : write every output to this pose table
-    (status 0 ok / 10 uncertain / 11 lost, extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
+    (status 0 ok / 12 uncertain / 13 lost, codes of :mod:`layoutkit.status`; extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
     atomically, complete when :meth:`close` / :meth:`summary` runs).
     Memory is flat: outputs are written as they come and only sums are kept.
     """
@@ -163,7 +164,8 @@ class FilterSink:
 
 
 #: Pose-table status codes of filtered poses (``layoutkit solve --filter ekf --out``): 0 = ok.
-FILTER_STATUS_CODES = {"ok": 0, "uncertain": 10, "lost": 11}
+#: The filter's statuses as codes of the one table (:mod:`layoutkit.status`): ok 0, uncertain 12, lost 13.
+FILTER_STATUS_CODES = {"ok": _status.OK, "uncertain": _status.UNCERTAIN, "lost": _status.LOST}
 
 
 def filter_frames(fr, layout, config: EkfConfig, stations=None) -> dict:
