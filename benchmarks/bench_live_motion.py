@@ -54,7 +54,7 @@ def errors(sw, c):
     from layoutkit.dop import pose_errors
     from layoutkit.geometry import rotvec_to_matrix
     from layoutkit.status import OK as STATUS_OK
-    from layoutkit.noise import SIGMA_THETA_PAPER
+    from layoutkit.units import SIGMA_THETA_PAPER
 
     x = sw.axis == 0
     i = np.searchsorted(sw.t[x], c["t"])

@@ -156,6 +156,7 @@ def test_hidden_station_and_reflections(layout):
     assert r["sigma_pos_m_max_hidden"] > r["sigma_pos_m_before_hidden"]  # one station less: less certain
 
 
+@pytest.mark.slow
 def test_nees_nis_consistency_small(layout):
     """Monte Carlo vs the filter's covariance: over 8 tumbles the time-averaged ANEES (6 dof) and the
     NIS per dof are inside generous bands (the full 50-run check is benchmarks/bench_filter.py)."""

@@ -15,7 +15,7 @@ from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.live.frames import SweepMeasurement
 from layoutkit.live.pipeline import LiveConfig, PosePipeline
 from layoutkit.live.simulator import simulate_sweeps, spin_motion
-from layoutkit.noise import SIGMA_THETA_PAPER
+from layoutkit.units import SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 from layoutkit.status import OK as STATUS_OK
 
@@ -86,6 +86,7 @@ def test_noise_free_constant_velocity_is_removed(layout):
     assert out[True][0].max() < 0.05 and out[True][1].max() < 0.05
 
 
+@pytest.mark.slow
 def test_compensation_chunking_and_gaps(layout):
     """1-frame chunks (live) and 500-frame chunks (replay) agree far below the noise (0.02 σ); the
     first frames of the stream and of the track after a 1 s gap (no velocity yet) are not

@@ -15,7 +15,8 @@ from layoutkit.live.frames import SweepMeasurement
 from layoutkit.lighthouse import lh2_to_lh1_angles
 from layoutkit.live.pipeline import LiveConfig, PosePipeline, SweepPairer
 from layoutkit.status import JUMP as STATUS_JUMP, OK as STATUS_OK, TOO_FEW_LIT as STATUS_TOO_FEW_LIT
-from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
+from layoutkit.noise import sample_angle_noise
+from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 from layoutkit.visibility import facing_mask
 

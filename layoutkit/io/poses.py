@@ -425,11 +425,14 @@ def iter_poses(path, *, chunk_rows: int = 65536, default_length_unit: str = "m")
     with fh:
         lineno = 0
         header = None
-        for line in fh:
-            lineno += 1
-            if line.strip() and not line.lstrip().startswith("#"):
-                header = read_pose_header(path, line, default_length_unit=default_length_unit)
-                break
+        try:
+            for line in fh:
+                lineno += 1
+                if line.strip() and not line.lstrip().startswith("#"):
+                    header = read_pose_header(path, line, default_length_unit=default_length_unit)
+                    break
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text file (a pose table is CSV text)") from None
         if header is None:
             raise ValueError(f"{path}: empty pose table (no header)")
         rows, first = [], None

@@ -1,6 +1,6 @@
 """Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
 
-Why one module of ~680 lines: the stages below (pairing, batching, the chunk solve with its
+Why one module of ~860 lines: the stages below (pairing, batching, the chunk solve with its
 continuity gate and motion compensation) pass per-station state to each other and to the one
 config class :class:`LiveConfig`; they are read as one data flow.
 
@@ -251,9 +251,8 @@ class SweepPairer:
         self.paired += 1
         if m.kind == "lh2":
             per = self.lh2_periods.get(int(m.station), 0.02)
-            with np.errstate(invalid="ignore"):
-                mean = np.nanmean(raw, 0) if np.isfinite(raw).any() else np.zeros(2)
-            mean = np.where(np.isfinite(mean), mean, 0.0)
+            cnt = np.isfinite(raw).sum(0)   # a plane may be all NaN (one-plane rotations): no nanmean warning
+            mean = np.where(cnt > 0, np.where(np.isfinite(raw), raw, 0.0).sum(0) / np.maximum(cnt, 1), 0.0)
             t_axes = (float(x.t + (mean[0] + np.pi - np.pi / 3) / (2 * np.pi) * per),
                       float(m.t + (mean[1] + np.pi + np.pi / 3) / (2 * np.pi) * per))
         else:

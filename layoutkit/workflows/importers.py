@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
+from ..io.jsonfile import to_jsonable
 from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
@@ -191,33 +191,19 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
 
 # ---------------------------------------------------------------- cfusdlog
 
-DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
-
-
 def _deck_layout() -> Layout:
     """The Lighthouse deck's 4 sensors (``models/crazyflie_lighthouse_deck.layout.json``; the
     firmware's ``sensorDeckPositions``)."""
     from ..layout import load_layout
+    from ..resources import model_path
 
-    if DECK_LAYOUT.exists():
-        return load_layout(DECK_LAYOUT)
-    L, W = 0.015, 0.0075  # installed without the models folder: the same numbers
-    P = np.array([[-L, W, 0.0], [-L, -W, 0.0], [L, W, 0.0], [L, -W, 0.0]])
-    return Layout(P, np.tile([0.0, 0.0, 1.0], (4, 1)), ("0", "1", "2", "3"))
-
-
-def _unwrap24(ts) -> np.ndarray:
-    ts = np.asarray(ts, np.int64) & 0xFFFFFF
-    if ts.size == 0:
-        return ts
-    d = np.diff(ts) % (1 << 24)
-    d = np.where(d >= (1 << 23), d - (1 << 24), d)
-    return np.concatenate([[ts[0]], ts[0] + np.cumsum(d)])
+    return load_layout(model_path("crazyflie_lighthouse_deck.layout.json"))
 
 
 def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
     """``lhUartFrame`` events → the deck's UART byte stream (12-byte frames; a sync frame first and
     every ``sync_every`` frames). Returns the bytes and notes on what was filled in."""
+    from ..importers.cfusdlog import no_channel_value
     from ..live.protocols.bitcraze import SYNC_FRAME, DeckPulse, encode_pulse
 
     need = ("sensor", "basestation", "offset", "timestampFPGA")
@@ -225,6 +211,7 @@ def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
     if miss:
         raise ValueError(f"lhUartFrame events lack variable(s) {miss} (have {sorted(k for k in ev if k != 't')})")
     n = len(ev["t"])
+    nc = no_channel_value(ev["basestation"], ev["offset"])
     out = [SYNC_FRAME]
     for k in range(n):
         if k and k % sync_every == 0:
@@ -232,8 +219,10 @@ def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
         off24 = int(ev["offset"][k])
         ch = int(ev["basestation"][k])
         out.append(encode_pulse(DeckPulse(int(ev["sensor"][k]) & 3, int(ev["timestampFPGA"][k]) & 0xFFFFFF, 0,
-                                          off24 // 4, 0, ch if 0 <= ch < 16 else None, 0)))
-    notes = {"width": "not in the log; 0 (the LH2 angle path does not use it)",
+                                          off24 // 4, 0, None if ch == nc or not 0 <= ch < 16 else ch, 0)))
+    notes = {"basestation": f"{nc} = no channel found (the deck frame's bit 7; the value past the real channels)"
+                            if nc is not None else "every value a channel (none without offsets at the top)",
+             "width": "not in the log; 0 (the LH2 angle path does not use it)",
              "beam_word": "not in the log; 0 (not used for angles)",
              "slow_bit": "not in the log; 0 (OOTX calibration data cannot be decoded: give --system-config)",
              "offset": "logged in 24 MHz ticks; written as the deck's 6 MHz field (offset / 4)"}
@@ -257,12 +246,40 @@ def cfusdlog_capture(log, ul=None) -> tuple[bytes, "object"]:
                          "lighthouse deck's UART frame event trigger when logging")
     ev = ul.events["lhUartFrame"]
     data, notes = deck_bytes(ev)
-    offset = float(np.median(ev["t"] - _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ))
-    sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options={"time_offset_s": offset},
+    clock = _deck_clock(ul)
+    sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options={"time_offset_s": clock.offset_s,
+                                                                   "time_rate": clock.rate},
                         layout=_deck_layout().to_dict(), source="cfusdlog (replayed directly)", n_sensors=4,
                         bytes=len(data), extra={"imported_from": str(log), "log_ended": ul.ended,
+                                                "clock": clock.as_dict(),
                                                 "import_notes": [f"{k}: {v}" for k, v in notes.items()]})
     return data, sc
+
+
+def _deck_clock(ul):
+    """The deck-to-log clock fit of a log with UART frames (:func:`layoutkit.importers.cfusdlog.fit_deck_clock`),
+    its deck time origin the first frame's 24-bit timestamp (as the replayed bytes' decoder)."""
+    from ..importers.cfusdlog import fit_deck_clock, uart_frames
+
+    u = uart_frames(ul)
+    return fit_deck_clock(u.deck_s, u.t)
+
+
+def _uart_is_lh1(ul, kind) -> str | None:
+    """Why a log's ``lhUartFrame`` events are not written as an LH2 capture (None: they are): an LH1
+    system (its sweep events or system config say so), or no frame carries an LH2 channel."""
+    from ..importers.cfusdlog import uart_frames
+
+    u = uart_frames(ul)
+    if u is None:
+        return None
+    if kind == "lh1":
+        return ("LH1 base stations: lhUartFrame events are not written as a capture (LH1 needs the pulse widths, "
+                "which are not logged); the firmware's lhAngle angles are in frames.csv (solve / replay LOG)")
+    if not np.any(u.channel >= 0):
+        return (f"no lhUartFrame event carries an LH2 channel (every basestation = {u.no_channel}: LH1, or no "
+                "channel decoded); no capture written")
+    return None
 
 
 def _found(ul) -> str:
@@ -367,8 +384,9 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     ``calibrate``, and the firmware's position estimates ``firmware_<label>.csv``. A log without
     UART frames gives no capture (``capture: null``).
 
-    The replay's ``t`` is the log's event clock: ``t = deck ticks / 24 MHz + offset`` with the
-    offset the median of (event time − unwrapped FPGA time) over the events.
+    The replay's ``t`` is the log's event clock: ``t = offset + rate * deck ticks / 24 MHz``, both
+    fitted on the frames (:func:`layoutkit.importers.cfusdlog.fit_deck_clock`; ``clock`` in the
+    summary and the sidecar).
     """
     from ..importers.cfusdlog import read_cfusdlog, sweep_events
     from ..io.atomic import atomic_write_bytes
@@ -392,14 +410,21 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     summary = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "ended": ul.ended,
                "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()}}
     summary.update(_import_sweep_events(log, ul, sweeps, out, cfg))
-    if not has_uart:
-        return summary | {"uart_frames": 0, "capture": None, "angle_rows": _firmware_angles(ul, out)[0],
-                          "firmware_angles": str(out / "firmware_angles.csv"), "notes": []}
+    lh1 = _uart_is_lh1(ul, summary.get("kind"))
+    if not has_uart or lh1:
+        # an LH1 log's UART frames cannot be decoded (no pulse widths, no channel): never a capture
+        notes = [lh1] if lh1 else []
+        res = {"uart_frames": int(len(ul.events["lhUartFrame"]["t"])) if has_uart else 0, "capture": None,
+               "angle_rows": _firmware_angles(ul, out)[0], "firmware_angles": str(out / "firmware_angles.csv"),
+               "notes": notes}
+        if has_uart:
+            res["clock"] = _deck_clock(ul).as_dict()
+        return summary | res
     ev = ul.events["lhUartFrame"]
     data, notes = deck_bytes(ev)
     atomic_write_bytes(cap, data)
-    deck_t = _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ
-    offset = float(np.median(ev["t"] - deck_t))
+    clock = _deck_clock(ul)
+    offset = clock.offset_s
     stations = ()
     note_list = [f"{k}: {v}" for k, v in notes.items()]
     if cfg is not None:
@@ -409,18 +434,18 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
         elif ids:
             note_list.append(f"system config station ids {ids} are not 0..k-1: stations left out of the sidecar")
     lay = _deck_layout()
-    opts = {"time_offset_s": offset}
+    opts = {"time_offset_s": offset, "time_rate": clock.rate}
     if system_config:
         opts["system_config"] = str(Path(system_config).resolve())
     sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options=opts, stations=stations, layout=lay.to_dict(),
                         source="layoutkit import cfusdlog", n_sensors=4, bytes=len(data),
-                        extra={"imported_from": str(log), "clock": {"log_minus_deck_s": offset,
-                                                                    "deck_clock_hz": DECK_CLOCK_HZ},
+                        extra={"imported_from": str(log), "clock": clock.as_dict() | {"deck_clock_hz": DECK_CLOCK_HZ},
                                "import_notes": note_list})
     write_sidecar(cap, sc)
     rows, fa = _firmware_angles(ul, out)
     return summary | {"uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
                       "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
+                      "clock": clock.as_dict(),
                       "stations": len(stations), "notes": note_list}
 
 
