@@ -7,7 +7,7 @@ import sys
 import click
 
 from .options import POSITIVE, Requires, flag_rules
-from .options import (camera_options, filter_options, length_mm_option, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
+from .options import (camera_options, filter_options, length_mm_option, refine_stations_option, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
                       units_option)
 
@@ -145,6 +145,9 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
         per = ", ".join(f"{k} station(s): {v}" for k, v in (j.get("windows_by_stations") or {}).items())
         lines.append(f"joint: {j['poses']} windows ({per}), {j['good']} ok; window {j['window_s'] * 1e3:.0f} ms; "
                      f"poses in the stations' world frame")
+    sr = summary.get("station_refinement")
+    if sr:
+        lines.append(f"stations ({'refined' if sr.get('applied') else 'as given'}): {sr.get('message')}")
     g = summary.get("static_groups") or []
     if g:
         lines.append(f"static groups: {len(g)}")
@@ -195,12 +198,13 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @click.command("replay", short_help="Decode and solve a recorded capture as fast as possible.")
 @click.argument("capture", type=click.Path(dir_okay=False))
 @_add(_common_options)
+@refine_stations_option
 @filter_options
 @camera_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
                camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
-               solve_mode, max_sigma_position):
+               solve_mode, max_sigma_position, refine_stations):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -225,7 +229,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir,
                                  camera_device=camera_device, camera_config=cam_cfg, stations=stations_path,
-                                 system_config=system_config, solve=solve_mode)
+                                 system_config=system_config, solve=solve_mode, refine_stations=refine_stations)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:

@@ -46,8 +46,13 @@ _TWO_PI = 2.0 * math.pi
 class EkfConfig:
     """Tuning of the filter (SI units throughout).
 
-    psd_rot : rad²/s³, PSD of the white angular acceleration (constant-velocity model).
-    psd_pos : m²/s³, PSD of the white linear acceleration.
+    motion : "adaptive" (default) — an interacting-multiple-model bank of constant-velocity filters
+        whose PSDs span a resting to a swung / flying body (``imm_psd_rot``, ``imm_psd_pos``; per-sweep
+        mode stay probability ``imm_stay``): the process noise follows the motion
+        (:class:`layoutkit.filter.imm.ImmFilter`, compiled); "fixed" — one model with ``psd_rot`` /
+        ``psd_pos`` (compiled; with ``constant_acceleration`` or ``zupt`` this numpy class).
+    psd_rot : rad²/s³, PSD of the white angular acceleration (constant-velocity model, "fixed").
+    psd_pos : m²/s³, PSD of the white linear acceleration ("fixed").
     constant_acceleration : add angular and linear acceleration states, driven by white jerk of
         PSDs ``psd_jerk_rot`` (rad²/s⁵) and ``psd_jerk_pos`` (m²/s⁵).
     sigma_theta : rad, 1-sigma angle noise; rho : same-rotor correlation (Chen eq. 19).
@@ -69,6 +74,10 @@ class EkfConfig:
 
     psd_rot: float = 1e-6
     psd_pos: float = 1e-6
+    motion: str = "adaptive"
+    imm_psd_rot: tuple = (1e-6, 1e-3, 1.0, 1e3)
+    imm_psd_pos: tuple = (1e-6, 1e-3, 1.0, 1e3)
+    imm_stay: float = 0.99
     constant_acceleration: bool = False
     psd_jerk_rot: float = 1e-6
     psd_jerk_pos: float = 1e-6
@@ -109,6 +118,18 @@ class EkfConfig:
                 raise ValueError(f"{name}: expected a probability in (0, 1), got {v}")
         if self.lost_after < 1 or self.zupt_window < 2 or self.lost_factor < 1:
             raise ValueError("lost_after >= 1, zupt_window >= 2 and lost_factor >= 1 expected")
+        if self.motion not in ("adaptive", "fixed"):
+            raise ValueError(f"motion: expected 'adaptive' or 'fixed', got {self.motion!r}")
+        if self.motion == "adaptive" and (self.constant_acceleration or self.zupt):
+            raise ValueError("constant_acceleration and zupt need motion 'fixed' (the adaptive bank is constant "
+                             "velocity; its quietest model is the static case)")
+        qr, qp = tuple(self.imm_psd_rot), tuple(self.imm_psd_pos)
+        if not (len(qr) == len(qp) >= 1 and all(math.isfinite(v) and v >= 0 for v in qr + qp)):
+            raise ValueError(f"imm_psd_rot, imm_psd_pos: expected equally long lists of PSDs >= 0, got {qr}, {qp}")
+        object.__setattr__(self, "imm_psd_rot", qr)
+        object.__setattr__(self, "imm_psd_pos", qp)
+        if not 0.0 < self.imm_stay <= 1.0:
+            raise ValueError(f"imm_stay: expected a probability in (0, 1], got {self.imm_stay}")
         if self.model not in FORWARD_MODELS:
             raise ValueError(f"model: expected one of {sorted(FORWARD_MODELS)}, got {self.model!r}")
 

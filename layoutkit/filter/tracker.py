@@ -44,7 +44,7 @@ from ..units import RAD2DEG
 from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile
 from .so3 import quat_to_rotvec
 
-__all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance"]
+__all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance", "joint_pose_covariance"]
 
 #: Output statuses: "ok" = tracking within the configured sigma limits.
 STATUSES = ("ok", "uncertain", "lost")
@@ -137,6 +137,23 @@ class TrackerCounters:
         return dict(self.__dict__)
 
 
+def joint_pose_covariance(jacs, sigma: float, rho: float) -> np.ndarray:
+    """Covariance (6, 6) of an unweighted least-squares pose over several stations: the sandwich
+    ``A^-1 (sum_k J_k^T R_k J_k) A^-1``, ``A = sum_k J_k^T J_k``, each station's angles correlated as
+    Chen eq. (19) within its own rotor only. jacs : per station (m_k, 2, 6), world perturbation."""
+    from ..noise import angle_correlation
+
+    A = np.zeros((6, 6))
+    M = np.zeros((6, 6))
+    for jac in jacs:
+        J = np.asarray(jac, float).reshape(-1, 6)
+        A += J.T @ J
+        M += J.T @ angle_correlation(J.shape[0] // 2, rho) @ J
+    Ai = np.linalg.inv(A)
+    H = Ai @ M @ Ai * sigma ** 2
+    return 0.5 * (H + H.T)
+
+
 def pnp_pose_covariance(jac, sigma: float, rho: float) -> np.ndarray:
     """Covariance (6, 6) of an unweighted least-squares pose from one frame (Chen eq. 18).
 
@@ -171,16 +188,23 @@ class SweepTracker:
         self.points_body = np.ascontiguousarray(points_body, float)
         self.n = self.points_body.shape[0]
         self.stations = list(stations) if stations else [Station()]
-        self.ekf = ErrorStateEKF(self.points_body, self.stations, self.config, model)
+        if self.config.motion == "fixed" and (self.config.constant_acceleration or self.config.zupt or model is not None):
+            self.ekf = ErrorStateEKF(self.points_body, self.stations, self.config, model)
+        else:  # the compiled estimator: the adaptive bank, or one constant-velocity model
+            from .imm import ImmFilter
+
+            self.ekf = ImmFilter(self.points_body, self.stations, self.config)
         self.init_max_residual_sigma = float(init_max_residual_sigma)
         self.init_window_s = float(init_window_s)
         self.init_retry_s = 0.5 * float(init_window_s)
+        self.reorder_s = 0.05  # s, sweeps older than the filter by at most this are applied late, not a reset
         self.confirm_sweeps = int(confirm_sweeps)
         self._confirm = 0
         self._ambiguous = 0
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
+        self._waiting_since = None  # when the tracker began waiting for a start (several stations)
         self._bad_run = 0
         self._lost = False
         self._last_same: dict = {}
@@ -196,11 +220,16 @@ class SweepTracker:
             raise ValueError(f"sweep station {s}: the set-up has {len(self.stations)} station(s)")
         return self.stations[s]
 
-    def _hit_offsets(self, st: Station, kind: str, ang: np.ndarray):
+    def _hit_offsets(self, st: Station, kind: str, ang: np.ndarray, axis: int = 0):
+        """Hit time of each angle after the sweep's time (s): LH1 ``theta / omega`` after the sync,
+        LH2 plane ``axis`` ``(alpha + pi -/+ pi/3) / omega`` after the rotor zero (the decoder's
+        plane angles ``a0 = off0 omega - pi + pi/3``, ``a1 = off1 omega - pi - pi/3``)."""
         if not self.config.hit_timing:
             return None
         omega = 2.0 * math.pi * st.rotor_rpm / 60.0
-        return (ang + (math.pi if kind == "lh2" else 0.0)) / omega
+        if kind == "lh2":
+            return (ang + math.pi + (-math.pi / 3 if axis == 0 else math.pi / 3)) / omega
+        return ang / omega
 
     def _remember(self, s: int, axis: int, t: float, ang: np.ndarray) -> None:
         rec = self._recent.get(s)
@@ -211,11 +240,71 @@ class SweepTracker:
         rec[0][hit, axis] = ang[hit]
         rec[1][hit, axis] = t
 
+    def _try_joint_init(self, t: float) -> bool:
+        """A start from every station's recent angles at once (:func:`layoutkit.joint.solve_joint`
+        through each station's forward model): with two or more stations a small body's range is
+        fixed by the stations' baseline, where one station alone leaves it centimetres uncertain
+        (and the other stations' first sweeps would then be rejected). Needs >= 2 stations with
+        >= 2 sensors lit on both axes and one with >= 4 (the solve's start); True when started."""
+        from ..joint import solve_joint
+
+        S = len(self.stations)
+        ang = np.full((S, self.n, 2), np.nan)
+        lits = np.zeros((S, self.n), bool)
+        for k, rec in self._recent.items():
+            if 0 <= k < S:
+                lit = np.all(rec[1] >= t - self.init_window_s, -1)
+                ang[k][lit], lits[k] = rec[0][lit], lit
+        per = lits.sum(1)
+        if (per >= 2).sum() < 2 or per.max() < 4:
+            return False
+        key = lits.tobytes()
+        prev = self._tried.get("joint")
+        if prev is not None and prev[0] == key and t - prev[1] < self.init_retry_s:
+            return False
+        self._tried["joint"] = (key, t)
+        self.counters.pnp_tries += 1
+        sol = solve_joint(self.points_body, ang[None], stations=self.stations)
+        if not sol.success[0] or not sol.residual_rms[0] <= self.init_max_residual_sigma * self.config.sigma_theta:
+            return False
+        R, p = np.asarray(sol.rotation[0]), np.asarray(sol.translation[0])
+        c = self.config
+        try:
+            cov = joint_pose_covariance([self.ekf.model.jacobian(self.points_body[lits[k]], R, p, self.stations[k])
+                                         for k in range(S) if lits[k].any()], c.sigma_theta, c.rho) * c.init_inflation
+        except np.linalg.LinAlgError:
+            return False
+        if not np.all(np.isfinite(cov)):
+            return False
+        age = t - float(min(self._recent[k][1][lits[k]].min() for k in range(S) if lits[k].any()))
+        self._start(t, R, p, cov, age)
+        return True
+
+    def _start(self, t, R, p, cov, age) -> None:
+        c = self.config
+        cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
+        cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
+        self.ekf.initialize(t, R, p, cov)
+        self._waiting_since = None
+        self._confirm = self.confirm_sweeps
+        self._lost = False
+        self._bad_run = 0
+        self._tried.clear()
+        self.counters.inits += 1
+
     def _try_init(self, s: int, t: float, st: Station) -> bool:
-        """PnP on the recent angles of station ``s`` (see the module docstring); True when started."""
+        """A start from all stations' recent angles (:meth:`_try_joint_init`), else PnP on the recent
+        angles of station ``s`` (see the module docstring); True when started."""
         from ..pnp import solve_pnp
         from ..status import AMBIGUOUS as STATUS_AMBIGUOUS
 
+        if len(self.stations) >= 2:
+            if self._try_joint_init(t):
+                return True
+            if self._waiting_since is None:
+                self._waiting_since = t
+            if t - self._waiting_since < self.init_window_s:
+                return False  # give the other stations one init window to be seen before starting from one
         rec = self._recent.get(s)
         if rec is None:
             return False
@@ -254,15 +343,7 @@ class SweepTracker:
             return False
         if not np.all(np.isfinite(cov)):
             return False
-        age = t - float(times[lit].min())
-        cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
-        cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
-        self.ekf.initialize(t, R, p, cov)
-        self._confirm = self.confirm_sweeps
-        self._lost = False
-        self._bad_run = 0
-        self._tried.clear()
-        self.counters.inits += 1
+        self._start(t, R, p, cov, t - float(times[lit].min()))
         return True
 
     def _static_test(self, key, t, ang) -> None:
@@ -305,6 +386,12 @@ class SweepTracker:
         if ang.shape != (self.n,):
             raise ValueError(f"sweep angles: expected shape ({self.n},), got {ang.shape}")
         ekf = self.ekf
+        late = 0.0
+        if ekf.initialized and t < ekf.t and ekf.t - t <= self.reorder_s:
+            # sweeps of different stations reach the decoder slightly out of time order (a rotation's
+            # time is its zero, the sweep is complete only when the plane has passed): applied at the
+            # filter's time with their hit times moved back
+            late, t = t - ekf.t, ekf.t
         if ekf.initialized and t < ekf.t:  # time ran backwards (device reset): start over
             self._declare_lost()
             ekf.initialized = False
@@ -331,8 +418,16 @@ class SweepTracker:
                 idx = np.flatnonzero(np.isfinite(ang))
                 if idx.size:
                     a = ang[idx]
-                    upd = ekf.update_sweep(s, axis, idx, a, self._hit_offsets(st, kind, a))
+                    offs = self._hit_offsets(st, kind, a, axis)
+                    if late:
+                        upd = (ekf.update_sweep(s, axis, idx, a, None if offs is None else offs + late, late)
+                               if hasattr(ekf, "propagate") else ekf.update_sweep(s, axis, idx, a,
+                                                                                  (0.0 if offs is None else offs) + late))
+                    else:
+                        upd = ekf.update_sweep(s, axis, idx, a, offs)
                     self._account(upd)
+                elif hasattr(ekf, "propagate"):
+                    ekf.propagate()
                 if c.zupt and self.static:
                     ekf.zero_velocity_update()
                     self.counters.zupts += 1

@@ -198,12 +198,15 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     n_lit = lit.sum(axis=(1, 2))
     startable = np.any(lit.sum(-1) >= config.min_lit, axis=1)
     R, tr, res, status, adop, pdop = empty_pose_arrays(W)
-    idx = np.flatnonzero(startable)
+    # windows no station can start alone but whose angles from several stations fix a pose from the
+    # track's last one (a deck tilted so that each station sees 3 of its 4 sensors)
+    cont = ~startable & ((lit.sum(-1) > 0).sum(1) >= 2) & (lit.sum(axis=(1, 2)) >= config.min_lit)
+    idx = np.flatnonzero(startable | cont)
     if idx.size:
         a = ang[idx]
-        sol = solve_joint(P, a, stations=stations)
-        Rs, ts, rr = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
-        ok = np.asarray(sol.status) == _status.OK
+        Rs, ts, rr, st0 = _solve_from_starts_or_track(P, a, t[idx], startable[idx], state, config, stations,
+                                                      solve_joint)
+        ok = st0 == _status.OK
         # body velocity from the recent joint poses (causal; NaN at the start of a stream, after a gap
         # or a jump), kept whether or not it is used
         # (from windows with two or more stations when there are: a one-station window of a small
@@ -233,7 +236,7 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             pd = np.where(ok, d.pdop, np.inf)
         else:
             ad = pd = np.full(idx.size, np.inf)
-        st = np.where(~ok, np.where(np.asarray(sol.status) == _status.TOO_FEW_LIT, _status.TOO_FEW_LIT, _status.SOLVER_FAILED),
+        st = np.where(~ok, np.where(st0 == _status.TOO_FEW_LIT, _status.TOO_FEW_LIT, _status.SOLVER_FAILED),
                       np.where(rr > limit, _status.HIGH_RESIDUAL, _status.OK))
         st = _imprecise(st, P, Rs, ts, pd, config, stations)
         st, cand = continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
@@ -289,6 +292,45 @@ def _imprecise(status, P, R, t, pdop, config, stations):
     status = status.copy()
     status[k[pdop[k] * config.sigma_theta > limit]] = _status.IMPRECISE
     return status
+
+
+def _solve_from_starts_or_track(P, a, t, startable, state, config, stations, solve_joint):
+    """Joint poses of the windows ``a (F, S, n, 2)``: the startable ones from the per-station starts,
+    the others from the latest earlier converged pose within ``reacquire_s`` (a startable window of
+    this batch, or the track's last good pose); a window with no such pose is not solved (too few).
+    Returns ``(R (F, 3, 3), t (F, 3), residual_rms (F,), solver status (F,))`` (codes of
+    :mod:`layoutkit.status`; too_few_lit where not solved)."""
+    F = len(a)
+    Rs, ts, rr = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan), np.full(F, np.nan)
+    st = np.full(F, _status.TOO_FEW_LIT, int)
+    k = np.flatnonzero(startable)
+    if k.size:
+        sol = solve_joint(P, a[k], stations=stations)
+        Rs[k], ts[k], rr[k] = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
+        st[k] = np.asarray(sol.status)
+    c = np.flatnonzero(~startable)
+    if c.size == 0:
+        return Rs, ts, rr, st
+    ok = (st == _status.OK) & (rr <= config.max_residual_sigma * config.sigma_theta)
+    # the nearest earlier good start (this batch), else the track's last good pose
+    src_t = t[ok]
+    j = np.searchsorted(src_t, t[c], side="right") - 1
+    last = state.get("last")
+    R0, t0 = np.full((c.size, 3, 3), np.nan), np.full((c.size, 3), np.nan)
+    age = np.full(c.size, np.inf)
+    have = j >= 0
+    kk = np.flatnonzero(ok)
+    R0[have], t0[have], age[have] = Rs[kk[j[have]]], ts[kk[j[have]]], t[c[have]] - src_t[j[have]]
+    if last is not None:
+        use_last = ~have
+        R0[use_last], t0[use_last], age[use_last] = last[0], last[1], t[c[use_last]] - last[2]
+    go = (age >= 0) & (age <= config.reacquire_s)
+    if go.any():
+        g = c[go]
+        sol = solve_joint(P, a[g], stations=stations, initial=(R0[go], t0[go]))
+        Rs[g], ts[g], rr[g] = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
+        st[g] = np.asarray(sol.status)
+    return Rs, ts, rr, st
 
 
 def _compensate(P, a, dt, Rs, ts, rr, use, w, v, stations, solve_joint):

@@ -1,8 +1,10 @@
 """Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
 
-Why one module of ~860 lines: the stages below (pairing, batching, the chunk solve with its
-continuity gate and motion compensation) pass per-station state to each other and to the one
-config class :class:`LiveConfig`; they are read as one data flow.
+Why one module of ~630 lines: the stages below (pairing, batching, the chunk solve with its
+motion compensation) pass per-station state to each other and to the one config class
+:class:`LiveConfig`; they are read as one data flow. The continuity gate and the velocity estimate
+are in :mod:`layoutkit.live.continuity`, the result type in :mod:`layoutkit.live.posechunk`, the
+joint windows in :mod:`layoutkit.live.joint_stream`.
 
 Data flow (design §3–§5, issue #5 part 4)::
 

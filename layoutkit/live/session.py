@@ -106,6 +106,11 @@ class LiveSession:
         """Decode ``data`` and solve whatever frames complete a chunk (and filter every sweep)."""
         return self._consume(self.pipeline.feed(self._filtered(self.decoder.feed(data))))
 
+    def feed_sweeps(self, sweeps) -> list[PoseChunk]:
+        """Solve already decoded sweeps (a capture decoded before, e.g. by a refining replay's first
+        pass) exactly as :meth:`feed_bytes` would after decoding them."""
+        return self._consume(self.pipeline.feed(self._filtered(sweeps)))
+
     def feed_frames(self, frames) -> list[PoseChunk]:
         """Solve already paired frames (:meth:`PosePipeline.feed_frames`; the per-sweep filter, which
         needs sweeps, does not see them)."""
