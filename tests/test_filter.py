@@ -111,7 +111,8 @@ def test_static_covariance_equals_summed_fisher_information(layout):
     st = [Station()]
     R = rotvec_to_matrix([2.6, 0.3, -0.2])
     t = np.array([0.1, -0.05, 2.0])
-    cfg = EkfConfig(motion="fixed", psd_rot=0.0, psd_pos=0.0, hit_timing=False, rho=0.6)
+    cfg = EkfConfig(motion="fixed", psd_rot=0.0, psd_pos=0.0, hit_timing=False, rho=0.6, init_sigma_rate=0.05,
+                    init_sigma_speed=0.05)
     ekf = ErrorStateEKF(layout.positions, st, cfg)
     P0 = np.eye(6) * 1e-6
     ekf.initialize(0.0, R, t, P0)
@@ -193,7 +194,7 @@ def test_lh2_station_and_constant_acceleration(layout):
                                  ([Station()], spin_motion(20.0, 0.05), True)):
         sw = simulate_sweeps(layout, duration=3.0, seed=7, stations=stations, motion=motion)
         cfg = EkfConfig(motion="fixed", hit_timing=False, constant_acceleration=ca, psd_rot=1e-4, psd_pos=1e-6,
-                        psd_jerk_rot=1e-3, psd_jerk_pos=1e-4, init_sigma_rate=0.5)
+                        psd_jerk_rot=1e-3, psd_jerk_pos=1e-4, init_sigma_rate=0.5, init_sigma_speed=0.05)
         run, _ = wf.track(layout, sw, config=cfg)
         w = run.ok & (sw.t > 1.0)
         assert run.ok[sw.t > 1.0].mean() > 0.99
@@ -315,7 +316,9 @@ def test_replay_filter_json_lines_through_the_cli(tmp_path):
         assert k in recs[0]
     assert all(len(x["cov_pos_m"]) == 3 and len(x["cov_rot_deg"]) == 3 for x in recs)
     ok = [x for x in recs if x["status"] == "ok"]
-    assert len(ok) / len(recs) > 0.98
+    # the start's velocity prior admits a moving body (3 m/s): the first sweeps fix the velocity
+    after = [x for x in recs if x["t"] > recs[0]["t"] + 0.5]
+    assert sum(x["status"] == "ok" for x in after) / len(after) > 0.98
     tr = PoseTrack.from_reference(read_reference(truth))
     t = np.array([x["t"] for x in ok])
     _, p_true, v = tr.at(t)

@@ -204,7 +204,7 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
                camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
-               solve_mode, max_sigma_position, refine_stations):
+               solve_mode, max_sigma_position, refine_stations, refine_from, refine_calibration):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -229,7 +229,9 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir,
                                  camera_device=camera_device, camera_config=cam_cfg, stations=stations_path,
-                                 system_config=system_config, solve=solve_mode, refine_stations=refine_stations)
+                                 system_config=system_config, solve=solve_mode,
+                                 refine_stations=refine_stations or bool(refine_from), refine_from=refine_from,
+                                 refine_calibration=refine_calibration)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:

@@ -338,16 +338,24 @@ def length_mm_option(flag: str, dest: str, *, default: float | None = None, requ
                   show_default=default is not None, required=required, callback=to_m, help=help)
 
 
-def refine_stations_option(f=None):
-    """``--refine-stations``: estimate the stations from the capture before solving (replay). The
-    command receives ``refine_stations``."""
-    deco = click.option("--refine-stations", is_flag=True,
-                        help="Estimate the station poses (and observable calibration terms) from the capture's slow "
+def refine_stations_option(f):
+    """``--refine-stations``, ``--refine-from CAPTURE`` (repeatable) and ``--refine-calibration``:
+    estimate the stations from the capture (and more captures of the same set-up) before solving
+    (replay). The command receives ``refine_stations``, ``refine_from`` (a tuple of paths) and
+    ``refine_calibration``."""
+    f = click.option("--refine-calibration", is_flag=True,
+                     help="With --refine-stations: also the observable calibration terms (on the Bitcraze dataset "
+                          "they trade off against the station poses: 17 vs 9 mm RMS on a moving log, docs/live.md).")(f)
+    f = click.option("--refine-from", "refine_from", multiple=True, type=click.Path(dir_okay=False),
+                     help="Another capture of the same station set-up whose slow windows join --refine-stations "
+                          "(repeatable; e.g. the static captures of a session for a moving one).")(f)
+    return click.option("--refine-stations", is_flag=True,
+                        help="Estimate the station poses (with --refine-calibration also the observable calibration "
+                             "terms) from the capture's slow "
                              "windows seen by every station before solving; solve with them when they explain the "
                              "angles better; report how far each station moved, its 1-sigma, and whether the data "
                              "contradict the given set-up (summary 'station_refinement'; stations_refined.json in "
-                             "--report for later --stations).")
-    return deco(f) if f is not None else deco
+                             "--report for later --stations).")(f)
 
 
 def allow_odd_size_option(f=None):

@@ -61,7 +61,9 @@ class EkfConfig:
     hit_timing : model each angle at its own hit time (sync + angle / rotor rate); False = all
         angles of a sweep at the sync time (the simulator's model).
     init_sigma_rate : rad/s, init_sigma_speed : m/s — prior 1-sigma of the velocities at
-        (re-)initialisation (they start at zero); init_inflation : factor on the PnP pose covariance.
+        (re-)initialisation (they start at zero; the defaults admit a hand-swung or flying body:
+        the first sweeps then determine the velocity); init_inflation : factor on the PnP pose
+        covariance.
     max_sigma_rot_deg, max_sigma_pos_m : status "ok" only while every 1-sigma attitude component
         (deg) and position component (m) is below these; above ``lost_factor`` times them the
         filter counts as lost.
@@ -86,8 +88,8 @@ class EkfConfig:
     gate_angle_p: float = 1e-4
     gate_sweep_p: float = 1e-4
     hit_timing: bool = True
-    init_sigma_rate: float = 0.05
-    init_sigma_speed: float = 0.05
+    init_sigma_rate: float = 6.0
+    init_sigma_speed: float = 3.0
     init_inflation: float = 4.0
     max_sigma_rot_deg: float = 1.0
     max_sigma_pos_m: float = 0.02

@@ -198,6 +198,9 @@ class SweepTracker:
         self.init_window_s = float(init_window_s)
         self.init_retry_s = 0.5 * float(init_window_s)
         self.reorder_s = 0.05  # s, sweeps older than the filter by at most this are applied late, not a reset
+        # s, oldest angle of a multi-station start: about one rotation of every station (a moving body
+        # has moved little since; the single-station start waits up to init_window_s for 4 sensors)
+        self.joint_init_window_s = min(self.init_window_s, 0.025)
         self.confirm_sweeps = int(confirm_sweeps)
         self._confirm = 0
         self._ambiguous = 0
@@ -253,7 +256,7 @@ class SweepTracker:
         lits = np.zeros((S, self.n), bool)
         for k, rec in self._recent.items():
             if 0 <= k < S:
-                lit = np.all(rec[1] >= t - self.init_window_s, -1)
+                lit = np.all(rec[1] >= t - self.joint_init_window_s, -1)
                 ang[k][lit], lits[k] = rec[0][lit], lit
         per = lits.sum(1)
         if (per >= 2).sum() < 2 or per.max() < 4:

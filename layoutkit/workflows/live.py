@@ -271,9 +271,10 @@ def _decode_all(setup: RunSetup, capture: Path, usd):
     return sweeps, frames, dec
 
 
-def _refined(setup: RunSetup, frames, report_dir):
+def _refined(setup: RunSetup, frames, report_dir, fit_calibration: bool = False):
     """``(setup with the stations refined from the frames when that helps, the refinement's report)``
-    (:func:`layoutkit.live.refine.refine_stations`); ``stations_refined.json`` in the report folder."""
+    (:func:`layoutkit.live.refine.refine_stations`; ``frames`` one capture's or a list of several);
+    ``stations_refined.json`` in the report folder."""
     from dataclasses import replace
 
     from ..live.refine import refine_stations
@@ -281,7 +282,8 @@ def _refined(setup: RunSetup, frames, report_dir):
 
     sts, _, _ = calibrated_setup(setup)
     c = setup.config
-    ref = refine_stations(frames, setup.layout.positions, sts, sigma=c.sigma_theta, window_s=c.window_s)
+    ref = refine_stations(frames, setup.layout.positions, sts, sigma=c.sigma_theta, window_s=c.window_s,
+                          fit_calibration=fit_calibration)
     rep = dict(ref.report, applied=ref.applied, status=ref.status)
     if not ref.applied:
         return setup, rep
@@ -322,7 +324,8 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
                    camera_config=None, stations=None, system_config=None, solve: str | None = None,
-                   cfusdlog_source: str = "auto", refine_stations: bool = False) -> dict:
+                   cfusdlog_source: str = "auto", refine_stations: bool = False, refine_from=(),
+                   refine_calibration: bool = False) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -347,7 +350,10 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     estimate the stations from the capture first (:func:`layoutkit.live.refine.refine_stations`:
     slow windows seen by every station, bundle-adjusted) and solve with them when they explain the
     angles better (``summary["station_refinement"]``; ``stations_refined.json`` in the report
-    folder); the capture is decoded once, into memory.
+    folder); the capture is decoded once, into memory. refine_from : more captures of the same
+    station set-up whose slow windows join the refinement (a deck at rest in several places fixes
+    the stations; a capture in constant motion has no slow window of its own); refine_calibration :
+    also the observable calibration terms.
     """
     capture = Path(capture)
     if not capture.is_file():
@@ -362,7 +368,18 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
             raise ValueError("--refine-stations: needs two or more stations with known poses (--system-config "
                              "with geos, or --stations)")
         decoded = _decode_all(setup, capture, usd)
-        setup, refinement = _refined(setup, decoded[1], report_dir)
+        sets = [decoded[1]]
+        for extra in refine_from or ():
+            extra = Path(extra)
+            if not extra.is_file():
+                raise ValueError(f"{extra}: no such capture file (--refine-from)")
+            x_setup, x_usd = _replay_setup(extra, setup.layout, protocol=None, options=setup.config,
+                                           stations=stations, system_config=setup.system_config, solve=solve,
+                                           cfusdlog_source=cfusdlog_source)
+            sets.append(_decode_all(x_setup, extra, x_usd)[1])
+        setup, refinement = _refined(setup, sets, report_dir, refine_calibration)
+        if refine_from:
+            refinement["refined_from"] = [str(capture)] + [str(x) for x in refine_from]
     s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
                      keep_good=reference is not None or camera is not None)
     if decoded is None:
