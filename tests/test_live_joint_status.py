@@ -67,7 +67,7 @@ def test_one_station_windows_are_imprecise_and_lines_carry_the_prediction(static
     lim = auto_sigma_limit(sc["layout"].positions, R[None], np.array(r["translation"])[None], sc["stations"], cfg.rho)
     assert r["sigma_position_m"] < lim[0] * cfg.sigma_theta < one[0]["sigma_position_m"]
     loose = solve_windows(sc["layout"].positions, ws, replace(cfg, max_sigma_position=1.0), sc["stations"])
-    assert not np.any(loose.status == 11)
+    assert not np.any(loose.status == 12)
 
 
 def test_refined_stations_explain_a_moved_station(static, tmp_path):

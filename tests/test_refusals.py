@@ -72,3 +72,46 @@ def test_envelope_range_in_millimetres_is_refused_naming_file_and_unit(tmp_path,
                                "reaches (<= 30 m): the numbers are probably millimetres (3 m?)"), r.output
     ok = _run(["score", LAYOUT, "--envelope", p, "--json", "--allow-odd-size"])
     assert ok.exit_code == 0 and "warning:" in ok.output  # let through on request, still said
+
+
+def test_import_reference_names_the_dropped_rows_and_refuses_millimetres(tmp_path):
+    """A NaN row was dropped without saying which, and a mocap file in mm was taken as metres."""
+    p = tmp_path / "ref.csv"
+    p.write_text("t,x,y,z,qx,qy,qz,qw\n0.0,1.0,2.0,1.5,0,0,0,1\n0.1,1.0,nan,1.5,0,0,0,1\n0.2,1.0,2.0,1.5,0,0,0,1\n")
+    r = _run(["import", "reference", p, "--out", tmp_path / "o.csv"])
+    assert r.exit_code == 0 and f"note: 1 row(s) of {p} left out: a time or value is NaN or empty (line 3)" in r.output
+    mm = tmp_path / "mm.csv"
+    mm.write_text(p.read_text().replace("1.0,2.0,1.5", "1000.0,2000.0,1500.0").replace("1.0,nan,1.5", "1000,2001,1500"))
+    r = _run(["import", "reference", mm, "--out", tmp_path / "o2.csv"])
+    assert r.exit_code == 2 and r.output.startswith(f"error: {mm}: positions: 2693 m is farther than any lighthouse "
+                                                    "reaches"), r.output
+    assert "millimetres" in r.output and not (tmp_path / "o2.csv").exists()
+    ok = _run(["import", "reference", mm, "--out", tmp_path / "o3.csv", "--units", "mm", "--json"])
+    assert ok.exit_code == 0 and json.loads(ok.stdout)["rows"] == 3
+
+
+def test_frame_table_in_degrees_is_refused_naming_column_and_line(tmp_path):
+    """Every frame came back 'invalid angle' with no column named; now the file is refused once."""
+    import csv
+    import math
+
+    f = tmp_path / "f.csv"
+    assert _run(["simulate", "--layout", LAYOUT, "--frames", 5, "--out", f]).exit_code == 0
+    rows = list(csv.reader(f.open()))
+    deg = tmp_path / "deg.csv"
+    with deg.open("w", newline="") as fh:
+        csv.writer(fh).writerows([rows[0]] + [[str(math.degrees(float(v))) if c.startswith("th_") and v else v
+                                               for c, v in zip(rows[0], r)] for r in rows[1:]])
+    r = _run(["solve", deg, "--layout", LAYOUT])
+    assert r.exit_code == 2 and r.output.startswith(f"error: {deg}: line 2, column th_"), r.output
+    assert "frame tables hold radians; these look like degrees" in r.output
+    assert _run(["solve", f, "--layout", LAYOUT]).exit_code == 0
+
+
+def test_replay_with_another_layouts_capture_says_so(tmp_path):
+    """A 12-sensor capture replayed with the 4-sensor deck layout said only 'another --protocol?'."""
+    cap = tmp_path / "c.lkcap"
+    assert _run(["fake-fpga", "--layout", LAYOUT, "--out", cap, "--duration", 0.3]).exit_code == 0
+    (tmp_path / "c.lkcap.json").unlink()  # no sidecar: the layout given is the one used
+    r = _run(["replay", cap, "--layout", REPO / "models" / "crazyflie_lighthouse_deck.layout.json"])
+    assert r.exit_code == 2 and "frames of 12 sensors, the layout has 4 (another layout's capture?)" in r.output

@@ -236,7 +236,8 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             pd = np.where(ok, d.pdop, np.inf)
         else:
             ad = pd = np.full(idx.size, np.inf)
-        st = np.where(~ok, np.where(st0 == _status.TOO_FEW_LIT, _status.TOO_FEW_LIT, _status.SOLVER_FAILED),
+        st = np.where(~ok, np.where(np.isin(st0, (_status.TOO_FEW_LIT, _status.LOW_REDUNDANCY)), st0,
+                                    _status.SOLVER_FAILED),
                       np.where(rr > limit, _status.HIGH_RESIDUAL, _status.OK))
         st = _imprecise(st, P, Rs, ts, pd, config, stations)
         st, cand = continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)

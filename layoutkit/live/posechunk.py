@@ -17,7 +17,7 @@ __all__ = ["STATUS_NAMES", "PoseChunk", "empty_pose_arrays"]
 #: :mod:`layoutkit.status`.
 STATUS_NAMES = {c: _status.NAMES[c] for c in (_status.OK, _status.TOO_FEW_LIT, _status.SOLVER_FAILED,
                                                _status.HIGH_RESIDUAL, _status.JUMP, _status.AMBIGUOUS,
-                                               _status.IMPRECISE)}
+                                               _status.LOW_REDUNDANCY, _status.IMPRECISE)}
 
 
 @dataclass(frozen=True)

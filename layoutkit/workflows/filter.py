@@ -38,7 +38,7 @@ class FilterSink:
     station is used with an identity pose, so poses are in its frame as the pipeline's are);
     config : :class:`EkfConfig`; truth : optional :class:`layoutkit.live.reference.PoseTrack` in the
     same frame; json_out : text stream or None; poses_path : write every output to this pose table
-    (status 0 ok / 12 uncertain / 13 lost, codes of :mod:`layoutkit.status`; extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
+    (status 0 ok / 13 uncertain / 14 lost, codes of :mod:`layoutkit.status`; extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
     atomically, complete when :meth:`close` / :meth:`summary` runs).
     Memory is flat: outputs are written as they come and only sums are kept.
     """
@@ -164,7 +164,7 @@ class FilterSink:
 
 
 #: Pose-table status codes of filtered poses (``layoutkit solve --filter ekf --out``): 0 = ok.
-#: The filter's statuses as codes of the one table (:mod:`layoutkit.status`): ok 0, uncertain 12, lost 13.
+#: The filter's statuses as codes of the one table (:mod:`layoutkit.status`): ok 0, uncertain 13, lost 14.
 FILTER_STATUS_CODES = {"ok": _status.OK, "uncertain": _status.UNCERTAIN, "lost": _status.LOST}
 
 

@@ -5,11 +5,12 @@
 1. cells already in ``out_dir/cells/<cell-id>.json`` with the same ``input_hash`` and a status other
    than ``error`` are skipped (resume); the others are queued;
 2. one :func:`prepare_task` per distinct problem (mesh × units × envelope × candidates/spacing ×
-   half-angle × seed) loads the mesh and computes visibility ONCE, on a worker; what it returns is
-   arrays only — candidate positions/normals/ids, poses, stations, the (P, S, N) visibility — and
-   Dask moves those to the cells that need them (no cell re-reads a mesh);
-3. each :func:`cell_task` computes the Jacobians from those arrays and runs
-   :func:`layoutkit.optimize.optimize_stations` (what ``layoutkit optimize`` runs);
+   half-angle × tilt × seed) loads the mesh and computes visibility ONCE, on a worker: a
+   :class:`layoutkit.optimize.DesignProblem`, which Dask moves to the cells that need it (no cell
+   re-reads a mesh);
+3. each :func:`cell_task` runs :func:`layoutkit.optimize.solve` on it with the cell's
+   :class:`layoutkit.optimize.OptimizeSpec` (what ``layoutkit optimize`` runs; the Jacobians are
+   computed on first use, in the cell);
 4. as each cell finishes the client writes ``cells/<id>.json`` (and ``cells/<id>.layout.json`` for
    a feasible layout) atomically; a cell that raised records ``status = "error"`` and its message
    and the sweep goes on;
@@ -39,99 +40,67 @@ SUMMARY_COLUMNS = ("status", "value", "bound", "gap", "wall_s", "worst_adop_deg_
                    "worst_pdop_m_per_rad", "certified_by", "cell_id")
 
 
-def prepare_task(opts: dict) -> dict:
-    """Worker task: load mesh, candidates, envelope; visibility. Returns arrays (and small metadata).
+def prepare_task(opts: dict):
+    """Worker task: load mesh, candidates, envelope and visibility once: a
+    :class:`layoutkit.optimize.DesignProblem` (its mesh, arrays and provenance; Dask moves it to the cells).
 
-    opts : the cell options (only :data:`layoutkit.workflows.sweep_config.PREP_KEYS` are used). Keys returned:
-    positions (N, 3) m, normals (N, 3), ids (N,) str, rotations (P, 3, 3), translations (P, 3) m
-    (body in the world frame), stations (tuple of Station), visible (P, S, N) bool, mesh_sha256,
-    warnings (list of str), prep_s.
+    opts : the cell options (only :data:`layoutkit.workflows.sweep_config.PREP_KEYS` are used). Warnings
+    raised while loading (other than a refused odd size) are in ``problem.provenance["warnings"]``.
     """
     from ..candidates import parse_keepout
-    from ..mesh import MeshUnitsWarning, load_mesh, mesh_hash
-    from .optimize import prepare_problem
+    from ..mesh import MeshUnitsWarning
+    from ..optimize import DesignProblem
 
-    t0 = time.perf_counter()
-    notes = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if not opts.get("allow_odd_size"):
             warnings.simplefilter("error", MeshUnitsWarning)
-        mesh = load_mesh(opts["mesh"], opts.get("units", "m"))
         keep = [parse_keepout("box:" + ",".join(b.split())) for b in opts.get("keepout_box", ())]
-        kw = {}
-        if opts.get("max_tilt_deg") is not None:
-            kw["max_tilt_deg"] = opts["max_tilt_deg"]
         sp = opts.get("spacing_mm")
-        prep = prepare_problem(mesh, opts["envelope"], candidates=opts.get("candidates"),
-                               spacing=None if sp is None else sp * 1e-3, keepout=keep,
-                               units=opts.get("units", "m"), sensor_half_angle_deg=opts["half_angle_deg"],
-                               seed=opts["seed"], max_candidates=opts.get("max_candidates"), **kw)
-        notes += [str(w.message) for w in caught]
-    cand = prep["candidates"]
-    return {"positions": np.asarray(cand.positions), "normals": np.asarray(cand.normals),
-            "ids": tuple(cand.ids), "rotations": np.asarray(prep["rotations"]),
-            "translations": np.asarray(prep["translations"]), "stations": tuple(prep["stations"]),
-            "visible": np.asarray(prep["visible"], bool), "mesh_sha256": mesh_hash(mesh),
-            "site": None if prep.get("site") is None else np.asarray(prep["site"]),
-            "warnings": notes, "prep_s": time.perf_counter() - t0}
+        problem = DesignProblem.load(opts["mesh"], opts["envelope"], candidates=opts.get("candidates"),
+                                     spacing=None if sp is None else sp * 1e-3, keepout=keep,
+                                     units=opts.get("units", "m"), half_angle_deg=opts["half_angle_deg"],
+                                     seed=opts["seed"], max_candidates=opts.get("max_candidates"),
+                                     max_tilt_deg=opts.get("max_tilt_deg") or 0.0)
+    problem.provenance["warnings"] = [str(w.message) for w in caught]
+    return problem
 
 
-def cell_task(prep: dict, opts: dict) -> dict:
-    """Worker task: one optimisation on a prepared problem (arrays from :func:`prepare_task`).
+def cell_task(problem, opts: dict) -> dict:
+    """Worker task: one optimisation on a prepared problem (:func:`prepare_task`) with the cell's spec
+    (:func:`layoutkit.workflows.sweep_config.cell_spec`).
 
     Returns a JSON-able dict: status, success, message, value, bound, gap, certified_by, min_k,
     selected_ids, stats, wall_s (s, this optimisation only), layout (layout JSON dict or None).
     """
     from ..io.jsonfile import to_jsonable
-    from ..layout import Layout
-    from ..optimize import candidate_jacobians
+    from ..optimize import solve
     from ..parallel.scheduler import allow_child_processes
+    from .sweep_config import cell_spec
 
     t0 = time.perf_counter()
-    pos, nor, ids = prep["positions"], prep["normals"], prep["ids"]
-    idmap = {c: i for i, c in enumerate(ids)}
-    missing = [f for f in opts.get("fixed", ()) if f not in idmap]
-    if missing:
-        raise ValueError(f"fixed: unknown candidate id(s) {missing}; ids look like {ids[0]!r}")
-    jac = candidate_jacobians(pos, prep["rotations"], prep["translations"], prep["stations"])
+    spec = cell_spec(opts)
+    ids = problem.candidates.ids
     with allow_child_processes():  # the relaxation may run in a forked child (time limit)
-        res = _optimize(jac, prep, opts, [idmap[f] for f in opts.get("fixed", ())], pos)
+        res = solve(problem, spec)
     wall = time.perf_counter() - t0
     sel = [int(i) for i in res.selected]
     layout = None
     if res.success:
-        layout = Layout(pos[sel], nor[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
-                        {"mesh_sha256": prep["mesh_sha256"], "objective": res.objective, "rho": opts["rho"],
-                         "value": res.value, "bound": res.bound, "gap": res.gap,
-                         "certified_by": res.certified_by, "method": opts["method"],
-                         "min_visible": opts["min_visible"], "candidate_ids": [ids[i] for i in sel],
-                         "envelope": opts["envelope"]},
-                        tuple({"candidate": ids[i]} for i in sel)).to_dict()
+        layout = problem.layout(sel, {"mesh_sha256": problem.provenance.get("mesh_sha256"),
+                                      "objective": res.objective, "rho": opts["rho"], "value": res.value,
+                                      "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
+                                      "method": opts["method"], "min_visible": opts["min_visible"],
+                                      "candidate_ids": [ids[i] for i in sel], "envelope": opts["envelope"],
+                                      "spec": spec.to_dict(), "provenance": problem.provenance}).to_dict()
     return to_jsonable({
         "status": res.status, "success": bool(res.success), "message": res.message,
         "value": res.value, "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
         "min_k": res.min_k, "selected_ids": [ids[i] for i in sel],
         "stats": res.stats() if res.success else None, "candidates": len(ids),
-        "poses": int(len(prep["rotations"])), "wall_s": wall, "timings_s": res.timings,
-        "prepare_warnings": prep.get("warnings", []), "layout": layout,
+        "poses": problem.P, "wall_s": wall, "timings_s": res.timings,
+        "prepare_warnings": problem.provenance.get("warnings", []), "layout": layout,
     })
-
-
-def _optimize(jac, prep, opts, fixed, pos):
-    from ..optimize import optimize_stations, spacing_conflicts
-
-    conflict = spacing_conflicts(pos, opts["min_spacing_mm"] * 1e-3)
-    if opts.get("max_tilt_deg") and prep.get("site") is not None:  # one orientation per site
-        from ..optimize.tilt import site_conflicts
-
-        conflict = site_conflicts(prep["site"], conflict)
-    return optimize_stations(
-        jac, prep["visible"], opts["k"], objective=opts["objective"], rho=opts["rho"],
-        min_visible=opts["min_visible"], method=opts["method"], rng=opts["seed"], fixed=fixed,
-        conflict=conflict, coverage_fraction=opts["coverage_fraction"], coverage=opts["coverage"],
-        weights=opts.get("weights"), time_limit=opts.get("time_limit_s"),
-        branch_and_bound="off")  # a cell must be reproducible (schedulers, resumes); B&B's bound depends on timing
 
 
 def _cell_path(cells_dir: Path, cell_id: str) -> Path:
