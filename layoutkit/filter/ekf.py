@@ -51,6 +51,11 @@ class EkfConfig:
         mode stay probability ``imm_stay``): the process noise follows the motion
         (:class:`layoutkit.filter.imm.ImmFilter`, compiled); "fixed" — one model with ``psd_rot`` /
         ``psd_pos`` (compiled; with ``constant_acceleration`` or ``zupt`` this numpy class).
+    noise_scale_max, noise_scale_rate : adaptive mode: the angle noise variance is ``s sigma_theta²``
+        with ``s`` in ``[1, noise_scale_max]`` matched to the innovations (``s <- s (1 + rate
+        (NIS/dof - 1))``, each sweep's ratio capped at 10): a real station's model errors (calibration,
+        sensor positions: 2-6 sigma at the deck on the Bitcraze logs) count as noise instead of
+        starving the gates; ``noise_scale_max = 1`` keeps ``sigma_theta``.
     psd_rot : rad²/s³, PSD of the white angular acceleration (constant-velocity model, "fixed").
     psd_pos : m²/s³, PSD of the white linear acceleration ("fixed").
     constant_acceleration : add angular and linear acceleration states, driven by white jerk of
@@ -65,8 +70,8 @@ class EkfConfig:
         the first sweeps then determine the velocity); init_inflation : factor on the PnP pose
         covariance.
     max_sigma_rot_deg, max_sigma_pos_m : status "ok" only while every 1-sigma attitude component
-        (deg) and position component (m) is below these; above ``lost_factor`` times them the
-        filter counts as lost.
+        (deg) and position component (m) is below these; a position above ``lost_factor`` times its
+        limit counts as lost (an attitude left unobserved about one axis stays "uncertain").
     lost_after : consecutive rejected sweeps after which the filter counts as lost (re-initialise).
     zupt : static detector + zero-velocity updates; zupt_window : sweeps per static test;
         zupt_p : false-alarm probability of the motion test; zupt_sigma_rate (rad/s),
@@ -79,7 +84,9 @@ class EkfConfig:
     motion: str = "adaptive"
     imm_psd_rot: tuple = (1e-6, 1e-3, 1.0, 1e3)
     imm_psd_pos: tuple = (1e-6, 1e-3, 1.0, 1e3)
-    imm_stay: float = 0.99
+    imm_stay: float = 0.999
+    noise_scale_max: float = 100.0
+    noise_scale_rate: float = 0.01
     constant_acceleration: bool = False
     psd_jerk_rot: float = 1e-6
     psd_jerk_pos: float = 1e-6
@@ -91,7 +98,7 @@ class EkfConfig:
     init_sigma_rate: float = 6.0
     init_sigma_speed: float = 3.0
     init_inflation: float = 4.0
-    max_sigma_rot_deg: float = 1.0
+    max_sigma_rot_deg: float = 5.0
     max_sigma_pos_m: float = 0.02
     lost_factor: float = 10.0
     lost_after: int = 6
@@ -130,6 +137,9 @@ class EkfConfig:
             raise ValueError(f"imm_psd_rot, imm_psd_pos: expected equally long lists of PSDs >= 0, got {qr}, {qp}")
         object.__setattr__(self, "imm_psd_rot", qr)
         object.__setattr__(self, "imm_psd_pos", qp)
+        if not (math.isfinite(self.noise_scale_max) and self.noise_scale_max >= 1.0
+                and 0.0 <= self.noise_scale_rate < 1.0):
+            raise ValueError("noise_scale_max >= 1 and noise_scale_rate in [0, 1) expected")
         if not 0.0 < self.imm_stay <= 1.0:
             raise ValueError(f"imm_stay: expected a probability in (0, 1], got {self.imm_stay}")
         if self.model not in FORWARD_MODELS:

@@ -102,6 +102,8 @@ class ImmFilter:
             self._par.append(par)
         n = self.points_body.shape[0]
         self._qm = np.array([np.inf] + [chi2_quantile(1.0 - c.gate_sweep_p, k) for k in range(1, n + 1)])
+        self.noise_scale = 1.0
+        self._adapt = c.motion == "adaptive" and c.noise_scale_max > 1.0 and c.noise_scale_rate > 0.0
         self._view()
 
     def _view(self) -> None:
@@ -175,9 +177,24 @@ class ImmFilter:
         sig0 = np.sqrt(np.maximum(d[[0, 1, 2, 6, 7, 8]], 0.0))
         o = self._sweep(station, axis, sensors, angles, sweep_offset)
         used, rejected, swr, nis = int(o[0]), int(o[1]), bool(o[2]), float(o[3])
+        if self._adapt:
+            self._match_noise(used or len(sensors), nis, swr)
         if swr or used == 0:
             return SweepUpdate(0, rejected, True, nis, 0, np.zeros(6), sig0)
         return SweepUpdate(used, rejected, False, nis, used, o[4:10], sig0)
+
+    def _match_noise(self, dof: int, nis: float, rejected: bool) -> None:
+        """The angle-noise scale follows the innovations (EkfConfig ``noise_scale_*``): a sweep whose
+        every angle the gates refused counts with the cap (evidence the noise is too small)."""
+        c = self.config
+        r = 10.0 if (rejected and not math.isfinite(nis)) else min(nis / max(dof, 1), 10.0) if math.isfinite(nis) else None
+        if r is None:
+            return
+        s = min(max(self.noise_scale * (1.0 + c.noise_scale_rate * (r - 1.0)), 1.0), c.noise_scale_max)
+        if s != self.noise_scale:
+            self.noise_scale = s
+            for par in self._par:
+                par[:, self._k.PAR_SIGMA2] = s * c.sigma_theta ** 2
 
     def _sweep(self, station, axis, idx, z, sweep_offset=0.0):
         """mix + predict to ``self.t`` + update with ``z`` + combine, in one compiled call."""

@@ -460,9 +460,11 @@ class SweepTracker:
         ekf = self.ekf
         P = ekf.P  # never modified in place by the filter: safe to hand out
         d = np.diagonal(P)
-        big = max(math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg,
-                  math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m)
-        if big > c.lost_factor and not self._lost:
+        big_pos = math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m
+        big = max(math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg, big_pos)
+        # lost when the position is beyond recovery; an attitude the sweeps leave unobserved about one
+        # axis (2-3 sensors lit) is uncertain, not lost (the innovations say when the state is wrong)
+        if big_pos > c.lost_factor and not self._lost:
             self._declare_lost()
         if self._lost:
             status = "lost"

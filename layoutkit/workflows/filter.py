@@ -141,6 +141,8 @@ class FilterSink:
                "filter_seconds": self.seconds, "filter_cpu_seconds": self.cpu_seconds,
                "sweeps_per_s": self.sweeps / self.seconds if self.seconds else None,
                "sweeps_per_cpu_s": self.sweeps / self.cpu_seconds if self.cpu_seconds else None,
+               "angle_noise_rad": float(np.sqrt(getattr(self.tracker.ekf, "noise_scale", 1.0))
+                                        * self.tracker.config.sigma_theta),
                "config": {k: getattr(self.tracker.config, k) for k in (
                    "psd_rot", "psd_pos", "constant_acceleration", "gate_angle_p", "gate_sweep_p", "zupt",
                    "hit_timing", "model", "sigma_theta", "rho")}}
