@@ -156,3 +156,31 @@ def test_adaptive_bank_tracks_rest_and_swing_without_settings():
     assert kept_a > 0.95 and share_a > 0.9
     assert rest_a <= 1.5 * rest_f
     assert swing_a < 0.2 * swing_f and kept_f < 0.9  # the stiff filter starves in the swing
+
+
+@pytest.mark.parametrize("speed", [0.0, 1.5])
+def test_two_point_start_knows_the_velocity(speed):
+    """Simulation with known truth: a two-station start differences two joint solves on disjoint
+    angles, so its velocity equals the truth's within its own 3-sigma (at rest: zero, to
+    centimetres per second, in a 1.5 m/s swing to a 1-sigma below 0.2 m/s — not the 3 m/s prior that
+    let the first sweeps pull the pose), and the first ok outputs are within 4 of their own 1-sigma
+    of the truth per axis (consistent from the start)."""
+    from layoutkit.filter.tracker import SweepTracker
+
+    rng = np.random.default_rng(21)
+    P, sts, sweeps, truth = _stream("lh2", rng, T=0.6, swing_from=0.0 if speed else None, speed=speed or 1.0)
+    tr = SweepTracker(P, sts, EkfConfig())
+    t_all = np.array([m.t for m in sweeps])
+    errs = []
+    for k, (m, x) in enumerate(zip(sweeps, truth)):
+        o = tr.push(m)
+        if o is not None and o.event == "init":
+            i = min(max(np.searchsorted(t_all, tr.ekf.t), 1), len(t_all) - 2)
+            v_true = (truth[i + 1] - truth[i - 1]) / (t_all[i + 1] - t_all[i - 1])
+            sig = np.sqrt(np.diagonal(tr.ekf.P)[9:12])
+            assert np.all(sig < 0.2), sig  # m/s: far below the 3 m/s prior of a one-station start
+            assert np.all(np.abs(tr.ekf.v - v_true) <= 3 * sig + 0.02), (tr.ekf.v, v_true, sig)
+        if o is not None and o.ok and len(errs) < 20:
+            errs.append(np.abs(o.translation - x) / o.cov_pos_m)  # error in the filter's own 1-sigma
+    assert tr.counters.inits == 1 and len(errs) == 20
+    assert np.max(errs) < 4.0, np.max(errs, axis=1)  # consistent from the first ok output (Gaussian 60 draws: < 4)

@@ -363,7 +363,7 @@ def _apply(keep, HP, X, q, w, p, v, P, dx):
 
 @numba.njit(**_JIT)
 def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
-              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt=0.0):
+              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt=0.0, freeze=False):
     """One sweep through an interacting-multiple-model bank of ``r`` constant-velocity filters
     (Blom & Bar-Shalom 1988): mix (when ``mix``), predict each model to ``t`` with its own PSDs,
     gate, update every model with the kept angles, re-weight ``mu`` by the likelihoods, and write
@@ -374,7 +374,8 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
     quantile) in every model. ``out`` (10,) <- used, rejected, sweep_rejected (0/1), NIS of the most
     probable model, the combined pose correction (6,) (left rotation rad, position m). sweep_dt : s,
     the sweep's own time minus ``t`` (<= 0: a sweep that arrives slightly out of time order is
-    applied at ``t`` with its hit times moved back by that much)."""
+    applied at ``t`` with its hit times moved back by that much). freeze : keep ``mu`` (a body the
+    static detector says is at rest stays in the mode it was put in)."""
     r = Q.shape[0]
     m = idx.shape[0]
     q_prev = qc.copy()
@@ -389,7 +390,7 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
     out[3] = np.nan
     if m > 0:
         _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
-                    sweep_dt)
+                    sweep_dt, freeze)
     imm_combine(Q, W, Pn, V, P, mu, qc, wc, pc, vc, Pc)
     if out[0] > 0:
         er = np.empty(3)
@@ -401,7 +402,7 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
 
 @numba.njit(**_JIT)
 def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
-                sweep_dt):
+                sweep_dt, freeze):
     r = Q.shape[0]
     m = idx.shape[0]
     dl = np.empty(m)
@@ -454,7 +455,7 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
     for j in range(r):
         if np.isfinite(nis[j]):
             _apply(keep, HP[j], X[j], Q[j], W[j], Pn[j], V[j], P[j], dx)
-    if r > 1:
+    if r > 1 and not freeze:
         # mode probabilities: mu_j ∝ mu_j Λ_j, Λ_j = N(y_j; 0, S_j) over the kept angles
         lmax = -np.inf
         ll = np.empty(r)
@@ -558,7 +559,7 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
 
 #: layout of the per-call parameter vector of :func:`imm_step`
 PAR_T_STATE, PAR_T, PAR_SIGMA2, PAR_RHO, PAR_Q1, PAR_OMEGA, PAR_LH2, PAR_AXIS, PAR_CORRECTED, PAR_MIX = range(10)
-PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_SIZE = 10, 17, 26, 29, 30
+PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_FREEZE, PAR_SIZE = 10, 17, 26, 29, 30, 31
 #: layout of :func:`imm_step`'s output vector
 OUT_STATE, OUT_P, OUT_SIZE = 10, 23, 167
 
@@ -590,7 +591,8 @@ def imm_step(X, P, M, Pi, pb, idx, z, par, qm, out):
     Pc = np.empty((12, 12))
     imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, par[PAR_T_STATE], par[PAR_T], pb, idx, z, Rs, ts,
               par[PAR_LH2] > 0.5, int(par[PAR_AXIS]), c, par[PAR_CORRECTED] > 0.5, par[PAR_OMEGA], par[PAR_SIGMA2],
-              par[PAR_RHO], par[PAR_Q1], qm, par[PAR_MIX] > 0.5, out, qc, wc, pc, vc, Pc, par[PAR_SWEEP_DT])
+              par[PAR_RHO], par[PAR_Q1], qm, par[PAR_MIX] > 0.5, out, qc, wc, pc, vc, Pc, par[PAR_SWEEP_DT],
+              par[PAR_FREEZE] > 0.5)
     for j in range(r):
         for a in range(4):
             X[j, a] = Q[j, a]

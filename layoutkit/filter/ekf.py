@@ -70,8 +70,10 @@ class EkfConfig:
         the first sweeps then determine the velocity); init_inflation : factor on the PnP pose
         covariance.
     max_sigma_rot_deg, max_sigma_pos_m : status "ok" only while every 1-sigma attitude component
-        (deg) and position component (m) is below these; a position above ``lost_factor`` times its
-        limit counts as lost (an attitude left unobserved about one axis stays "uncertain").
+        (deg) and position component (m) is below these, and every velocity component below
+        ``max_sigma_speed`` (m/s: a filter that does not know its velocity is not tracking); a
+        position above ``lost_factor`` times its limit counts as lost (an attitude left unobserved
+        about one axis stays "uncertain").
     lost_after : consecutive rejected sweeps after which the filter counts as lost (re-initialise).
     zupt : static detector + zero-velocity updates; zupt_window : sweeps per static test;
         zupt_p : false-alarm probability of the motion test; zupt_sigma_rate (rad/s),
@@ -99,6 +101,7 @@ class EkfConfig:
     init_sigma_speed: float = 3.0
     init_inflation: float = 4.0
     max_sigma_rot_deg: float = 5.0
+    max_sigma_speed: float = 1.0
     max_sigma_pos_m: float = 0.02
     lost_factor: float = 10.0
     lost_after: int = 6
@@ -115,7 +118,7 @@ class EkfConfig:
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a PSD >= 0, got {v}")
         for name in ("sigma_theta", "init_sigma_rate", "init_sigma_speed", "init_inflation",
-                     "max_sigma_rot_deg", "max_sigma_pos_m", "zupt_sigma_rate", "zupt_sigma_speed"):
+                     "max_sigma_rot_deg", "max_sigma_pos_m", "max_sigma_speed", "zupt_sigma_rate", "zupt_sigma_speed"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive value, got {v}")
@@ -175,6 +178,24 @@ def chi2_quantile(p: float, dof: int) -> float:
     from scipy.stats import chi2
 
     return float(chi2.ppf(p, dof))
+
+
+def start_covariance(config: EkfConfig, cov, dim: int) -> np.ndarray:
+    """(dim, dim) start covariance of the error state ``(dphi, w, dp, v, ...)``: ``cov`` (6, 6) of
+    ``(dphi, dp)`` with the config's velocity priors (``init_sigma_rate``, ``init_sigma_speed``), or
+    ``cov`` (12, 12) of ``(dphi, w, dp, v)`` as given (e.g. a two-point start)."""
+    cov = np.asarray(cov, float)
+    P = np.zeros((dim, dim))
+    if cov.shape == (12, 12):
+        P[:12, :12] = 0.5 * (cov + cov.T)
+        return P
+    if cov.shape != (6, 6):
+        raise ValueError(f"start covariance: expected (6, 6) or (12, 12), got {cov.shape}")
+    i = np.r_[0:3, 6:9]
+    P[np.ix_(i, i)] = cov
+    P[3:6, 3:6] = np.eye(3) * config.init_sigma_rate ** 2
+    P[9:12, 9:12] = np.eye(3) * config.init_sigma_speed ** 2
+    return P
 
 
 class ErrorStateEKF:
@@ -248,7 +269,8 @@ class ErrorStateEKF:
     def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None) -> None:
         """Start (or restart) at time ``t`` s with pose ``(rotation (3, 3), position (3,) m)`` of
         covariance ``pose_cov (6, 6)`` (dphi, dp) and zero (or the given) velocities with the
-        configured prior sigmas."""
+        configured prior sigmas — or, with ``pose_cov`` (12, 12), the covariance of ``(dphi, w, dp,
+        v)`` (:func:`start_covariance`)."""
         c = self.config
         self.t = float(t)
         self.q = quat_from_matrix(rotation)
@@ -257,11 +279,7 @@ class ErrorStateEKF:
         self.v = np.zeros(3) if velocity is None else np.array(velocity, float)
         self.alpha = np.zeros(3)
         self.a = np.zeros(3)
-        P = np.zeros((self.dim, self.dim))
-        i = np.r_[0:3, 6:9]
-        P[np.ix_(i, i)] = np.asarray(pose_cov, float)
-        P[3:6, 3:6] = np.eye(3) * c.init_sigma_rate ** 2
-        P[9:12, 9:12] = np.eye(3) * c.init_sigma_speed ** 2
+        P = start_covariance(c, pose_cov, self.dim)
         if c.constant_acceleration:
             P[12:15, 12:15] = np.eye(3) * (c.init_sigma_rate / 0.1) ** 2
             P[15:18, 15:18] = np.eye(3) * (c.init_sigma_speed / 0.1) ** 2

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..rotations import matrix_to_quaternion
 from ..units import RAD2DEG
-from .ekf import EkfConfig, SweepUpdate, chi2_quantile
+from .ekf import EkfConfig, SweepUpdate, start_covariance, chi2_quantile
 from .models import FORWARD_MODELS
 from .so3 import quat_to_matrix, quat_to_rotvec
 
@@ -137,16 +137,14 @@ class ImmFilter:
         s = self.pose_sigma()
         return s[:3] * RAD2DEG, s[3:]
 
-    def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None) -> None:
+    def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None,
+                   noise_scale: float | None = None) -> None:
         """(Re)start every model at time ``t`` with the pose, its covariance ``pose_cov`` (6, 6)
-        (dphi, dp), zero (or the given) velocities with the configured prior sigmas; equal mode
-        probabilities."""
-        c = self.config
-        P = np.zeros((12, 12))
-        i = np.r_[0:3, 6:9]
-        P[np.ix_(i, i)] = np.asarray(pose_cov, float)
-        P[3:6, 3:6] = np.eye(3) * c.init_sigma_rate ** 2
-        P[9:12, 9:12] = np.eye(3) * c.init_sigma_speed ** 2
+        (dphi, dp), zero (or the given) velocities with the configured prior sigmas — or, with
+        ``pose_cov`` (12, 12), the whole state's covariance (dphi, w, dp, v); equal mode
+        probabilities. noise_scale : the angle-noise scale to start from (adaptive mode; e.g. the
+        start solve's residual in sigma, squared: the model errors it saw)."""
+        P = start_covariance(self.config, pose_cov, 12)
         x = np.concatenate([matrix_to_quaternion(rotation), np.zeros(3) if rate is None else rate,
                             np.asarray(position, float), np.zeros(3) if velocity is None else velocity])
         self.X[:] = x
@@ -159,6 +157,8 @@ class ImmFilter:
         self._view()
         self.t = self._t_model = float(t)
         self.initialized = True
+        if self._adapt and noise_scale is not None and math.isfinite(noise_scale):
+            self._set_noise(max(self.noise_scale, min(max(noise_scale, 1.0), self.config.noise_scale_max)))
 
     def predict(self, t: float, process_noise: bool = True) -> None:
         """Move the filter's time to ``t`` (the models are propagated with the next update, after
@@ -190,11 +190,13 @@ class ImmFilter:
         r = 10.0 if (rejected and not math.isfinite(nis)) else min(nis / max(dof, 1), 10.0) if math.isfinite(nis) else None
         if r is None:
             return
-        s = min(max(self.noise_scale * (1.0 + c.noise_scale_rate * (r - 1.0)), 1.0), c.noise_scale_max)
+        self._set_noise(min(max(self.noise_scale * (1.0 + c.noise_scale_rate * (r - 1.0)), 1.0), c.noise_scale_max))
+
+    def _set_noise(self, s: float) -> None:
         if s != self.noise_scale:
             self.noise_scale = s
             for par in self._par:
-                par[:, self._k.PAR_SIGMA2] = s * c.sigma_theta ** 2
+                par[:, self._k.PAR_SIGMA2] = s * self.config.sigma_theta ** 2
 
     def _sweep(self, station, axis, idx, z, sweep_offset=0.0):
         """mix + predict to ``self.t`` + update with ``z`` + combine, in one compiled call."""
@@ -211,6 +213,23 @@ class ImmFilter:
 
     def zero_velocity_update(self) -> None:  # the bank's low-noise model is the static case
         raise ValueError("ImmFilter: no zero-velocity updates (the static case is the bank's quietest model)")
+
+    def hold_static(self, static: bool) -> None:
+        """The static detector's verdict (:class:`~layoutkit.filter.tracker.SweepTracker`): at rest
+        the bank is held in its quietest model (probability 1, not re-weighted by the sweeps — a
+        set-up's model errors would otherwise look like motion to the agile models and pull the pose
+        sweep by sweep); in motion the likelihoods decide again."""
+        was = bool(self._par[0][0, self._k.PAR_FREEZE])
+        for par in self._par:
+            par[:, self._k.PAR_FREEZE] = float(static)
+        if static and len(self.M) > 1:
+            if not was:  # entering rest: every model continues from the bank's output (no jump)
+                K = self._k
+                self.X[:] = self._out[K.OUT_STATE:K.OUT_STATE + 13]
+                self.Pm[:] = self._out[K.OUT_P:].reshape(12, 12)
+            j = int(np.argmin(self.M[:, 1] + self.M[:, 2]))
+            self.M[:, 0] = 0.0
+            self.M[j, 0] = 1.0
 
     def propagate(self) -> None:
         """Bring the models to the filter's time without a measurement (mix + predict)."""

@@ -25,7 +25,9 @@ Life cycle (docs/filter.md):
    a pose sigma beyond ``lost_factor`` times the limits, or time running backwards → status
    "lost" and back to 1 (the outputs keep coming, with status "lost", until a frame re-initialises).
 
-Static detector (``zupt``): consecutive sweeps of the same station and axis differ by ``d`` on the
+Static detector (``zupt``; always on in the adaptive mode, where it holds the bank in its quietest
+model at rest, :meth:`layoutkit.filter.imm.ImmFilter.hold_static`, with the robust rule of
+:meth:`SweepTracker._static_test`): consecutive sweeps of the same station and axis differ by ``d`` on the
 sensors lit in both; at rest ``d ~ N(0, 2 sigma² C)`` with ``C`` the correlation of Chen eq. (19), so
 ``T = d^T C^-1 d / (2 sigma²)`` is chi²(m). When the sum of ``T`` over the last ``zupt_window`` pairs is
 below the chi² quantile ``1 - zupt_p`` the body is taken as static: no process noise and a
@@ -208,6 +210,7 @@ class SweepTracker:
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
         self._waiting_since = None  # when the tracker began waiting for a start (several stations)
+        self._first = None  # (t, mean angle time, R, p, cov) of a joint start's first solve
         self._bad_run = 0
         self._lost = False
         self._last_same: dict = {}
@@ -216,6 +219,10 @@ class SweepTracker:
         self._static_m = deque(maxlen=W)
         self._static_q: dict = {}
         self.static = False
+        # the adaptive bank takes the static detector's verdict (ImmFilter.hold_static) over the last
+        # 20 pairs of sweeps (~0.1 s of two LH2 stations): a start settles at rest quickly
+        self.static_window = min(self.config.zupt_window, 20)
+        self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
 
     # --------------------------------------------------------------------------- helpers
     def _station(self, s: int) -> Station:
@@ -261,33 +268,95 @@ class SweepTracker:
         per = lits.sum(1)
         if (per >= 2).sum() < 2 or per.max() < 4:
             return False
+        first = self._first
+        if first is not None and t - first[0] > self.init_window_s:
+            first = self._first = None  # too old to difference with: start over
+        if first is not None and t - first[0] < self.joint_init_window_s:
+            return False  # the second solve uses fresh angles (no angle in both)
         key = lits.tobytes()
         prev = self._tried.get("joint")
         if prev is not None and prev[0] == key and t - prev[1] < self.init_retry_s:
             return False
-        self._tried["joint"] = (key, t)
         self.counters.pnp_tries += 1
         sol = solve_joint(self.points_body, ang[None], stations=self.stations)
-        if not sol.success[0] or not sol.residual_rms[0] <= self.init_max_residual_sigma * self.config.sigma_theta:
+        c = self.config
+        if not sol.success[0] or not sol.residual_rms[0] <= self.init_max_residual_sigma * c.sigma_theta:
+            self._tried["joint"] = (key, t)
             return False
         R, p = np.asarray(sol.rotation[0]), np.asarray(sol.translation[0])
-        c = self.config
         try:
             cov = joint_pose_covariance([self.ekf.model.jacobian(self.points_body[lits[k]], R, p, self.stations[k])
                                          for k in range(S) if lits[k].any()], c.sigma_theta, c.rho) * c.init_inflation
         except np.linalg.LinAlgError:
-            return False
+            cov = np.full((6, 6), np.nan)
         if not np.all(np.isfinite(cov)):
+            self._tried["joint"] = (key, t)
             return False
-        age = t - float(min(self._recent[k][1][lits[k]].min() for k in range(S) if lits[k].any()))
-        self._start(t, R, p, cov, age)
+        times = np.concatenate([self._hit_times(k, lits[k]) for k in range(S) if lits[k].any()])
+        # the solve's time: the mean hit time of its angles; their spread says how much a motion blurs it
+        tm, spread = float(times.mean()), float(times.std())
+        noise = (float(sol.residual_rms[0]) / c.sigma_theta) ** 2
+        if first is None:
+            self._first = (t, tm, R, p, cov, spread)
+            return False
+        return self._start_two_point(first, (t, tm, R, p, cov, spread), noise)
+
+    def _hit_times(self, k: int, lit) -> np.ndarray:
+        """(2 m,) s, hit times of the remembered angles of station ``k``'s sensors ``lit`` (sweep
+        time + :meth:`_hit_offsets`)."""
+        ang, times = self._recent[k][0][lit], self._recent[k][1][lit]
+        st = self.stations[k]
+        out = times.copy()
+        for axis in (0, 1):
+            offs = self._hit_offsets(st, st.kind, ang[:, axis], axis)
+            if offs is not None:
+                out[:, axis] += offs
+        return out.ravel()
+
+    def _start_two_point(self, a, b, noise_scale) -> bool:
+        """Start from two joint solves on disjoint angles (two-point differencing, Bar-Shalom, Li &
+        Kirubarajan 2001 §5.5.3): velocity ``(p_b - p_a) / dt`` and rate ``log(R_b R_a^T) / dt``
+        (world frame) with covariance ``(C_a + C_b) / dt²`` and cross-covariance ``C_b / dt`` with
+        the pose; the filter starts at solve b's time. A deck at rest starts knowing it is at rest
+        (a 3 m/s prior let the first sweeps' model errors pull the pose by centimetres), a moving
+        one with its velocity. A solve of a moving body mixes poses over its angles' hit times: each
+        solve's covariance is widened by the motion over their spread (``(|v| s)²``, ``(|w| s)²``,
+        s the spread's standard deviation). An implied speed beyond 3x the velocity prior keeps b
+        as the first."""
+        from scipy.spatial.transform import Rotation
+
+        c = self.config
+        _, ta, Ra, pa, Ca, sa = a
+        t, tb, Rb, pb, Cb, sb = b
+        dt = tb - ta
+        v = (pb - pa) / dt
+        w = Rotation.from_matrix(Rb @ Ra.T).as_rotvec() / dt
+        if not (dt > 0 and np.linalg.norm(v) <= 3 * c.init_sigma_speed and np.linalg.norm(w) <= 3 * c.init_sigma_rate):
+            self._first = b
+            return False
+        blur = np.r_[np.full(3, float(np.linalg.norm(w)) ** 2), np.full(3, float(np.linalg.norm(v)) ** 2)]
+        Ca, Cb = Ca + np.diag(blur * sa ** 2), Cb + np.diag(blur * sb ** 2)
+        # state (dphi, w, dp, v): pose b, and its difference with pose a over dt
+        P = np.zeros((12, 12))
+        ip, iv = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+        P[np.ix_(ip, ip)] = Cb
+        P[np.ix_(iv, iv)] = (Ca + Cb) / dt ** 2
+        P[np.ix_(ip, iv)] = Cb / dt
+        P[np.ix_(iv, ip)] = Cb / dt
+        self._start(tb, Rb, pb, P, 0.0, noise_scale, velocity=v, rate=w)
         return True
 
-    def _start(self, t, R, p, cov, age) -> None:
+    def _start(self, t, R, p, cov, age, noise_scale=None, velocity=None, rate=None) -> None:
+        """Initialise the filter at ``t``: ``cov`` (6, 6) pose covariance (velocity priors of the
+        config, inflated by the motion they allow over ``age`` s), or (12, 12) the whole state's
+        (with the given ``velocity``/``rate``)."""
         c = self.config
-        cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
-        cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
-        self.ekf.initialize(t, R, p, cov)
+        if cov.shape == (6, 6):
+            cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
+            cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
+        kw = {"noise_scale": noise_scale} if noise_scale is not None and hasattr(self.ekf, "hold_static") else {}
+        self.ekf.initialize(t, R, p, cov, velocity=velocity, rate=rate, **kw)
+        self._first = None
         self._waiting_since = None
         self._confirm = self.confirm_sweeps
         self._lost = False
@@ -360,11 +429,20 @@ class SweepTracker:
         m = d.size
         if m == 0:
             return
-        rho = c.rho
+        # adaptive mode: no same-rotor correlation assumed (a real station's is not the paper's; the
+        # per-angle variance 2 sigma² of a difference holds whatever it is)
+        rho = c.rho if c.motion == "fixed" else 0.0
         s = d.sum()
         T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
         self._static_T.append(T)
         self._static_m.append(m)
+        if c.motion != "fixed" and len(self._static_T) >= self.static_window:
+            # robust form for the adaptive bank: at rest the median per-dof statistic of the window is
+            # ~1 (up to 4 allows sigma_theta half the real noise), a single decoding glitch does not
+            # move the median, and three consecutive large pairs (a motion starting) end rest at once
+            per = [x / max(k, 1) for x, k in list(zip(self._static_T, self._static_m))[-self.static_window:]]
+            self.static = bool(np.median(per) <= 4.0 and not all(v > 9.0 for v in per[-3:]))
+            return
         if len(self._static_T) < c.zupt_window:
             self.static = False
             return
@@ -398,11 +476,12 @@ class SweepTracker:
         if ekf.initialized and t < ekf.t:  # time ran backwards (device reset): start over
             self._declare_lost()
             ekf.initialized = False
+            self._first = None
             self._recent.clear()
             self._last_same.clear()
             self._static_T.clear()
             self._static_m.clear()
-        if c.zupt:
+        if c.zupt or self._hold:
             self._static_test((s, axis), t, ang)
         event = ""
         if not ekf.initialized or self._lost:
@@ -416,6 +495,8 @@ class SweepTracker:
             self._recent.clear()
         upd = None
         if event != "init":
+            if self._hold:
+                ekf.hold_static(self.static)
             ekf.predict(t, process_noise=not (c.zupt and self.static))
             if not self._lost:
                 idx = np.flatnonzero(np.isfinite(ang))
@@ -469,7 +550,9 @@ class SweepTracker:
         if self._lost:
             status = "lost"
         else:  # two consecutive rejected sweeps: the data no longer support the state
-            status = "ok" if big <= 1.0 and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
+            # ok also needs the velocity known (a start's 3 m/s prior lets the pose swing for a few sweeps)
+            slow_known = math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed
+            status = "ok" if big <= 1.0 and slow_known and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"

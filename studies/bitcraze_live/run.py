@@ -1,0 +1,184 @@
+"""Issue 25 items 2, 3, 5 on the real Crazyflie logs (bitcraze/positioning_dataset, LH2 sets): the
+live side's must-show figures, with the commands that produce them.
+
+    python studies/bitcraze_live/run.py --data ~/.cache/layoutkit-realdata/bitcraze [--out studies/bitcraze_live]
+
+The dataset has no licence: nothing of it is stored here, only these results. Metrics are the
+dataset's own (jitter = RMS of consecutive position differences; error vs motion capture after its
+temporal offset + rate and Arun rigid alignment, per method), computed by the study module
+:mod:`layoutkit.studies.bitcraze_dataset` (``jitter``, ``coverage``, ``align_to_mocap``,
+``firmware_series``). What this script adds: every replay is the CLI's workflow
+(:func:`layoutkit.workflows.live.replay_capture`, the same as ``layoutkit replay``) with
+
+1. the stations estimated once from the ten static LH2 captures of the set-up (they share one
+   system config): ``layoutkit replay <static log> --system-config Y --solve joint --refine-stations
+   --refine-from <the other nine> --report OUT/calibration`` -> ``OUT/calibration/stations_refined.json``
+   (item 3; poses only);
+2. ``--stations OUT/calibration/stations_refined.json --solve joint`` for the joint poses (item 2:
+   only ``ok`` poses count) and ``--filter ekf`` for the filter (item 5; session defaults: the
+   paper's sigma and rho, the adaptive bank), on every log.
+
+Static logs: good poses / s, joint jitter vs the firmware's crossing beam on the same log (its
+``lhCrossingBeam`` events; the Kalman logs have none, there the firmware's crossing-beam method on
+the same decoded angles, :func:`layoutkit.live.joint_stream.crossing_beam_windows`), filter jitter
+and its share of 100 ms intervals tracking. Moving and flight logs: RMS error vs motion capture of
+the joint ok poses, the filter's ok poses, the firmware's crossing beam and EKF; coverage. The
+filter's real-time factor (stream seconds per filter CPU second).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from layoutkit.studies.bitcraze_dataset import (DECK_LAYOUT, align_to_mocap, coverage, discover,  # noqa: E402
+                                                 firmware_series, jitter)
+
+
+class _Lines(io.TextIOBase):
+    """``json_out`` sink: the ok positions (t, x, y, z) of a replay's JSON lines."""
+
+    def __init__(self):
+        self.buf, self.t, self.p, self.lines = "", [], [], 0
+
+    def writable(self):
+        return True
+
+    def write(self, s):
+        self.buf += s
+        *lines, self.buf = self.buf.split("\n")
+        for ln in lines:
+            if ln.startswith("{"):
+                d = json.loads(ln)
+                self.lines += 1
+                if d.get("status") == "ok" and all(v is not None for v in d["translation"]):
+                    self.t.append(d["t"])
+                    self.p.append(d["translation"])
+        return len(s)
+
+
+def replay(log, yml, *, stations=None, filt=False, **kw):
+    from layoutkit.filter import EkfConfig
+    from layoutkit.live.pipeline import LiveConfig
+    from layoutkit.workflows.live import replay_capture
+
+    cfg = LiveConfig()
+    if filt:
+        cfg = replace(cfg, filter=EkfConfig(sigma_theta=cfg.sigma_theta, rho=cfg.rho))
+    sink = _Lines()
+    t0 = time.perf_counter()
+    with contextlib.redirect_stderr(io.StringIO()):
+        s = replay_capture(log, str(DECK_LAYOUT), system_config=yml, stations=stations, solve="joint", options=cfg,
+                           json_out=sink, **kw)
+    return s, np.asarray(sink.t, float), np.asarray(sink.p, float).reshape(-1, 3), time.perf_counter() - t0
+
+
+def firmware_crossing_beam(log, yml):
+    """The firmware's crossing-beam method on our decode of the log (system-config stations)."""
+    from layoutkit.io.systemconfig import read_system_config
+    from layoutkit.layout import load_layout
+    from layoutkit.live.joint_stream import JointWindower, crossing_beam_windows
+    from layoutkit.live.pipeline import PosePipeline
+    from layoutkit.live.session import RunSetup, calibrated_setup, make_decoder
+    from layoutkit.workflows.importers import cfusdlog_replay_source
+
+    cfg = read_system_config(yml)
+    usd = cfusdlog_replay_source(log, stations=cfg.station_list(), system_config=cfg)
+    lay = load_layout(DECK_LAYOUT)
+    setup = RunSetup.from_sidecar(usd["sidecar"], lay, stations=cfg.station_list(), system_config=cfg)
+    sts, opts, _ = calibrated_setup(setup)
+    dec = make_decoder(setup.protocol, lay.n, sts, opts)
+    pairer = PosePipeline(lay.positions, replace(setup.config, solve="joint"), sts).pairer
+    win = JointWindower(len(sts), setup.config.window_s)
+    ws = []
+    for m in dec.feed(usd["bytes"]) + dec.flush():
+        f = pairer.push(m)
+        if f is not None:
+            ws += win.push(f)
+    ws += win.flush()
+    return crossing_beam_windows(ws, sts, lay.n)
+
+
+def mm(v):
+    return None if v is None or not np.isfinite(v) else round(float(v) * 1e3, 3)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, help="the dataset's data folder (the sets)")
+    ap.add_argument("--out", default=str(Path(__file__).parent))
+    a = ap.parse_args()
+    out = Path(a.out)
+    items, skipped = discover(a.data)
+    lh2 = [it for it in items if it.kind == "lh2"]
+    static = [it for it in lh2 if it.scenario == "jitter"]
+    res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped}
+    # 1. the stations from the static captures (item 3)
+    t0 = time.perf_counter()
+    s, *_ = replay(static[0].log, static[0].system_config, refine_stations=True,
+                   refine_from=[it.log for it in static[1:]], report_dir=out / "calibration")
+    res["calibration"] = {"command": "layoutkit replay " + static[0].name + " --system-config system-config.yaml "
+                          "--solve joint --refine-stations " + " ".join("--refine-from " + it.name for it in static[1:])
+                          + " --report calibration", "seconds": time.perf_counter() - t0,
+                          "refinement": {k: v for k, v in s["station_refinement"].items() if k != "file"}}
+    stations = str(out / "calibration" / "stations_refined.json")
+    for it in lh2:
+        fw = firmware_series(it.log)
+        row = {"set": it.set, "scenario": it.scenario}
+        sj, tj, pj, wj = replay(it.log, it.system_config, stations=stations)
+        sf, tf, pf, wf = replay(it.log, it.system_config, stations=stations, filt=True)
+        span = sj["stream_time_s"]
+        on, off = fw["markers"] if fw["markers"] else (tj[0] if len(tj) else 0.0, tj[-1] if len(tj) else 1.0)
+        f = sf.get("filter") or {}
+        row.update(stream_s=round(span, 2), joint_good=sj["good"], joint_good_per_s=round(sj["good"] / span, 1),
+                   joint_by_status=sj["by_status"], filter_ok_outputs=len(tf),
+                   filter_coverage_100ms=round(coverage(tf, on, off), 4),
+                   joint_coverage_100ms=round(coverage(tj, on, off), 4),
+                   filter_real_time_x=round(span / f["filter_cpu_seconds"], 1) if f.get("filter_cpu_seconds") else None,
+                   filter_angle_noise_rad=f.get("angle_noise_rad"))
+        cb = fw["crossing_beam"]
+        if it.scenario == "jitter":
+            row.update(joint_jitter_mm=mm(jitter(pj)), filter_jitter_mm=mm(jitter(pf)))
+            if cb is not None:
+                row["fw_crossing_beam_jitter_mm"] = mm(jitter(cb[1]))
+                row["fw_crossing_beam_source"] = "lhCrossingBeam events"
+            else:
+                _, pcb = firmware_crossing_beam(it.log, it.system_config)
+                row["fw_crossing_beam_jitter_mm"] = mm(jitter(pcb))
+                row["fw_crossing_beam_source"] = "the firmware's method on our decode (no lhCrossingBeam events)"
+            if fw["ekf"] is not None:
+                row["fw_ekf_jitter_mm"] = mm(jitter(fw["ekf"][1]))
+        elif it.mocap is not None and fw["markers"]:
+            mc = np.load(it.mocap)
+            for name, (t, p) in {"joint": (tj, pj), "filter": (tf, pf),
+                                 "fw_crossing_beam": (cb[0], cb[1]) if cb is not None else (None, None),
+                                 "fw_ekf": fw["ekf"] if fw["ekf"] is not None else (None, None)}.items():
+                if t is None or len(t) < 10:
+                    continue
+                valid = None
+                if name == "fw_crossing_beam":
+                    valid = cb[2] < 0.1
+                al = align_to_mocap(t, p, mc, on, off, valid=valid)
+                if al.get("status") == "ok":
+                    row[f"{name}_rms_mm"] = mm(al["rms_m"])
+                    row[f"{name}_median_mm"] = mm(al["median_m"])
+                    row[f"{name}_max_mm"] = mm(al["max_m"])
+                    row[f"{name}_samples"] = al["samples"]
+        res["logs"][it.name] = row
+        print(it.name, json.dumps(row), flush=True)
+    (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
+    print("wrote", out / "results.json")
+
+
+if __name__ == "__main__":
+    main()
