@@ -14,6 +14,10 @@ chunks, every pose is written out (JSON lines, ``poses.csv``) and only running s
 bounded, decimated series are kept (:mod:`layoutkit.live.stats`) — except when a reference is
 compared: its alignment is estimated from the whole run, so the good poses are kept in memory
 (72 bytes a pose, :class:`~layoutkit.live.session.PoseStore`) for the comparison at the end.
+
+Why one module of ~650 lines: replay and live are one workflow over the same session, setup,
+finish (references, camera, evidence of other runs) and report; split, each half would import the
+other's private steps. Every function stays under 120 lines.
 """
 from __future__ import annotations
 
