@@ -404,9 +404,9 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
             extra = Path(extra)
             if not extra.is_file():
                 raise ValueError(f"{extra}: no such capture file (--refine-from)")
-            x_setup, x_usd = _replay_setup(extra, setup.layout, protocol=None, options=setup.config,
-                                           stations=stations, system_config=setup.system_config, solve=solve,
-                                           cfusdlog_source=cfusdlog_source)
+            x_setup, x_usd, _ = _replay_setup(extra, setup.layout, protocol=None, options=setup.config,
+                                              stations=stations, system_config=setup.system_config, solve=solve,
+                                              cfusdlog_source=cfusdlog_source)
             sets.append(_decode_all(x_setup, extra, x_usd)[1])
         setup, refinement = _refined(setup, sets, report_dir, refine_calibration)
         if refine_from:

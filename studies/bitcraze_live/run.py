@@ -46,10 +46,12 @@ from layoutkit.studies.bitcraze_dataset import (DECK_LAYOUT, align_to_mocap, cov
 
 
 class _Lines(io.TextIOBase):
-    """``json_out`` sink: the ok positions (t, x, y, z) of a replay's JSON lines."""
+    """``json_out`` sink: every solved pose of a replay's JSON lines, (t, x, y, z, status,
+    stations used, predicted 1-sigma position m): joint lines carry ``stations_used`` and
+    ``sigma_position_m`` (PDOP sigma_theta), the filter's ``cov_pos_m`` (per axis; its norm here)."""
 
     def __init__(self):
-        self.buf, self.t, self.p, self.lines = "", [], [], 0
+        self.buf, self.t, self.p, self.status, self.used, self.sigma, self.lines = "", [], [], [], [], [], 0
 
     def writable(self):
         return True
@@ -61,13 +63,29 @@ class _Lines(io.TextIOBase):
             if ln.startswith("{"):
                 d = json.loads(ln)
                 self.lines += 1
-                if d.get("status") == "ok" and all(v is not None for v in d["translation"]):
-                    self.t.append(d["t"])
-                    self.p.append(d["translation"])
+                tr = d.get("translation")
+                if tr is None or any(v is None for v in tr):
+                    continue
+                self.t.append(d["t"])
+                self.p.append(tr)
+                self.status.append(d.get("status"))
+                self.used.append(int(d.get("stations_used") or 0))
+                if d.get("cov_pos_m") is not None:
+                    sig = float(np.linalg.norm(d["cov_pos_m"]))
+                else:
+                    sig = d.get("sigma_position_m")
+                self.sigma.append(np.nan if sig is None else float(sig))
         return len(s)
+
+    def arrays(self):
+        return {"t": np.asarray(self.t, float), "p": np.asarray(self.p, float).reshape(-1, 3),
+                "status": np.asarray(self.status, str), "used": np.asarray(self.used, int),
+                "sigma": np.asarray(self.sigma, float)}
 
 
 def replay(log, yml, *, stations=None, filt=False, **kw):
+    """``layoutkit replay LOG --system-config YML --solve joint [--stations S] [--filter ekf]``:
+    (summary, the sink's arrays, wall seconds)."""
     from layoutkit.filter import EkfConfig
     from layoutkit.live.pipeline import LiveConfig
     from layoutkit.workflows.live import replay_capture
@@ -80,7 +98,25 @@ def replay(log, yml, *, stations=None, filt=False, **kw):
     with contextlib.redirect_stderr(io.StringIO()):
         s = replay_capture(log, str(DECK_LAYOUT), system_config=yml, stations=stations, solve="joint", options=cfg,
                            json_out=sink, **kw)
-    return s, np.asarray(sink.t, float), np.asarray(sink.p, float).reshape(-1, 3), time.perf_counter() - t0
+    return s, sink.arrays(), time.perf_counter() - t0
+
+
+def errors_by_alignment(al, mocap, on, off, t_ok, p_ok, t, p):
+    """Errors (m) of the poses ``(t, p)`` vs motion capture under the alignment ``al`` found for the ok
+    poses ``(t_ok, p_ok)`` (same time offsets, rate and Arun rigid fit: the other statuses are judged
+    in the ok poses' frame, not given a fit of their own). NaN where the motion capture has no sample."""
+    from layoutkit.studies.bitcraze_dataset import _arun, _mocap_at
+
+    tm = (mocap[:, 0] - mocap[0, 0]) / 1000.0
+    pm = mocap[:, 1:4]
+    t0, t1 = on + al["start_ms"] / 1000.0, off + al["end_ms"] / 1000.0
+    q = _mocap_at(tm, pm, (t_ok - t0) * al["rate"])
+    use = np.all(np.isfinite(q), 1) & (t_ok >= t0) & (t_ok <= t1)
+    R, tr = _arun(p_ok[use], q[use])
+    q = _mocap_at(tm, pm, (t - t0) * al["rate"])
+    e = np.linalg.norm(p @ R.T + tr - q, axis=1)
+    e[~((t >= t0) & (t <= t1))] = np.nan
+    return e
 
 
 def firmware_crossing_beam(log, yml):
@@ -113,10 +149,28 @@ def mm(v):
     return None if v is None or not np.isfinite(v) else round(float(v) * 1e3, 3)
 
 
+def _groups(a):
+    """Masks of a joint replay's poses: ok, imprecise, high_residual, and by stations used."""
+    return {"ok": a["status"] == "ok", "imprecise": a["status"] == "imprecise",
+            "high_residual": a["status"] == "high_residual", "one_station": a["used"] == 1,
+            "two_stations": a["used"] >= 2, "ok_one_station": (a["status"] == "ok") & (a["used"] == 1)}
+
+
+def _err_stats(e, sig):
+    k = np.isfinite(e)
+    if k.sum() < 3:
+        return None
+    return {"n": int(k.sum()), "rms_mm": mm(np.sqrt(np.mean(e[k] ** 2))), "median_mm": mm(np.median(e[k])),
+            "predicted_rms_sigma_mm": mm(np.sqrt(np.nanmean(sig[k] ** 2))) if np.isfinite(sig[k]).any() else None}
+
+
 def main():
+    from layoutkit.studies.bitcraze_dataset import _valid_ekf
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True, help="the dataset's data folder (the sets)")
     ap.add_argument("--out", default=str(Path(__file__).parent))
+    ap.add_argument("--logs", nargs="*", help="only these logs (SET/logNN); default every LH2 log")
     a = ap.parse_args()
     out = Path(a.out)
     items, skipped = discover(a.data)
@@ -127,28 +181,45 @@ def main():
     t0 = time.perf_counter()
     s, *_ = replay(static[0].log, static[0].system_config, refine_stations=True,
                    refine_from=[it.log for it in static[1:]], report_dir=out / "calibration")
-    res["calibration"] = {"command": "layoutkit replay " + static[0].name + " --system-config system-config.yaml "
-                          "--solve joint --refine-stations " + " ".join("--refine-from " + it.name for it in static[1:])
-                          + " --report calibration", "seconds": time.perf_counter() - t0,
+    res["calibration"] = {"command": "layoutkit replay " + static[0].name + " --layout DECK --system-config "
+                          "system-config.yaml --solve joint --refine-stations " +
+                          " ".join("--refine-from " + it.name for it in static[1:]) + " --report calibration",
+                          "seconds": round(time.perf_counter() - t0, 1),
                           "refinement": {k: v for k, v in s["station_refinement"].items() if k != "file"}}
     stations = str(out / "calibration" / "stations_refined.json")
+    print("calibration", json.dumps(res["calibration"]["refinement"].get("status")), flush=True)
     for it in lh2:
+        if a.logs and it.name not in a.logs:
+            continue
         fw = firmware_series(it.log)
         row = {"set": it.set, "scenario": it.scenario}
-        sj, tj, pj, wj = replay(it.log, it.system_config, stations=stations)
-        sf, tf, pf, wf = replay(it.log, it.system_config, stations=stations, filt=True)
+        sj, J, wj = replay(it.log, it.system_config, stations=stations)
+        sf, F, wf = replay(it.log, it.system_config, stations=stations, filt=True)
+        g = _groups(J)
+        okJ, okF = g["ok"], F["status"] == "ok"
+        tj, pj, tf, pf = J["t"][okJ], J["p"][okJ], F["t"][okF], F["p"][okF]
         span = sj["stream_time_s"]
         on, off = fw["markers"] if fw["markers"] else (tj[0] if len(tj) else 0.0, tj[-1] if len(tj) else 1.0)
         f = sf.get("filter") or {}
         row.update(stream_s=round(span, 2), joint_good=sj["good"], joint_good_per_s=round(sj["good"] / span, 1),
-                   joint_by_status=sj["by_status"], filter_ok_outputs=len(tf),
+                   joint_by_status=sj["by_status"], joint_max_sigma_position_mm=mm(sj.get("max_sigma_position_m")),
+                   joint_windows_by_stations_used={str(k): int((J["used"] == k).sum()) for k in np.unique(J["used"])},
+                   joint_ok_with_one_station=int(g["ok_one_station"].sum()),
+                   filter_ok_outputs=len(tf), filter_by_status={k: int((F["status"] == k).sum())
+                                                               for k in np.unique(F["status"])},
+                   filter_inits=(f.get("counters") or {}).get("inits"),
                    filter_coverage_100ms=round(coverage(tf, on, off), 4),
                    joint_coverage_100ms=round(coverage(tj, on, off), 4),
+                   filter_cpu_s=f.get("filter_cpu_seconds"), replay_wall_s=round(wf, 1),
                    filter_real_time_x=round(span / f["filter_cpu_seconds"], 1) if f.get("filter_cpu_seconds") else None,
                    filter_angle_noise_rad=f.get("angle_noise_rad"))
         cb = fw["crossing_beam"]
         if it.scenario == "jitter":
-            row.update(joint_jitter_mm=mm(jitter(pj)), filter_jitter_mm=mm(jitter(pf)))
+            row.update(joint_jitter_mm=mm(jitter(pj)), filter_jitter_mm=mm(jitter(pf)),
+                       joint_imprecise_jitter_mm=mm(jitter(J["p"][g["imprecise"]])),
+                       joint_ok_predicted_sigma_mm=mm(np.sqrt(np.nanmean(J["sigma"][okJ] ** 2))) if okJ.any() else None,
+                       joint_imprecise_predicted_sigma_mm=mm(np.sqrt(np.nanmean(J["sigma"][g["imprecise"]] ** 2)))
+                       if g["imprecise"].any() else None)
             if cb is not None:
                 row["fw_crossing_beam_jitter_mm"] = mm(jitter(cb[1]))
                 row["fw_crossing_beam_source"] = "lhCrossingBeam events"
@@ -160,23 +231,35 @@ def main():
                 row["fw_ekf_jitter_mm"] = mm(jitter(fw["ekf"][1]))
         elif it.mocap is not None and fw["markers"]:
             mc = np.load(it.mocap)
-            for name, (t, p) in {"joint": (tj, pj), "filter": (tf, pf),
-                                 "fw_crossing_beam": (cb[0], cb[1]) if cb is not None else (None, None),
-                                 "fw_ekf": fw["ekf"] if fw["ekf"] is not None else (None, None)}.items():
-                if t is None or len(t) < 10:
+            series = {"joint": (tj, pj, None), "filter": (tf, pf, None)}
+            if cb is not None:
+                series["fw_crossing_beam"] = (cb[0], cb[1], cb[2] < 0.1)
+            if fw["ekf"] is not None:
+                series["fw_ekf"] = (fw["ekf"][0], fw["ekf"][1], _valid_ekf(fw["ekf"][0], fw["angle_t"]))
+            for name, (t, p, valid) in series.items():
+                if len(t) < 10:
                     continue
-                valid = None
-                if name == "fw_crossing_beam":
-                    valid = cb[2] < 0.1
                 al = align_to_mocap(t, p, mc, on, off, valid=valid)
-                if al.get("status") == "ok":
-                    row[f"{name}_rms_mm"] = mm(al["rms_m"])
-                    row[f"{name}_median_mm"] = mm(al["median_m"])
-                    row[f"{name}_max_mm"] = mm(al["max_m"])
-                    row[f"{name}_samples"] = al["samples"]
+                if al.get("status") != "ok":
+                    row[f"{name}_alignment"] = al.get("message")
+                    continue
+                row[f"{name}_rms_mm"] = mm(al["rms_m"])
+                row[f"{name}_median_mm"] = mm(al["median_m"])
+                row[f"{name}_max_mm"] = mm(al["max_m"])
+                row[f"{name}_samples"] = al["samples"]
+                if name == "joint":
+                    # item 2: every joint pose judged in the ok poses' alignment, by status and stations used
+                    e = errors_by_alignment(al, mc, on, off, tj, pj, J["t"], J["p"])
+                    row["joint_errors_by_group"] = {k: _err_stats(e[m], J["sigma"][m]) for k, m in g.items()}
+                if name == "filter":
+                    e = errors_by_alignment(al, mc, on, off, tf, pf, tf, pf)
+                    sg = F["sigma"][okF]
+                    k = np.isfinite(e) & np.isfinite(sg)
+                    # the filter's 1-sigma is per axis: |e|^2 / sum sigma_i^2 averages 1 when consistent
+                    row["filter_error_over_sigma_rms"] = round(float(np.sqrt(np.mean((e[k] / sg[k]) ** 2))), 2)
         res["logs"][it.name] = row
         print(it.name, json.dumps(row), flush=True)
-    (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
+        (out / "results.json").write_text(json.dumps(res, indent=2, default=float) + "\n")
     print("wrote", out / "results.json")
 
 
