@@ -220,8 +220,11 @@ class ImmFilter:
         set-up's model errors would otherwise look like motion to the agile models and pull the pose
         sweep by sweep); in motion the likelihoods decide again."""
         was = bool(self._par[0][0, self._k.PAR_FREEZE])
-        for par in self._par:
-            par[:, self._k.PAR_FREEZE] = float(static)
+        if static == was and not static:
+            return  # in motion and staying so: nothing to change (called every sweep)
+        if static != was:
+            for par in self._par:
+                par[:, self._k.PAR_FREEZE] = float(static)
         if static and len(self.M) > 1:
             if not was:  # entering rest: every model continues from the bank's output (no jump)
                 K = self._k

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from statistics import median
 from dataclasses import dataclass
 
 import numpy as np
@@ -217,6 +218,7 @@ class SweepTracker:
         W = self.config.zupt_window
         self._static_T = deque(maxlen=W)
         self._static_m = deque(maxlen=W)
+        self._static_per = deque(maxlen=min(W, 20))  # T / m of the latest pairs (the adaptive rule)
         self._static_q: dict = {}
         self.static = False
         # the adaptive bank takes the static detector's verdict (ImmFilter.hold_static) over the last
@@ -436,12 +438,14 @@ class SweepTracker:
         T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
         self._static_T.append(T)
         self._static_m.append(m)
-        if c.motion != "fixed" and len(self._static_T) >= self.static_window:
+        self._static_per.append(T / m)
+        if c.motion != "fixed" and len(self._static_per) >= self.static_window:
             # robust form for the adaptive bank: at rest the median per-dof statistic of the window is
             # ~1 (up to 4 allows sigma_theta half the real noise), a single decoding glitch does not
             # move the median, and three consecutive large pairs (a motion starting) end rest at once
-            per = [x / max(k, 1) for x, k in list(zip(self._static_T, self._static_m))[-self.static_window:]]
-            self.static = bool(np.median(per) <= 4.0 and not all(v > 9.0 for v in per[-3:]))
+            per = self._static_per
+            # statistics.median: numpy's definition, without numpy's per-call overhead (every sweep)
+            self.static = bool(median(per) <= 4.0 and not (per[-1] > 9.0 and per[-2] > 9.0 and per[-3] > 9.0))
             return
         if len(self._static_T) < c.zupt_window:
             self.static = False
@@ -481,6 +485,7 @@ class SweepTracker:
             self._last_same.clear()
             self._static_T.clear()
             self._static_m.clear()
+            self._static_per.clear()
         if c.zupt or self._hold:
             self._static_test((s, axis), t, ang)
         event = ""

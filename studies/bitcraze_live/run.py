@@ -171,6 +171,8 @@ def main():
     ap.add_argument("--data", required=True, help="the dataset's data folder (the sets)")
     ap.add_argument("--out", default=str(Path(__file__).parent))
     ap.add_argument("--logs", nargs="*", help="only these logs (SET/logNN); default every LH2 log")
+    ap.add_argument("--reuse-calibration", action="store_true",
+                    help="use OUT/calibration/stations_refined.json as it is (skip step 1)")
     a = ap.parse_args()
     out = Path(a.out)
     items, skipped = discover(a.data)
@@ -179,9 +181,15 @@ def main():
     res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped}
     # 1. the stations from the static captures (item 3)
     t0 = time.perf_counter()
-    s, *_ = replay(static[0].log, static[0].system_config, refine_stations=True,
-                   refine_from=[it.log for it in static[1:]], report_dir=out / "calibration")
-    res["calibration"] = {"command": "layoutkit replay " + static[0].name + " --layout DECK --system-config "
+    prev = out / "results.json"
+    if a.reuse_calibration and (out / "calibration" / "stations_refined.json").is_file():
+        old = json.loads(prev.read_text()) if prev.is_file() else {}
+        res["calibration"] = old.get("calibration") or {"refinement": {"status": "reused"}}
+        res["logs"] = old.get("logs", {})
+    else:
+        s, *_ = replay(static[0].log, static[0].system_config, refine_stations=True,
+                       refine_from=[it.log for it in static[1:]], report_dir=out / "calibration")
+        res["calibration"] = {"command": "layoutkit replay " + static[0].name + " --layout DECK --system-config "
                           "system-config.yaml --solve joint --refine-stations " +
                           " ".join("--refine-from " + it.name for it in static[1:]) + " --report calibration",
                           "seconds": round(time.perf_counter() - t0, 1),
@@ -202,7 +210,7 @@ def main():
         on, off = fw["markers"] if fw["markers"] else (tj[0] if len(tj) else 0.0, tj[-1] if len(tj) else 1.0)
         f = sf.get("filter") or {}
         row.update(stream_s=round(span, 2), joint_good=sj["good"], joint_good_per_s=round(sj["good"] / span, 1),
-                   joint_by_status=sj["by_status"], joint_max_sigma_position_mm=mm(sj.get("max_sigma_position_m")),
+                   joint_by_status=sj["by_status"], joint_max_sigma_position=sj.get("max_sigma_position_m"),
                    joint_windows_by_stations_used={str(k): int((J["used"] == k).sum()) for k in np.unique(J["used"])},
                    joint_ok_with_one_station=int(g["ok_one_station"].sum()),
                    filter_ok_outputs=len(tf), filter_by_status={k: int((F["status"] == k).sum())
@@ -227,14 +235,14 @@ def main():
                 _, pcb = firmware_crossing_beam(it.log, it.system_config)
                 row["fw_crossing_beam_jitter_mm"] = mm(jitter(pcb))
                 row["fw_crossing_beam_source"] = "the firmware's method on our decode (no lhCrossingBeam events)"
-            if fw["ekf"] is not None:
+            if fw["ekf"] is not None and it.mode == "kalman":
                 row["fw_ekf_jitter_mm"] = mm(jitter(fw["ekf"][1]))
         elif it.mocap is not None and fw["markers"]:
             mc = np.load(it.mocap)
             series = {"joint": (tj, pj, None), "filter": (tf, pf, None)}
             if cb is not None:
                 series["fw_crossing_beam"] = (cb[0], cb[1], cb[2] < 0.1)
-            if fw["ekf"] is not None:
+            if fw["ekf"] is not None and it.mode == "kalman":  # the crossing-beam sets do not fly on the EKF
                 series["fw_ekf"] = (fw["ekf"][0], fw["ekf"][1], _valid_ekf(fw["ekf"][0], fw["angle_t"]))
             for name, (t, p, valid) in series.items():
                 if len(t) < 10:
