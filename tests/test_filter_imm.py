@@ -184,3 +184,69 @@ def test_two_point_start_knows_the_velocity(speed):
             errs.append(np.abs(o.translation - x) / o.cov_pos_m)  # error in the filter's own 1-sigma
     assert tr.counters.inits == 1 and len(errs) == 20
     assert np.max(errs) < 4.0, np.max(errs, axis=1)  # consistent from the first ok output (Gaussian 60 draws: < 4)
+
+
+def test_ok_needs_a_position_known_better_than_one_station():
+    """Construction (Chen eq. 24, computed here at the TRUE pose, independently of the filter): a
+    joint start, then station 1 goes dark while the deck swings at 2.5 m/s before station 0 alone.
+    With ``ok_beats_one_station`` every ok output's position 1-sigma (root trace) is within 10 % of
+    what the best single station gives at the true pose with every sensor lit (PDOP · sigma_theta;
+    the filter evaluates it at its own pose every 0.1 s); without the rule the filter calls poses
+    ok at twice that."""
+    from dataclasses import replace
+
+    from layoutkit.dop import pose_dop
+    from layoutkit.filter.tracker import SweepTracker
+    from layoutkit.geometry import rotvec_to_matrix
+
+    rng = np.random.default_rng(5)
+    P, sts, sweeps, truth = _stream("lh2", rng, T=2.5, swing_from=0.6, speed=2.5)
+    vis = np.zeros((1, 2, 4), bool)
+    vis[0, 0] = True
+    cfg = EkfConfig()
+    worst, n_ok = {}, {}
+    for rule in (True, False):
+        tr = SweepTracker(P, sts, replace(cfg, ok_beats_one_station=rule))
+        ratios = []
+        for m, x in zip(sweeps, truth):
+            if int(m.station) == 1 and m.t > 0.4:
+                continue
+            o = tr.push(m)
+            if o is None or m.t < 0.6 or not o.ok:
+                continue
+            lim = float(pose_dop(P, rotvec_to_matrix(o.rotvec)[None], np.asarray(x)[None], rho=cfg.rho, visible=vis,
+                                 stations=sts).pdop[0]) * cfg.sigma_theta
+            ratios.append(float(np.sqrt(np.sum(o.cov_pos_m ** 2))) / lim)
+        worst[rule], n_ok[rule] = max(ratios), len(ratios)
+    assert n_ok[True] > 50
+    assert worst[True] <= 1.1, worst
+    assert worst[False] > 1.5, worst
+
+
+def test_a_planar_ambiguous_start_is_not_ok_at_rest():
+    """Construction: the 4-sensor deck is planar, so one station's PnP has two poses that fit
+    equally well; at rest nothing tells them apart (the filter may hold the mirrored one, ~80 deg
+    off). Seen by station 0 alone it is never ok; once station 1's sweeps come in it is, with the
+    attitude within 1 deg of the truth."""
+    from scipy.spatial.transform import Rotation
+
+    from layoutkit.filter.tracker import SweepTracker
+    from layoutkit.geometry import rotvec_to_matrix
+
+    rng = np.random.default_rng(5)
+    P, sts, sweeps, truth = _stream("lh2", rng, T=2.0)
+    tr = SweepTracker(P, sts, EkfConfig())
+    R0 = Rotation.from_matrix(rotvec_to_matrix([0.0, 0.0, 0.2]))
+    ok_alone, att = 0, []
+    for m, x in zip(sweeps, truth):
+        if int(m.station) == 1 and m.t < 1.0:
+            continue
+        o = tr.push(m)
+        if o is None or not o.ok:
+            continue
+        if m.t < 1.0:
+            ok_alone += 1
+        else:
+            att.append(np.degrees(np.linalg.norm((Rotation.from_quat(o.quaternion) * R0.inv()).as_rotvec())))
+    assert tr.counters.inits >= 1 and ok_alone == 0
+    assert len(att) > 50 and max(att[-20:]) < 1.0, att[-5:]

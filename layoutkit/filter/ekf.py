@@ -74,6 +74,11 @@ class EkfConfig:
         ``max_sigma_speed`` (m/s: a filter that does not know its velocity is not tracking); a
         position above ``lost_factor`` times its limit counts as lost (an attitude left unobserved
         about one axis stays "uncertain").
+    ok_beats_one_station : with two or more stations, "ok" also needs the position 1-sigma (root
+        trace, m) below what the best single station would give at the filter's pose with every
+        sensor lit (``PDOP_1 · sigma_theta``, Chen eq. 24; re-evaluated every 0.1 s of stream) —
+        the joint windows' rule (``layoutkit.live.joint_stream.auto_sigma_limit``): a small deck's
+        filter that knows its position no better than one station is not ok.
     lost_after : consecutive rejected sweeps after which the filter counts as lost (re-initialise).
     zupt : static detector + zero-velocity updates; zupt_window : sweeps per static test;
         zupt_p : false-alarm probability of the motion test; zupt_sigma_rate (rad/s),
@@ -102,6 +107,7 @@ class EkfConfig:
     init_inflation: float = 4.0
     max_sigma_rot_deg: float = 5.0
     max_sigma_speed: float = 1.0
+    ok_beats_one_station: bool = True
     max_sigma_pos_m: float = 0.02
     lost_factor: float = 10.0
     lost_after: int = 6

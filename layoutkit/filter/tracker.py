@@ -207,12 +207,16 @@ class SweepTracker:
         self.confirm_sweeps = int(confirm_sweeps)
         self._confirm = 0
         self._ambiguous = 0
+        # (station, start rotation) of a start from an ambiguous PnP (a planar layout's two-fold pose):
+        # not ok until another station's sweeps or a turn of the body tell the two poses apart
+        self._amb = None
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
         self._waiting_since = None  # when the tracker began waiting for a start (several stations)
         self._first = None  # (t, mean angle time, R, p, cov) of a joint start's first solve
         self._bad_run = 0
+        self._bad_by_station: dict = {}
         self._lost = False
         self._last_same: dict = {}
         W = self.config.zupt_window
@@ -225,6 +229,8 @@ class SweepTracker:
         # 20 pairs of sweeps (~0.1 s of two LH2 stations): a start settles at rest quickly
         self.static_window = min(self.config.zupt_window, 20)
         self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
+        # ok_beats_one_station: (stream time it was evaluated at, limit m) of the position's root trace
+        self._one_station = (-math.inf, math.inf)
 
     # --------------------------------------------------------------------------- helpers
     def _station(self, s: int) -> Station:
@@ -359,10 +365,13 @@ class SweepTracker:
         kw = {"noise_scale": noise_scale} if noise_scale is not None and hasattr(self.ekf, "hold_static") else {}
         self.ekf.initialize(t, R, p, cov, velocity=velocity, rate=rate, **kw)
         self._first = None
+        self._one_station = (-math.inf, math.inf)
+        self._amb = None
         self._waiting_since = None
         self._confirm = self.confirm_sweeps
         self._lost = False
         self._bad_run = 0
+        self._bad_by_station.clear()
         self._tried.clear()
         self.counters.inits += 1
 
@@ -418,6 +427,8 @@ class SweepTracker:
         if not np.all(np.isfinite(cov)):
             return False
         self._start(t, R, p, cov, t - float(times[lit].min()))
+        if sol.status[0] == STATUS_AMBIGUOUS and sol.alt_rotation is not None:
+            self._amb = (s, R)
         return True
 
     def _static_test(self, key, t, ang) -> None:
@@ -514,7 +525,9 @@ class SweepTracker:
                                                                                   (0.0 if offs is None else offs) + late))
                     else:
                         upd = ekf.update_sweep(s, axis, idx, a, offs)
-                    self._account(upd)
+                    self._account(upd, s)
+                    if self._amb is not None and upd.used >= 2 and not upd.sweep_rejected:
+                        self._resolve_ambiguity(s)
                 elif hasattr(ekf, "propagate"):
                     ekf.propagate()
                 if c.zupt and self.static:
@@ -522,24 +535,67 @@ class SweepTracker:
                     self.counters.zupts += 1
         return self._output(t, s, axis, upd, event)
 
-    def _account(self, upd: SweepUpdate) -> None:
+    def _account(self, upd: SweepUpdate, s: int = 0) -> None:
+        """Counters; lost after ``lost_after`` rejected sweeps in a row, overall or of one station
+        (a state that one station's sweeps keep refusing is wrong although the other station's
+        interleaved sweeps agree with it — e.g. the mirrored pose of a planar one-station start)."""
         cnt = self.counters
         cnt.angles_used += upd.used
         cnt.angles_rejected += upd.rejected
         if upd.sweep_rejected:
             cnt.sweeps_rejected += 1
             self._bad_run += 1
-            if self._bad_run >= self.config.lost_after:
+            self._bad_by_station[s] = self._bad_by_station.get(s, 0) + 1
+            if max(self._bad_run, self._bad_by_station[s]) >= self.config.lost_after:
                 self._declare_lost()
         elif upd.used:
             self._bad_run = 0
+            self._bad_by_station[s] = 0
             self._confirm -= 1
+
+    def _resolve_ambiguity(self, s: int) -> None:
+        """An ambiguous start is settled by a sweep of another station accepted, or by the body
+        turning more than 20 deg from the start pose with its sweeps accepted (the two planar poses
+        mirror about the line of sight: a turn makes their angles differ, the gates reject the
+        wrong one)."""
+        from .so3 import quat_to_matrix
+
+        s0, R0 = self._amb
+        if s != s0:
+            self._amb = None
+            return
+        dR = quat_to_matrix(self.ekf.q) @ R0.T
+        if math.degrees(math.acos(min(max((np.trace(dR) - 1.0) / 2.0, -1.0), 1.0))) > 20.0:
+            self._amb = None
 
     def _declare_lost(self) -> None:
         if not self._lost:
             self._lost = True
             self.counters.losts += 1
         self._bad_run = 0
+        self._bad_by_station.clear()
+
+    def _one_station_limit(self, t: float) -> float:
+        """m, ``PDOP_1 · sigma_theta`` of the best single station at the filter's pose, every sensor
+        lit (:attr:`EkfConfig.ok_beats_one_station`); re-evaluated after 0.1 s of stream time or a
+        (re)start."""
+        t0, lim = self._one_station
+        if abs(t - t0) <= 0.1:
+            return lim
+        from ..dop import pose_dop
+        from .so3 import quat_to_matrix
+
+        S, n = len(self.stations), len(self.points_body)
+        R, p = quat_to_matrix(self.ekf.q), np.asarray(self.ekf.p, float)
+        vis = np.zeros((S, S, n), bool)
+        for k in range(S):
+            vis[k, k] = True
+        d = np.asarray(pose_dop(self.points_body, np.broadcast_to(R, (S, 3, 3)), np.broadcast_to(p, (S, 3)),
+                                rho=self.config.rho, visible=vis, stations=self.stations).pdop, float)
+        d = d[np.isfinite(d)]
+        lim = float(d.min()) * self.config.sigma_theta if d.size else math.inf
+        self._one_station = (t, lim)
+        return lim
 
     def _output(self, t, s, axis, upd: SweepUpdate | None, event: str) -> FilterOutput:
         c = self.config
@@ -558,6 +614,11 @@ class SweepTracker:
             # ok also needs the velocity known (a start's 3 m/s prior lets the pose swing for a few sweeps)
             slow_known = math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed
             status = "ok" if big <= 1.0 and slow_known and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
+            if status == "ok" and self._amb is not None:
+                status = "uncertain"  # a planar two-fold start not yet told apart
+            if status == "ok" and c.ok_beats_one_station and len(self.stations) >= 2 \
+                    and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t):
+                status = "uncertain"
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"
