@@ -179,6 +179,8 @@ def write_table(res: dict, out: Path) -> Path:
          "bank), **ok poses only**. Metrics are the dataset's (jitter = RMS of consecutive position differences; error "
          "vs motion capture after its temporal offset + rate and Arun rigid alignment, per method: "
          "`layoutkit.studies.bitcraze_dataset`).", ""]
+    if res.get("note"):
+        L += [f"Run note: {res['note']}", ""]
     cal = (res.get("calibration") or {})
     ref = cal.get("refinement") or {}
     L += ["## Stations from the data (item 3)", "", f"`{cal.get('command', '')}`", ""]
@@ -262,15 +264,21 @@ def main():
     ap.add_argument("--reuse-calibration", action="store_true",
                     help="use OUT/calibration/stations_refined.json as it is (skip step 1)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/table.md from OUT/results.json")
+    ap.add_argument("--note", help="a line recorded in results.json and the table (e.g. which code ran)")
     a = ap.parse_args()
     out = Path(a.out)
     if a.table_only:
-        print("wrote", write_table(json.loads((out / "results.json").read_text()), out))
+        res = json.loads((out / "results.json").read_text())
+        if a.note:
+            res["note"] = a.note
+            (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
+        print("wrote", write_table(res, out))
         return
     items, skipped = discover(a.data)
     lh2 = [it for it in items if it.kind == "lh2"]
     static = [it for it in lh2 if it.scenario == "jitter"]
-    res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped}
+    res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped,
+           "note": a.note}
     try:
         import os
 
