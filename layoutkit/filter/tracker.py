@@ -45,7 +45,7 @@ import numpy as np
 from ..lighthouse import Station, to_sweep_angles
 from ..units import RAD2DEG
 from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
-from .so3 import quat_to_rotvec
+from .so3 import quat_to_matrix, quat_to_rotvec
 
 __all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance", "joint_pose_covariance"]
 
@@ -536,8 +536,6 @@ class SweepTracker:
         turning more than 20 deg from the start pose with its sweeps accepted (the two planar poses
         mirror about the line of sight: a turn makes their angles differ, the gates reject the
         wrong one)."""
-        from .so3 import quat_to_matrix
-
         s0, R0 = self._amb
         if s != s0:
             self._amb = None
@@ -560,8 +558,6 @@ class SweepTracker:
         t0, lim = self._one_station
         if abs(t - t0) <= 0.1:
             return lim
-        from .so3 import quat_to_matrix
-
         lim = single_station_sigma(self.points_body, quat_to_matrix(self.ekf.q), self.ekf.p, self.stations,
                                    self.config.rho, self.config.sigma_theta)
         self._one_station = (t, lim)
