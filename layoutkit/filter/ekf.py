@@ -204,6 +204,54 @@ def start_covariance(config: EkfConfig, cov, dim: int) -> np.ndarray:
     return P
 
 
+def single_station_sigma(points_body, rotation, translation, stations, rho: float, sigma_theta: float) -> float:
+    """m, the best single station's predicted 1-sigma position (root trace, ``PDOP_1 · sigma_theta``,
+    Chen eq. 24) at the pose ``rotation (3, 3)``, ``translation (3,)`` m (world) with every sensor
+    of ``points_body (n, 3)`` lit; inf when no station sees the layout."""
+    from ..dop import pose_dop
+
+    S, n = len(stations), len(points_body)
+    vis = np.zeros((S, S, n), bool)
+    for k in range(S):
+        vis[k, k] = True
+    d = np.asarray(pose_dop(points_body, np.broadcast_to(rotation, (S, 3, 3)), np.broadcast_to(translation, (S, 3)),
+                            rho=rho, visible=vis, stations=stations).pdop, float)
+    d = d[np.isfinite(d)]
+    return float(d.min()) * sigma_theta if d.size else math.inf
+
+
+def two_point_start(a, b, max_speed: float, max_rate: float):
+    """Velocity, rate and start covariance from two pose solves on disjoint angles (two-point
+    differencing, Bar-Shalom, Li & Kirubarajan 2001 §5.5.3). ``a``, ``b`` = ``(t s, R (3, 3), p (3,)
+    m, C (6, 6) of (dphi, dp), s)`` with ``s`` the standard deviation (s) of the solve's angles' hit
+    times. Velocity ``(p_b - p_a) / dt`` and rate ``log(R_b R_a^T) / dt`` (world frame); each solve's
+    covariance is widened by the motion over its hit-time spread (``(|v| s)²``, ``(|w| s)²``: a
+    solve of a moving body mixes poses), then the state ``(dphi, w, dp, v)`` at b has covariance
+    ``C_b`` (pose), ``(C_a + C_b) / dt²`` (velocities) and ``C_b / dt`` between them. Returns
+    ``(v (3,), w (3,), P (12, 12))``, or None when ``dt <= 0`` or the implied speed or rate exceeds
+    ``max_speed`` m/s / ``max_rate`` rad/s (a wrong solve)."""
+    from scipy.spatial.transform import Rotation
+
+    ta, Ra, pa, Ca, sa = a
+    tb, Rb, pb, Cb, sb = b
+    dt = tb - ta
+    if not dt > 0:
+        return None
+    v = (np.asarray(pb, float) - pa) / dt
+    w = Rotation.from_matrix(Rb @ np.asarray(Ra).T).as_rotvec() / dt
+    if not (np.linalg.norm(v) <= max_speed and np.linalg.norm(w) <= max_rate):
+        return None
+    blur = np.r_[np.full(3, float(np.linalg.norm(w)) ** 2), np.full(3, float(np.linalg.norm(v)) ** 2)]
+    Ca, Cb = Ca + np.diag(blur * sa ** 2), Cb + np.diag(blur * sb ** 2)
+    P = np.zeros((12, 12))
+    ip, iv = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+    P[np.ix_(ip, ip)] = Cb
+    P[np.ix_(iv, iv)] = (Ca + Cb) / dt ** 2
+    P[np.ix_(ip, iv)] = Cb / dt
+    P[np.ix_(iv, ip)] = Cb / dt
+    return v, w, P
+
+
 class ErrorStateEKF:
     """The filter state and its two operations, :meth:`predict` and :meth:`update_sweep`.
 

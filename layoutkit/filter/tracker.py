@@ -44,8 +44,8 @@ import numpy as np
 
 from ..lighthouse import Station, to_sweep_angles
 from ..units import RAD2DEG
-from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile
-from .so3 import quat_to_rotvec
+from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
+from .so3 import quat_to_matrix, quat_to_rotvec
 
 __all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance", "joint_pose_covariance"]
 
@@ -207,9 +207,7 @@ class SweepTracker:
         self.confirm_sweeps = int(confirm_sweeps)
         self._confirm = 0
         self._ambiguous = 0
-        # (station, start rotation) of a start from an ambiguous PnP (a planar layout's two-fold pose):
-        # not ok until another station's sweeps or a turn of the body tell the two poses apart
-        self._amb = None
+        self._amb = None  # (station, start R) of an ambiguous PnP start: not ok until told apart
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
@@ -229,8 +227,7 @@ class SweepTracker:
         # 20 pairs of sweeps (~0.1 s of two LH2 stations): a start settles at rest quickly
         self.static_window = min(self.config.zupt_window, 20)
         self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
-        # ok_beats_one_station: (stream time it was evaluated at, limit m) of the position's root trace
-        self._one_station = (-math.inf, math.inf)
+        self._one_station = (-math.inf, math.inf)  # (t evaluated, m): ok_beats_one_station's limit
 
     # --------------------------------------------------------------------------- helpers
     def _station(self, s: int) -> Station:
@@ -322,35 +319,16 @@ class SweepTracker:
         return out.ravel()
 
     def _start_two_point(self, a, b, noise_scale) -> bool:
-        """Start from two joint solves on disjoint angles (two-point differencing, Bar-Shalom, Li &
-        Kirubarajan 2001 §5.5.3): velocity ``(p_b - p_a) / dt`` and rate ``log(R_b R_a^T) / dt``
-        (world frame) with covariance ``(C_a + C_b) / dt²`` and cross-covariance ``C_b / dt`` with
-        the pose; the filter starts at solve b's time. A deck at rest starts knowing it is at rest
-        (a 3 m/s prior let the first sweeps' model errors pull the pose by centimetres), a moving
-        one with its velocity. A solve of a moving body mixes poses over its angles' hit times: each
-        solve's covariance is widened by the motion over their spread (``(|v| s)²``, ``(|w| s)²``,
-        s the spread's standard deviation). An implied speed beyond 3x the velocity prior keeps b
-        as the first."""
-        from scipy.spatial.transform import Rotation
-
+        """Start from two joint solves on disjoint angles (:func:`~layoutkit.filter.ekf.two_point_start`)
+        at solve b's time; an implied speed beyond 3x the velocity prior keeps b as the first."""
         c = self.config
         _, ta, Ra, pa, Ca, sa = a
         t, tb, Rb, pb, Cb, sb = b
-        dt = tb - ta
-        v = (pb - pa) / dt
-        w = Rotation.from_matrix(Rb @ Ra.T).as_rotvec() / dt
-        if not (dt > 0 and np.linalg.norm(v) <= 3 * c.init_sigma_speed and np.linalg.norm(w) <= 3 * c.init_sigma_rate):
+        st = two_point_start((ta, Ra, pa, Ca, sa), (tb, Rb, pb, Cb, sb), 3 * c.init_sigma_speed, 3 * c.init_sigma_rate)
+        if st is None:
             self._first = b
             return False
-        blur = np.r_[np.full(3, float(np.linalg.norm(w)) ** 2), np.full(3, float(np.linalg.norm(v)) ** 2)]
-        Ca, Cb = Ca + np.diag(blur * sa ** 2), Cb + np.diag(blur * sb ** 2)
-        # state (dphi, w, dp, v): pose b, and its difference with pose a over dt
-        P = np.zeros((12, 12))
-        ip, iv = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
-        P[np.ix_(ip, ip)] = Cb
-        P[np.ix_(iv, iv)] = (Ca + Cb) / dt ** 2
-        P[np.ix_(ip, iv)] = Cb / dt
-        P[np.ix_(iv, ip)] = Cb / dt
+        v, w, P = st
         self._start(tb, Rb, pb, P, 0.0, noise_scale, velocity=v, rate=w)
         return True
 
@@ -558,8 +536,6 @@ class SweepTracker:
         turning more than 20 deg from the start pose with its sweeps accepted (the two planar poses
         mirror about the line of sight: a turn makes their angles differ, the gates reject the
         wrong one)."""
-        from .so3 import quat_to_matrix
-
         s0, R0 = self._amb
         if s != s0:
             self._amb = None
@@ -582,18 +558,8 @@ class SweepTracker:
         t0, lim = self._one_station
         if abs(t - t0) <= 0.1:
             return lim
-        from ..dop import pose_dop
-        from .so3 import quat_to_matrix
-
-        S, n = len(self.stations), len(self.points_body)
-        R, p = quat_to_matrix(self.ekf.q), np.asarray(self.ekf.p, float)
-        vis = np.zeros((S, S, n), bool)
-        for k in range(S):
-            vis[k, k] = True
-        d = np.asarray(pose_dop(self.points_body, np.broadcast_to(R, (S, 3, 3)), np.broadcast_to(p, (S, 3)),
-                                rho=self.config.rho, visible=vis, stations=self.stations).pdop, float)
-        d = d[np.isfinite(d)]
-        lim = float(d.min()) * self.config.sigma_theta if d.size else math.inf
+        lim = single_station_sigma(self.points_body, quat_to_matrix(self.ekf.q), self.ekf.p, self.stations,
+                                   self.config.rho, self.config.sigma_theta)
         self._one_station = (t, lim)
         return lim
 

@@ -179,6 +179,8 @@ def write_table(res: dict, out: Path) -> Path:
          "bank), **ok poses only**. Metrics are the dataset's (jitter = RMS of consecutive position differences; error "
          "vs motion capture after its temporal offset + rate and Arun rigid alignment, per method: "
          "`layoutkit.studies.bitcraze_dataset`).", ""]
+    if res.get("note"):
+        L += [f"Run note: {res['note']}", ""]
     cal = (res.get("calibration") or {})
     ref = cal.get("refinement") or {}
     L += ["## Stations from the data (item 3)", "", f"`{cal.get('command', '')}`", ""]
@@ -238,6 +240,15 @@ def write_table(res: dict, out: Path) -> Path:
           "| log | stream s | filter CPU s | × real time |", "|---|---|---|---|"]
     for name, r in logs.items():
         L.append(f"| {name} | {_f(r['stream_s'])} | {_f(r.get('filter_cpu_s'), 2)} | {_f(r.get('filter_real_time_x'))} |")
+    L += ["", "## Reading the tables", "",
+          "- *ok* means precise, not accurate: the predicted 1-sigma of an ok joint pose (~0.25 mm) is the angle "
+          "noise's share; the error against motion capture (6-17 mm) is dominated by what the noise model does not "
+          "hold (station geometry and calibration after the refinement, the rigid and temporal alignment, the markers' "
+          "own placement). The filter's covariance is likewise 4-11x below its error vs motion capture (err/σ).",
+          "- *ok with 1 station* counts the joint poses called ok although one station only saw the deck: the honest "
+          "status rule wants 0; their errors (the *imprecise* column) are 3-6x those of the ok poses.",
+          "- Filter speed is stream seconds per CPU second of the filter alone, on the machine of this run (shared; "
+          "see the load in results.json); `benchmarks/bench_replay_filter.py` measures replay end to end."]
     path = out / "table.md"
     path.write_text("\n".join(L) + "\n")
     return path
@@ -253,15 +264,27 @@ def main():
     ap.add_argument("--reuse-calibration", action="store_true",
                     help="use OUT/calibration/stations_refined.json as it is (skip step 1)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/table.md from OUT/results.json")
+    ap.add_argument("--note", help="a line recorded in results.json and the table (e.g. which code ran)")
     a = ap.parse_args()
     out = Path(a.out)
     if a.table_only:
-        print("wrote", write_table(json.loads((out / "results.json").read_text()), out))
+        res = json.loads((out / "results.json").read_text())
+        if a.note:
+            res["note"] = a.note
+            (out / "results.json").write_text(json.dumps(res, indent=2) + "\n")
+        print("wrote", write_table(res, out))
         return
     items, skipped = discover(a.data)
     lh2 = [it for it in items if it.kind == "lh2"]
     static = [it for it in lh2 if it.scenario == "jitter"]
-    res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped}
+    res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped,
+           "note": a.note}
+    try:
+        import os
+
+        res["load_average_1min_at_start"] = os.getloadavg()[0]
+    except OSError:
+        pass
     # 1. the stations from the static captures (item 3)
     t0 = time.perf_counter()
     prev = out / "results.json"
@@ -277,6 +300,8 @@ def main():
                           " ".join("--refine-from " + it.name for it in static[1:]) + " --report calibration",
                           "seconds": round(time.perf_counter() - t0, 1),
                           "refinement": {k: v for k, v in s["station_refinement"].items() if k != "file"}}
+        ref = res["calibration"]["refinement"]  # the logs by set/name, not this machine's paths
+        ref["refined_from"] = ["/".join(Path(x).parts[-2:]) for x in ref.get("refined_from") or ()]
     stations = str(out / "calibration" / "stations_refined.json")
     print("calibration", json.dumps(res["calibration"]["refinement"].get("status")), flush=True)
     for it in lh2:
