@@ -263,9 +263,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
-    _print_summary(summary, as_json, err=json_lines)
-    if not as_json:
-        _print_camera(summary, err=json_lines)
+    _print_run(summary, as_json, json_lines)
     dec = summary.get("decode") or {}
     if not dec.get("good"):  # nothing decodable: not a capture, or another protocol
         n_in = dec.get("bytes_in", 0)
@@ -298,6 +296,14 @@ def _stations_arg(stations_path, system_config):
 
     cfg = None if system_config is None else read_system_config(system_config)
     return cfg, stations_from_files(stations_path, cfg)
+
+
+def _print_run(summary: dict, as_json: bool, json_lines: bool) -> None:
+    """The run's summary (JSON or text; on stderr when stdout carries --json-lines) and, in text,
+    the camera cross-check."""
+    _print_summary(summary, as_json, err=json_lines)
+    if not as_json:
+        _print_camera(summary, err=json_lines)
 
 
 def _quiet_exit():
@@ -375,9 +381,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baud
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
-    _print_summary(summary, as_json, err=json_lines)
-    if not as_json:
-        _print_camera(summary, err=json_lines)
+    _print_run(summary, as_json, json_lines)
     src = summary.get("source") or {}
     if summary.get("capture_error"):  # disk full: the capture holds a valid prefix, the report was written
         fail(f"{summary['capture_error']} (the capture keeps the {summary.get('capture_bytes') or 0} bytes "
