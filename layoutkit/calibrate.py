@@ -47,12 +47,12 @@ them).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .geometry import right_jacobian_so3, rotvec_to_matrix
-from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, Station, measure_jacobian
+from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, check_station_ids, measure_jacobian
 
 __all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "jacobian_sparsity", "to_ba", "from_ba",
            "station_to_ba", "station_from_ba"]
@@ -172,19 +172,33 @@ def _dc_to_ba(dc, model):
     return out
 
 
+def timing_gain(station) -> float:
+    """d angle / d sensor latency of ``station``'s angles, rad/s: a sensor that reports its hit
+    ``tau`` s late reads the rotor ``omega tau`` further on. libsurvive's angles grow with the hit
+    time on both LH1 axes and both LH2 planes (checked on the real recordings: +377 rad/s LH1, +328 rad/s
+    on an LH2 channel); ours are ``theta = pi/2 + a`` (LH1: ``+omega``) and ``alpha = -a`` (LH2:
+    ``-omega``); ``omega = 2 pi rotor_rpm / 60``."""
+    omega = 2.0 * np.pi * float(station.rotor_rpm) / 60.0
+    return omega if station.kind == "lh1" else -omega
+
+
 class _Problem:
     """Index bookkeeping and the residual/Jacobian of one bundle adjustment (private)."""
 
     def __init__(self, P, ang, stations, *, sigma, free_cal, free_station, offsets, offset_prior,
-                 calibration_prior, cal_start, reference, reference_sigma):
+                 calibration_prior, cal_start, reference, reference_sigma, pose_of=None, timing=False,
+                 timing_prior=1e-7, offset_sensors=None):
         self.P0 = P
         self.n = P.shape[0]
         self.ang = ang
-        self.K, self.S = ang.shape[:2]
+        self.S = ang.shape[1]
+        self.pose_of = np.arange(ang.shape[0]) if pose_of is None else np.asarray(pose_of, int)
+        self.K = int(self.pose_of.max()) + 1 if self.pose_of.size else 0   # poses (columns)
         self.stations = stations
         self.sigma = sigma
         mask = np.isfinite(ang)
-        self.obs = np.nonzero(mask)                               # (k, s, i, ax)
+        self.obs = np.nonzero(mask)                               # (k, s, i, ax): k a sample
+        self.kp = self.pose_of[self.obs[0]]                       # the pose of each observation
         self.meas = ang[mask]
         self.free_station = list(free_station)                   # station indices with free pose
         self.free_cal = free_cal                                  # list of (s, ax, j)
@@ -194,22 +208,34 @@ class _Problem:
         self.cal_start = cal_start                                # (S, 2, 7)
         self.reference = reference
         self.reference_sigma = reference_sigma
+        self.timing = bool(timing)
+        self.timing_prior = float(timing_prior)
+        #: d angle / d latency per station, rad/s (module docstring: +omega for LH1 theta, -omega for LH2 alpha)
+        self.timing_gain = np.array([timing_gain(st) for st in stations])
+        # which sensors carry offset / timing columns (default all; a device's sensors only when one
+        # device of several is adjusted)
+        self.adj = np.arange(self.n) if offset_sensors is None else np.asarray(offset_sensors, int)
+        self.adj_col = np.full(self.n, -1)
+        self.adj_col[self.adj] = np.arange(self.adj.size)
+        na = self.adj.size
         # column layout
         self.c_pose = 0
         self.c_st = 6 * self.K
         self.c_cal = self.c_st + 6 * len(self.free_station)
         self.c_off = self.c_cal + len(free_cal)
-        self.N = self.c_off + (3 * self.n if offsets else 0)
+        self.c_tim = self.c_off + (3 * na if offsets else 0)
+        self.N = self.c_tim + (na if self.timing else 0)
         self.st_col = {s: self.c_st + 6 * q for q, s in enumerate(self.free_station)}
         self.cal_col = {key: self.c_cal + q for q, key in enumerate(free_cal)}
         self.m_data = len(self.meas)
         self.m_cal = len(free_cal)
-        self.m_off = 3 * self.n if offsets else 0
+        self.m_off = 3 * na if offsets else 0
+        self.m_tim = na if self.timing else 0
         self.m_ref = 0
         if reference is not None:
             self.ref_k = np.flatnonzero(reference[2])
             self.m_ref = 6 * len(self.ref_k)
-        self.M = self.m_data + self.m_cal + self.m_off + self.m_ref
+        self.M = self.m_data + self.m_cal + self.m_off + self.m_tim + self.m_ref
 
     # ---------------------------------------------------------------- unpack
     def unpack(self, x, R0, t0, RS0, TS0):
@@ -224,12 +250,22 @@ class _Problem:
         cal = self.cal_start.copy()
         for (s, ax, j), c in self.cal_col.items():
             cal[s, ax, j] = x[c]
-        off = x[self.c_off:].reshape(self.n, 3) if self.offsets else np.zeros((self.n, 3))
+        off = np.zeros((self.n, 3))
+        if self.offsets:
+            off[self.adj] = x[self.c_off:self.c_tim].reshape(-1, 3)
         return R, t, RS, TS, cal, off
 
-    def predict(self, R, t, RS, TS, cal, off, jacobian):
+    def tau_of(self, x):
+        """Per-sensor latency (n,) s (zero where not adjusted)."""
+        tau = np.zeros(self.n)
+        if self.timing:
+            tau[self.adj] = x[self.c_tim:self.c_tim + self.adj.size]
+        return tau
+
+    def predict(self, R, t, RS, TS, cal, off, jacobian, tau=None):
         """Predicted angle per observation and (optionally) the Jacobian pieces."""
-        k, s, i, ax = self.obs
+        _, s, i, ax = self.obs
+        k = self.kp
         P = self.P0 + off
         pw = np.einsum("mij,mj->mi", R[k], P[i]) + t[k]
         pred = np.empty(len(k))
@@ -244,6 +280,8 @@ class _Problem:
             a, dp, dc = measure_jacobian(ps[:, None, :], c, jacobian=jacobian)
             axs = ax[sel]
             pred[sel] = a[np.arange(sel.size), 0, axs]
+            if tau is not None:
+                pred[sel] += self.timing_gain[q] * tau[i[sel]]
             if jacobian:
                 aps = dp[np.arange(sel.size), 0, axs]             # (m, 3) d angle / d p_s
                 aw = aps @ RS[q].T                                 # d angle / d p_world
@@ -262,7 +300,7 @@ class _Problem:
     # ---------------------------------------------------------------- residual & Jacobian
     def residual(self, x, base):
         R, t, RS, TS, cal, off = self.unpack(x, *base)
-        pred, _, _ = self.predict(R, t, RS, TS, cal, off, False)
+        pred, _, _ = self.predict(R, t, RS, TS, cal, off, False, self.tau_of(x))
         return self._stack(x, pred, R, t, cal, off)
 
     def _stack(self, x, pred, R, t, cal, off):
@@ -271,7 +309,9 @@ class _Problem:
             r.append(np.array([(cal[s, ax, j] - self.cal_start[s, ax, j]) / self.calibration_prior[j]
                                for (s, ax, j) in self.free_cal]))
         if self.m_off:
-            r.append(off.ravel() / self.offset_prior)
+            r.append(off[self.adj].ravel() / self.offset_prior)
+        if self.m_tim:
+            r.append(x[self.c_tim:self.c_tim + self.m_tim] / self.timing_prior)
         if self.m_ref:
             Rr, tr = self.reference[0][self.ref_k], self.reference[1][self.ref_k]
             from .geometry import matrix_to_rotvec
@@ -282,7 +322,8 @@ class _Problem:
 
     def pattern(self):
         """(rows, cols) of the nonzeros: the ``jac_sparsity`` structure."""
-        k, s, i, ax = self.obs
+        _, s, i, ax = self.obs
+        k = self.kp
         m = np.arange(self.m_data)
         rows, cols = [], []
         for c in range(6):
@@ -298,10 +339,15 @@ class _Problem:
             sel = np.flatnonzero((s == q) & ((ax == a) | both))
             rows.append(sel)
             cols.append(np.full(sel.size, c0))
+        ja = self.adj_col[i]
+        ma = m[ja >= 0]
         if self.offsets:
             for c in range(3):
-                rows.append(m)
-                cols.append(self.c_off + 3 * i + c)
+                rows.append(ma)
+                cols.append(self.c_off + 3 * ja[ja >= 0] + c)
+        if self.timing:
+            rows.append(ma)
+            cols.append(self.c_tim + ja[ja >= 0])
         r0 = self.m_data
         if self.m_cal:
             rows.append(r0 + np.arange(self.m_cal))
@@ -311,6 +357,10 @@ class _Problem:
             rows.append(r0 + np.arange(self.m_off))
             cols.append(self.c_off + np.arange(self.m_off))
             r0 += self.m_off
+        if self.m_tim:
+            rows.append(r0 + np.arange(self.m_tim))
+            cols.append(self.c_tim + np.arange(self.m_tim))
+            r0 += self.m_tim
         if self.m_ref:
             for q, kk in enumerate(self.ref_k):
                 for a in range(6):
@@ -324,7 +374,8 @@ class _Problem:
 
         R, t, RS, TS, cal, off = self.unpack(x, *base)
         _, pw, parts = self.predict(R, t, RS, TS, cal, off, True)
-        k, s, i, ax = self.obs
+        _, s, i, ax = self.obs
+        k = self.kp
         K = self.K
         Jl = right_jacobian_so3(-x[: 6 * K].reshape(K, 6)[:, :3])  # left Jacobian J_l(x) = J_r(-x)
         rows, cols, vals = [], [], []
@@ -351,10 +402,14 @@ class _Problem:
             rows.append(m_idx); cols.append(6 * k + c); vals.append(-Jr[:, c])
         for c in range(3):
             rows.append(m_idx); cols.append(6 * k + 3 + c); vals.append(-aw_all[:, c])
+        ja = self.adj_col[i]
+        ma = ja >= 0
         if self.offsets:
-            Jo = np.einsum("mi,mij->mj", aw_all, R[k])
+            Jo = np.einsum("mi,mij->mj", aw_all[ma], R[k[ma]])
             for c in range(3):
-                rows.append(m_idx); cols.append(self.c_off + 3 * i + c); vals.append(-Jo[:, c])
+                rows.append(m_idx[ma]); cols.append(self.c_off + 3 * ja[ma] + c); vals.append(-Jo[:, c])
+        if self.timing:
+            rows.append(m_idx[ma]); cols.append(self.c_tim + ja[ma]); vals.append(-self.timing_gain[s[ma]])
         vals = [v / self.sigma for v in vals]                    # residual = (meas - pred) / sigma
         r0 = self.m_data
         if self.m_cal:
@@ -365,6 +420,10 @@ class _Problem:
             rows.append(r0 + np.arange(self.m_off)); cols.append(self.c_off + np.arange(self.m_off))
             vals.append(np.full(self.m_off, 1.0 / self.offset_prior))
             r0 += self.m_off
+        if self.m_tim:
+            rows.append(r0 + np.arange(self.m_tim)); cols.append(self.c_tim + np.arange(self.m_tim))
+            vals.append(np.full(self.m_tim, 1.0 / self.timing_prior))
+            r0 += self.m_tim
         if self.m_ref:
             Rr = self.reference[0][self.ref_k]
             from .geometry import matrix_to_rotvec
@@ -454,7 +513,8 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                   calibration_prior: float = 0.1, reference=None, reference_sigma=(1e-3, 1e-3),
                   gauge_station: int = 0, loss: str = "soft_l1", f_scale: float = 3.0, max_nfev: int = 200,
                   solver: str = "schur", jacobian: str = "analytic", before=None,
-                  layout_sigma: float | None = None) -> BundleResult:
+                  layout_sigma: float | None = None, pose_of=None, sensor_timing: bool = False,
+                  timing_prior: float = 1e-7, sensor_labels=None, adjusted_sensors=None) -> BundleResult:
     """Bundle adjustment of K samples seen by S stations (module docstring).
 
     points_body : (n, 3) m, the layout as measured; angles : (K, S, n, 2) rad, measured (distorted)
@@ -474,6 +534,16 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     layout_sigma : m, 1-sigma of each sensor coordinate when ``sensor_offsets`` is off (default
     ``offset_prior``; 0 = the layout is exact): carried as a consider term in every reported sd and in
     the ``weakly_observable`` test (module docstring).
+    pose_of : optional (K,) int, the body pose of each sample (default: one pose per sample); samples
+        that share a pose (a static segment: the body did not move) share its 6 unknowns. Then
+        ``initial_poses`` and the returned ``rotation``/``translation`` are per pose, and a
+        ``reference`` is per pose too.
+    sensor_timing : also adjust a per-sensor latency ``tau_i`` (s; prior sd ``timing_prior``): the
+        sensor's angles read ``timing_gain(station) * tau_i`` more (:func:`timing_gain`).
+    sensor_labels : optional n names for the sensor parameters (e.g. ``"HMD 3"`` when several devices'
+        sensors are stacked into one body, each device's samples seeing only its own sensors).
+    adjusted_sensors : optional indices of the sensors whose offsets / timing are adjusted (default
+        all); the others are held as given (e.g. a device used only through its known layout).
     """
     from scipy.optimize import least_squares
 
@@ -481,15 +551,25 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     ang = np.asarray(angles, float)
     K, S, n = ang.shape[:3]
     stations = list(stations)
+    check_station_ids(stations)
+    pose_of = np.arange(K) if pose_of is None else np.asarray(pose_of, int)
+    if pose_of.shape != (K,) or (K and pose_of.min() < 0):
+        raise ValueError(f"pose_of: expected {K} non-negative pose indices, got shape {pose_of.shape}")
     R0 = np.asarray(initial_poses[0], float).copy()
     t0 = np.asarray(initial_poses[1], float).copy()
+    Kp = R0.shape[0]
+    if K and pose_of.max() >= Kp:
+        raise ValueError(f"pose_of: index {pose_of.max()} but only {Kp} initial poses")
     good = np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1)
-    ang = np.where(good[:, None, None, None], ang, np.nan)
+    good_s = good[pose_of]
+    ang = np.where(good_s[:, None, None, None], ang, np.nan)
     R0[~good], t0[~good] = np.eye(3), 0.0
-    if np.sum(np.isfinite(ang)) < 6 * max(int(good.sum()), 1) + 20 or good.sum() < 2:
+    if np.sum(np.isfinite(ang)) < 6 * max(int(good.sum()), 1) + 20 or good_s.sum() < 2:
         z = np.full(ang.shape, np.nan)
         return BundleResult(stations, P, R0, t0, [], z, z, False, "too_few",
-                            f"too few samples with a start pose ({int(good.sum())} of {K})")
+                            f"too few samples with a start pose ({int(good_s.sum())} of {K})")
+    adj = np.arange(n) if adjusted_sensors is None else np.asarray(adjusted_sensors, int)
+    labels = [str(i) for i in range(n)] if sensor_labels is None else [str(x) for x in sensor_labels]
     RS0 = np.stack([st.rotation for st in stations])
     TS0 = np.stack([st.translation for st in stations])
     cal_start = np.stack([station_to_ba(st.calibration.params if st.calibration is not None
@@ -516,20 +596,23 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         cal_list = [c for c in free_cal if c not in fixed]
         pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
                       offsets=sensor_offsets, offset_prior=offset_prior, calibration_prior=prior,
-                      cal_start=cal_start, reference=reference, reference_sigma=reference_sigma)
+                      cal_start=cal_start, reference=reference, reference_sigma=reference_sigma,
+                      pose_of=pose_of, timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj)
+        K = pb.K                                              # poses (the columns), from here on
         x0 = np.zeros(pb.N)
         for (s, ax, j), c in pb.cal_col.items():
             x0[c] = cal_start[s, ax, j]
         if x0_full is not None:                               # warm start from the previous pass
             x0[: pb.c_cal] = x0_full[: pb.c_cal]
-            if sensor_offsets:
-                x0[pb.c_off:] = x0_full[-3 * n:]
+            tail = pb.N - pb.c_off                            # offsets and timing: same length every pass
+            if tail:
+                x0[pb.c_off:] = x0_full[len(x0_full) - tail:]
         if before_res is None:
             before_res = _residual_grid(pb, x0, base)
         lo = np.full(pb.N, -np.inf)
         hi = np.full(pb.N, np.inf)
         if sensor_offsets:
-            lo[pb.c_off:], hi[pb.c_off:] = -offset_bound, offset_bound
+            lo[pb.c_off:pb.c_tim], hi[pb.c_off:pb.c_tim] = -offset_bound, offset_bound
         if solver == "schur":
             sol = _schur_lm(pb, x0, base, lo, hi, loss, f_scale, max_nfev)
         else:
@@ -553,7 +636,7 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         Jw = diags(np.sqrt(wts)) @ J
         cov, null = _global_covariance(Jw, K)
         rd = r[: pb.m_data]
-        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off), 1)
+        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off - pb.m_tim), 1)
         s2 = float(np.sum(wts[: pb.m_data] * rd * rd) / dof)
         std_noise = np.sqrt(np.maximum(np.diag(cov), 0) * s2)
         if consider:                                   # the unadjusted layout's error (module docstring)
@@ -561,10 +644,12 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
 
             twin = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
                             offsets=True, offset_prior=lsig, calibration_prior=prior, cal_start=cal_start,
-                            reference=reference, reference_sigma=reference_sigma)
-            Jt = twin.jacobian(np.concatenate([sol.x, np.zeros(3 * n)]), base).tocsr()
-            Jo = vstack([diags(np.sqrt(wts[: pb.m_data])) @ Jt[: pb.m_data, twin.c_off:],
-                         csr_matrix((pb.M - pb.m_data, 3 * n))])
+                            reference=reference, reference_sigma=reference_sigma, pose_of=pose_of,
+                            timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj)
+            xt = np.concatenate([sol.x[: pb.c_off], np.zeros(3 * adj.size), sol.x[pb.c_off:]])
+            Jt = twin.jacobian(xt, base).tocsr()
+            Jo = vstack([diags(np.sqrt(wts[: pb.m_data])) @ Jt[: pb.m_data, twin.c_off:twin.c_tim],
+                         csr_matrix((pb.M - pb.m_data, 3 * adj.size))])
             cov_tot = cov * s2 + _consider_covariance(Jw, Jo, K, cov) * lsig ** 2
         else:
             cov_tot = cov * s2
@@ -659,18 +744,25 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                                                 float(m0[ia]), "rad",
                                                 fitted_status(s, m0[ia] + dph, m0[ia], sd_ph) if ok_ph else "unobservable"))
     if sensor_offsets:
-        for i in range(n):
+        for q, i in enumerate(adj):
             for c in range(3):
-                gi = pb.c_off + 3 * i + c - 6 * K
+                gi = pb.c_off + 3 * q + c - 6 * K
                 bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * offset_prior
-                params.append(ParameterEstimate(f"sensor {i} offset {'xyz'[c]}", float(off[i, c]),
+                params.append(ParameterEstimate(f"sensor {labels[i]} offset {'xyz'[c]}", float(off[i, c]),
                                                 None if bad else float(std[gi]), 0.0, "m",
                                                 "unobservable" if bad else "ok"))
+    tau = pb.tau_of(sol.x)
+    if sensor_timing:
+        for q, i in enumerate(adj):
+            gi = pb.c_tim + q - 6 * K
+            bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * timing_prior
+            params.append(ParameterEstimate(f"sensor {labels[i]} timing", float(tau[i]),
+                                            None if bad else float(std[gi]), 0.0, "s",
+                                            "unobservable" if bad else "ok"))
     new_st = []
     for s, st in enumerate(stations):
         c = Calibration(station_from_ba(cal[s], st.kind), st.kind, st.calibration.gib_argument if st.calibration else "ideal")
-        new_st.append(Station(id=st.id, rotation=RS[s], translation=TS[s], kind=st.kind, rotor_rpm=st.rotor_rpm,
-                              clock_hz=st.clock_hz, fov_deg=st.fov_deg, calibration=c))
+        new_st.append(replace(st, rotation=RS[s], translation=TS[s], calibration=c))
     R = np.where(good[:, None, None], R, np.nan)
     t = np.where(good[:, None], t, np.nan)
     status = "ok" if sol.status > 0 else "not_converged"
@@ -679,7 +771,7 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
            f"{cnt['unobservable']} parameter(s) unobservable, {cnt['weakly_observable']} weakly observable "
            f"(held at their start), {cnt['suspect']} suspect")
     return BundleResult(new_st, P + off, R, t, params, before_res, after, sol.status > 0, status, msg,
-                        int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost)})
+                        int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost), "timing_s": tau})
 
 
 def _loss_weights(r, m_data, loss, f_scale):
@@ -773,7 +865,7 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
 def _residual_grid(pb: _Problem, x, base) -> np.ndarray:
     """Angle residuals (rad) at ``x`` on the (K, S, n, 2) grid, NaN where no angle."""
     R, t, RS, TS, cal, off = pb.unpack(x, *base)
-    pred, _, _ = pb.predict(R, t, RS, TS, cal, off, False)
+    pred, _, _ = pb.predict(R, t, RS, TS, cal, off, False, pb.tau_of(x))
     out = np.full(pb.ang.shape, np.nan)
     out[pb.obs] = _wrap(pb.meas - pred)
     return out
