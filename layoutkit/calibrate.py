@@ -55,9 +55,15 @@ from .geometry import right_jacobian_so3, rotvec_to_matrix
 from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, check_station_ids, measure_jacobian
 
 __all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "jacobian_sparsity", "to_ba", "from_ba",
-           "station_to_ba", "station_from_ba"]
+           "station_to_ba", "station_from_ba", "static_segments", "timing_gain", "STATIC_POSITION_TOL",
+           "STATIC_ROTATION_TOL"]
 
 UNOBSERVABLE_RATIO = 0.5
+#: A body that stays within these of a segment's first pose (after a 9-sample running median) is at
+#: rest there: ~10x the per-window scatter of the static Vive devices of ``lh1_test_cal`` (0.4 mm,
+#: 0.23 deg: the lit set changes from window to window), far below any real motion.
+STATIC_POSITION_TOL = 5e-3
+STATIC_ROTATION_TOL = np.deg2rad(1.0)
 #: A fitted calibration parameter this many reported sds from its factory value is ``suspect``.
 SUSPECT_SIGMAS = 5.0
 
@@ -172,6 +178,62 @@ def _dc_to_ba(dc, model):
     return out
 
 
+def static_segments(t, rotation, translation, ok=None, *, position_tol: float = STATIC_POSITION_TOL,
+                    rotation_tol: float = STATIC_ROTATION_TOL, min_samples: int = 10, smooth: int = 9):
+    """Which samples share one body pose: runs of samples at rest.
+
+    t : (K,) s; rotation (K, 3, 3), translation (K, 3) m: per-sample solved poses (world frame);
+    ok : (K,) bool, samples with a pose (others never join a segment). The poses are smoothed by a
+    running median over ``smooth`` samples (the per-window scatter of a static device is mostly
+    lit-set changes, not motion); in time order a segment takes the following samples while the
+    smoothed pose stays within ``position_tol`` (m) and ``rotation_tol`` (rad) of the segment's first
+    one. A segment of at least ``min_samples`` samples is one pose; every other sample is its own.
+    Returns ``pose_of (K,)`` int (pose index of each sample, poses numbered in time order) and
+    ``static (P,)`` bool (the pose is a segment at rest).
+    """
+    from scipy.ndimage import median_filter
+
+    from .geometry import matrix_to_rotvec
+
+    t = np.asarray(t, float)
+    K = t.size
+    R = np.asarray(rotation, float)
+    T = np.asarray(translation, float)
+    ok = np.ones(K, bool) if ok is None else np.asarray(ok, bool)
+    ok = ok & np.all(np.isfinite(T), 1) & np.all(np.isfinite(R), (1, 2))
+    order = np.argsort(t, kind="stable")
+    g = order[ok[order]]                                  # samples with a pose, in time order
+    label = np.full(K, -1)
+    if g.size:
+        rv = matrix_to_rotvec(R[g] @ R[g[0]].T)           # small within a segment at rest
+        size = max(1, min(int(smooth), g.size))
+        sm_t = median_filter(T[g], size=(size, 1), mode="nearest")
+        sm_r = median_filter(rv, size=(size, 1), mode="nearest")
+        seg, a = 0, 0
+        for q in range(g.size):
+            if (np.linalg.norm(sm_t[q] - sm_t[a]) > position_tol or np.linalg.norm(sm_r[q] - sm_r[a]) > rotation_tol):
+                seg, a = seg + 1, q
+            label[g[q]] = seg
+    pose_of = np.full(K, -1)
+    static = []
+    nxt = 0
+    counts = np.bincount(label[label >= 0]) if np.any(label >= 0) else np.zeros(0, int)
+    seen: dict = {}
+    for k in order:
+        lab = label[k]
+        if lab >= 0 and counts[lab] >= min_samples:
+            if lab not in seen:
+                seen[lab] = nxt
+                static.append(True)
+                nxt += 1
+            pose_of[k] = seen[lab]
+        else:
+            pose_of[k] = nxt
+            static.append(False)
+            nxt += 1
+    return pose_of, np.asarray(static, bool)
+
+
 def timing_gain(station) -> float:
     """d angle / d sensor latency of ``station``'s angles, rad/s: a sensor that reports its hit
     ``tau`` s late reads the rotor ``omega tau`` further on. libsurvive's angles grow with the hit
@@ -187,7 +249,7 @@ class _Problem:
 
     def __init__(self, P, ang, stations, *, sigma, free_cal, free_station, offsets, offset_prior,
                  calibration_prior, cal_start, reference, reference_sigma, pose_of=None, timing=False,
-                 timing_prior=1e-7, offset_sensors=None):
+                 timing_prior=1e-7, offset_sensors=None, station_prior=None):
         self.P0 = P
         self.n = P.shape[0]
         self.ang = ang
@@ -200,7 +262,11 @@ class _Problem:
         self.obs = np.nonzero(mask)                               # (k, s, i, ax): k a sample
         self.kp = self.pose_of[self.obs[0]]                       # the pose of each observation
         self.meas = ang[mask]
-        self.free_station = list(free_station)                   # station indices with free pose
+        # free station-pose components (s, c), c = 0..2 rotation increment, 3..5 translation; a bare
+        # station index frees all six
+        self.free_station = [tuple(f) if isinstance(f, tuple) else (int(f), c) for f in free_station
+                             for c in ((None,) if isinstance(f, tuple) else range(6))]
+        self.free_station = [(int(a), int(b)) for a, b in self.free_station]
         self.free_cal = free_cal                                  # list of (s, ax, j)
         self.offsets = offsets
         self.offset_prior = offset_prior
@@ -221,11 +287,12 @@ class _Problem:
         # column layout
         self.c_pose = 0
         self.c_st = 6 * self.K
-        self.c_cal = self.c_st + 6 * len(self.free_station)
+        self.c_cal = self.c_st + len(self.free_station)
         self.c_off = self.c_cal + len(free_cal)
         self.c_tim = self.c_off + (3 * na if offsets else 0)
         self.N = self.c_tim + (na if self.timing else 0)
-        self.st_col = {s: self.c_st + 6 * q for q, s in enumerate(self.free_station)}
+        self.st_col = {sc: self.c_st + q for q, sc in enumerate(self.free_station)}
+        self.st_free = sorted({sc[0] for sc in self.free_station})
         self.cal_col = {key: self.c_cal + q for q, key in enumerate(free_cal)}
         self.m_data = len(self.meas)
         self.m_cal = len(free_cal)
@@ -235,7 +302,11 @@ class _Problem:
         if reference is not None:
             self.ref_k = np.flatnonzero(reference[2])
             self.m_ref = 6 * len(self.ref_k)
-        self.M = self.m_data + self.m_cal + self.m_off + self.m_tim + self.m_ref
+        self.station_prior = station_prior                      # (rad, m) or None (free)
+        self.m_stp = len(self.free_station) if station_prior is not None else 0
+        self._stp_sd = (np.array([station_prior[c // 3] for _, c in self.free_station], float)
+                        if station_prior is not None else None)
+        self.M = self.m_data + self.m_cal + self.m_off + self.m_tim + self.m_stp + self.m_ref
 
     # ---------------------------------------------------------------- unpack
     def unpack(self, x, R0, t0, RS0, TS0):
@@ -244,9 +315,10 @@ class _Problem:
         R = rotvec_to_matrix(xp[:, :3]) @ R0
         t = t0 + xp[:, 3:]
         RS, TS = RS0.copy(), TS0.copy()
-        for s, c in self.st_col.items():
-            RS[s] = rotvec_to_matrix(x[c:c + 3]) @ RS0[s]
-            TS[s] = TS0[s] + x[c + 3:c + 6]
+        for s in self.st_free:
+            v = self.station_increment(x, s)
+            RS[s] = rotvec_to_matrix(v[:3]) @ RS0[s]
+            TS[s] = TS0[s] + v[3:]
         cal = self.cal_start.copy()
         for (s, ax, j), c in self.cal_col.items():
             cal[s, ax, j] = x[c]
@@ -254,6 +326,15 @@ class _Problem:
         if self.offsets:
             off[self.adj] = x[self.c_off:self.c_tim].reshape(-1, 3)
         return R, t, RS, TS, cal, off
+
+    def station_increment(self, x, s):
+        """Station ``s``'s pose increment (6,): rotation vector (left) and translation, 0 where held."""
+        v = np.zeros(6)
+        for c in range(6):
+            col = self.st_col.get((s, c))
+            if col is not None:
+                v[c] = x[col]
+        return v
 
     def tau_of(self, x):
         """Per-sensor latency (n,) s (zero where not adjusted)."""
@@ -312,6 +393,8 @@ class _Problem:
             r.append(off[self.adj].ravel() / self.offset_prior)
         if self.m_tim:
             r.append(x[self.c_tim:self.c_tim + self.m_tim] / self.timing_prior)
+        if self.m_stp:
+            r.append(x[self.c_st:self.c_cal] / self._stp_sd)
         if self.m_ref:
             Rr, tr = self.reference[0][self.ref_k], self.reference[1][self.ref_k]
             from .geometry import matrix_to_rotvec
@@ -329,11 +412,10 @@ class _Problem:
         for c in range(6):
             rows.append(m)
             cols.append(6 * k + c)
-        for q, c0 in self.st_col.items():
+        for (q, c), col in self.st_col.items():
             sel = np.flatnonzero(s == q)
-            for c in range(6):
-                rows.append(sel)
-                cols.append(np.full(sel.size, c0 + c))
+            rows.append(sel)
+            cols.append(np.full(sel.size, col))
         for (q, a, j), c0 in self.cal_col.items():
             both = self.stations[q].kind == "lh2" and j == 0
             sel = np.flatnonzero((s == q) & ((ax == a) | both))
@@ -361,6 +443,10 @@ class _Problem:
             rows.append(r0 + np.arange(self.m_tim))
             cols.append(self.c_tim + np.arange(self.m_tim))
             r0 += self.m_tim
+        if self.m_stp:
+            rows.append(r0 + np.arange(self.m_stp))
+            cols.append(self.c_st + np.arange(self.m_stp))
+            r0 += self.m_stp
         if self.m_ref:
             for q, kk in enumerate(self.ref_k):
                 for a in range(6):
@@ -382,14 +468,14 @@ class _Problem:
         aw_all = np.zeros((self.m_data, 3))
         for q, (sel, aw, qv, dc) in parts.items():
             aw_all[sel] = aw
-            if q in self.st_col:
-                c0 = self.st_col[q]
-                xs = x[c0:c0 + 3]
+            if q in self.st_free:
+                xs = self.station_increment(x, q)[:3]
                 Js = np.cross(aw, qv) @ right_jacobian_so3(-xs)
-                for c in range(3):
-                    rows.append(sel); cols.append(np.full(sel.size, c0 + c)); vals.append(-Js[:, c])
-                for c in range(3):
-                    rows.append(sel); cols.append(np.full(sel.size, c0 + 3 + c)); vals.append(aw[:, c])
+                for c in range(6):
+                    col = self.st_col.get((q, c))
+                    if col is not None:
+                        rows.append(sel); cols.append(np.full(sel.size, col))
+                        vals.append(-Js[:, c] if c < 3 else aw[:, c - 3])
             for (qq, a, j), c0 in self.cal_col.items():
                 if qq != q:
                     continue
@@ -424,6 +510,10 @@ class _Problem:
             rows.append(r0 + np.arange(self.m_tim)); cols.append(self.c_tim + np.arange(self.m_tim))
             vals.append(np.full(self.m_tim, 1.0 / self.timing_prior))
             r0 += self.m_tim
+        if self.m_stp:
+            rows.append(r0 + np.arange(self.m_stp)); cols.append(self.c_st + np.arange(self.m_stp))
+            vals.append(1.0 / self._stp_sd)
+            r0 += self.m_stp
         if self.m_ref:
             Rr = self.reference[0][self.ref_k]
             from .geometry import matrix_to_rotvec
@@ -514,7 +604,8 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                   gauge_station: int = 0, loss: str = "soft_l1", f_scale: float = 3.0, max_nfev: int = 200,
                   solver: str = "schur", jacobian: str = "analytic", before=None,
                   layout_sigma: float | None = None, pose_of=None, sensor_timing: bool = False,
-                  timing_prior: float = 1e-7, sensor_labels=None, adjusted_sensors=None) -> BundleResult:
+                  timing_prior: float = 1e-7, sensor_labels=None, adjusted_sensors=None,
+                  station_prior=None) -> BundleResult:
     """Bundle adjustment of K samples seen by S stations (module docstring).
 
     points_body : (n, 3) m, the layout as measured; angles : (K, S, n, 2) rad, measured (distorted)
@@ -544,6 +635,9 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         sensors are stacked into one body, each device's samples seeing only its own sensors).
     adjusted_sensors : optional indices of the sensors whose offsets / timing are adjusted (default
         all); the others are held as given (e.g. a device used only through its known layout).
+    station_prior : optional ``(rad, m)`` prior sd of each free station's pose around its start (the
+        start is itself a solution, e.g. libsurvive's ``LH_POSE``): directions the data do not
+        determine stay where they were instead of absorbing the devices' own errors. None: free.
     """
     from scipy.optimize import least_squares
 
@@ -575,7 +669,8 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     cal_start = np.stack([station_to_ba(st.calibration.params if st.calibration is not None
                                         else np.zeros((2, len(CALIBRATION_PARAMS))), st.kind) for st in stations])
     prior = np.full(len(BA_PARAMS), float(calibration_prior))
-    free_station = [s for s in range(S) if reference is not None or s != gauge_station]
+    free_station = [(s, c) for s in range(S) if reference is not None or s != gauge_station for c in range(6)]
+    st_prior = None if station_prior is None else np.asarray(station_prior, float)
     free_cal = []
     if fit_calibration:
         for s, st in enumerate(stations):
@@ -592,18 +687,27 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     x0_full = None
     before_res = before
     corr_seen: dict = {}
-    for attempt in range(len(free_cal) + 1):
+    st_held: set = set()
+    st_weak: set = set()
+    prev = None
+    for attempt in range(len(free_cal) + len(free_station) + 1):
         cal_list = [c for c in free_cal if c not in fixed]
-        pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
+        st_list = [c for c in free_station if c not in st_held]
+        pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=st_list,
                       offsets=sensor_offsets, offset_prior=offset_prior, calibration_prior=prior,
                       cal_start=cal_start, reference=reference, reference_sigma=reference_sigma,
-                      pose_of=pose_of, timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj)
+                      pose_of=pose_of, timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj,
+                      station_prior=station_prior)
         K = pb.K                                              # poses (the columns), from here on
         x0 = np.zeros(pb.N)
         for (s, ax, j), c in pb.cal_col.items():
             x0[c] = cal_start[s, ax, j]
         if x0_full is not None:                               # warm start from the previous pass
-            x0[: pb.c_cal] = x0_full[: pb.c_cal]
+            x0[: 6 * K] = x0_full[: 6 * K]
+            for key, c in pb.st_col.items():
+                x0[c] = x0_full[prev.st_col[key]]
+            for key, c in pb.cal_col.items():
+                x0[c] = x0_full[prev.cal_col[key]]
             tail = pb.N - pb.c_off                            # offsets and timing: same length every pass
             if tail:
                 x0[pb.c_off:] = x0_full[len(x0_full) - tail:]
@@ -636,16 +740,17 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         Jw = diags(np.sqrt(wts)) @ J
         cov, null = _global_covariance(Jw, K)
         rd = r[: pb.m_data]
-        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off - pb.m_tim), 1)
+        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off - pb.m_tim - pb.m_stp), 1)
         s2 = float(np.sum(wts[: pb.m_data] * rd * rd) / dof)
         std_noise = np.sqrt(np.maximum(np.diag(cov), 0) * s2)
         if consider:                                   # the unadjusted layout's error (module docstring)
             from scipy.sparse import csr_matrix, vstack
 
-            twin = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
+            twin = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=st_list,
                             offsets=True, offset_prior=lsig, calibration_prior=prior, cal_start=cal_start,
                             reference=reference, reference_sigma=reference_sigma, pose_of=pose_of,
-                            timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj)
+                            timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj,
+                            station_prior=station_prior)
             xt = np.concatenate([sol.x[: pb.c_off], np.zeros(3 * adj.size), sol.x[pb.c_off:]])
             Jt = twin.jacobian(xt, base).tocsr()
             Jo = vstack([diags(np.sqrt(wts[: pb.m_data])) @ Jt[: pb.m_data, twin.c_off:twin.c_tim],
@@ -666,24 +771,36 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
             elif std[gi] > UNOBSERVABLE_RATIO * prior[j]:
                 newly.add((s, ax, j))
                 weak.add((s, ax, j))
-        x0_full = sol.x
-        if not newly:
+        newly_st = set()
+        if st_prior is not None:                       # the same rule for station poses with a prior
+            for (s, c), col in pb.st_col.items():
+                gi = col - 6 * K
+                lim = UNOBSERVABLE_RATIO * st_prior[c // 3]
+                if null[gi] or std_noise[gi] > lim:
+                    newly_st.add((s, c))
+                elif std[gi] > lim:
+                    newly_st.add((s, c))
+                    st_weak.add((s, c))
+        x0_full, prev = sol.x, pb
+        if not newly and not newly_st:
             break
         fixed |= newly
+        st_held |= newly_st
     R, t, RS, TS, cal, off = pb.unpack(sol.x, *base)
     after = _residual_grid(pb, sol.x, base)
     params = []
     names_st = ("d_rx", "d_ry", "d_rz", "tx", "ty", "tz")  # rotation: change from the start
     for s in range(S):
-        c0 = pb.st_col.get(s)
         for q in range(6):
+            c0 = pb.st_col.get((s, q))
             if c0 is None:
                 val = (0.0 if q < 3 else TS0[s, q - 3])
+                held = "fixed" if (s, q) not in st_held else ("weakly_observable" if (s, q) in st_weak else "unobservable")
                 params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val), None,
-                                                float(val), "rad" if q < 3 else "m", "fixed"))
+                                                float(val), "rad" if q < 3 else "m", held))
             else:
-                gi = c0 + q - 6 * K
-                val = sol.x[c0 + q] if q < 3 else TS[s, q - 3]
+                gi = c0 - 6 * K
+                val = sol.x[c0] if q < 3 else TS[s, q - 3]
                 st0 = 0.0 if q < 3 else TS0[s, q - 3]
                 bad = bool(null[gi])
                 params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val),

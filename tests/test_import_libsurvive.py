@@ -48,7 +48,9 @@ def test_lh1_import_files_and_columns(lh1):
         header = (d / dev / "frames.csv").read_text().splitlines()[0].split(",")
         assert header == ["t", "station"] + [f"th_{a}_{i}" for i in lay.ids for a in "xy"]
     st = read_stations(d / "stations.json")
-    assert [x.id for x in st] == ["178605925", "-142728717"] and all(x.kind == "lh1" for x in st)
+    # ids from libsurvive's lighthouse index (unique, stable); libsurvive's serials kept as source_id
+    assert [x.id for x in st] == ["LH0", "LH1"] and all(x.kind == "lh1" for x in st)
+    assert [x.source_id for x in st] == ["178605925", "-142728717"]
     # libsurvive fcalphase (lighthouse_gen1: a = ideal - phase) is layoutkit's phase with the sign flipped
     phase = CALIBRATION_PARAMS.index("phase")
     np.testing.assert_allclose(st[0].calibration.params[:, phase], [-0.058624, -0.062164])
@@ -206,3 +208,48 @@ def test_calibrated_solve_lowers_residuals_and_joins_stations(lh1, tmp_path):
         r_ = fr.angles[ok][k] - measure((pw - S.translation) @ S.rotation, S.calibration)
         rms = np.sqrt(np.nanmean(r_.reshape(len(r_), -1) ** 2, 1))
         np.testing.assert_allclose(rms, tab.residual_rms[ok][k], rtol=2e-5)  # the table keeps 6 digits
+
+def test_station_ids_unique_from_the_config_order(libsurvive_dir, tmp_path):
+    """Issue 26 item 3. nan_crash_windows' real config (MIT) names all three LH2 lighthouses
+    2147483647: the import gives them the ids of libsurvive's lighthouse index (LH0, LH1, LH2: the
+    calibration file's order), keeps 2147483647 as source_id, maps each channel (mode 11, 3, 8) to its
+    own station, and the stations file it writes is read back."""
+    rec = tmp_path / "nan_crash_windows.rec"
+    shutil.copy(libsurvive_dir / "nan_crash_windows.rec.gz.json", str(rec) + ".json")
+    # three B lines per channel (two planes) and a CONFIG-less device: enough to find the stations
+    lines = [f"0.{k:03d} T20 B {ch} 0 {1000 * k} {k % 2} 0.1" for k, ch in enumerate([11, 11, 3, 3, 8, 8])]
+    rec.write_text("\n".join(lines) + "\n")
+    r = CliRunner().invoke(main, ["import", "libsurvive", str(rec), "--out", str(tmp_path / "o"), "--json"])
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)["stations"]["stations"]
+    st = read_stations(tmp_path / "o" / "stations.json")
+    assert [x.id for x in st] == ["LH0", "LH1", "LH2"]
+    assert [x.source_id for x in st] == ["2147483647"] * 3
+    assert [i["channel"] for i in info] == [11, 3, 8]
+    # each channel's rotor speed from libsurvive's channel table
+    np.testing.assert_allclose([x.rotor_rpm / 60 for x in st], [52.6894, 50.5796, 51.2273])
+
+
+def test_duplicate_station_ids_refused(tmp_path):
+    """Anywhere else a duplicate id is refused with a message naming the file and the id."""
+    d = {"stations": [{"id": "2147483647", "rotation": np.eye(3).tolist(), "translation": [0, 0, 0]},
+                      {"id": "2147483647", "rotation": np.eye(3).tolist(), "translation": [1, 0, 0]}]}
+    p = tmp_path / "st.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=r"st\.json.*'2147483647' used by more than one station"):
+        read_stations(p)
+
+
+def test_lh2_rotor_speed_of_each_channel_matches_the_sweep_rate(libsurvive_dir):
+    """LH2_CHANNEL_HZ against the real recording: within one sweep the angle grows with the device's
+    48 MHz timecode at 2 pi f of the channel (median slope between consecutive hits, 0.2 %)."""
+    from layoutkit.importers.libsurvive import LH2_CHANNEL_HZ, TICK_HZ
+
+    rec = read_recording(libsurvive_dir / "lh2_test_cal_first4s.rec.gz")
+    d = rec.light["T20"]
+    tc, a = np.asarray(d.timecode, float), np.asarray(d.angle)
+    ch, ax = np.asarray(d.station), np.asarray(d.axis)
+    for c in np.unique(ch):
+        same = (ch[1:] == c) & (ch[:-1] == c) & (ax[1:] == ax[:-1]) & (np.abs(np.diff(tc)) < 4800) & (np.diff(tc) != 0)
+        slope = np.median(np.diff(a)[same] / (np.diff(tc)[same] / TICK_HZ))
+        assert slope == pytest.approx(2 * np.pi * LH2_CHANNEL_HZ[c], rel=2e-3)

@@ -232,10 +232,12 @@ def report_option(f=None, *, help: str = "Write a report folder (JSON + plots) h
     return deco(f) if f is not None else deco
 
 
-def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md)."):
-    """``--layout FILE``. The command receives ``layout_path``."""
+def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md).",
+                  multiple: bool = False):
+    """``--layout FILE``. The command receives ``layout_path`` (a tuple with ``multiple``: the option
+    may be given once per input, e.g. one layout per device of ``calibrate``)."""
     deco = click.option("--layout", "layout_path", type=click.Path(dir_okay=False), required=required,
-                        default=None, help=help)
+                        default=None, help=help, multiple=multiple)
     return deco(f) if f is not None else deco
 
 
