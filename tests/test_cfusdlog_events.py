@@ -37,34 +37,62 @@ def _rms(sim, lines):
     return float(np.sqrt(np.mean(np.sum((p - truth_position(sim, t)) ** 2, 1)))), len(ok)
 
 
-@pytest.mark.parametrize("kind,event,version", [("lh2", "lhAngle", 2), ("lh1", "lhAngle", 1),
-                                                ("lh2", "estSweepAngle", 2), ("lh1", "estSweepAngle", 2)])
-def test_events_decode_to_the_simulators_angles(tmp_path, kind, event, version):
-    """Every simulated angle comes back in its frame at the float32 value the firmware logs (LH1
-    in our convention pi/2 - angle, LH2 the light-plane angles); every rotation / sweep pair is one
-    frame; times on the log clock (ms in version 1, µs in version 2)."""
-    sim = simulate_events(kind, duration=1.0, seed=3)
+@pytest.mark.parametrize("kind,event,version,mode", [("lh2", "lhAngle", 2, "crossing_beam"), ("lh1", "lhAngle", 1, "crossing_beam"),
+                                                     ("lh2", "lhAngle", 2, "kalman"), ("lh2", "estSweepAngle", 2, "kalman"),
+                                                     ("lh1", "estSweepAngle", 2, "kalman")])
+def test_events_decode_to_the_simulators_angles(tmp_path, kind, event, version, mode):
+    """Events logged as the firmware does (bursts sensor by sensor; crossing-beam mode: station 0's
+    angles repeated in station 1's bursts) come back as exactly the simulator's new frames, in
+    order, at the float32 values logged (LH1 in our convention pi/2 - angle, LH2 the light-plane
+    angles); every repeat is dropped and counted, nothing else is; times on the log clock (ms in
+    version 1, µs in version 2)."""
+    from layoutkit.live.cf_events import REPEAT_REASON
+    from layoutkit.live.frames import DecodeStats
+
+    sim = simulate_events(kind, duration=1.0, seed=3, mode=mode)
+    if mode == "crossing_beam":
+        assert sim["repeats"] > 0.3 * len(sim["fresh"])        # the real logs: 40-47 % of events
     log, _ = write_event_log(sim, tmp_path, event=event, version=version)
     ev = sweep_events(read_cfusdlog(log))
     assert ev.source == event and len(ev.t) == len(sim["rows"])
     if event == "estSweepAngle":
         assert ev.kind == kind                    # told by the plane tilt
-    frames = event_frames(ev, kind, 4)
-    want = {}
-    for t, s, i, w, a, _, _ in sim["rows"]:
-        want.setdefault(s, []).append((t, i, w, np.float32(a)))
+    st = DecodeStats()
+    frames = event_frames(ev, kind, 4, stats=st)
+    assert st.reasons.get(REPEAT_REASON, 0) == 8 * sim["repeats"] and st.dropped == 8 * sim["repeats"]
     for s in (0, 1):
         fs = [f for f in frames if f.station == s]
         got = np.array([(f.raw if kind == "lh2" else np.pi / 2 - f.angles) for f in fs])   # (F, 4, 2)
-        rows = want[s]
-        assert got.shape[0] == len(rows) // 8
-        exp = np.full(got.shape, np.nan)
-        for k in range(got.shape[0]):
-            for t, i, w, a in rows[8 * k:8 * k + 8]:
-                exp[k, i, w] = a
+        exp = np.array([raw for s_, raw in sim["fresh"] if s_ == s])
+        assert got.shape == exp.shape
         # float32 logged, float64 here: equal to float32 rounding (LH1 also pi/2 - (pi/2 - x))
         np.testing.assert_allclose(got, exp, rtol=0, atol=4e-7 if kind == "lh1" else 0)
         assert np.all(np.diff([f.t for f in fs]) > 0)
+
+
+def test_kalman_mode_equal_angles_are_measurements():
+    """In Kalman mode a deck at rest repeats its quantised angles (26-30 % of the events of the real
+    Kalman jitter logs): single-station bursts are never dropped, even when every angle equals the
+    station's previous frame; in a two-station burst the station that repeats is."""
+    from layoutkit.importers.cfusdlog import SweepEvents
+    from layoutkit.live.cf_events import REPEAT_REASON
+    from layoutkit.live.frames import DecodeStats
+
+    a0 = np.array([[0.2, -0.02], [0.21, -0.03], [0.22, -0.04], [0.23, -0.05]])
+    bursts = [{0: a0}, {0: a0}, {1: a0 + 0.1}, {0: a0, 1: a0 + 0.11}]   # the last: station 0 held, station 1 new
+    rows = []     # (t, station, sensor, sweep, angle), sensor by sensor
+    for b, vals in enumerate(bursts):
+        for i in range(4):
+            for s in sorted(vals):
+                for w in (0, 1):
+                    rows.append((0.02 * b + 1e-5 * len(rows), s, i, w, vals[s][i, w]))
+    c = list(zip(*rows))
+    ev = SweepEvents("lhAngle", np.array(c[0]), np.array(c[1]), np.array(c[2]), np.array(c[3]), np.array(c[4]))
+    st = DecodeStats()
+    fr = event_frames(ev, "lh2", 4, stats=st)
+    assert [f.station for f in fr] == [0, 0, 1, 1]
+    np.testing.assert_array_equal(fr[3].raw, a0 + 0.11)
+    assert len(fr) == 4 and st.reasons == {REPEAT_REASON: 8}
 
 
 @pytest.mark.parametrize("kind", ["lh2", "lh1"])
@@ -141,7 +169,9 @@ def test_unsupported_or_bad_logs_one_error_line(tmp_path):
 
 
 def test_import_writes_a_frame_table_that_solve_reads(tmp_path):
-    """`import cfusdlog` of an LH1 angle log (no UART frames) → frames.csv + layout.json +
+    """`import cfusdlog` of an LH1 log (lhAngle bursts with crossing-beam repeats, and lhUartFrame
+    events that all say "no channel", as the real LH1 logs) → no capture (never an LH2 capture of
+    LH1 pulses; the summary says why) but frames.csv (one frame per new burst) + layout.json +
     stations.json; `solve --solve joint` on them gives poses at the truth (static, < 1 mm)."""
     sim = simulate_events("lh1", duration=1.0, seed=8)
     log, yml = write_event_log(sim, tmp_path)
@@ -149,7 +179,9 @@ def test_import_writes_a_frame_table_that_solve_reads(tmp_path):
                                   "--out", str(tmp_path / "imp"), "--json"])
     assert r.exit_code == 0, r.output
     s = json.loads(r.output)
-    assert s["capture"] is None and s["kind"] == "lh1" and s["frames"] == len(sim["rows"]) // 8
+    assert s["capture"] is None and s["kind"] == "lh1" and s["frames"] == len(sim["fresh"])
+    assert s["uart_frames"] > 0 and any("LH1" in n for n in s["notes"])
+    assert not (tmp_path / "imp" / "capture.bin").exists()
     imp = tmp_path / "imp"
     r = CliRunner().invoke(main, ["solve", str(imp / "frames.csv"), "--layout", str(imp / "layout.json"),
                                   "--stations", str(imp / "stations.json"), "--solve", "joint", "--json",
@@ -170,8 +202,8 @@ def test_zero_angle_is_no_measurement():
     from layoutkit.live.frames import DecodeStats
 
     t = np.full(8, 1.0)
-    ev = SweepEvents("lhAngle", t, np.zeros(8, int), np.tile(np.arange(4), 2), np.repeat([0, 1], 4),
-                     np.array([0.1, 0.0, 0.12, 0.13, -0.1, -0.11, -0.12, -0.13]))
+    ev = SweepEvents("lhAngle", t, np.zeros(8, int), np.repeat(np.arange(4), 2), np.tile([0, 1], 4),
+                     np.array([0.1, -0.1, 0.0, -0.11, 0.12, -0.12, 0.13, -0.13]))   # sensor by sensor
     st = DecodeStats()
     (f,) = event_frames(ev, "lh2", 4, stats=st)
     assert np.isnan(f.raw[1, 0]) and np.isfinite(f.raw).sum() == 7

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from layoutkit.lighthouse import lh2_sweep_angles, points_in_station, ticks_to_angles
 from layoutkit.live.protocols import PROTOCOLS, get_protocol
 from layoutkit.live.protocols import bitcraze as bc
+from layoutkit.io.systemconfig import read_system_config
 from layoutkit.live.protocols.layoutkit import NO_HIT, encode_sweep, encode_sweeps, frame_size
 
 
@@ -290,7 +291,7 @@ def test_system_config_geometry_matches_bitcraze_model(tmp_path):
 
     R = Rotation.from_euler("zyx", [20, -30, 5], degrees=True).as_matrix()
     origin = np.array([-2.0, 0.3, 2.3])
-    cfg = bc.load_system_config(_yaml(tmp_path, 2, _calib(1), R, origin))
+    cfg = read_system_config(_yaml(tmp_path, 2, _calib(1), R, origin))
     station = cfg.stations[0]
     assert station.kind == "lh2" and cfg.calibs[0].uid == 42
     rng = np.random.default_rng(0)
@@ -328,9 +329,9 @@ def test_system_config_messages(tmp_path):
     p = tmp_path / "x.yaml"
     p.write_text("type: something\n")
     with pytest.raises(ValueError, match=r"expected 'type: lighthouse_system_configuration'$"):
-        bc.load_system_config(p)
+        read_system_config(p)
     with pytest.raises(ValueError, match=r"no such system configuration file$"):
-        bc.load_system_config(tmp_path / "missing.yaml")
+        read_system_config(tmp_path / "missing.yaml")
 
 
 def test_bitcraze_resync_after_garbage():

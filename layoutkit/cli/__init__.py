@@ -13,6 +13,7 @@ import click
 
 from . import calibrate, camera, core, distributed, fake, importers, live, mesh, optimize, render, score
 from ._common import fail
+from .options import finite_types
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None, _default=warnings.showwarning):
@@ -48,8 +49,10 @@ def _add_allow_odd_size(cmd) -> None:
 
 
 class _Group(click.Group):
-    """The command group; a file that cannot be read or written (missing folder, permissions, disk
-    full) ends with one ``error:`` line naming the file instead of a traceback. A layout or mesh
+    """The command group; a refused option or argument (click's usage errors, NaN or infinity in a
+    number: :func:`.options.finite_types`) ends with ``error:`` naming it and exit 2; a file that
+    cannot be read or written (missing folder, permissions, disk full) ends with one ``error:``
+    line naming the file instead of a traceback. A layout or mesh
     whose size says its unit is wrong ends with one ``error:`` line unless ``--allow-odd-size``."""
 
     def invoke(self, ctx):
@@ -66,7 +69,8 @@ class _Group(click.Group):
             except click.UsageError as exc:
                 if "--json" in argv and "extra argument" in exc.message:  # the old `--json PATH` form
                     exc.message += " (--json is a flag that prints JSON; write a file with --json-out FILE)"
-                raise
+                hint = f"\n  (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+                fail(exc.format_message() + hint, exc.exit_code)
             except OSError as exc:
                 if isinstance(exc, BrokenPipeError) or exc.errno == errno.EPIPE:
                     raise  # click ends quietly on a closed pipe
@@ -86,4 +90,5 @@ def main():
 for _mod in (core, mesh, render, optimize, score, live, fake, camera, importers, calibrate, distributed):
     for _cmd in _mod.commands:
         _add_allow_odd_size(_cmd)
+        finite_types(_cmd)
         main.add_command(_cmd)

@@ -4,22 +4,24 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
+from .options import Number, POSITIVE, Requires, flag_rules
 from .options import json_flag, registry_choice
 
 
 @click.command("camera-attitude", short_help="Rectangle-face attitude from images or video (Zhai).")
 @click.argument("input", metavar="INPUT")
-@click.option("--focal-length-px", "focal_length_px", type=float, required=True, help="Focal length (pixels).")
+@click.option("--focal-length-px", "focal_length_px", type=POSITIVE, required=True, help="Focal length (pixels).")
 @click.option("--principal-point-px", "principal_point", type=(float, float), default=None,
               help="Principal point cx cy (pixels); default the image centre (images) or 0 0 (CSV).")
 @click.option("--method", type=registry_choice("layoutkit.camera.rectangle:RECTANGLE_SOLVERS"), default="zhai",
               show_default=True,
               help="Rectangle solver (zhai and homography are size-free; ippe needs --aspect-ratio).")
-@click.option("--aspect-ratio", type=float, default=None, help="Face L/W for --method ippe (default 1).")
-@click.option("--fps", type=float, default=None, help="Frame rate for an image folder (timestamps).")
-@click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
-@click.option("--threshold", type=float, default=None, help="Grey level of the face (default: Otsu).")
+@click.option("--aspect-ratio", type=POSITIVE, default=None, help="Face L/W for --method ippe (default 1).")
+@click.option("--fps", type=POSITIVE, default=None, help="Frame rate for an image folder (timestamps).")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="Stop after this many frames.")
+@click.option("--threshold", type=Number(0.0, 255.0, what="a grey level"), default=None, help="Grey level of the face (default: Otsu).")
 @json_flag
+@flag_rules(Requires("--aspect-ratio", "--method=ippe", "zhai and homography are size-free"))
 def camera_attitude(input, focal_length_px, principal_point, method, aspect_ratio, fps, max_frames, threshold,
                     as_json):
     """Attitude of a rectangular face from INPUT (Zhai et al, 2014).

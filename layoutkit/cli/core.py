@@ -5,6 +5,7 @@ import click
 
 from ..units import ARCSEC
 from ._common import call_or_fail, echo_json, emit_json, fail
+from .options import NONNEGATIVE, POSITIVE
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
                       registry_choice, rho_option, seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
                       ignore_calibration_option,
@@ -202,8 +203,8 @@ def study_group():
 @click.option("--chunk-frames", type=click.IntRange(min=1), default=20000, show_default=True,
               help="Frames per Dask task (part of the random stream: results depend on it, not on --workers).")
 @seed_option
-@click.option("--dynamic-seconds", type=float, default=60.0, show_default=True, help="Length of each dynamic run.")
-@click.option("--sensor-error-mm", type=float, default=0.5, show_default=True,
+@click.option("--dynamic-seconds", type=POSITIVE, default=60.0, show_default=True, help="Length of each dynamic run.")
+@click.option("--sensor-error-mm", type=NONNEGATIVE, default=0.5, show_default=True,
               help="Systematic sensor-coordinate error for the second dynamic run (0: skip it).")
 @out_dir_option(default="out/chen2024", aliases=("--out",), help="Folder for the figure, table and full JSON.")
 @json_flag(help="Print the groups JSON to stdout (instead of the text summary).")
@@ -215,16 +216,14 @@ def study_chen(groups, frames, chunk_frames, seed, dynamic_seconds, sensor_error
     """Chen et al. (2024) static precision (Fig. 5) and dynamic accuracy (Table 2) in simulation.
 
     The static frames run as chunked Dask tasks (default: a LocalCluster on this machine)."""
-    from rich.console import Console
-    from rich.progress import Progress
-
     from ..studies.chen2024 import StudyConfig, run_chen2024, write_outputs
     from .distributed import executor_from_flags
+    from .progress import progress_bar
 
     cfg = StudyConfig(groups=groups, frames=frames, seed=seed, dynamic_seconds=dynamic_seconds,
                       sensor_error_mm=sensor_error_mm, chunk_frames=chunk_frames)
     with executor_from_flags(scheduler, workers, quiet=as_json or json_out == "-") as ex, \
-            Progress(transient=True, console=Console(stderr=True)) as prog:
+            progress_bar("static frames", quiet=as_json or json_out == "-") as prog:
         task = prog.add_task("static frames", total=groups * frames)
         res = run_chen2024(cfg, progress=lambda k: prog.advance(task, k), executor=ex)
     paths = write_outputs(res, out_dir)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
+from .options import NONNEGATIVE, POSITIVE, PROBABILITY, Conflict, flag_rules
 from .options import (json_flag, layout_option, overwrite_option, protocol_option, rho_option, seed_option,
                       sigma_option, stations_option)
 
@@ -19,16 +20,16 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False), default=None,
               help="Write the true poses as a pose table (t,station,status,rx,ry,rz,tx,ty,tz,residual_rms; "
                    "s, rad, m; one row per sweep).")
-@click.option("--duration", "duration_s", type=float, default=60.0, show_default=True,
+@click.option("--duration", "duration_s", type=POSITIVE, default=60.0, show_default=True,
               help="Simulated seconds.")
 @seed_option
 @protocol_option(encodable=True, help="Wire protocol to emit (the protocols the simulator can encode).")
 @click.option("--motion", default="tumble", show_default=True,
               help="tumble, static, or a trajectory pose table CSV (t,rx,ry,rz,tx,ty,tz at least; s, rad, m).")
-@click.option("--dropout", type=float, default=0.0, show_default=True, help="Probability a lit hit is missed.")
-@click.option("--frame-loss", type=float, default=0.0, show_default=True,
+@click.option("--dropout", type=PROBABILITY, default=0.0, show_default=True, help="Probability a lit hit is missed.")
+@click.option("--frame-loss", type=PROBABILITY, default=0.0, show_default=True,
               help="Probability a frame is not sent.")
-@click.option("--garbage", type=float, default=0.0, show_default=True,
+@click.option("--garbage", type=PROBABILITY, default=0.0, show_default=True,
               help="Probability of a random byte burst before a frame.")
 @sigma_option(allow_zero=True)
 @rho_option
@@ -36,7 +37,7 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
               help="Emit at real timing (default: on for a pty, off for --out).")
 @click.option("--speed", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
               help="Real-time speed factor.")
-@click.option("--wait-reader", "wait_reader_s", type=float, default=None,
+@click.option("--wait-reader", "wait_reader_s", type=NONNEGATIVE, default=None,
               help="With a pty: give up when no reader opened it within this many seconds [default: wait].")
 @click.option("--tumble-rate-deg-s", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Largest angular rate of --motion tumble, deg/s [default: 0.5, a slow static-like tumble].")
@@ -55,6 +56,7 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
 @stations_option(help="Stations JSON (poses in the world frame, kind, calibration) [default: one LH1 station at the "
                       "origin]: a station with a calibration emits its distorted angles, measure(points, calibration).")
 @json_flag(help="Print the summary as JSON.")
+@flag_rules(Conflict("--out", "--link", "--out writes a capture file, --link names a pty"))
 def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s, seed, protocol, motion, dropout,
               frame_loss, garbage, sigma, rho, realtime, speed, wait_reader_s, tumble_rate_deg_s, camera_out,
               focal_length_px, camera_fps, camera_size, camera_clock_offset_s, camera_clock_drift_ppm, stations_path,

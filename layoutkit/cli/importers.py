@@ -93,6 +93,10 @@ def cfusdlog_cmd(log, out_dir, system_config, as_json):
         click.echo(f"warning: {s['ended']}", err=True)
     if s.get("capture"):
         click.echo(f"{s['uart_frames']} lhUartFrame events -> {s['capture']}")
+    if s.get("clock"):
+        c = s["clock"]
+        click.echo(f"clock: log t = {c['offset_s']:.6f} s + deck t x (1 {c['rate_ppm']:+.1f} ppm); residual RMS "
+                   f"{1e3 * c['rms_s']:.3f} ms over {c['frames_used']} frames ({c['status']})")
     if s.get("frames_file"):
         click.echo(f"{s['sweep_events']} {s['sweep_event_type']} events ({s['kind']}) -> {s['frames']} frames in "
                    f"{s['frames_file']}")

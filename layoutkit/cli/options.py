@@ -23,15 +23,16 @@ from typing import Callable, Iterable
 import click
 from click.core import ParameterSource
 
-from ..units import ARCSEC, LENGTH_UNIT_NAMES, RHO_PAPER, SIGMA_THETA_PAPER
+from ..units import ARCSEC, LENGTH_UNIT_NAMES, LENGTH_UNITS, RHO_PAPER, SIGMA_THETA_PAPER
 
 __all__ = [
     "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
-    "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
+    "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
-    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options",
+    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options", "Number", "finite", "finite_types",
+    "PROBABILITY", "POSITIVE", "NONNEGATIVE", "FINITE",
     "system_config_option", "stations_option", "ignore_calibration_option", "solve_mode_option", "SOLVE_MODES", "scheduler_option", "workers_option",
 ]
 
@@ -39,12 +40,84 @@ __all__ = [
 #: stays numpy-free; a test checks they match the registry)
 COVERAGE_CHOICES = ("any-station", "each-station", "joint")
 
+
+class Number(click.FloatRange):
+    """A float option's type: a :class:`click.FloatRange` that also refuses NaN and, unless
+    ``allow_inf``, +-infinity — click's own ranges let NaN through (every comparison with NaN is
+    false). The one numeric boundary of the CLI: :func:`finite_types` gives every float parameter
+    of every command this type, so a new command is covered without a line of its own.
+    ``what`` names the quantity's unit or meaning in the refusal (``"a probability"``).
+    """
+
+    name = "number"
+
+    def __init__(self, min=None, max=None, min_open=False, max_open=False, clamp=False, *,
+                 allow_inf: bool = False, what: str | None = None):
+        super().__init__(min, max, min_open, max_open, clamp)
+        self.allow_inf = allow_inf
+        self.what = what
+
+    def convert(self, value, param, ctx):
+        import math
+
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if math.isnan(v) or (math.isinf(v) and not self.allow_inf):
+            self.fail(f"{value!r} is not a finite number" + (f" ({self.what})" if self.what else ""), param, ctx)
+        return super().convert(v, param, ctx)
+
+    def _describe_range(self) -> str:
+        text = super()._describe_range()
+        return f"{text} ({self.what})" if self.what else text
+
+
+def finite(rng: click.ParamType | None = None, **kw) -> Number:
+    """The :class:`Number` with ``rng``'s bounds (a :class:`click.FloatRange`, ``click.FLOAT`` or None)."""
+    if isinstance(rng, Number):
+        return rng
+    if isinstance(rng, click.FloatRange):
+        return Number(rng.min, rng.max, rng.min_open, rng.max_open, rng.clamp, **kw)
+    return Number(**kw)
+
+
+#: Common quantities (each a :class:`Number`): a probability, a strictly positive and a
+#: non-negative quantity, and any finite number.
+PROBABILITY = Number(0.0, 1.0, what="a probability in [0, 1]")
+POSITIVE = Number(0.0, min_open=True)
+NONNEGATIVE = Number(0.0)
+FINITE = Number()
+
+
+def _finite_type(t: click.ParamType) -> click.ParamType:
+    if isinstance(t, click.Tuple):
+        return click.Tuple([_finite_type(x) for x in t.types])
+    if isinstance(t, Number):
+        return t
+    if isinstance(t, click.FloatRange) or t is click.FLOAT:
+        return finite(t)
+    return t
+
+
+def finite_types(cmd: click.Command) -> None:
+    """Every float parameter of ``cmd`` (recursively through groups), tuples included, becomes a
+    :class:`Number`: NaN and infinity are refused at parsing with the option named (exit 2).
+    A parameter that must take infinity declares ``type=Number(..., allow_inf=True)`` itself."""
+    if isinstance(cmd, click.Group):
+        for sub in cmd.commands.values():
+            finite_types(sub)
+        return
+    for p in cmd.params:
+        p.type = _finite_type(p.type)
+
+
 #: The one admissible range of the same-rotor correlation: rho = 1 makes R_theta singular
 #: (Chen eq. 19) and an ADOP ~30x too optimistic.
-RHO_RANGE = click.FloatRange(0.0, 1.0, max_open=True)
+RHO_RANGE = Number(0.0, 1.0, max_open=True)
 #: Sweep-angle noise: > 0 (a prediction divides by it); simulators also take 0 (noise-free).
-SIGMA_RANGE = click.FloatRange(min=0.0, min_open=True)
-SIGMA_RANGE_SIMULATION = click.FloatRange(min=0.0)
+SIGMA_RANGE = Number(0.0, min_open=True)
+SIGMA_RANGE_SIMULATION = Number(0.0)
 
 _META = "layoutkit.alias."
 
@@ -187,7 +260,7 @@ def units_option(f=None, *, what: str = "the mesh file", flag: str = "--units", 
 
 def seed_option(f=None, *, default: int = 0):
     """``--seed``: the random seed (``numpy.random.default_rng(seed)``)."""
-    deco = click.option("--seed", type=int, default=default, show_default=True,
+    deco = click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=default, show_default=True,
                         help="Random seed (runs with the same seed are identical).")
     return deco(f) if f is not None else deco
 
@@ -253,6 +326,18 @@ def distance_m_option(f=None, *, default: float = 2.0, help: str = "Distance, m.
     deco = option("--distance-m", "distance_m", type=click.FloatRange(min=0.0, min_open=True), default=default,
                   show_default=True, aliases=("--distance",), help=help)
     return deco(f) if f is not None else deco
+
+
+def length_mm_option(flag: str, dest: str, *, default: float | None = None, required: bool = False,
+                     allow_zero: bool = False, help: str = ""):
+    """A length the user gives in millimetres (``flag`` ends in ``-mm``); the command receives ``dest``
+    in metres (the one mm → m conversion, :data:`layoutkit.units.LENGTH_UNITS`). ``default`` is in
+    mm, as ``--help`` shows it; ``allow_zero``: 0 is accepted (else the length must be > 0)."""
+    def to_m(ctx, param, value):
+        return None if value is None else float(value) * LENGTH_UNITS["mm"]
+
+    return option(flag, dest, type=Number(0.0, min_open=not allow_zero), default=default,
+                  show_default=default is not None, required=required, callback=to_m, help=help)
 
 
 def allow_odd_size_option(f=None):
@@ -443,3 +528,53 @@ def workers_option(f=None):
     deco = click.option("--workers", "workers", type=click.IntRange(min=1), default=None,
                         help="Worker processes of the local Dask cluster (default: the CPUs of this machine).")
     return deco(f) if f is not None else deco
+
+
+# --------------------------------------------------------------------------- contradicting flags
+class Conflict:
+    """``a`` and ``b`` cannot both be given (``a`` may be ``"--flag=value"``: only with that value)."""
+
+    def __init__(self, a: str, b: str, why: str = ""):
+        self.a, self.b, self.why = a, b, why
+
+
+class Requires:
+    """``a`` means nothing without ``b``."""
+
+    def __init__(self, a: str, b: str, why: str = ""):
+        self.a, self.b, self.why = a, b, why
+
+
+def _given(ctx: click.Context, spec: str):
+    """Was ``spec`` (``--flag`` or ``--flag=value``) given on the command line? (value checked too)"""
+    flag, _, want = spec.partition("=")
+    for p in ctx.command.params:
+        if flag in getattr(p, "opts", ()) or flag in getattr(p, "secondary_opts", ()):
+            src = ctx.get_parameter_source(p.name)
+            value = ctx.params.get(p.name)
+            if want:
+                return str(value) == want
+            return src not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None) and value not in (None, False, ())
+    raise KeyError(f"{ctx.command.name} has no option {flag}")
+
+
+def flag_rules(*rules):
+    """Refuse contradicting or meaningless flag combinations before the command runs (exit 2,
+    ``error:`` naming both flags). Each rule is a :class:`Conflict` or :class:`Requires`; put the
+    decorator between ``@click.command`` (and its options) and the function."""
+    import functools
+
+    def deco(f):
+        @functools.wraps(f)
+        def wrapper(*args, **kwargs):
+            ctx = click.get_current_context()
+            for r in rules:
+                why = f": {r.why}" if r.why else ""
+                a, b = r.a.replace("=", " "), r.b.replace("=", " ")
+                if isinstance(r, Conflict) and _given(ctx, r.a) and _given(ctx, r.b):
+                    raise click.UsageError(f"{a} and {b} cannot be used together{why}", ctx)
+                if isinstance(r, Requires) and _given(ctx, r.a) and not _given(ctx, r.b):
+                    raise click.UsageError(f"{a} needs {b}{why}", ctx)
+            return f(*args, **kwargs)
+        return wrapper
+    return deco

@@ -14,11 +14,23 @@ where and why. Event times are returned in seconds on the log's own clock.
 
 ``lhUartFrame`` events carry what the Lighthouse deck's FPGA sent for one pulse: ``sensor``,
 ``basestation`` (the channel), ``offset`` (24 MHz ticks, the firmware's value = 4 × the deck's
-6 MHz field; 0 = none) and ``timestampFPGA`` (24 MHz, 24 bits). The pulse width, the beam word and
-the slow bit are not logged: ``layoutkit.workflows.importers.deck_bytes`` re-encodes each event as the deck's 12-byte frame
+6 MHz field; 0 = none), ``timestampFPGA`` (24 MHz, 24 bits) and ``timestamp2FPGA`` (the same
+counter extended to 32 bits with the Crazyflie's millisecond clock). Conventions found on the
+public logs (crazyflie-firmware e9ff096, ``lighthouse_core.c``; :func:`uart_frames`):
+
+- ``basestation`` is the channel when the FPGA found one, else the firmware's number of base
+  stations (2 with two LH2 stations; every frame of an LH1 log) — "no channel" (the frame's bit 7).
+  Such a pulse never carries an offset: the offset comes from the decoded bit stream.
+- the deck's clock and the log's clock differ in rate by about -1.1 % (the log clock runs slow);
+  each frame is logged after it crossed the 230400-baud UART (0.52 ms per queued frame):
+  :func:`fit_deck_clock`.
+
+The pulse width, the beam word and the slow bit are not logged:
+``layoutkit.workflows.importers.deck_bytes`` re-encodes each event as the deck's 12-byte frame
 with width 0, beam word 0 and slow bit 0, which is what the firmware's LH2 angle path uses of
 them (nothing: it reads sensor, channel, offset and timestamp only). LH1 needs the sync pulse
-widths, so an LH1 session cannot be replayed from ``lhUartFrame`` events.
+widths, so an LH1 session cannot be replayed from ``lhUartFrame`` events (its ``lhAngle`` events
+can: :mod:`layoutkit.live.cf_events`).
 """
 from __future__ import annotations
 
@@ -29,7 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MAGIC", "UsdLog", "read_cfusdlog", "SWEEP_EVENTS", "SweepEvents", "sweep_events", "firmware_positions"]
+from ..io.systemconfig import DECK_CLOCK_HZ
+
+__all__ = ["MAGIC", "UsdLog", "read_cfusdlog", "SWEEP_EVENTS", "SweepEvents", "sweep_events", "firmware_positions",
+           "UartFrames", "uart_frames", "no_channel_value", "DeckClock", "fit_deck_clock",
+           "UART_FRAME_S"]
 
 MAGIC = 0xBC
 
@@ -246,3 +262,165 @@ def firmware_positions(log: UsdLog) -> dict:
                               "position": p[keep]}
                 break
     return out
+
+
+# ------------------------------------------------------------------------------ deck UART frames
+#: time one 12-byte deck frame takes on the 230400-baud UART (10 bits per byte)
+UART_FRAME_S = 12 * 10 / 230400
+#: a frame is "isolated" (logged with an empty UART queue) when the previous one is this much older
+_ISOLATED_GAP_S = 3e-3
+
+
+@dataclass(frozen=True)
+class UartFrames:
+    """A log's ``lhUartFrame`` events, one row per deck pulse, in log order.
+
+    t : (N,) s, log clock. sensor : (N,) 0-3. channel : (N,) LH2 channel, -1 = no channel found.
+    offset : (N,) 24 MHz ticks since the rotor zero (0 = none). timestamp : (N,) the deck's 24-bit
+    counter. ticks : (N,) int64, the counter unwrapped (origin: the first frame's 24-bit value;
+    unwrapped through ``timestamp2FPGA`` when the log has it, so gaps of any length are safe).
+    no_channel : the ``basestation`` value that meant "no channel" in this log (None: none seen).
+    """
+
+    t: np.ndarray
+    sensor: np.ndarray
+    channel: np.ndarray
+    offset: np.ndarray
+    timestamp: np.ndarray
+    ticks: np.ndarray
+    no_channel: int | None
+
+    @property
+    def deck_s(self) -> np.ndarray:
+        """(N,) s, the deck clock (unwrapped ticks / 24 MHz)."""
+        return self.ticks / DECK_CLOCK_HZ
+
+
+def no_channel_value(basestation, offset) -> int | None:
+    """The ``basestation`` value of a log's ``lhUartFrame`` events that means "no channel found".
+
+    The firmware writes its number of base stations there (2 at the dataset's firmware, more in
+    later builds); a value >= 16 is never a channel. Rule: the largest value seen, if none of its
+    frames carries an offset (a decoded channel carries one on ~1 pulse in 4; every frame of an
+    LH1 log has the no-channel value), else None (every value is a channel)."""
+    bs = np.asarray(basestation, np.int64)
+    off = np.asarray(offset, np.int64)
+    if bs.size == 0:
+        return None
+    top = int(bs.max())
+    if top >= 16 or not np.any(off[bs == top] != 0):
+        return top
+    return None
+
+
+def _unwrap(ts, bits: int) -> np.ndarray:
+    ts = np.asarray(ts, np.int64) & ((1 << bits) - 1)
+    if ts.size == 0:
+        return ts
+    d = np.diff(ts) % (1 << bits)
+    d = np.where(d >= (1 << (bits - 1)), d - (1 << bits), d)
+    return np.concatenate([[0], np.cumsum(d)])
+
+
+def uart_frames(log: UsdLog) -> UartFrames | None:
+    """The log's ``lhUartFrame`` events as :class:`UartFrames` (None when it has none); ValueError
+    naming the file and the variables found when a needed variable is missing."""
+    ev = log.events.get("lhUartFrame")
+    if ev is None or len(ev["t"]) == 0:
+        return None
+    need = ("sensor", "basestation", "offset", "timestampFPGA")
+    miss = [k for k in need if k not in ev]
+    if miss:
+        raise ValueError(f"{log.path}: lhUartFrame events lack variable(s) {miss} "
+                         f"(have {sorted(k for k in ev if k != 't')})")
+    bs = np.asarray(ev["basestation"], np.int64)
+    off = np.asarray(ev["offset"], np.int64)
+    ts = np.asarray(ev["timestampFPGA"], np.int64) & 0xFFFFFF
+    nc = no_channel_value(bs, off)
+    ch = np.where(bs == nc, -1, bs) if nc is not None else bs.copy()
+    rel = _unwrap(ts, 24)
+    if "timestamp2FPGA" in ev:
+        ts2 = np.asarray(ev["timestamp2FPGA"], np.int64)
+        if np.all((ts2 & 0xFFFFFF) == ts):     # the 32-bit extension of the same counter
+            rel = _unwrap(ts2, 32)
+    return UartFrames(np.asarray(ev["t"], float), np.asarray(ev["sensor"], np.int64) & 3, ch, off, ts,
+                      int(ts[0]) + rel, nc)
+
+
+@dataclass(frozen=True)
+class DeckClock:
+    """``t_log = offset_s + rate * t_deck``: the log time of the light hitting a sensor at deck time
+    ``t_deck`` (s, unwrapped ticks / 24 MHz, origin as :attr:`UartFrames.ticks`).
+
+    Fitted on the frames logged with an empty UART queue (the previous frame >= 3 ms earlier), by
+    least squares with 5-MAD trimming, minus one frame's UART time (:data:`UART_FRAME_S`).
+    rate_ppm : (rate - 1) * 1e6. rms_s : RMS residual of the frames used. frames_used / frames.
+    queue_s : the median extra delay per frame queued before (the UART: ~0.52 ms). status :
+    "ok", or "inaccurate" (fewer than 20 isolated frames, or residual RMS > 1 ms). message : why.
+    """
+
+    offset_s: float
+    rate: float
+    rms_s: float
+    frames_used: int
+    frames: int
+    queue_s: float
+    status: str = "ok"
+    message: str = ""
+
+    @property
+    def rate_ppm(self) -> float:
+        return (self.rate - 1.0) * 1e6
+
+    @property
+    def success(self) -> bool:
+        return self.status == "ok"
+
+    def to_log(self, deck_s):
+        """Deck seconds → log seconds."""
+        return self.offset_s + self.rate * np.asarray(deck_s, float)
+
+    def as_dict(self) -> dict:
+        return {"offset_s": self.offset_s, "rate": self.rate, "rate_ppm": self.rate_ppm, "rms_s": self.rms_s,
+                "frames_used": self.frames_used, "frames": self.frames, "uart_queue_s_per_frame": self.queue_s,
+                "status": self.status, "message": self.message,
+                "model": "t_log = offset_s + rate * t_deck (light time; isolated frames minus one UART frame)"}
+
+
+def fit_deck_clock(deck_s, t_log) -> DeckClock:
+    """Fit :class:`DeckClock` to frames' deck times (N,) s and log times (N,) s (see there)."""
+    x = np.asarray(deck_s, float)
+    y = np.asarray(t_log, float)
+    n = x.size
+    if n < 2:
+        off = float(y[0] - x[0]) if n else 0.0
+        return DeckClock(off, 1.0, float("nan"), n, n, float("nan"), "inaccurate",
+                         f"{n} UART frame(s): offset only, rate 1")
+    gap = np.concatenate([[np.inf], np.diff(x)])
+    iso = gap >= _ISOLATED_GAP_S
+    if iso.sum() < 20:
+        iso = np.ones(n, bool)
+    x0 = x[0]
+    A = np.column_stack([np.ones(n), x - x0])
+    use = iso.copy()
+    for _ in range(4):
+        c, *_ = np.linalg.lstsq(A[use], y[use], rcond=None)
+        r = y - A @ c
+        med = np.median(r[iso])
+        mad = np.median(np.abs(r[iso] - med))
+        new = iso & (np.abs(r - med) <= 5 * 1.4826 * mad + 1e-5)
+        if np.array_equal(new, use):
+            break
+        use = new
+    c, *_ = np.linalg.lstsq(A[use], y[use], rcond=None)
+    r = y - A @ c
+    rms = float(np.sqrt(np.mean(r[use] ** 2)))
+    # extra delay of the frame right after another (queued behind it on the UART)
+    queued = (~iso) & np.concatenate([[False], iso[:-1]])
+    q = float(np.median(r[queued] - np.median(r[use]))) if queued.any() else float("nan")
+    rate = float(c[1])
+    offset = float(c[0] - rate * x0 - UART_FRAME_S)
+    status, msg = "ok", f"rate {1e6 * (rate - 1):+.0f} ppm from {int(use.sum())} isolated frames, residual RMS {1e3 * rms:.3f} ms"
+    if use.sum() < 20 or rms > 1e-3:
+        status, msg = "inaccurate", msg + " (fewer than 20 frames or RMS > 1 ms)"
+    return DeckClock(offset, rate, rms, int(use.sum()), n, q, status, msg)

@@ -380,7 +380,7 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
                     else layouts_out, "report": str(out / "report.json"), "plot": str(out / "residuals.png"),
                     **({"stations_fitted": str(out / "stations_fitted.json")} if worse else {})},
     }
-    from .._json import to_jsonable
+    from ..io.jsonfile import to_jsonable
 
     atomic_write_text(out / "report.json", json.dumps(to_jsonable(report), indent=2) + "\n")
     return report

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
+from ..io.jsonfile import to_jsonable
 from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "cfusdlog_replay_source", "firmware_comparison", "import_reference", "write_layout",
+__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "cfusdlog_replay_source", "import_reference", "write_layout",
            "write_reference"]
 
 
@@ -50,10 +50,11 @@ def import_vive_config(path, out) -> dict:
 # ---------------------------------------------------------------- libsurvive
 
 def _quat_rotvec(q_wxyz) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    """libsurvive pose quaternions ``(N, 4)`` ``[w, x, y, z]`` → rotation vectors ``(N, 3)`` rad."""
+    from ..geometry import matrix_to_rotvec
+    from ..rotations import quaternion_to_matrix
 
-    q = np.asarray(q_wxyz, float).reshape(-1, 4)
-    return Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_rotvec()
+    return matrix_to_rotvec(quaternion_to_matrix(np.asarray(q_wxyz, float).reshape(-1, 4), scalar_first=True))
 
 
 def import_libsurvive(recording, out_dir, *, device: str | None = None, config=None) -> dict:
@@ -143,33 +144,19 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
 
 # ---------------------------------------------------------------- cfusdlog
 
-DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
-
-
 def _deck_layout() -> Layout:
     """The Lighthouse deck's 4 sensors (``models/crazyflie_lighthouse_deck.layout.json``; the
     firmware's ``sensorDeckPositions``)."""
     from ..layout import load_layout
+    from ..resources import model_path
 
-    if DECK_LAYOUT.exists():
-        return load_layout(DECK_LAYOUT)
-    L, W = 0.015, 0.0075  # installed without the models folder: the same numbers
-    P = np.array([[-L, W, 0.0], [-L, -W, 0.0], [L, W, 0.0], [L, -W, 0.0]])
-    return Layout(P, np.tile([0.0, 0.0, 1.0], (4, 1)), ("0", "1", "2", "3"))
-
-
-def _unwrap24(ts) -> np.ndarray:
-    ts = np.asarray(ts, np.int64) & 0xFFFFFF
-    if ts.size == 0:
-        return ts
-    d = np.diff(ts) % (1 << 24)
-    d = np.where(d >= (1 << 23), d - (1 << 24), d)
-    return np.concatenate([[ts[0]], ts[0] + np.cumsum(d)])
+    return load_layout(model_path("crazyflie_lighthouse_deck.layout.json"))
 
 
 def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
     """``lhUartFrame`` events → the deck's UART byte stream (12-byte frames; a sync frame first and
     every ``sync_every`` frames). Returns the bytes and notes on what was filled in."""
+    from ..importers.cfusdlog import no_channel_value
     from ..live.protocols.bitcraze import SYNC_FRAME, DeckPulse, encode_pulse
 
     need = ("sensor", "basestation", "offset", "timestampFPGA")
@@ -177,6 +164,7 @@ def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
     if miss:
         raise ValueError(f"lhUartFrame events lack variable(s) {miss} (have {sorted(k for k in ev if k != 't')})")
     n = len(ev["t"])
+    nc = no_channel_value(ev["basestation"], ev["offset"])
     out = [SYNC_FRAME]
     for k in range(n):
         if k and k % sync_every == 0:
@@ -184,36 +172,67 @@ def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
         off24 = int(ev["offset"][k])
         ch = int(ev["basestation"][k])
         out.append(encode_pulse(DeckPulse(int(ev["sensor"][k]) & 3, int(ev["timestampFPGA"][k]) & 0xFFFFFF, 0,
-                                          off24 // 4, 0, ch if 0 <= ch < 16 else None, 0)))
-    notes = {"width": "not in the log; 0 (the LH2 angle path does not use it)",
+                                          off24 // 4, 0, None if ch == nc or not 0 <= ch < 16 else ch, 0)))
+    notes = {"basestation": f"{nc} = no channel found (the deck frame's bit 7; the value past the real channels)"
+                            if nc is not None else "every value a channel (none without offsets at the top)",
+             "width": "not in the log; 0 (the LH2 angle path does not use it)",
              "beam_word": "not in the log; 0 (not used for angles)",
              "slow_bit": "not in the log; 0 (OOTX calibration data cannot be decoded: give --system-config)",
              "offset": "logged in 24 MHz ticks; written as the deck's 6 MHz field (offset / 4)"}
     return b"".join(out), notes
 
 
-def cfusdlog_capture(log) -> tuple[bytes, "object"]:
+def cfusdlog_capture(log, ul=None) -> tuple[bytes, "object"]:
     """A Crazyflie microSD log → ``(deck UART bytes, CaptureSidecar)`` in memory, for ``replay LOG``
     without an import step: protocol ``bitcraze-lh2``, the deck layout, the deck-to-log clock offset
     (as :func:`import_cfusdlog`; no stations: give ``--system-config`` or ``--stations``).
-    ValueError naming the file when it has no ``lhUartFrame`` events."""
+    ul : the log already read (:func:`layoutkit.importers.cfusdlog.read_cfusdlog`; default: read
+    ``log``). ValueError naming the file when it has no ``lhUartFrame`` events."""
     from ..importers.cfusdlog import read_cfusdlog
     from ..io.sidecar import CaptureSidecar
-    from ..live.protocols.bitcraze import DECK_CLOCK_HZ
+    from ..io.systemconfig import DECK_CLOCK_HZ
 
     log = Path(log)
-    ul = read_cfusdlog(log)
+    ul = read_cfusdlog(log) if ul is None else ul
     if "lhUartFrame" not in ul.events or len(ul.events["lhUartFrame"]["t"]) == 0:
         raise ValueError(f"{log}: no lhUartFrame events (event types: {sorted(ul.events)}); enable the "
                          "lighthouse deck's UART frame event trigger when logging")
     ev = ul.events["lhUartFrame"]
     data, notes = deck_bytes(ev)
-    offset = float(np.median(ev["t"] - _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ))
-    sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options={"time_offset_s": offset},
+    clock = _deck_clock(ul)
+    sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options={"time_offset_s": clock.offset_s,
+                                                                   "time_rate": clock.rate},
                         layout=_deck_layout().to_dict(), source="cfusdlog (replayed directly)", n_sensors=4,
                         bytes=len(data), extra={"imported_from": str(log), "log_ended": ul.ended,
+                                                "clock": clock.as_dict(),
                                                 "import_notes": [f"{k}: {v}" for k, v in notes.items()]})
     return data, sc
+
+
+def _deck_clock(ul):
+    """The deck-to-log clock fit of a log with UART frames (:func:`layoutkit.importers.cfusdlog.fit_deck_clock`),
+    its deck time origin the first frame's 24-bit timestamp (as the replayed bytes' decoder)."""
+    from ..importers.cfusdlog import fit_deck_clock, uart_frames
+
+    u = uart_frames(ul)
+    return fit_deck_clock(u.deck_s, u.t)
+
+
+def _uart_is_lh1(ul, kind) -> str | None:
+    """Why a log's ``lhUartFrame`` events are not written as an LH2 capture (None: they are): an LH1
+    system (its sweep events or system config say so), or no frame carries an LH2 channel."""
+    from ..importers.cfusdlog import uart_frames
+
+    u = uart_frames(ul)
+    if u is None:
+        return None
+    if kind == "lh1":
+        return ("LH1 base stations: lhUartFrame events are not written as a capture (LH1 needs the pulse widths, "
+                "which are not logged); the firmware's lhAngle angles are in frames.csv (solve / replay LOG)")
+    if not np.any(u.channel >= 0):
+        return (f"no lhUartFrame event carries an LH2 channel (every basestation = {u.no_channel}: LH1, or no "
+                "channel decoded); no capture written")
+    return None
 
 
 def _found(ul) -> str:
@@ -226,9 +245,9 @@ def _log_kind(ul, ev, stations, system_config) -> str | None:
     if ev is not None and ev.kind is not None:
         return ev.kind
     if system_config is not None:
-        from ..live.protocols.bitcraze import load_system_config
+        from ..io.systemconfig import read_system_config
 
-        return "lh1" if load_system_config(system_config).system_type == 1 else "lh2"
+        return "lh1" if read_system_config(system_config).system_type == 1 else "lh2"
     kinds = {st.kind for st in stations or ()}
     return kinds.pop() if len(kinds) == 1 else None
 
@@ -245,6 +264,8 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     system config's ``systemType`` or the stations.
     Returns ``{"mode", "sidecar", "bytes" | "frames", "stats", "kind", "firmware" (the log's own
     position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``.
+    system_config : a path or a loaded :class:`~layoutkit.io.systemconfig.SystemConfig`; the log is
+    read once.
     ValueError naming the file and listing the event types found when nothing can be solved.
     """
     from ..importers.cfusdlog import firmware_positions, read_cfusdlog, sweep_events
@@ -280,7 +301,7 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
         if kind == "lh1":
             raise ValueError(f"{log}: an LH1 system cannot be replayed from lhUartFrame events (the pulse widths "
                              f"that identify LH1 sync pulses are not logged); log lhAngle events (found: {_found(ul)})")
-        data, sc = cfusdlog_capture(log)
+        data, sc = cfusdlog_capture(log, ul)
         info["source"] = "lhUartFrame"
         return {"mode": "uart", "bytes": data, "sidecar": sc, "kind": "lh2", "firmware": fw, "info": info}
     if ev is None:
@@ -306,45 +327,6 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
             "firmware": fw, "info": info}
 
 
-def firmware_comparison(poses_path, firmware: dict, *, max_gap_s: float = 0.05) -> dict:
-    """Our ok poses (``poses.csv``) vs the log's own position estimates, on the same clock and in the
-    same world frame (no alignment): each estimate interpolated linearly at our pose times (only
-    where two estimate rows within ``max_gap_s`` bracket the pose). Per source: compared poses,
-    RMS / median / max distance (m), mean offset (m, ours − firmware). Adds the columns
-    ``firmware_<label>_x/y/z`` (NaN where none) to ``poses.csv`` (rewritten atomically)."""
-    from ..io.poses import read_poses, write_poses
-
-    poses_path = Path(poses_path)
-    tab = read_poses(poses_path)
-    out, extra = {}, dict(tab.extras or {})
-    for label, fw in firmware.items():
-        tf, pf = fw["t"], fw["position"]
-        o = np.argsort(tf, kind="stable")
-        tf, pf = tf[o], pf[o]
-        j = np.searchsorted(tf, tab.t)
-        inside = (j > 0) & (j < len(tf))
-        jj = np.clip(j, 1, max(len(tf) - 1, 1))
-        gap = tf[jj] - tf[jj - 1] if len(tf) > 1 else np.full(len(tab.t), np.inf)
-        use = inside & (gap <= max_gap_s)
-        w = np.where(use, (tab.t - tf[jj - 1]) / np.where(gap > 0, gap, 1.0), 0.0)
-        p = np.where(use[:, None], pf[jj - 1] + w[:, None] * (pf[jj] - pf[jj - 1]) if len(tf) > 1 else np.nan, np.nan)
-        for k, ax in enumerate("xyz"):
-            extra[f"firmware_{label}_{ax}"] = p[:, k]
-        ok = use & tab.ok & np.all(np.isfinite(tab.translation), 1)
-        d = tab.translation[ok] - p[ok]
-        r = np.linalg.norm(d, axis=1)
-        out[label] = {"event": fw["event"], "rows": int(len(tf)), "compared_poses": int(ok.sum()),
-                      "rms_distance_m": float(np.sqrt(np.mean(r ** 2))) if r.size else None,
-                      "median_distance_m": float(np.median(r)) if r.size else None,
-                      "max_distance_m": float(r.max()) if r.size else None,
-                      "mean_offset_m": d.mean(0).tolist() if r.size else None,
-                      "columns": [f"firmware_{label}_{ax}" for ax in "xyz"]}
-    from dataclasses import replace
-
-    write_poses(poses_path, replace(tab, extras=extra))
-    return out
-
-
 def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     """A Crazyflie microSD log → ``out_dir/capture.bin`` (the deck's UART bytes re-encoded from the
     ``lhUartFrame`` events) with its sidecar ``capture.bin.json`` (protocol ``bitcraze-lh2``, the
@@ -355,13 +337,14 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     ``calibrate``, and the firmware's position estimates ``firmware_<label>.csv``. A log without
     UART frames gives no capture (``capture: null``).
 
-    The replay's ``t`` is the log's event clock: ``t = deck ticks / 24 MHz + offset`` with the
-    offset the median of (event time − unwrapped FPGA time) over the events.
+    The replay's ``t`` is the log's event clock: ``t = offset + rate * deck ticks / 24 MHz``, both
+    fitted on the frames (:func:`layoutkit.importers.cfusdlog.fit_deck_clock`; ``clock`` in the
+    summary and the sidecar).
     """
     from ..importers.cfusdlog import read_cfusdlog, sweep_events
     from ..io.atomic import atomic_write_bytes
     from ..io.sidecar import CaptureSidecar, sidecar_path, write_sidecar
-    from ..live.protocols.bitcraze import DECK_CLOCK_HZ, load_system_config
+    from ..io.systemconfig import DECK_CLOCK_HZ, read_system_config
 
     log = Path(log)
     out = Path(out_dir)
@@ -371,7 +354,7 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     if not has_uart and sweeps is None:
         raise ValueError(f"{log}: no lighthouse sweep data: found {_found(ul)}; log lhAngle or estSweepAngle "
                          "events ('on:lhAngle' in the card's config.txt) or, for LH2, lhUartFrame events")
-    cfg = load_system_config(system_config) if system_config else None
+    cfg = read_system_config(system_config) if system_config else None
     cap = out / "capture.bin"
     if cap.exists() or (out / "frames.csv").exists():
         raise ValueError(f"{out}: holds an import already (capture.bin / frames.csv); imports are never "
@@ -379,15 +362,22 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     summary = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "ended": ul.ended,
                "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()}}
-    summary.update(_import_sweep_events(log, ul, sweeps, out, cfg, system_config))
-    if not has_uart:
-        return summary | {"uart_frames": 0, "capture": None, "angle_rows": _firmware_angles(ul, out)[0],
-                          "firmware_angles": str(out / "firmware_angles.csv"), "notes": []}
+    summary.update(_import_sweep_events(log, ul, sweeps, out, cfg))
+    lh1 = _uart_is_lh1(ul, summary.get("kind"))
+    if not has_uart or lh1:
+        # an LH1 log's UART frames cannot be decoded (no pulse widths, no channel): never a capture
+        notes = [lh1] if lh1 else []
+        res = {"uart_frames": int(len(ul.events["lhUartFrame"]["t"])) if has_uart else 0, "capture": None,
+               "angle_rows": _firmware_angles(ul, out)[0], "firmware_angles": str(out / "firmware_angles.csv"),
+               "notes": notes}
+        if has_uart:
+            res["clock"] = _deck_clock(ul).as_dict()
+        return summary | res
     ev = ul.events["lhUartFrame"]
     data, notes = deck_bytes(ev)
     atomic_write_bytes(cap, data)
-    deck_t = _unwrap24(ev["timestampFPGA"]) / DECK_CLOCK_HZ
-    offset = float(np.median(ev["t"] - deck_t))
+    clock = _deck_clock(ul)
+    offset = clock.offset_s
     stations = ()
     note_list = [f"{k}: {v}" for k, v in notes.items()]
     if cfg is not None:
@@ -397,18 +387,18 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
         elif ids:
             note_list.append(f"system config station ids {ids} are not 0..k-1: stations left out of the sidecar")
     lay = _deck_layout()
-    opts = {"time_offset_s": offset}
+    opts = {"time_offset_s": offset, "time_rate": clock.rate}
     if system_config:
         opts["system_config"] = str(Path(system_config).resolve())
     sc = CaptureSidecar(protocol="bitcraze-lh2", protocol_options=opts, stations=stations, layout=lay.to_dict(),
                         source="layoutkit import cfusdlog", n_sensors=4, bytes=len(data),
-                        extra={"imported_from": str(log), "clock": {"log_minus_deck_s": offset,
-                                                                    "deck_clock_hz": DECK_CLOCK_HZ},
+                        extra={"imported_from": str(log), "clock": clock.as_dict() | {"deck_clock_hz": DECK_CLOCK_HZ},
                                "import_notes": note_list})
     write_sidecar(cap, sc)
     rows, fa = _firmware_angles(ul, out)
     return summary | {"uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
                       "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
+                      "clock": clock.as_dict(),
                       "stations": len(stations), "notes": note_list}
 
 
@@ -434,7 +424,7 @@ def _firmware_angles(ul, out) -> tuple[int, Path]:
     return rows, fa
 
 
-def _import_sweep_events(log, ul, sweeps, out, cfg, system_config) -> dict:
+def _import_sweep_events(log, ul, sweeps, out, cfg) -> dict:
     """The sweep-angle events as a frame table ``out/frames.csv`` (LH1-equivalent measured angles,
     station column; :mod:`layoutkit.io.frames`) with ``out/layout.json`` (the deck) and, with a
     system config, ``out/stations.json``; the log's own position estimates as position-only pose
@@ -456,7 +446,7 @@ def _import_sweep_events(log, ul, sweeps, out, cfg, system_config) -> dict:
     if cfg is not None:
         ids = sorted(cfg.stations)
         stations = [cfg.stations[i] for i in ids] if ids == list(range(len(ids))) else None
-    kind = _log_kind(ul, sweeps, stations, system_config)
+    kind = _log_kind(ul, sweeps, stations, cfg)
     if kind is None:
         res["frames_error"] = (f"{log}: {sweeps.source} events do not tell LH1 from LH2 base stations; give "
                                "--system-config to write frames.csv")
@@ -493,12 +483,12 @@ def import_reference(path, out, *, units: str = "m") -> dict:
     """A motion-capture reference (pose or position only; CSV or .npy) → a pose table ``out``
     (station ``joint`` = the reference's own world frame; position-only rows have an empty
     rotation). Any clock origin is kept as it is: the replay's offset search handles hours."""
-    from ..importers.mocap import read_reference
-    from ..io.poses import JOINT, PoseTable, write_poses
+    from ..io.poses import JOINT, PoseTable, read_reference, write_poses
 
     ref = read_reference(path, units)
     n = len(ref.t)
     rv = np.full((n, 3), np.nan) if ref.rotvec is None else ref.rotvec
-    write_poses(out, PoseTable(ref.t, rv, ref.position, station=np.full(n, JOINT), status=np.zeros(n, int)))
+    pos = np.full((n, 3), np.nan) if ref.translation is None else ref.translation
+    write_poses(out, PoseTable(ref.t, rv, pos, station=np.full(n, JOINT), status=np.zeros(n, int)))
     return {"file": str(path), "out": str(out), "rows": n, "dropped_rows": ref.dropped,
-            "position_only": ref.rotvec is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}
+            "position_only": ref.rotvec is None, "attitude_only": ref.translation is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}

@@ -21,14 +21,11 @@ Pulse processing follows the firmware (``pulse_processor_v1.c``, ``pulse_process
   otherwise station 0's. Sweep pulses (width < 512) after the active (non-skip) sync give
   ``angle = (delta - P/4) * 2 pi / P`` with ``delta`` ticks after that sync and ``P`` the measured
   time between two syncs of the same station and axis (accepted in 395000-405000 ticks).
-- **LH2**: pulses within 10000 ticks form a workspace, cut into blocks of at most one pulse per
-  sensor (one light plane crossing the sensors); the FPGA sends the sync offset on only some
-  pulses, so each pulse's offset is derived from the block's first pulse with one,
-  ``offset_s = offset_ref - (ts_ref - ts_s)`` (``processWorkspaceBlock``), and
-  ``timestamp0 = ts_ref - 4 * offset6_ref`` is the rotor's zero; two blocks of one channel whose
-  timestamp0 agree within 100 ticks are the two planes of one rotation:
-  ``a0 = 4 offset0 * 2 pi / P - pi + pi/3``, ``a1 = 4 offset1 * 2 pi / P - pi - pi/3`` with
-  ``P`` the channel's cycle period (24 MHz).
+- **LH2**: :mod:`layoutkit.live.protocols.bitcraze_lh2` turns pulses into rotations, either exactly
+  as the firmware of the public dataset does (``pulse_processor="firmware"``) or with each
+  channel's rotor phase tracked (``"phase"``, the default: fewer blocks discarded, mis-decoded
+  offsets rejected); ``a0 = offset0 * 2 pi / P - pi + pi/3``, ``a1 = offset1 * 2 pi / P - pi - pi/3``
+  with ``P`` the channel's cycle period (24 MHz), offsets in 24 MHz ticks since the rotor zero.
 
 Calibration (``lighthouse_calibration.c``) is the firmware's model (implemented in
 :mod:`layoutkit.lighthouse` as one case of the internal calibration model), inverted by fixed-point
@@ -42,22 +39,26 @@ station frame has x forward, so ``x_bc = z, y_bc = x, z_bc = y`` (as in
 ``atan2(y_bc, x_bc)`` and ``atan2(z_bc, x_bc)``; layoutkit's ``theta = pi/2 - firmware angle``.
 LH2: the firmware's angles are already the ``lh2_sweep_angles`` light-plane angles
 (plane 0: t = -30°, plane 1: t = +30°). ``SweepMeasurement.t`` is the sync (LH1) or rotor-zero
-(LH2) time in s, deck clock unwrapped; ``station`` is the LH1 station (0/1) or LH2 channel (0-15).
+(LH2) time, ``time_offset_s + time_rate * (deck ticks unwrapped / 24 MHz)`` (an imported log's
+clock fit, :func:`layoutkit.importers.cfusdlog.fit_deck_clock`; 0 and 1 otherwise); ``station`` is the
+LH1 station (0/1) or LH2 channel (0-15).
 
-Length (~730 lines): one module per wire protocol — frame layout, both pulse processors, the
-reference encoders and the system-config reader belong together and share the frame constants.
+Length (~650 lines): one module per wire protocol — frame layout, both pulse processors, the
+reference encoders belong together and share the frame constants (the system-config YAML is
+:mod:`layoutkit.io.systemconfig`'s).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..._validate import read_structured
+from ...io.systemconfig import (DECK_CLOCK_HZ, LH2_CYCLE_PERIODS, SystemConfig,  # noqa: F401  (the owner: io)
+                                read_system_config, system_config_dict)
 from ...lighthouse import (StationCalibration, SweepCalibration, calibrate_lh1, calibrate_lh2,  # noqa: F401
                            lh1_model, lh2_model)
 from ..frames import DecodeStats, SweepMeasurement
+from .bitcraze_lh2 import PROCESSORS, plane_angles
 
 __all__ = [
     "DECK_CLOCK_HZ",
@@ -67,7 +68,6 @@ __all__ = [
     "DeckPulse",
     "SweepCalibration",
     "StationCalibration",
-    "SystemConfig",
     "encode_pulse",
     "parse_frame",
     "lh1_deck_stream",
@@ -79,19 +79,14 @@ __all__ = [
     "lh2_model",
     "calibrate_lh1",
     "calibrate_lh2",
-    "load_system_config",
     "BitcrazeDecoder",
     "BitcrazeLh1Decoder",
     "BitcrazeLh2Decoder",
 ]
 
-DECK_CLOCK_HZ = 24e6
 FRAME_SIZE = 12
 SYNC_FRAME = b"\xff" * FRAME_SIZE
 _TS_MOD = 1 << 24
-# LH2 cycle periods per channel, firmware CYCLE_PERIODS (48 MHz values / 2 → 24 MHz ticks)
-LH2_CYCLE_PERIODS = tuple(p // 2 for p in (959000, 957000, 953000, 949000, 947000, 943000, 941000, 939000,
-                                           937000, 929000, 919000, 911000, 907000, 901000, 893000, 887000))
 # LH1 constants (24 MHz ticks), pulse_processor_v1.c
 LH1_FRAME_LENGTH = 200000
 LH1_SWEEP_MAX_WIDTH = 512
@@ -101,9 +96,6 @@ LH1_SYNC_SEPARATION = 10000
 LH1_SYNC_MIN_SEP, LH1_SYNC_MAX_SEP = 7500, 12500
 LH1_SENSOR_DISPERSION = 10
 LH1_FRAME_WIDTH_MIN, LH1_FRAME_WIDTH_MAX = 395000, 405000
-# LH2 constants
-LH2_MAX_TICKS_SENSOR_TO_SENSOR = 10000
-LH2_MAX_TICKS_BETWEEN_BLOCKS = 100
 MAX_DECK_SENSORS = 4
 
 
@@ -144,74 +136,8 @@ def parse_frame(b: bytes) -> DeckPulse | None:
 
 # --------------------------------------------------------------------------------- calibration
 # The firmware's calibration records and model live in the core (layoutkit.lighthouse, one
-# internal model for both public conventions; docs/calibration.md); re-exported here.
-
-
-@dataclass(frozen=True)
-class SystemConfig:
-    """A Crazyflie lighthouse system configuration: stations (layoutkit frames) and calibrations.
-
-    stations : dict id → :class:`layoutkit.lighthouse.Station` (station pose in the Crazyflie
-    world frame, station frame in layoutkit's convention z = boresight); calibs : dict id →
-    :class:`StationCalibration`; system_type : 1 (LH1) or 2 (LH2).
-    """
-
-    stations: dict = field(default_factory=dict)
-    calibs: dict = field(default_factory=dict)
-    system_type: int = 2
-
-
-# layoutkit station frame → Bitcraze station frame: x_bc = z, y_bc = x, z_bc = y
-_LK_TO_BC = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-
-def _lh2_rpm(channel: int) -> float:
-    """Rotor speed (rpm) of LH2 channel ``channel`` (its cycle period; 3000 outside 0-15)."""
-    return 60.0 * DECK_CLOCK_HZ / LH2_CYCLE_PERIODS[channel] if 0 <= channel < len(LH2_CYCLE_PERIODS) else 3000.0
-
-
-def load_system_config(source) -> SystemConfig:
-    """Read a Crazyflie system-configuration YAML (``type: lighthouse_system_configuration``).
-
-    source : path or an already-parsed dict. ``geos: {id: {origin, rotation}}`` → stations with
-    ``rotation = R_bc @ M`` (M maps layoutkit station axes to Bitcraze's), ``translation = origin``;
-    ``calibs: {id: {sweeps: [{phase, tilt, curve, gibmag, gibphase, ogeemag, ogeephase}] * 2, uid}}``.
-    Raises ValueError naming what is wrong.
-    """
-    from ...geometry import nearest_rotation
-    from ...lighthouse import Station
-
-    if isinstance(source, dict):
-        data, name = source, "system config"
-    else:
-        import yaml
-
-        path = Path(source)
-        name = str(path)
-        data = read_structured(path, "system configuration", "YAML", yaml.safe_load, yaml.YAMLError)
-    if not isinstance(data, dict) or data.get("type") != "lighthouse_system_configuration":
-        raise ValueError(f"{name}: expected 'type: lighthouse_system_configuration'")
-    if str(data.get("version")) != "1":
-        raise ValueError(f"{name}: unsupported version {data.get('version')!r} (expected '1')")
-    system_type = int(data.get("systemType", 2))
-    kind = "lh1" if system_type == 1 else "lh2"
-    stations, calibs = {}, {}
-    try:
-        for sid, geo in (data.get("geos") or {}).items():
-            R = nearest_rotation(np.asarray(geo["rotation"], float))
-            stations[int(sid)] = Station(id=str(sid), rotation=R @ _LK_TO_BC,
-                                         translation=np.asarray(geo["origin"], float), kind=kind,
-                                         rotor_rpm=3600.0 if kind == "lh1" else _lh2_rpm(int(sid)),
-                                         clock_hz=DECK_CLOCK_HZ)
-        for sid, cal in (data.get("calibs") or {}).items():
-            sw = tuple(SweepCalibration(**{k: float(s.get(k, 0.0)) for k in SweepCalibration.__dataclass_fields__})
-                       for s in cal["sweeps"][:2])
-            if len(sw) != 2:
-                raise ValueError("two sweeps required")
-            calibs[int(sid)] = StationCalibration(sw, int(cal.get("uid", 0)))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: bad geos/calibs entry ({exc})") from None
-    return SystemConfig(stations, calibs, system_type)
+# internal model for both public conventions; docs/calibration.md); re-exported here. The system
+# configuration file is read and written by its owner, layoutkit.io.systemconfig.
 
 
 # ----------------------------------------------------------------------- reference encoders
@@ -388,28 +314,15 @@ def lh2_deck_session(points_body, motion, stations, *, duration: float, channels
     return b"".join(out), info
 
 
-def system_config_dict(stations: dict, calibs: dict | None = None, system_type: int = 2) -> dict:
-    """A cflib/Crazyflie system configuration (``type: lighthouse_system_configuration``) as a dict
-    for ``yaml.safe_dump``: the inverse of :func:`load_system_config`. stations : id →
-    :class:`~layoutkit.lighthouse.Station` (world pose, layoutkit station frame); calibs : id →
-    :class:`StationCalibration` (firmware convention)."""
-    geos = {int(k): {"origin": [float(v) for v in st.translation],
-                     "rotation": [[float(v) for v in row] for row in st.rotation @ _LK_TO_BC.T]}
-            for k, st in stations.items()}
-    cal = {int(k): {"uid": int(c.uid), "sweeps": [{f: float(getattr(sw, f)) for f in SweepCalibration.__dataclass_fields__}
-                                                 for sw in c.sweeps]}
-           for k, c in (calibs or {}).items()}
-    return {"type": "lighthouse_system_configuration", "version": "1", "systemType": int(system_type),
-            "geos": geos, "calibs": cal}
-
-
 # ------------------------------------------------------------------------------------ decoder
 class BitcrazeDecoder:
     """Incremental decoder of the Lighthouse deck UART stream; never raises on any bytes.
 
     mode : "lh1" or "lh2". n_sensors : 1-4 (angles of sensors 0..n-1). system_config : path,
     dict or :class:`SystemConfig`; its calibrations are applied (``calibrate=True``).
-    time_offset_s : added to every sweep time (t = unwrapped 24 MHz deck clock / 24e6 + offset).
+    time_offset_s, time_rate : every sweep time is ``time_offset_s + time_rate * deck s`` (deck s =
+    unwrapped 24 MHz ticks / 24e6). pulse_processor : LH2 only, "phase" (default) or "firmware"
+    (:data:`layoutkit.live.protocols.bitcraze_lh2.PROCESSORS`).
     stats: good = sweeps emitted, bad = invalid frames (padding set), resyncs, skipped bytes,
     dropped = sweeps discarded by the pulse processor (incomplete/ambiguous).
     ``pulses`` counts valid pulse frames.
@@ -418,9 +331,14 @@ class BitcrazeDecoder:
     name = "bitcraze"
 
     def __init__(self, n_sensors: int | None = 4, *, mode: str = "lh2", system_config=None,
-                 calibrate: bool = True, time_offset_s: float = 0.0):
+                 calibrate: bool = True, time_offset_s: float = 0.0, time_rate: float = 1.0,
+                 pulse_processor: str = "phase"):
         if mode not in ("lh1", "lh2"):
             raise ValueError(f"mode: expected 'lh1' or 'lh2', got {mode!r}")
+        if pulse_processor not in PROCESSORS:
+            raise ValueError(f"pulse_processor: expected one of {sorted(PROCESSORS)}, got {pulse_processor!r}")
+        if not (np.isfinite(time_rate) and 0.5 < float(time_rate) < 2.0):
+            raise ValueError(f"time_rate: expected a clock rate near 1, got {time_rate!r}")
         n = 4 if n_sensors is None else int(n_sensors)
         if not 1 <= n <= MAX_DECK_SENSORS:
             raise ValueError(f"n_sensors: the Lighthouse deck has 1-{MAX_DECK_SENSORS} sensors, got {n_sensors}")
@@ -428,9 +346,10 @@ class BitcrazeDecoder:
         self.n = n
         # added to every emitted t: an imported log puts the deck clock onto its own event clock
         self.time_offset_s = float(time_offset_s)
+        self.time_rate = float(time_rate)
         cfg = system_config
         if cfg is not None and not isinstance(cfg, SystemConfig):
-            cfg = load_system_config(cfg)
+            cfg = read_system_config(cfg)
         self.config = cfg
         self.calibs = dict(cfg.calibs) if (cfg is not None and calibrate) else {}
         self.stats = DecodeStats()
@@ -447,8 +366,8 @@ class BitcrazeDecoder:
         self._hits: dict = {}
         self._held = {}  # station → held X sweep (for calibration pairing)
         # LH2 state
-        self._block = None
-        self._prev_block = {}
+        self.pulse_processor = pulse_processor
+        self._lh2p = PROCESSORS[pulse_processor](n, self.stats)
 
     # -- bytes → frames ------------------------------------------------------------------------
     def feed(self, data) -> list[SweepMeasurement]:
@@ -472,7 +391,8 @@ class BitcrazeDecoder:
             if self.mode == "lh1":
                 self._finish_lh1_sweep(out)
             else:
-                self._close_block(out)
+                for rot in self._lh2p.flush():
+                    self._rotation(rot, out)
         except Exception:  # noqa: BLE001
             self.stats.errors += 1
         if self._buf:
@@ -596,89 +516,23 @@ class BitcrazeDecoder:
 
     def _emit(self, out, t, station, axis, angles, kind):
         self.stats.good += 1
-        out.append(SweepMeasurement(float(t) + self.time_offset_s, int(station), int(axis), np.asarray(angles, float),
-                                    None, kind))
+        out.append(SweepMeasurement(self.time_offset_s + self.time_rate * float(t), int(station), int(axis),
+                                    np.asarray(angles, float), None, kind))
 
     # -- LH2 -----------------------------------------------------------------------------------
-    # As the firmware (pulse_processor_v2.c): pulses closer than 10000 ticks form a workspace; the
-    # workspace is cut into blocks of at most one pulse per sensor (one light plane crossing the
-    # sensors); the FPGA reports the sync offset on only some pulses of a block, so every pulse's
-    # offset is derived from the block's reference pulse (the first with an offset):
-    # ``offset_s = offset_ref - (ts_ref - ts_s)``; the rotor zero is ``timestamp0 = ts_ref - offset_ref``.
-    # A pulse without a channel takes the channel of a later pulse of its workspace (the FPGA
-    # needs a second sensor to decode the bit stream). Deviation: the firmware discards blocks
-    # without all 4 sensors; here a block with fewer gives angles for the sensors it has.
     def _lh2(self, sensor: int, ts: int, offset: int, channel, out: list) -> None:
-        w = self._block
-        if w is not None and abs(ts - w["last"]) > LH2_MAX_TICKS_SENSOR_TO_SENSOR:
-            self._close_block(out)
-            w = None
-        if w is None:
-            w = self._block = {"last": ts, "pulses": []}
-        w["last"] = ts
-        if sensor >= self.n:
-            self.stats.drop("LH2 pulse of a sensor outside the layout")
-            return
-        w["pulses"].append((sensor, ts, offset, channel))
+        for rot in self._lh2p.push(sensor, ts, offset, channel):
+            self._rotation(rot, out)
 
-    def _close_block(self, out: list) -> None:
-        w, self._block = self._block, None
-        if w is None or not w["pulses"]:
-            return
-        pulses = w["pulses"]
-        # channel of later pulses back-filled onto earlier ones (firmware augmentFramesInWorkspace)
-        known = None
-        filled = []
-        for sensor, ts, off, ch in reversed(pulses):
-            if ch is not None:
-                known = ch
-            filled.append((sensor, ts, off, ch if ch is not None else known))
-        filled.reverse()
-        blocks, cur = [], []
-        for p in filled:  # one pulse per sensor in a block
-            if any(q[0] == p[0] for q in cur):
-                blocks.append(cur)
-                cur = []
-            cur.append(p)
-        if cur:
-            blocks.append(cur)
-        for blk in blocks:
-            self._lh2_block(blk, out)
-
-    def _lh2_block(self, blk: list, out: list) -> None:
-        chans = {p[3] for p in blk if p[3] is not None}
-        if not chans:
-            self.stats.drop("LH2 block without a channel (no pulse decoded its bit stream)", len(blk))
-            return
-        if len(chans) > 1:
-            self.stats.drop("LH2 block with several channels", len(blk))
-            return
-        ref = next((p for p in blk if p[2]), None)
-        if ref is None:
-            self.stats.drop("no pulse of the LH2 block carried a sync offset", len(blk))
-            return
-        ch = next(iter(chans))
-        _, ts_ref, off_ref, _ = ref
-        b = {"t0": ts_ref - off_ref, "offsets": {s: off_ref - (ts_ref - ts) for s, ts, _, _ in blk}}
-        prev = self._prev_block.get(ch)
-        if prev is not None and abs(b["t0"] - prev["t0"]) <= LH2_MAX_TICKS_BETWEEN_BLOCKS:
-            del self._prev_block[ch]
-            P = LH2_CYCLE_PERIODS[ch]
-            raw = np.full((self.n, 2), np.nan)
-            for s_, off in prev["offsets"].items():
-                raw[s_, 0] = off * 2 * np.pi / P - np.pi + np.pi / 3
-            for s_, off in b["offsets"].items():
-                raw[s_, 1] = off * 2 * np.pi / P - np.pi - np.pi / 3
-            cal = self.calibs.get(ch)
-            ang = calibrate_lh2(raw, cal) if cal is not None else raw
-            t = prev["t0"] / DECK_CLOCK_HZ
-            self._emit(out, t, ch, 0, ang[:, 0], "lh2")
-            self._emit(out, t, ch, 1, ang[:, 1], "lh2")
-        else:
-            if prev is not None:
-                self.stats.drop("LH2 first plane without its second (no block of the channel within "
-                                "100 ticks of its rotor zero)", len(prev["offsets"]))
-            self._prev_block[ch] = b
+    def _rotation(self, rot, out: list) -> None:
+        """A rotation's offsets → both planes' angles (calibrated when the channel has a calibration),
+        emitted at the rotor zero."""
+        raw = plane_angles(rot.offsets, rot.channel)
+        cal = self.calibs.get(rot.channel)
+        ang = calibrate_lh2(raw, cal) if cal is not None else raw
+        t = rot.t0 / DECK_CLOCK_HZ
+        self._emit(out, t, rot.channel, 0, ang[:, 0], "lh2")
+        self._emit(out, t, rot.channel, 1, ang[:, 1], "lh2")
 
 
 class BitcrazeLh1Decoder(BitcrazeDecoder):
@@ -696,9 +550,9 @@ class BitcrazeLh2Decoder(BitcrazeDecoder):
     name = "bitcraze-lh2"
 
     def __init__(self, n_sensors: int | None = 4, *, system_config=None, calibrate: bool = True,
-                 time_offset_s: float = 0.0):
+                 time_offset_s: float = 0.0, time_rate: float = 1.0, pulse_processor: str = "phase"):
         super().__init__(n_sensors, mode="lh2", system_config=system_config, calibrate=calibrate,
-                         time_offset_s=time_offset_s)
+                         time_offset_s=time_offset_s, time_rate=time_rate, pulse_processor=pulse_processor)
 
 
 # ------------------------------------------------------------------------------ registry entries
