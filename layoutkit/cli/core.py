@@ -149,6 +149,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
             if "predicted_position_sigma_m" in summary:
                 click.echo(f"position scatter {summary['position_scatter_m'] * 1e3:.3f} mm; DOP prediction "
                            f"{summary['predicted_position_sigma_m'] * 1e3:.3f} mm")
+            if "precision_accuracy" in summary:
+                click.echo(f"precision vs accuracy: {summary['precision_accuracy']['message']}")
         if summary["solved"] == 0:
             fail(summary.get("reason", "no pose solved"), code=1)
         return

@@ -128,7 +128,9 @@ def _windows(fr: StationFrames, stations, window_s):
 
 def solve_joint_frames(fr: StationFrames, layout: Layout, stations, *, window_s: float | None = None,
                        motion_compensation: bool = False):
-    """Joint poses of every window: ``(t_window (W,), PnPResult (world frame), rows (W, S))``.
+    """Joint poses of every window: ``(t_window (W,), PnPResult (world frame), rows (W, S), info)``;
+    info: ``angles (W, S, n, 2)`` (each station's convention), and the ``dt``/``velocity`` of the
+    motion-compensated pass (None without it).
 
     motion_compensation : a second pass with the constant-velocity model, the velocity from the
     central differences of the first pass' poses, each station's rows at their own time.
@@ -138,6 +140,7 @@ def solve_joint_frames(fr: StationFrames, layout: Layout, stations, *, window_s:
 
     rows, tw, ang = _windows(fr, stations, WINDOW_S if window_s is None else window_s)
     res = solve_joint(layout.positions, ang, stations=stations)
+    info = {"angles": ang, "dt": None, "velocity": None}
     if motion_compensation and len(tw) >= 3:
         ok = res.success
         rv = matrix_to_rotvec(np.where(ok[:, None, None], res.rotation, np.eye(3)))
@@ -152,7 +155,8 @@ def solve_joint_frames(fr: StationFrames, layout: Layout, stations, *, window_s:
         dt = np.where(rows >= 0, fr.t[np.maximum(rows, 0)] - tw[:, None], 0.0)
         res = solve_joint(layout.positions, ang, stations=stations, dt=dt, velocity=(omega, vel),
                           initial=(res.rotation, res.translation))
-    return tw, res, rows
+        info.update(dt=dt, velocity=(omega, vel))
+    return tw, res, rows, info
 
 
 def _reference_poses(path, tw, tol_s):
@@ -453,9 +457,10 @@ def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, 
     if mode is None:
         mode = "joint" if len(present) > 1 else "per-station"
     if mode == "joint":
-        t, res, rows = solve_joint_frames(fr, layout, stations, motion_compensation=motion_compensation)
+        t, res, rows, info = solve_joint_frames(fr, layout, stations, motion_compensation=motion_compensation)
         st_col = np.full(len(t), JOINT)
         vis = np.all(np.isfinite(window_angles_of(fr, rows)), -1)
+        ang = info["angles"]
     else:
         if not present:
             raise ValueError(f"{frames_path}: no row's station matches the stations given")
@@ -465,6 +470,7 @@ def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, 
         res = solve_joint(layout.positions, ang, stations=stations)
         t, st_col = fr.t, sidx
         vis = np.all(np.isfinite(ang), -1)
+        info = {"dt": None, "velocity": None}
     rv = matrix_to_rotvec(np.where(np.isfinite(res.rotation), res.rotation, np.eye(3)))
     rv = np.where(np.isfinite(res.translation[:, :1]), rv, np.nan)
     if out:
@@ -485,6 +491,12 @@ def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, 
             if fin.any():
                 summary["predicted_position_sigma_m"] = float(np.sqrt(np.mean(d.pdop[fin] ** 2)) * sigma)
                 summary["predicted_attitude_sigma_deg"] = float(np.sqrt(np.mean(d.adop[fin] ** 2)) * sigma)
+    if res.success.any():
+        from .accuracy import precision_accuracy
+
+        summary["precision_accuracy"] = precision_accuracy(
+            layout.positions, stations, res.rotation, res.translation, ang, ok=res.success, ids=layout.ids,
+            sigma=sigma, rho=rho, dt=info["dt"], velocity=info["velocity"])
     if not res.success.any():
         summary["reason"] = f"no pose solved ({res.message})"
     return summary
