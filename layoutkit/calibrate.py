@@ -1,6 +1,6 @@
 """Self-calibration: bundle adjustment of station poses, station calibration and sensor offsets.
 
-About 700 lines, one problem kept together on purpose: the column layout, the analytic sparse
+About 1000 lines, one problem kept together on purpose: the column layout, the analytic sparse
 Jacobian, the Schur-complement LM, the covariance and the per-parameter report all index the
 same parameter vector; split, each piece would re-derive that layout.
 
@@ -59,6 +59,9 @@ __all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "j
            "STATIC_ROTATION_TOL"]
 
 UNOBSERVABLE_RATIO = 0.5
+#: The Schur LM stops when this many accepted steps together lowered the cost by less than STALL_RTOL of it.
+STALL_ITERATIONS = 10
+STALL_RTOL = 1e-6
 #: A body that stays within these of a segment's first pose (after a 9-sample running median) is at
 #: rest there: ~10x the per-window scatter of the static Vive devices of ``lh1_test_cal`` (0.4 mm,
 #: 0.23 deg: the lit set changes from window to window), far below any real motion.
@@ -921,7 +924,10 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
     Normal equations ``H = J^T W J``, ``b = J^T W r`` (W the IRLS weights); with pose blocks
     ``H_pp`` (K 6 × 6), ``H_pg``, ``H_gg``: ``S = H_gg - H_gp H_pp^-1 H_pg``,
     ``S dg = -(b_g - H_gp H_pp^-1 b_p)``, ``dp = -H_pp^-1 (b_p + H_pg dg)``; damping
-    ``lambda diag(H)``. Stops when a step lowers the cost by less than 1e-10 of it.
+    ``lambda diag(H)``. Stops when a step lowers the cost by less than 1e-10 of it, or when the last
+    :data:`STALL_ITERATIONS` accepted steps together lowered it by less than :data:`STALL_RTOL` of it
+    (a robust cost on real data creeps on by tiny steps along the weakly determined directions; the
+    parameters no longer change at any reported digit).
     Returns a namespace like ``least_squares``'s result (x, status, nfev, message, cost).
     """
     from types import SimpleNamespace
@@ -933,6 +939,7 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
     lam = 1e-4
     nfev, status, msg = 1, 0, "iteration limit reached"
     idx = np.arange(K) * 6
+    history = [cost]
     for it in range(max_iter):
         J = pb.jacobian(x, base).tocsc()
         w = _loss_weights(r, pb.m_data, loss, f_scale)
@@ -973,8 +980,13 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
         if not improved:
             status, msg = 2, "no step lowers the cost (converged to working precision)"
             break
+        history.append(cost)
         if gain <= 1e-10 * cost:
             status, msg = 1, f"converged (relative cost change {gain / max(cost, 1e-300):.1e})"
+            break
+        if len(history) > STALL_ITERATIONS and history[-1 - STALL_ITERATIONS] - cost <= STALL_RTOL * cost:
+            status, msg = 1, (f"converged (the last {STALL_ITERATIONS} steps lowered the cost by "
+                              f"{(history[-1 - STALL_ITERATIONS] - cost) / max(cost, 1e-300):.1e} of it)")
             break
     return SimpleNamespace(x=x, status=status, nfev=nfev, message=msg, cost=cost)
 

@@ -512,6 +512,16 @@ def solve_mode_option(f=None):
     return deco(f) if f is not None else deco
 
 
+def motion_compensation_option(f=None, *, help: str | None = None):
+    """``--motion-compensation/--no-motion-compensation`` (default None: the command decides, on for a
+    joint solve). The command receives ``motion_compensation``."""
+    deco = click.option("--motion-compensation/--no-motion-compensation", "motion_compensation", default=None,
+                        help=help or ("--solve joint: each station's angles at their own time in the 20 ms window, "
+                                      "the body at constant velocity (from the neighbouring poses); only windows "
+                                      "whose motion moves the angles by > 0.25 sigma. Default on."))
+    return deco(f) if f is not None else deco
+
+
 def scheduler_option(f=None):
     """``--scheduler ADDRESS|synchronous``: where Dask tasks run (default: a LocalCluster here).
 

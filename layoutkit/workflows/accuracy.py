@@ -177,8 +177,10 @@ def precision_accuracy(positions, stations, rotation, translation, angles, *, ok
     if at_rest and out.get("precision_within_lit_set") and out.get("scatter_all_windows"):
         pw, sa = out["precision_within_lit_set"], out["scatter_all_windows"]
         if pw["position_sd_mm"] > 0:
+            ratio = sa["position_sd_mm"] / pw["position_sd_mm"]
+            tail = ("the rest is systematic (lit-set dependent)" if ratio > 1.5
+                    else "the scatter is the noise")
             parts.append(f"at rest the position scatter over all windows is {sa['position_sd_mm']:.3g} mm, "
-                         f"{sa['position_sd_mm'] / pw['position_sd_mm']:.1f}x the {pw['position_sd_mm']:.3g} mm within one "
-                         "lit set (noise): the rest is systematic")
+                         f"{ratio:.1f}x the {pw['position_sd_mm']:.3g} mm within one lit set (noise): {tail}")
     out["message"] = "; ".join(parts) if parts else "not enough windows per sensor for a bias estimate"
     return out

@@ -1,93 +1,25 @@
-"""What ``layoutkit calibrate`` and ``layoutkit solve --solve joint`` do with files.
+"""What ``layoutkit calibrate`` does with files.
 
-Frame table (:mod:`layoutkit.io.frames`: ``t``, ``station``, ``th_x_<id>``, ``th_y_<id>``; radians,
-empty = not seen; LH1-equivalent sweep angles for every station, LH2 rows turned into light-plane
-angles here so that each station's calibrated forward model applies) →
-joint time windows (:func:`layoutkit.joint.group_windows`, 20 ms) → the bundle adjustment of
-:mod:`layoutkit.calibrate` or the joint solve of :mod:`layoutkit.joint`.
+One or several devices' frame tables (:mod:`layoutkit.workflows.joint_solve`: the joint windows,
+each station's convention) → the bundle adjustment over all devices at once and its
+cross-validation (:mod:`layoutkit.workflows.calibrate_devices`, :mod:`layoutkit.calibrate`) →
+``stations.json``, the adjusted layout(s), ``report.json``, ``residuals.png``.
 """
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
 import numpy as np
 
 from ..layout import Layout
+from .joint_solve import (StationFrames, frame_file_stations, read_station_frames, solve_joint_frames,  # noqa: F401
+                          solve_station_file, station_index, window_table)
 
-__all__ = ["StationFrames", "read_station_frames", "station_index", "calibrate_files", "solve_joint_frames",
-           "solve_station_file", "window_table", "residual_summary"]
-
-
-class StationFrames:
-    """Rows of a frame table: ``t (R,)`` s, ``station (R,)`` text, ``angles (R, n, 2)`` rad in the
-    layout's sensor order (NaN = not seen)."""
-
-    def __init__(self, t, station, angles):
-        self.t, self.station, self.angles = t, station, angles
-
-
-def read_station_frames(path, layout: Layout) -> StationFrames:
-    """Read a frame table (:func:`layoutkit.io.frames.read_frame_table`; no ``station`` column = every
-    row station 0). ValueError naming the file, line and field. Infinite angles count as not seen."""
-    from ..io.frames import read_frame_table
-
-    fr = read_frame_table(path, layout.ids)
-    ang = np.array(fr.angles, float)
-    ang[~np.isfinite(ang)] = np.nan
-    st = fr.stations() if hasattr(fr, "stations") else (fr.station if fr.station is not None else np.zeros(len(fr.t), int))
-    return StationFrames(np.asarray(fr.t, float), np.asarray([str(int(x)) for x in st]), ang)
-
-
-def station_index(labels, stations) -> np.ndarray:
-    """Frame-table station labels → indices into ``stations`` (by id, else by integer position);
-    -1 for a label that matches neither."""
-    ids = {str(s.id): k for k, s in enumerate(stations)}
-    out = np.full(len(labels), -1)
-    for lab in np.unique(labels):
-        k = ids.get(str(lab))
-        if k is None:
-            try:
-                v = int(float(lab))
-                k = v if 0 <= v < len(stations) else None
-            except ValueError:
-                k = None
-        if k is not None:
-            out[np.asarray(labels) == lab] = k
-    return out
-
-
-def frame_file_stations(frames_path, stations_path) -> int:
-    """How many of the stations file's stations appear in the frame table's ``station`` column."""
-    from ..io.stations import read_stations
-
-    stations = read_stations(stations_path)
-    path = Path(frames_path)
-    try:
-        with open(path, newline="") as fh:
-            rd = csv.reader(fh)
-            header = next(rd, None) or []
-            if "station" not in header:
-                return 1
-            k = header.index("station")
-            labels = {r[k].strip() for r in rd if len(r) > k}
-    except (OSError, UnicodeDecodeError):
-        raise ValueError(f"{path}: cannot read the frame table") from None
-    return int(len(set(station_index(sorted(labels), stations).tolist()) - {-1}))
-
-
-def to_station_convention(angles, stations, sidx) -> np.ndarray:
-    """Frame-table angles (LH1-equivalent sweep angles for every station, docs/frames.md) → each row's
-    station convention: LH2 stations get light-plane angles (:func:`layoutkit.lighthouse.sweep_to_lh2_angles`)."""
-    from ..lighthouse import sweep_to_lh2_angles
-
-    out = np.array(angles, float)
-    for q, st in enumerate(stations):
-        if st.kind == "lh2":
-            m = sidx == q
-            out[m] = sweep_to_lh2_angles(out[m])
-    return out
+__all__ = ["calibrate_files", "residual_summary",
+           # the frame-table side lives in joint_solve (re-exported: older imports keep working)
+           "StationFrames", "read_station_frames", "station_index", "frame_file_stations", "solve_joint_frames",
+           "solve_station_file", "window_table"]
 
 
 def residual_summary(res, stations, layout: Layout) -> dict:
@@ -105,58 +37,6 @@ def residual_summary(res, stations, layout: Layout) -> dict:
     out["per_sensor"] = {sid: {str(st.id): {ax: stats(res[:, s, i, k])["rms_rad"] for k, ax in enumerate("xy")}
                                for s, st in enumerate(stations)} for i, sid in enumerate(layout.ids)}
     return out
-
-
-def window_table(fr: StationFrames, stations, window_s):
-    """A frame table's rows → joint windows: ``rows (W, S)``, ``t_window (W,)``, angles ``(W, S, n, 2)``
-    in each station's convention (:func:`to_station_convention`); ValueError when no row's station
-    label matches the stations."""
-    return _windows(fr, stations, window_s)
-
-
-def _windows(fr: StationFrames, stations, window_s):
-    from ..joint import group_windows, window_angles
-
-    sidx = station_index(fr.station, stations)
-    if not np.any(sidx >= 0):
-        raise ValueError(f"no frame-table station label matches the stations given "
-                         f"({', '.join(sorted(set(map(str, fr.station))))[:80]} vs "
-                         f"{', '.join(str(s.id) for s in stations)})")
-    rows, tw = group_windows(fr.t, sidx, len(stations), window_s)
-    return rows, tw, window_angles(to_station_convention(fr.angles, stations, sidx), rows)
-
-
-def solve_joint_frames(fr: StationFrames, layout: Layout, stations, *, window_s: float | None = None,
-                       motion_compensation: bool = False):
-    """Joint poses of every window: ``(t_window (W,), PnPResult (world frame), rows (W, S), info)``;
-    info: ``angles (W, S, n, 2)`` (each station's convention), and the ``dt``/``velocity`` of the
-    motion-compensated pass (None without it).
-
-    motion_compensation : a second pass with the constant-velocity model, the velocity from the
-    central differences of the first pass' poses, each station's rows at their own time.
-    """
-    from ..geometry import matrix_to_rotvec
-    from ..joint import WINDOW_S, solve_joint
-
-    rows, tw, ang = _windows(fr, stations, WINDOW_S if window_s is None else window_s)
-    res = solve_joint(layout.positions, ang, stations=stations)
-    info = {"angles": ang, "dt": None, "velocity": None}
-    if motion_compensation and len(tw) >= 3:
-        ok = res.success
-        rv = matrix_to_rotvec(np.where(ok[:, None, None], res.rotation, np.eye(3)))
-        tr = np.where(ok[:, None], res.translation, np.nan)
-        omega = np.zeros((len(tw), 3))
-        vel = np.zeros((len(tw), 3))
-        g = np.flatnonzero(ok)
-        if g.size >= 3:
-            for comp, src in ((vel, tr), (omega, rv)):
-                for c in range(3):
-                    comp[:, c] = np.interp(tw, tw[g], np.gradient(src[g, c], tw[g]))
-        dt = np.where(rows >= 0, fr.t[np.maximum(rows, 0)] - tw[:, None], 0.0)
-        res = solve_joint(layout.positions, ang, stations=stations, dt=dt, velocity=(omega, vel),
-                          initial=(res.rotation, res.translation))
-        info.update(dt=dt, velocity=(omega, vel))
-    return tw, res, rows, info
 
 
 def _reference_poses(path, tw, tol_s):
@@ -427,82 +307,3 @@ def _determined(parameters) -> dict:
     return groups
 
 
-def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, mode: str | None = None,
-                       sigma: float | None = None, rho: float = 0.0, motion_compensation: bool = False,
-                       ignore_calibration: bool = False) -> dict:
-    """``layoutkit solve FRAMES --stations S [--solve joint|per-station]``: poses in the stations' world
-    frame through each station's forward model (calibration included).
-
-    mode : "joint" (one pose per window, station ``joint``), "per-station" (one pose per row, the
-    row's station) or None (joint when the file has several stations). Writes the pose table to
-    ``out`` (t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m) and returns a summary
-    with status counts and, with ``sigma``, the DOP-predicted position precision of the geometry.
-    ignore_calibration : drop the stations' calibrations (the ideal model, for comparison).
-    """
-    from ..dop import pose_dop
-    from ..geometry import matrix_to_rotvec
-    from ..io.poses import JOINT, PoseTable, write_poses
-    from ..io.stations import read_stations
-    from ..joint import solve_joint
-    from ..pnp import STATUS_NAMES
-
-    stations = list(read_stations(stations_path))
-    if ignore_calibration:
-        from dataclasses import replace
-
-        stations = [replace(s, calibration=None) for s in stations]
-    fr = read_station_frames(frames_path, layout)
-    sidx = station_index(fr.station, stations)
-    present = sorted(set(sidx[sidx >= 0].tolist()))
-    if mode is None:
-        mode = "joint" if len(present) > 1 else "per-station"
-    if mode == "joint":
-        t, res, rows, info = solve_joint_frames(fr, layout, stations, motion_compensation=motion_compensation)
-        st_col = np.full(len(t), JOINT)
-        vis = np.all(np.isfinite(window_angles_of(fr, rows)), -1)
-        ang = info["angles"]
-    else:
-        if not present:
-            raise ValueError(f"{frames_path}: no row's station matches the stations given")
-        ang = np.full((len(fr.t), len(stations), layout.n, 2), np.nan)
-        ok = sidx >= 0
-        ang[np.flatnonzero(ok), sidx[ok]] = to_station_convention(fr.angles, stations, sidx)[ok]
-        res = solve_joint(layout.positions, ang, stations=stations)
-        t, st_col = fr.t, sidx
-        vis = np.all(np.isfinite(ang), -1)
-        info = {"dt": None, "velocity": None}
-    rv = matrix_to_rotvec(np.where(np.isfinite(res.rotation), res.rotation, np.eye(3)))
-    rv = np.where(np.isfinite(res.translation[:, :1]), rv, np.nan)
-    if out:
-        write_poses(out, PoseTable(t, rv, res.translation, station=st_col, status=res.status,
-                                   residual_rms=res.residual_rms))
-    counts = {STATUS_NAMES.get(int(k), str(int(k))): int(v) for k, v in zip(*np.unique(res.status, return_counts=True))}
-    summary = {"mode": mode, "rows": int(len(fr.t)), "poses": int(len(t)), "solved": int(res.success.sum()),
-               "status_counts": counts, "stations": [str(s.id) for s in stations],
-               "median_residual_rms_rad": float(np.nanmedian(res.residual_rms)) if res.success.any() else None}
-    if res.success.any():
-        tr = res.translation[res.success]
-        summary["position_scatter_m"] = float(np.sqrt(np.mean(np.sum((tr - tr.mean(0)) ** 2, 1))))
-        if sigma is not None:
-            g = np.flatnonzero(res.success)
-            d = pose_dop(layout.positions, res.rotation[g], res.translation[g], rho=rho, stations=stations,
-                         visible=vis[g])
-            fin = np.isfinite(d.pdop)
-            if fin.any():
-                summary["predicted_position_sigma_m"] = float(np.sqrt(np.mean(d.pdop[fin] ** 2)) * sigma)
-                summary["predicted_attitude_sigma_deg"] = float(np.sqrt(np.mean(d.adop[fin] ** 2)) * sigma)
-    if res.success.any():
-        from .accuracy import precision_accuracy
-
-        summary["precision_accuracy"] = precision_accuracy(
-            layout.positions, stations, res.rotation, res.translation, ang, ok=res.success, ids=layout.ids,
-            sigma=sigma, rho=rho, dt=info["dt"], velocity=info["velocity"])
-    if not res.success.any():
-        summary["reason"] = f"no pose solved ({res.message})"
-    return summary
-
-
-def window_angles_of(fr: StationFrames, rows):
-    from ..joint import window_angles
-
-    return window_angles(fr.angles, rows)

@@ -68,7 +68,7 @@ def device_windows(name: str, frames, layout: Layout, stations, *, window_s: flo
     windows, the factory joint solve and its static segments (``segments=False``: one pose per window)."""
     from ..calibrate import static_segments
     from ..joint import WINDOW_S, solve_joint
-    from .calibrate import window_table
+    from .joint_solve import window_table
 
     rows, tw, ang = window_table(frames, stations, WINDOW_S if window_s is None else window_s)
     start = solve_joint(layout.positions, ang, stations=stations)

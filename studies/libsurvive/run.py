@@ -1,0 +1,420 @@
+"""Every public libsurvive recording through layoutkit (issue 26 item 6).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python studies/libsurvive/run.py            # every recording
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python studies/libsurvive/run.py --only lh1_test_cal --no-calibrate
+
+Recordings: ``/work/shared/data/libsurvive/*.rec.gz`` and ``~/.cache/layoutkit-realdata/survive/*.rec.gz``
+(``jdavidberger/libsurvive-extras-data``, MIT; the cache is made by ``shared/realdata/prepare.sh``;
+none of it is copied here — only results). A name found in both places is the same file.
+
+Per device (``layoutkit import libsurvive`` → frame table, layout from the device's CONFIG,
+stations from the recording's ``.json`` / ``LH_POSE``, factory calibration):
+
+- **statuses** of the joint solve (20 ms windows, every station through its calibrated model) and
+  of the per-station solve; windows whose pose used exactly 6 angles (no redundancy: angles =
+  unknowns, the residual is ~0 whatever the error) are counted;
+- **residuals**: median per-window RMS, joint and per station (the per-station solve);
+- **motion**: the body speed of each window (central differences of our joint poses) and the
+  joint residual per speed bin with and without motion compensation (each station's rows at
+  their own time, constant velocity across the window: ``solve --solve joint --motion``);
+- **libsurvive's own poses** (``POSE`` lines, else its ``EXTERNAL_POSE`` replay solution) reprojected
+  on the same recorded angles through the same stations, per speed bin. libsurvive reports the pose
+  of its own body frame (the IMU / head frame), a constant transform from the layout's frame; that
+  transform is fitted here to minimise libsurvive's own reprojection residual (6 parameters for the
+  whole recording: the comparison favours libsurvive);
+- **precision vs accuracy** (:func:`layoutkit.workflows.accuracy.precision_accuracy`);
+- **calibration** (per recording, all its devices at once: ``layoutkit calibrate`` with
+  ``--sensor-offsets --station-prior-deg 0.3 --station-prior-mm 10``): each device's joint residual
+  with the given stations, the calibrated ones, and with its own fitted terms, and the
+  cross-validation folds (device folds: the held-out device with its nominal layout; time fold).
+
+Outputs in ``studies/libsurvive/results/``: ``results.json``, ``results.md`` (tables) and figures.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # before numpy: BLAS threads only fight on a shared machine
+import numpy as np  # noqa: E402
+
+HERE = Path(__file__).parent
+OUT = HERE / "results"
+SOURCES = (Path("/work/shared/data/libsurvive"), Path.home() / ".cache" / "layoutkit-realdata" / "survive")
+SPEED_BINS = (0.0, 0.05, 0.2, 0.5, 1.0, np.inf)          # m/s
+CAL_PRIOR = (np.deg2rad(0.3), 0.01)                     # station prior of the study's calibrate runs
+CAL_MAX_WINDOWS = 150                                     # per device
+MIN_WINDOWS_FOR_CAL = 50
+
+
+def recordings(only=None):
+    seen = {}
+    for src in SOURCES:
+        for p in sorted(src.glob("*.rec.gz")):
+            if p.name not in seen and (only is None or any(o in p.name for o in only)):
+                seen[p.name] = p
+    return list(seen.values())
+
+
+def _stats(x):
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return {"n": int(x.size), "median": float(np.median(x)) if x.size else None,
+            "p90": float(np.percentile(x, 90)) if x.size else None}
+
+
+def _speed(tw, res):
+    """Body speed (m/s) of each window: central differences of the solved positions over windows
+    less than 0.1 s apart (NaN elsewhere)."""
+    ok = res.success & np.all(np.isfinite(res.translation), 1)
+    v = np.full(len(tw), np.nan)
+    g = np.flatnonzero(ok)
+    if g.size < 3:
+        return v
+    t, p = tw[g], res.translation[g]
+    for k in range(1, g.size - 1):
+        if t[k + 1] - t[k - 1] < 0.1:
+            v[g[k]] = np.linalg.norm(p[k + 1] - p[k - 1]) / (t[k + 1] - t[k - 1])
+    return v
+
+
+def _by_speed(speed, value):
+    out = []
+    for lo, hi in zip(SPEED_BINS[:-1], SPEED_BINS[1:]):
+        m = (speed >= lo) & (speed < hi) & np.isfinite(value)
+        out.append({"lo_m_s": lo, "hi_m_s": None if not np.isfinite(hi) else hi, "windows": int(m.sum()),
+                    "median_rad": float(np.median(value[m])) if m.any() else None})
+    return out
+
+
+def _reference(ddir: Path, dev: str, root: Path):
+    """libsurvive's poses of the device: POSE lines (``reference.csv``), else the EXTERNAL_POSE replay
+    solution of ``replay_<dev>``; (label, PoseTable) or None."""
+    from layoutkit.io.poses import read_poses
+
+    for label, path in (("POSE", ddir / "reference.csv"), ("EXTERNAL_POSE", root / f"replay_{dev}" / "reference_external.csv"),
+                        ("EXTERNAL_POSE", ddir / "reference_external.csv")):
+        if path.exists():
+            tab = read_poses(path)
+            if len(tab.t) >= 10:
+                return label, tab
+    return None
+
+
+def libsurvive_reprojection(positions, stations, tw, angles, ref, max_fit: int = 400, seed: int = 0):
+    """Per-window RMS residual (rad) of libsurvive's poses on the recorded ``angles (W, S, n, 2)``,
+    interpolated to the window times ``tw`` (slerp; only inside its time range and gaps < 0.1 s),
+    after the constant body-frame transform that minimises that residual (fitted, soft-L1, on at most
+    ``max_fit`` windows). Returns ``(rms (W,), transform {rotvec_deg, translation_mm})``."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from layoutkit.joint import model_angles_jacobian
+
+    o = np.argsort(ref.t)
+    t = ref.t[o]
+    rv, tr = ref.rotvec[o], ref.translation[o]
+    keep = np.concatenate([[True], np.diff(t) > 0]) & np.all(np.isfinite(rv), 1) & np.all(np.isfinite(tr), 1)
+    t, rv, tr = t[keep], rv[keep], tr[keep]
+    out = np.full(len(tw), np.nan)
+    if t.size < 2:
+        return out, None
+    k = np.clip(np.searchsorted(t, tw), 1, t.size - 1)
+    inside = (tw >= t[0]) & (tw <= t[-1]) & (t[k] - t[k - 1] < 0.1)
+    inside &= np.isfinite(angles).any(axis=(1, 2, 3))
+    if inside.sum() < 5:
+        return out, None
+    Rl = Slerp(t, Rotation.from_rotvec(rv))(tw[inside]).as_matrix()
+    Tl = np.stack([np.interp(tw[inside], t, tr[:, c]) for c in range(3)], 1)
+    A = angles[inside]
+
+    def resid(x, idx):
+        Rx = Rotation.from_rotvec(x[:3]).as_matrix()
+        R = Rl[idx] @ Rx
+        T = Tl[idx] + Rl[idx] @ x[3:]
+        pred, _, _ = model_angles_jacobian(positions, R, T, stations, jacobian=False)
+        r = (A[idx] - pred + np.pi) % (2 * np.pi) - np.pi
+        return r, R, T
+
+    rng = np.random.default_rng(seed)
+    fit = np.arange(inside.sum())
+    if fit.size > max_fit:
+        fit = np.sort(rng.choice(fit, max_fit, replace=False))
+    # start: libsurvive frame → layout frame as the median of the per-window transforms is not known
+    # here; start from identity and from the four 180-degree turns (IMU frames are often flipped)
+    best = None
+    for r0 in ([0, 0, 0], [np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi]):
+        x0 = np.array(r0 + [0.0, 0.0, 0.0], float)
+        f = lambda x: np.nan_to_num(resid(x, fit)[0][np.isfinite(A[fit])], nan=0.0)  # noqa: E731
+        sol = least_squares(f, x0, loss="soft_l1", f_scale=1e-3, max_nfev=200)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    r, _, _ = resid(best.x, np.arange(inside.sum()))
+    out[inside] = np.sqrt(np.nanmean(r.reshape(len(r), -1) ** 2, axis=1))
+    return out, {"rotvec_deg": np.degrees(best.x[:3]).tolist(), "translation_mm": (best.x[3:] * 1e3).tolist()}
+
+
+def study_device(name, ddir: Path, root: Path, stations):
+    from layoutkit.layout import load_layout
+    from layoutkit.pnp import STATUS_NAMES
+    from layoutkit.workflows.accuracy import precision_accuracy
+    from layoutkit.workflows.calibrate import read_station_frames, solve_joint_frames, station_index, to_station_convention
+    from layoutkit.joint import solve_joint
+
+    lay = load_layout(ddir / "layout.json")
+    fr = read_station_frames(ddir / "frames.csv", lay)
+    tw, res, rows, info = solve_joint_frames(fr, lay, stations)
+    ang = info["angles"]
+    used = (np.isfinite(ang) & np.isfinite(res.translation[:, 0])[:, None, None, None]).sum(axis=(1, 2, 3))
+    counts = {STATUS_NAMES.get(int(k), str(int(k))): int(v) for k, v in zip(*np.unique(res.status, return_counts=True))}
+    ok = res.success
+    out = {"rows": int(len(fr.t)), "windows": int(len(tw)), "sensors": int(lay.n),
+           "duration_s": float(tw[-1] - tw[0]) if len(tw) else 0.0,
+           "joint": {"status_counts": counts, "solved": int(ok.sum()),
+                     "no_redundancy_ok": int(np.sum(ok & (used == 6))),
+                     "one_spare_angle_ok": int(np.sum(ok & (used == 7))),
+                     "residual": _stats(res.residual_rms[ok])}}
+    # per-station solve: each row alone through its station's model
+    sidx = station_index(fr.station, stations)
+    A1 = np.full((len(fr.t), len(stations), lay.n, 2), np.nan)
+    m = sidx >= 0
+    A1[np.flatnonzero(m), sidx[m]] = to_station_convention(fr.angles, stations, sidx)[m]
+    r1 = solve_joint(lay.positions, A1, stations=stations)
+    used1 = np.isfinite(A1).sum(axis=(1, 2, 3))
+    out["per_station"] = {}
+    for q, st in enumerate(stations):
+        mm = sidx == q
+        if not mm.any():
+            continue
+        c = {STATUS_NAMES.get(int(k), str(int(k))): int(v) for k, v in zip(*np.unique(r1.status[mm], return_counts=True))}
+        out["per_station"][str(st.id)] = {"rows": int(mm.sum()), "status_counts": c,
+                                          "no_redundancy_ok": int(np.sum(mm & r1.success & (used1 == 6))),
+                                          "residual": _stats(r1.residual_rms[mm & r1.success])}
+    # motion: speed per window, joint residual by speed with and without motion compensation
+    speed = _speed(tw, res)
+    _, resm, _, _ = solve_joint_frames(fr, lay, stations, motion_compensation=True)
+    out["speed"] = _stats(speed)
+    out["residual_by_speed"] = {"static_model": _by_speed(speed, np.where(ok, res.residual_rms, np.nan)),
+                                "motion_compensated": _by_speed(speed, np.where(resm.success, resm.residual_rms, np.nan))}
+    # libsurvive's own poses on the same angles
+    ref = _reference(ddir, name, root)
+    if ref is not None:
+        rms, xf = libsurvive_reprojection(lay.positions, stations, tw, ang, ref[1])
+        both = ok & np.isfinite(rms)
+        out["libsurvive"] = {"source": ref[0], "poses": int(len(ref[1].t)), "body_transform": xf,
+                             "windows_compared": int(both.sum()),
+                             "reprojection": _stats(rms[both]), "ours_same_windows": _stats(res.residual_rms[both]),
+                             "ours_motion_same_windows": _stats(resm.residual_rms[both & resm.success]),
+                             "by_speed": _by_speed(speed, np.where(both, rms, np.nan))}
+    pa = precision_accuracy(lay.positions, stations, res.rotation, res.translation, ang, ok=ok, ids=lay.ids)
+    pa.get("sensor_bias", {}).pop("per_sensor_axis", None)
+    out["precision_accuracy"] = pa
+    return out, {"tw": tw, "speed": speed, "res": res.residual_rms, "ok": ok, "resm": resm.residual_rms,
+                 "okm": resm.success, "libsurvive": out.get("libsurvive") and rms}
+
+
+def calibrate_recording(root: Path, devices, stations_path, cal_dir: Path):
+    from layoutkit.units import ARCSEC
+    from layoutkit.workflows.calibrate import calibrate_files
+
+    frames = [root / d / "frames.csv" for d in devices]
+    layouts = [root / d / "layout.json" for d in devices]
+    t0 = time.time()
+    rep = calibrate_files(frames, layouts, stations_path, cal_dir, sigma=4.0 * ARCSEC, sensor_offsets=True,
+                          station_prior=CAL_PRIOR, max_samples=CAL_MAX_WINDOWS, seed=0)
+    keep = ("samples", "samples_with_start", "message", "residual_scale_sigma", "devices", "transfer",
+            "stations_written", "determined", "median_sample_residual_rms_rad")
+    out = {k: rep[k] for k in keep}
+    out["seconds"] = time.time() - t0
+    return out
+
+
+def study_recording(path: Path, work: Path, calibrate: bool):
+    from layoutkit.io.stations import read_stations
+    from layoutkit.workflows.importers import import_libsurvive
+
+    t0 = time.time()
+    out = {"file": str(path), "bytes": path.stat().st_size}
+    root = work / path.name.replace(".rec.gz", "")
+    try:
+        summ = import_libsurvive(path, root)
+    except ValueError as exc:
+        out["import_error"] = str(exc)
+        return out, {}
+    out["truncated"] = summ["truncated"]
+    out["ended"] = summ["ended"]
+    st_info = summ.get("stations", {})
+    out["stations"] = [{k: i[k] for k in ("id", "source_id", "kind", "pose_source", "channel")} for i in st_info.get("stations", [])]
+    if not st_info:
+        out["error"] = "no stations (no light data or config)"
+        return out, {}
+    stations = list(read_stations(root / "stations.json"))
+    out["devices"] = {}
+    series = {}
+    for dev, info in summ["devices"].items():
+        if "frames_file" not in info:
+            if "frames_error" in info or "layout_error" in info:
+                out["devices"][dev] = {"skipped": info.get("frames_error") or info.get("layout_error")}
+            continue
+        if info.get("frames", 0) < 20:
+            out["devices"][dev] = {"skipped": f"{info.get('frames', 0)} frames"}
+            continue
+        d, s = study_device(dev, root / dev, root, stations)
+        out["devices"][dev] = d
+        series[dev] = s
+    usable = [dev for dev, d in out["devices"].items() if d.get("joint", {}).get("solved", 0) >= MIN_WINDOWS_FOR_CAL]
+    if calibrate and usable:
+        try:
+            out["calibration"] = calibrate_recording(root, usable, root / "stations.json", work / (root.name + "_cal"))
+        except ValueError as exc:
+            out["calibration"] = {"error": str(exc)}
+    out["seconds"] = time.time() - t0
+    return out, series
+
+
+def _fmt(v, f="{:.3g}"):
+    return "–" if v is None else f.format(v)
+
+
+def write_markdown(results, path: Path):
+    L = ["# libsurvive recordings through layoutkit (issue 26)", "",
+         "Generated by `studies/libsurvive/run.py`; numbers in rad unless marked. Joint = one pose per 20 ms window "
+         "from every station through its factory-calibrated model. *no-red.* = solved windows whose pose used exactly "
+         "6 angles (no redundancy). libsurvive = its own poses reprojected on the same angles (its body frame fitted "
+         "to favour it).", "",
+         "| recording | device | windows | solved | no-red. | joint median | per-station medians | libsurvive median | speed p90 m/s |",
+         "|---|---|---|---|---|---|---|---|---|"]
+    for rec in results:
+        name = Path(rec["file"]).name
+        if "import_error" in rec or "error" in rec:
+            L.append(f"| {name} | – | – | – | – | – | – | – | {rec.get('import_error') or rec.get('error')} |")
+            continue
+        for dev, d in rec["devices"].items():
+            if "skipped" in d:
+                L.append(f"| {name} | {dev} | skipped: {d['skipped']} | | | | | | |")
+                continue
+            ps = ", ".join(f"{k}: {_fmt(v['residual']['median'])}" for k, v in d["per_station"].items())
+            ls = d.get("libsurvive", {}).get("reprojection", {}).get("median")
+            L.append(f"| {name} | {dev} | {d['windows']} | {d['joint']['solved']} | {d['joint']['no_redundancy_ok']} | "
+                     f"{_fmt(d['joint']['residual']['median'])} | {ps} | {_fmt(ls)} | {_fmt(d['speed']['p90'], '{:.2f}')} |")
+    L += ["", "## Joint residual by speed (median per-window RMS): static model / motion-compensated / libsurvive", "",
+          "| recording | device | " + " | ".join(f"{lo}-{hi if np.isfinite(hi) else '∞'} m/s" for lo, hi in
+                                                zip(SPEED_BINS[:-1], SPEED_BINS[1:])) + " |",
+          "|---|---|" + "---|" * (len(SPEED_BINS) - 1)]
+    for rec in results:
+        for dev, d in rec.get("devices", {}).items():
+            if "residual_by_speed" not in d:
+                continue
+            a, b = d["residual_by_speed"]["static_model"], d["residual_by_speed"]["motion_compensated"]
+            c = d.get("libsurvive", {}).get("by_speed") or [{"median_rad": None}] * len(a)
+            cells = [f"{_fmt(x['median_rad'])} / {_fmt(y['median_rad'])} / {_fmt(z['median_rad'])} (n={x['windows']})"
+                     for x, y, z in zip(a, b, c)]
+            L.append(f"| {Path(rec['file']).name} | {dev} | " + " | ".join(cells) + " |")
+    L += ["", "## Calibration (all devices of a recording at once) and cross-validation", "",
+          "| recording | device | given stations | calibrated stations | + own terms | folds (held out: given → calibrated, verdict) | stations written |",
+          "|---|---|---|---|---|---|---|"]
+    for rec in results:
+        cal = rec.get("calibration")
+        if not cal:
+            continue
+        if "error" in cal:
+            L.append(f"| {Path(rec['file']).name} | – | {cal['error']} | | | | |")
+            continue
+        folds = "; ".join(f"{f['held_out']}: {_fmt(f['factory_rad'])} → {_fmt(f['calibrated_rad'])} {f['verdict']}"
+                          for f in cal["transfer"]["folds"])
+        for k, (dev, d) in enumerate(cal["devices"].items()):
+            j = d["joint_residual_median_rad"]
+            L.append(f"| {Path(rec['file']).name} | {dev}{' (at rest)' if d['at_rest'] else ''} | {_fmt(j['given_stations'])} | "
+                     f"{_fmt(j['calibrated_stations'])} | {_fmt(j['calibrated_stations_and_own_layout'])} | "
+                     f"{folds if k == 0 else ''} | {cal['stations_written'] if k == 0 else ''} |")
+    L += ["", "## Precision vs accuracy (per device)", ""]
+    for rec in results:
+        for dev, d in rec.get("devices", {}).items():
+            if "precision_accuracy" in d:
+                L.append(f"- {Path(rec['file']).name} {dev}: {d['precision_accuracy']['message']}")
+    path.write_text("\n".join(L) + "\n")
+
+
+def figures(results, series, out: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from layoutkit.io.figures import save_figure
+
+    # 1. residual vs speed, with / without motion, libsurvive, for devices that moved
+    moving = [(r, dev) for r in results for dev, d in r.get("devices", {}).items()
+              if d.get("speed", {}).get("p90") and d["speed"]["p90"] > 0.2 and (Path(r["file"]).name, dev) in series]
+    if moving:
+        n = len(moving)
+        fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.2), squeeze=False)
+        for ax, (r, dev) in zip(axes[0], moving):
+            s = series[(Path(r["file"]).name, dev)]
+            sp = s["speed"]
+            ax.loglog(np.clip(sp, 1e-3, None)[s["ok"]], s["res"][s["ok"]], ".", ms=1.5, alpha=0.35, label="static model")
+            ax.loglog(np.clip(sp, 1e-3, None)[s["okm"]], s["resm"][s["okm"]], ".", ms=1.5, alpha=0.35, label="motion-compensated")
+            if s["libsurvive"] is not None:
+                ax.loglog(np.clip(sp, 1e-3, None), s["libsurvive"], ".", ms=1.5, alpha=0.35, label="libsurvive's poses")
+            ax.set_xlabel("body speed (m/s)")
+            ax.set_ylabel("joint residual RMS (rad)")
+            ax.set_title(f"{Path(r['file']).name.replace('.rec.gz', '')}\n{dev}", fontsize=8)
+            ax.legend(fontsize=6, markerscale=5)
+        fig.suptitle("Joint residual vs body speed (libsurvive recordings)", fontsize=9)
+        fig.tight_layout()
+        save_figure(fig, out / "residual_vs_speed.png",
+                    caption="Per-window joint residual RMS against the body speed: our joint solve with the static "
+                            "model, with motion compensation, and libsurvive's own poses reprojected on the same angles.")
+    # 2. joint residual per device: ours, libsurvive, calibrated
+    rows = [(Path(r["file"]).name.replace(".rec.gz", ""), dev, d) for r in results
+            for dev, d in r.get("devices", {}).items() if "joint" in d]
+    if rows:
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(rows)), 3.6))
+        x = np.arange(len(rows))
+        ours = [d["joint"]["residual"]["median"] or np.nan for _, _, d in rows]
+        ls = [d.get("libsurvive", {}).get("reprojection", {}).get("median") or np.nan for _, _, d in rows]
+        ax.bar(x - 0.2, ours, 0.4, label="ours (joint, factory stations)")
+        ax.bar(x + 0.2, ls, 0.4, label="libsurvive's poses")
+        ax.set_yscale("log")
+        ax.set_xticks(x, [f"{a}\n{b}" for a, b, _ in rows], rotation=90, fontsize=6)
+        ax.set_ylabel("median per-window residual RMS (rad)")
+        ax.set_xlabel("recording / device")
+        ax.set_title("Joint residual per device: ours vs libsurvive's poses", fontsize=9)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        save_figure(fig, out / "residual_per_device.png",
+                    caption="Median per-window residual RMS of every device: our joint poses and libsurvive's own "
+                            "poses on the same recorded angles and stations.")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--only", nargs="*", help="recordings whose name contains one of these")
+    ap.add_argument("--no-calibrate", action="store_true")
+    ap.add_argument("--out", default=str(OUT))
+    a = ap.parse_args()
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results, series = [], {}
+    with tempfile.TemporaryDirectory(prefix="libsurvive_study_") as tmp:
+        for p in recordings(a.only):
+            print(f"{p.name} ...", flush=True)
+            r, s = study_recording(p, Path(tmp), not a.no_calibrate)
+            results.append(r)
+            for dev, v in s.items():
+                series[(p.name, dev)] = v
+            print(f"  done in {r.get('seconds', 0):.0f} s", flush=True)
+            from layoutkit.io.jsonfile import to_jsonable
+            from layoutkit.io.atomic import atomic_write_text
+
+            atomic_write_text(out / "results.json", json.dumps(to_jsonable({"recordings": results}), indent=1) + "\n")
+    write_markdown(results, out / "results.md")
+    figures(results, series, out)
+
+
+if __name__ == "__main__":
+    main()
