@@ -926,8 +926,9 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
     ``S dg = -(b_g - H_gp H_pp^-1 b_p)``, ``dp = -H_pp^-1 (b_p + H_pg dg)``; damping
     ``lambda diag(H)``. Stops when a step lowers the cost by less than 1e-10 of it, or when the last
     :data:`STALL_ITERATIONS` accepted steps together lowered it by less than :data:`STALL_RTOL` of it
-    (a robust cost on real data creeps on by tiny steps along the weakly determined directions; the
-    parameters no longer change at any reported digit).
+    or by less than 0.5 (the cost is half the chi-square: the parameters moved by well under one
+    standard deviation; a robust cost on real data creeps on by tiny steps along the weakly
+    determined directions).
     Returns a namespace like ``least_squares``'s result (x, status, nfev, message, cost).
     """
     from types import SimpleNamespace
@@ -984,7 +985,7 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
         if gain <= 1e-10 * cost:
             status, msg = 1, f"converged (relative cost change {gain / max(cost, 1e-300):.1e})"
             break
-        if len(history) > STALL_ITERATIONS and history[-1 - STALL_ITERATIONS] - cost <= STALL_RTOL * cost:
+        if len(history) > STALL_ITERATIONS and history[-1 - STALL_ITERATIONS] - cost <= max(STALL_RTOL * cost, 0.5):
             status, msg = 1, (f"converged (the last {STALL_ITERATIONS} steps lowered the cost by "
                               f"{(history[-1 - STALL_ITERATIONS] - cost) / max(cost, 1e-300):.1e} of it)")
             break
