@@ -24,7 +24,7 @@ stations from the recording's ``.json`` / ``LH_POSE``, factory calibration):
   whole recording: the comparison favours libsurvive);
 - **precision vs accuracy** (:func:`layoutkit.workflows.accuracy.precision_accuracy`);
 - **calibration** (per recording, all its devices at once: ``layoutkit calibrate`` with
-  ``--sensor-offsets --station-prior-deg 0.3 --station-prior-mm 10``): each device's joint residual
+  ``--sensor-offsets --station-prior-deg 1 --station-prior-mm 30``): each device's joint residual
   with the given stations, the calibrated ones, and with its own fitted terms, and the
   cross-validation folds (device folds: the held-out device with its nominal layout; time fold).
 
@@ -46,7 +46,7 @@ HERE = Path(__file__).parent
 OUT = HERE / "results"
 SOURCES = (Path("/work/shared/data/libsurvive"), Path.home() / ".cache" / "layoutkit-realdata" / "survive")
 SPEED_BINS = (0.0, 0.05, 0.2, 0.5, 1.0, np.inf)          # m/s
-CAL_PRIOR = (np.deg2rad(0.3), 0.01)                     # station prior of the study's calibrate runs
+CAL_PRIOR = (np.deg2rad(1.0), 0.03)                     # station prior of the study's calibrate runs
 CAL_MAX_WINDOWS = 150                                     # per device
 MIN_WINDOWS_FOR_CAL = 50
 
@@ -162,7 +162,7 @@ def study_device(name, ddir: Path, root: Path, stations):
     from layoutkit.layout import load_layout
     from layoutkit.pnp import STATUS_NAMES
     from layoutkit.workflows.accuracy import precision_accuracy
-    from layoutkit.workflows.calibrate import read_station_frames, solve_joint_frames, station_index, to_station_convention
+    from layoutkit.workflows.joint_solve import read_station_frames, solve_joint_frames, station_index, to_station_convention
     from layoutkit.joint import solve_joint
 
     lay = load_layout(ddir / "layout.json")
@@ -403,7 +403,13 @@ def main():
     with tempfile.TemporaryDirectory(prefix="libsurvive_study_") as tmp:
         for p in recordings(a.only):
             print(f"{p.name} ...", flush=True)
-            r, s = study_recording(p, Path(tmp), not a.no_calibrate)
+            try:
+                r, s = study_recording(p, Path(tmp), not a.no_calibrate)
+            except Exception as exc:  # a study records what broke and goes on with the next recording
+                import traceback
+
+                r, s = {"file": str(p), "error": f"{type(exc).__name__}: {exc}",
+                        "traceback": traceback.format_exc(limit=4)}, {}
             results.append(r)
             for dev, v in s.items():
                 series[(p.name, dev)] = v
