@@ -11,7 +11,9 @@ Format (cntools/libsurvive ``src/survive_recording.c``): one event per line,
 - ``<dev> POSE x y z qw qx qy qz`` and ``<name> EXTERNAL_POSE x y z qw qx qy qz``: object poses
   in the world (libsurvive's solution; an external tracker);
 - ``<mode> LH_POSE x y z qw qx qy qz``: a lighthouse pose in the world;
-- everything else (IMU ``i``/``I``, raw light ``C``/``L``/``R``/``W``/``Y``, ``INFO``) is counted
+- ``<dev> i <mask> <timecode> ax ay az gx gy gz ...``: raw IMU samples (device counts; scaled by
+  :func:`imu_samples`);
+- everything else (scaled IMU ``I``, raw light ``C``/``L``/``R``/``W``/``Y``, ``INFO``) is counted
   and skipped.
 
 ``timecode`` is the device's 48 MHz counter (32 bits, unwrapped here onto one monotone clock).
@@ -47,7 +49,8 @@ from .vive import layout_from_config
 __all__ = [
     "TICK_HZ", "LH2_TILT", "LH2_CHANNEL_HZ", "Recording", "DeviceLight", "read_recording", "read_lighthouse_config",
     "libsurvive_to_theta", "lh2_to_sweep_angles", "station_rotation_from_quaternion",
-    "device_frames", "FLIP", "libsurvive_stations", "StationMap",
+    "device_frames", "FLIP", "libsurvive_stations", "StationMap", "device_sweeps", "imu_samples", "imu_frame",
+    "ACC_COUNTS_PER_G", "GYRO_COUNTS_PER_DEG_S", "STANDARD_GRAVITY",
 ]
 
 #: libsurvive's device timecode clock (Vive / Index / Tracker), Hz.
@@ -97,7 +100,8 @@ class Recording:
     poses : object name → list of ``(t, x, y, z, qw, qx, qy, qz)`` (POSE lines);
     external_poses : the same for EXTERNAL_POSE; lh_poses : the line's object (LH1: lighthouse
     index, LH2: channel) → last ``(x, y, z, qw, qx, qy, qz)``; lh_serials : the same → the serial
-    some recordings write after the pose;
+    some recordings write after the pose; imu : device → list of ``[t, timecode, ax, ay, az, gx, gy,
+    gz]`` (raw ``i`` lines: device counts, 48 MHz timecode);
     lines : lines read; counts : line type → count; skipped : reason → count;
     ended : None if the file ended cleanly, else a message saying where and why it ended.
     """
@@ -109,6 +113,7 @@ class Recording:
     external_poses: dict = field(default_factory=dict)
     lh_poses: dict = field(default_factory=dict)
     lh_serials: dict = field(default_factory=dict)
+    imu: dict = field(default_factory=dict)
     lines: int = 0
     counts: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
@@ -231,6 +236,9 @@ def read_recording(path) -> Recording:
             elif typ in ("POSE", "EXTERNAL_POSE") and len(parts) >= 10:
                 target = rec.poses if typ == "POSE" else rec.external_poses
                 target.setdefault(obj, []).append([t] + [_float(x) for x in parts[3:10]])
+            elif typ == "i" and len(parts) >= 11:
+                # raw IMU: <mask> <timecode> ax ay az gx gy gz [mx my mz] [id] (device counts)
+                rec.imu.setdefault(obj, []).append([t, float(int(parts[4]))] + [_float(x) for x in parts[5:11]])
             elif typ == "LH_POSE" and len(parts) >= 10:
                 rec.lh_poses[int(obj)] = [_float(x) for x in parts[3:10]]
                 if len(parts) >= 11:                  # newer recordings end the line with the serial
@@ -519,3 +527,120 @@ def libsurvive_stations(rec: Recording, cfg: dict) -> StationMap:
                      "channel": mode if kind == "lh2" else None, "rotor_hz": st.rotor_rpm / 60.0,
                      "calibration_fcal": cal or None})
     return StationMap(stations, info, idx_map, ch_map)
+
+
+#: Raw accelerometer counts per g of the Vive / Index devices' IMU (±4 g range, 16 bit); the recorded
+#: magnitude at rest is 8190-8210 counts (``index-yank-up-down``, ``lh1_test_cal``).
+ACC_COUNTS_PER_G = 8192.0
+#: Raw gyro counts per deg/s (±500 deg/s range, 16 bit: 32768 / 500). Checked on ``index-yank-up-down``:
+#: the attitude change between joint lighthouse poses over the yank is 0.27x the gyro integral at
+#: 16.384 counts/(deg/s) (corr 0.91, 78 window pairs), i.e. ~4x fewer deg/s per count; at rest the
+#: tracker reads 121 counts on z = 1.85 deg/s, its CONFIG's gyro bias says 1.52 deg/s.
+GYRO_COUNTS_PER_DEG_S = 65.536
+STANDARD_GRAVITY = 9.80665
+#: Raw counts at which the IMU saturates.
+IMU_SATURATION = 32767
+
+
+def _device_time(d: DeviceLight, extra_timecodes=()):
+    """The device clock of :func:`device_frames` (light timecodes unwrapped, one median offset onto the
+    host clock) and the same mapping for ``extra_timecodes`` (e.g. the IMU's, unwrapped together with
+    the light events in host-time order). Returns ``(light_t, extra_t)`` s."""
+    tl = np.asarray(d.timecode, np.int64)
+    hl = np.asarray(d.t, float)
+    te = np.asarray([x[1] for x in extra_timecodes], np.int64) if len(extra_timecodes) else np.zeros(0, np.int64)
+    he = np.asarray([x[0] for x in extra_timecodes], float) if len(extra_timecodes) else np.zeros(0)
+    tc = np.concatenate([tl, te])
+    host = np.concatenate([hl, he])
+    order = np.argsort(host, kind="stable")
+    un = np.empty_like(tc)
+    un[order] = _unwrap32(tc[order])
+    ul, ue = un[: tl.size], un[tl.size:]
+    t0 = _unwrap32(tl)[0] if tl.size else 0
+    shift = ul[0] - t0 if tl.size else 0                    # joint unwrap vs device_frames' own
+    sl = (ul - shift - t0) / TICK_HZ
+    off = float(np.median(hl - sl)) if tl.size else 0.0
+    return sl + off, (ue - shift - t0) / TICK_HZ + off
+
+
+def device_sweeps(d: DeviceLight, layout_n: int, station_of):
+    """Every sweep of one device as its own measurement, for a filter that updates per sweep.
+
+    Returns a dict of arrays over sweeps ``t`` (s, the device clock of :func:`device_frames`: the mean
+    hit time of the sweep), ``station`` (index, via ``station_of(gen, lh)``), ``axis`` (LH1 0 = x
+    sweep, 1 = y; LH2 the plane) and ``angles (K, n)`` rad in the station's convention (LH1 ``theta
+    = pi/2 + a``, LH2 light-plane ``alpha = -a``; NaN = not hit), and ``kind`` per sweep (1 or 2).
+    """
+    t_all, _ = _device_time(d)
+    sensor = np.asarray(d.sensor, int)
+    st = np.asarray(d.station, int)
+    ax = np.asarray(d.axis, int)
+    ang = np.asarray(d.angle, float)
+    gen = np.asarray(d.gen, int)
+    tc = _unwrap32(np.asarray(d.timecode, np.int64))
+    good = (sensor >= 0) & (sensor < layout_n) & np.isfinite(ang) & (np.abs(ang) < np.pi / 2)
+    out_t, out_s, out_a, out_k, out_g = [], [], [], [], []
+    for g in (1, 2):
+        idx = np.flatnonzero(good & (gen == g))
+        for ch in np.unique(st[idx]):
+            sub = idx[st[idx] == ch]
+            for sw in _sweeps(sub, tc, st, ax, sensor, _SWEEP_GAP_S * TICK_HZ):
+                row = np.full(layout_n, np.nan)
+                a = ang[sw]
+                row[sensor[sw]] = np.pi / 2 + a if g == 1 else -a
+                out_t.append(float(np.mean(t_all[sw])))
+                out_s.append(station_of(g, int(ch)))
+                out_k.append(int(ax[sw[0]]))
+                out_a.append(row)
+                out_g.append(g)
+    order = np.argsort(out_t, kind="stable")
+    A = np.array(out_a, float).reshape(-1, layout_n)
+    return {"t": np.asarray(out_t)[order], "station": np.asarray(out_s, int)[order],
+            "axis": np.asarray(out_k, int)[order], "angles": A[order], "gen": np.asarray(out_g, int)[order]}
+
+
+def imu_frame(config: dict):
+    """The IMU's frame in the device (layout) frame from a CONFIG's ``imu`` entry (``plus_x``,
+    ``plus_z``, ``position``): ``(R (3, 3) imu → layout, p (3,) m)``; identity if absent."""
+    imu = (config or {}).get("imu") or {}
+    try:
+        x = np.asarray(imu.get("plus_x", [1, 0, 0]), float)
+        z = np.asarray(imu.get("plus_z", [0, 0, 1]), float)
+        p = np.asarray(imu.get("position", [0, 0, 0]), float)
+    except (TypeError, ValueError):
+        return np.eye(3), np.zeros(3)
+    x = x / np.linalg.norm(x)
+    z = z - x * (x @ z)
+    z = z / np.linalg.norm(z)
+    return np.column_stack([x, np.cross(z, x), z]), p
+
+
+def imu_samples(rec: Recording, device: str):
+    """The device's raw ``i`` lines as physical samples on the device clock of :func:`device_frames`.
+
+    Returns a dict: ``t (N,)`` s, ``acc (N, 3)`` m/s² (specific force, IMU frame: counts /
+    :data:`ACC_COUNTS_PER_G` g, the CONFIG's ``acc_scale`` and ``acc_bias`` (g) applied), ``gyro (N, 3)``
+    rad/s (counts / :data:`GYRO_COUNTS_PER_DEG_S`, minus the CONFIG's ``gyro_bias``), ``saturated (N,)``
+    (an axis at the raw limit: the accelerometer clips at 4 g), and the IMU frame (:func:`imu_frame`).
+    ValueError naming the recording when the device has no IMU samples or no light events.
+    """
+    rows = rec.imu.get(device)
+    if not rows:
+        raise ValueError(f"{rec.path}: device {device!r} has no IMU ('i') lines")
+    if device not in rec.light:
+        raise ValueError(f"{rec.path}: device {device!r} has no light events to put its IMU on their clock")
+    _, t = _device_time(rec.light[device], rows)
+    a = np.asarray(rows, float)
+    order = np.argsort(t, kind="stable")
+    cfg = rec.configs.get(device, {}) or {}
+    imu = cfg.get("imu") or {}
+    acc_scale = np.asarray(imu.get("acc_scale", cfg.get("acc_scale", [1, 1, 1])), float)
+    acc_bias = np.asarray(imu.get("acc_bias", cfg.get("acc_bias", [0, 0, 0])), float)
+    gyro_bias = np.asarray(imu.get("gyro_bias", cfg.get("gyro_bias", [0, 0, 0])), float)
+    raw_a, raw_g = a[:, 2:5], a[:, 5:8]
+    acc = (raw_a / ACC_COUNTS_PER_G * acc_scale - acc_bias) * STANDARD_GRAVITY
+    gyro = np.deg2rad(raw_g / GYRO_COUNTS_PER_DEG_S) - gyro_bias
+    sat = np.any(np.abs(raw_a) >= IMU_SATURATION, 1) | np.any(np.abs(raw_g) >= IMU_SATURATION, 1)
+    R, p = imu_frame(cfg)
+    return {"t": t[order], "acc": acc[order], "gyro": gyro[order], "saturated": sat[order],
+            "imu_rotation": R, "imu_position": p}

@@ -112,34 +112,39 @@ def _windows(fr: StationFrames, stations, window_s):
 
 
 def window_velocity(tw, res, max_gap_s: float = 0.05):
-    """Body velocity of each window from the solved poses (offline: central differences of the
-    neighbouring solved windows, both within ``max_gap_s``; one-sided at an end of a run).
+    """Body velocity of each window from the solved poses (offline: the least-squares slope over the
+    solved windows within ``max_gap_s`` before and after it, the window itself included — both sides
+    known, unlike replay's causal fit).
 
     tw (W,) s; res : the joint :class:`~layoutkit.pnp.PnPResult` (world frame). Returns ``omega (W, 3)``
     rad/s (world frame, left perturbation: ``R(t + d) = exp([omega d]x) R(t)``), ``v (W, 3)`` m/s and
-    ``known (W,)`` bool: False where no neighbour is close enough or the velocity exceeds replay's
+    ``known (W,)`` bool: False where fewer than 3 windows qualify or the velocity exceeds replay's
     continuity limits (:class:`layoutkit.live.pipeline.LiveConfig` ``max_speed_m_s``,
     ``max_rate_deg_s``: not a motion, a jump)."""
     from ..geometry import matrix_to_rotvec
     from ..live.pipeline import LiveConfig
 
     lim = LiveConfig()
-
     W = len(tw)
     omega, vel = np.zeros((W, 3)), np.zeros((W, 3))
     known = np.zeros(W, bool)
     g = np.flatnonzero(res.success & np.all(np.isfinite(res.translation), 1))
-    if g.size < 2:
+    if g.size < 3:
         return omega, vel, known
     t = tw[g]
+    lo = np.searchsorted(t, t - max_gap_s, side="left")
+    hi = np.searchsorted(t, t + max_gap_s, side="right")
     for q, k in enumerate(g):
-        lo = g[q - 1] if q > 0 and t[q] - t[q - 1] <= max_gap_s else k
-        hi = g[q + 1] if q + 1 < g.size and t[q + 1] - t[q] <= max_gap_s else k
-        if lo == hi:
+        nb = g[lo[q]:hi[q]]
+        if nb.size < 3:
             continue
-        d = tw[hi] - tw[lo]
-        v = (res.translation[hi] - res.translation[lo]) / d
-        w = matrix_to_rotvec(res.rotation[hi] @ res.rotation[lo].T) / d
+        dt = tw[nb] - tw[k]
+        dtc = dt - dt.mean()
+        den = float(dtc @ dtc)
+        if den <= 0:
+            continue
+        v = dtc @ (res.translation[nb] - res.translation[k]) / den
+        w = dtc @ matrix_to_rotvec(res.rotation[nb] @ res.rotation[k].T) / den
         if np.linalg.norm(v) > lim.max_speed_m_s or np.linalg.norm(w) > np.deg2rad(lim.max_rate_deg_s):
             continue
         vel[k], omega[k], known[k] = v, w, True

@@ -23,6 +23,10 @@ stations from the recording's ``.json`` / ``LH_POSE``, factory calibration):
   transform is fitted here to minimise libsurvive's own reprojection residual (6 parameters for the
   whole recording: the comparison favours libsurvive);
 - **precision vs accuracy** (:func:`layoutkit.workflows.accuracy.precision_accuracy`);
+- **the IMU-aided filter** (:func:`layoutkit.workflows.imu_filter.filter_recording`) on every device with
+  ``i`` lines that moved: each sweep's residual before its own update (the pose predicted from the
+  IMU and the earlier sweeps) and after, per speed bin, beside libsurvive's poses on the same sweeps —
+  with the factory stations and with the stations this recording's calibration wrote;
 - **calibration** (per recording, all its devices at once: ``layoutkit calibrate`` with
   ``--sensor-offsets --station-prior-deg 1 --station-prior-mm 30``): each device's joint residual
   with the given stations, the calibrated ones, and with its own fitted terms, and the
@@ -217,6 +221,32 @@ def study_device(name, ddir: Path, root: Path, stations):
                  "okm": resm.success, "libsurvive": out.get("libsurvive") and rms}
 
 
+def imu_filter_device(path: Path, dev: str, stations, ref, label: str):
+    """The IMU-aided filter on one device: per speed bin (the filter's own speed), the median per-sweep
+    residual RMS before the sweep's update (prior: predicted from the IMU and earlier sweeps) and
+    after it, and libsurvive's poses on the same sweeps."""
+    from layoutkit.workflows.imu_filter import filter_recording
+
+    r = filter_recording(path, dev, stations=stations)
+    s = r["sweeps"]
+    speed = np.linalg.norm(s["velocity"], axis=1)
+    acc = s["accepted"]
+    out = {"stations": label, "summary": r["summary"],
+           "prior_by_speed": _by_speed(speed, np.where(acc, s["prior_rms"], np.nan)),
+           "posterior_by_speed": _by_speed(speed, np.where(acc, s["posterior_rms"], np.nan)),
+           "prior_all_sweeps_by_speed": _by_speed(speed, np.where(np.isfinite(s["nis"]), s["prior_rms"], np.nan))}
+    if ref is not None:
+        K, S, n = len(s["t"]), len(stations), r["layout"].n
+        grid = np.full((K, S, n, 2), np.nan)
+        grid[np.arange(K), s["station"], :, s["axis"]] = s["angles"]
+        rms, xf = libsurvive_reprojection(r["layout"].positions, stations, s["t"], grid, ref[1])
+        out["libsurvive_by_speed"] = _by_speed(speed, np.where(np.isfinite(s["nis"]), rms, np.nan))
+        out["libsurvive_body_transform"] = xf
+    series = {"speed": speed, "prior": np.where(acc, s["prior_rms"], np.nan), "t": s["t"],
+              "posterior": np.where(acc, s["posterior_rms"], np.nan)}
+    return out, series
+
+
 def calibrate_recording(root: Path, devices, stations_path, cal_dir: Path):
     from layoutkit.units import ARCSEC
     from layoutkit.workflows.calibrate import calibrate_files
@@ -230,6 +260,7 @@ def calibrate_recording(root: Path, devices, stations_path, cal_dir: Path):
             "stations_written", "determined", "median_sample_residual_rms_rad")
     out = {k: rep[k] for k in keep}
     out["seconds"] = time.time() - t0
+    out["stations_file"] = str(cal_dir / "stations.json")
     return out
 
 
@@ -272,6 +303,24 @@ def study_recording(path: Path, work: Path, calibrate: bool):
             out["calibration"] = calibrate_recording(root, usable, root / "stations.json", work / (root.name + "_cal"))
         except ValueError as exc:
             out["calibration"] = {"error": str(exc)}
+    # the IMU-aided filter on the devices that moved and have IMU lines
+    for dev, d in out["devices"].items():
+        if "speed" not in d or not (d["speed"]["p90"] or 0) > 0.2 or summ["line_types"].get("i", 0) == 0:
+            continue
+        ref = _reference(root / dev, dev, root)
+        sets = [("factory", stations)]
+        cal = out.get("calibration", {})
+        if cal.get("stations_file") and Path(cal["stations_file"]).exists():
+            sets.append(("calibrated on this recording", list(read_stations(cal["stations_file"]))))
+        d["imu_filter"] = []
+        for label, sts in sets:
+            try:
+                fo, fs = imu_filter_device(path, dev, sts, ref, label)
+            except ValueError as exc:
+                fo, fs = {"stations": label, "error": str(exc)}, None
+            d["imu_filter"].append(fo)
+            if fs is not None:
+                series[dev][f"imu {label}"] = fs
     out["seconds"] = time.time() - t0
     return out, series
 
@@ -331,6 +380,23 @@ def write_markdown(results, path: Path):
             L.append(f"| {Path(rec['file']).name} | {dev}{' (at rest)' if d['at_rest'] else ''} | {_fmt(j['given_stations'])} | "
                      f"{_fmt(j['calibrated_stations'])} | {_fmt(j['calibrated_stations_and_own_layout'])} | "
                      f"{folds if k == 0 else ''} | {cal['stations_written'] if k == 0 else ''} |")
+    L += ["", "## IMU-aided filter: per-sweep residual by speed (median RMS): before the sweep's update / after / "
+          "libsurvive on the same sweeps", "",
+          "| recording | device | stations | sweeps accepted / rejected / restarts | " +
+          " | ".join(f"{lo}-{hi if np.isfinite(hi) else '∞'} m/s" for lo, hi in zip(SPEED_BINS[:-1], SPEED_BINS[1:])) + " |",
+          "|---|---|---|---|" + "---|" * (len(SPEED_BINS) - 1)]
+    for rec in results:
+        for dev, d in rec.get("devices", {}).items():
+            for fo in d.get("imu_filter", []):
+                if "error" in fo:
+                    L.append(f"| {Path(rec['file']).name} | {dev} | {fo['stations']} | {fo['error']} |" + " |" * len(SPEED_BINS))
+                    continue
+                c = fo["summary"]["sweeps"]
+                ls = fo.get("libsurvive_by_speed") or [{"median_rad": None}] * (len(SPEED_BINS) - 1)
+                cells = [f"{_fmt(a['median_rad'])} / {_fmt(b['median_rad'])} / {_fmt(z['median_rad'])} (n={a['windows']})"
+                         for a, b, z in zip(fo["prior_by_speed"], fo["posterior_by_speed"], ls)]
+                L.append(f"| {Path(rec['file']).name} | {dev} | {fo['stations']} | {c['accepted']} / {c['rejected']} / "
+                         f"{c['restarts']} | " + " | ".join(cells) + " |")
     L += ["", "## Precision vs accuracy (per device)", ""]
     for rec in results:
         for dev, d in rec.get("devices", {}).items():
@@ -360,6 +426,10 @@ def figures(results, series, out: Path):
             ax.loglog(np.clip(sp, 1e-3, None)[s["okm"]], s["resm"][s["okm"]], ".", ms=1.5, alpha=0.35, label="motion-compensated")
             if s["libsurvive"] is not None:
                 ax.loglog(np.clip(sp, 1e-3, None), s["libsurvive"], ".", ms=1.5, alpha=0.35, label="libsurvive's poses")
+            for key, fs in s.items():
+                if key.startswith("imu calibrated") and fs is not None:
+                    ax.loglog(np.clip(fs["speed"], 1e-3, None), fs["prior"], ".", ms=1.5, alpha=0.35,
+                              label="IMU filter, before each sweep (calibrated stations)")
             ax.set_xlabel("body speed (m/s)")
             ax.set_ylabel("joint residual RMS (rad)")
             ax.set_title(f"{Path(r['file']).name.replace('.rec.gz', '')}\n{dev}", fontsize=8)
@@ -368,7 +438,8 @@ def figures(results, series, out: Path):
         fig.tight_layout()
         save_figure(fig, out / "residual_vs_speed.png",
                     caption="Per-window joint residual RMS against the body speed: our joint solve with the static "
-                            "model, with motion compensation, and libsurvive's own poses reprojected on the same angles.")
+                            "model, with motion compensation, libsurvive's own poses reprojected on the same angles, and "
+                            "the IMU-aided filter's pose predicted before each sweep (per sweep).")
     # 2. joint residual per device: ours, libsurvive, calibrated
     rows = [(Path(r["file"]).name.replace(".rec.gz", ""), dev, d) for r in results
             for dev, d in r.get("devices", {}).items() if "joint" in d]

@@ -1,0 +1,88 @@
+"""The IMU-aided filter (:mod:`layoutkit.filter.imu`) on a libsurvive recording (issue 26 item 4).
+
+Reads the recording once: the device's layout (its CONFIG), its IMU frame (CONFIG ``imu``: ``plus_x``,
+``plus_z``, ``position``), its raw ``i`` lines (scaled by :func:`layoutkit.importers.libsurvive.imu_samples`)
+and every sweep as its own measurement at its own time (:func:`~layoutkit.importers.libsurvive.device_sweeps`,
+on the same device clock). The filter starts at the first window the joint solve
+(:func:`layoutkit.joint.solve_joint`, every station, the factory models) solves with two stations or
+more; gravity is the accelerometer's mean over the 0.1 s around that start turned into the world
+(the device is taken to be at rest there — the summary reports the angle between that gravity and
+the world's -z so a moving start shows).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["filter_recording"]
+
+
+def filter_recording(recording, device: str, *, config=None, stations=None, lighthouse_config=None) -> dict:
+    """Run the IMU-aided filter over one device of a libsurvive recording.
+
+    stations : optional list of :class:`~layoutkit.lighthouse.Station` in the import's order (e.g.
+    calibrated ones); default the recording's own (factory). Returns a dict: ``sweeps`` (the
+    :func:`layoutkit.filter.imu.run_imu_filter` output plus ``station``, ``axis``, ``angles``),
+    ``body_rotation``/``body_translation`` (K, ...) the layout frame's poses, ``points_imu``,
+    ``stations``, ``summary``. ValueError naming the recording for a device without IMU or light.
+    """
+    from ..filter.imu import ImuFilterConfig, run_imu_filter
+    from ..importers.libsurvive import (STANDARD_GRAVITY, device_frames, device_sweeps, imu_frame, imu_samples,
+                                        layout_of, libsurvive_stations, read_lighthouse_config, read_recording)
+    from ..joint import solve_joint
+    from .joint_solve import StationFrames, to_station_convention, window_table
+
+    config = ImuFilterConfig() if config is None else config
+    recording = Path(recording)
+    rec = read_recording(recording)
+    cfg_path = Path(lighthouse_config) if lighthouse_config else Path(str(recording) + ".json")
+    cfg = read_lighthouse_config(cfg_path) if cfg_path.exists() else {}
+    smap = libsurvive_stations(rec, cfg)
+    st = list(smap.stations) if stations is None else list(stations)
+    if len(st) != len(smap.stations):
+        raise ValueError(f"{recording}: {len(st)} stations given, the recording has {len(smap.stations)}")
+    if device not in rec.light:
+        raise ValueError(f"{recording}: device {device!r} has no light events (devices: {sorted(rec.light)})")
+    lay = layout_of(rec, device)
+
+    def station_of(gen, ch):
+        return smap.lh1.get(ch, ch) if gen == 1 else smap.lh2.get(ch, ch)
+
+    imu = imu_samples(rec, device)
+    R_ib, p_ib = imu["imu_rotation"], imu["imu_position"]
+    P_imu = (lay.positions - p_ib) @ R_ib                       # sensors in the IMU frame
+    sw = device_sweeps(rec.light[device], lay.n, station_of)
+    # the start: the first window solved with >= 2 stations, inside the IMU's time span
+    fr, _ = device_frames(rec.light[device], lay.n, station_of)
+    sf = StationFrames(fr.t, np.asarray([str(int(x)) for x in fr.stations()]), fr.angles)
+    rows, tw, ang = window_table(sf, st, 0.02)
+    res = solve_joint(lay.positions, ang, stations=st)
+    two = (rows >= 0).sum(1) >= 2
+    cand = np.flatnonzero(res.success & two & (tw > imu["t"][0] + 0.05))
+    if cand.size == 0:
+        raise ValueError(f"{recording}: {device}: no window solved from two stations to start the filter")
+    k0 = cand[0]
+    Rb, tb = res.rotation[k0], res.translation[k0]
+    R0 = Rb @ R_ib
+    p0 = Rb @ p_ib + tb
+    near = np.abs(imu["t"] - tw[k0]) <= 0.05
+    f_mean = imu["acc"][near].mean(0) if near.any() else imu["acc"][0]
+    g = -(R0 @ f_mean)
+    g_angle = float(np.degrees(np.arccos(np.clip(-g[2] / max(np.linalg.norm(g), 1e-12), -1, 1))))
+    g = g / max(np.linalg.norm(g), 1e-12) * STANDARD_GRAVITY
+    good = np.flatnonzero(res.success & two)                  # restart poses: joint windows, IMU frame
+    restarts = (tw[good], res.rotation[good] @ R_ib, np.einsum("kij,j->ki", res.rotation[good], p_ib) + res.translation[good])
+    out = run_imu_filter(imu["t"], imu["acc"], imu["gyro"], imu["saturated"], sw["t"], sw["station"], sw["axis"],
+                         sw["angles"], st, P_imu, (tw[k0], R0, p0, g), config, restarts=restarts)
+    out.update(station=sw["station"], axis=sw["axis"], angles=sw["angles"])
+    Rbody = out["rotation"] @ R_ib.T
+    tbody = out["position"] - np.einsum("kij,j->ki", Rbody, p_ib)
+    acc_ok = out["accepted"]
+    summary = {"device": device, "sweeps": out["counts"], "imu_samples": int(imu["t"].size),
+               "imu_saturated": int(imu["saturated"].sum()), "start_t": float(tw[k0]),
+               "gravity_from_minus_z_deg": g_angle,
+               "prior_rms_median_rad": float(np.nanmedian(out["prior_rms"][acc_ok])) if acc_ok.any() else None,
+               "posterior_rms_median_rad": float(np.nanmedian(out["posterior_rms"][acc_ok])) if acc_ok.any() else None}
+    return {"sweeps": out, "body_rotation": Rbody, "body_translation": tbody, "points_imu": P_imu, "stations": st,
+            "layout": lay, "summary": summary}
