@@ -85,9 +85,12 @@ def _print(rep: dict) -> None:
                f"after {fmt(med['after'])} rad")
     for name, d in rep["devices"].items():
         j = d["joint_residual_median_rad"]
+        own = ""
+        if rep["sensor_offsets"] or rep["sensor_timing"]:
+            own = (f", {fmt(j['calibrated_stations_and_own_layout'])} with its own adjusted terms"
+                   + (" (at rest: fitted at this pose only)" if d["at_rest"] else ""))
         click.echo(f"{name}: joint residual {fmt(j['given_stations'])} rad with the given stations, "
-                   f"{fmt(j['calibrated_stations'])} calibrated, {fmt(j['calibrated_stations_and_own_layout'])} "
-                   f"with its own adjusted terms" + (" (at rest: fitted at this pose only)" if d["at_rest"] else ""))
+                   f"{fmt(j['calibrated_stations'])} calibrated{own}")
     for f in rep["transfer"]["folds"]:
         click.echo(f"held out {f['held_out']}: {fmt(f['factory_rad'])} -> {fmt(f['calibrated_rad'])} rad "
                    f"({f['verdict']})")

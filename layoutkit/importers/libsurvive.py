@@ -529,14 +529,15 @@ def libsurvive_stations(rec: Recording, cfg: dict) -> StationMap:
     return StationMap(stations, info, idx_map, ch_map)
 
 
-#: Raw accelerometer counts per g of the Vive / Index devices' IMU (±4 g range, 16 bit); the recorded
-#: magnitude at rest is 8190-8210 counts (``index-yank-up-down``, ``lh1_test_cal``).
-ACC_COUNTS_PER_G = 8192.0
-#: Raw gyro counts per deg/s (±500 deg/s range, 16 bit: 32768 / 500). Checked on ``index-yank-up-down``:
-#: the attitude change between joint lighthouse poses over the yank is 0.27x the gyro integral at
-#: 16.384 counts/(deg/s) (corr 0.91, 78 window pairs), i.e. ~4x fewer deg/s per count; at rest the
-#: tracker reads 121 counts on z = 1.85 deg/s, its CONFIG's gyro bias says 1.52 deg/s.
-GYRO_COUNTS_PER_DEG_S = 65.536
+#: Raw accelerometer counts per g of the 16-bit IMU ranges ±2/4/8/16 g. The device's range is the one
+#: whose 1 g matches the median magnitude of its quietest samples (the tracker of
+#: ``index-yank-up-down`` and the HMD read ~8190 counts at rest: ±4 g; the Knuckles ~4170: ±8 g).
+ACC_COUNTS_PER_G = (16384.0, 8192.0, 4096.0, 2048.0)
+#: Raw gyro counts per deg/s of the 16-bit ranges ±250/500/1000/2000 deg/s. Which one a device uses is
+#: not in the recording: :func:`layoutkit.workflows.imu_filter.filter_recording` takes the range whose
+#: rates match the lighthouse attitude changes of the moving device (``index-yank-up-down``'s tracker:
+#: 0.27x the gyro integral at 16.4 counts/(deg/s), corr 0.91 over 78 window pairs: ±500, 65.5).
+GYRO_COUNTS_PER_DEG_S = (131.072, 65.536, 32.768, 16.384)
 STANDARD_GRAVITY = 9.80665
 #: Raw counts at which the IMU saturates.
 IMU_SATURATION = 32767
@@ -615,14 +616,20 @@ def imu_frame(config: dict):
     return np.column_stack([x, np.cross(z, x), z]), p
 
 
-def imu_samples(rec: Recording, device: str):
+def imu_samples(rec: Recording, device: str, gyro_counts_per_deg_s: float | None = None):
     """The device's raw ``i`` lines as physical samples on the device clock of :func:`device_frames`.
 
-    Returns a dict: ``t (N,)`` s, ``acc (N, 3)`` m/s² (specific force, IMU frame: counts /
-    :data:`ACC_COUNTS_PER_G` g, the CONFIG's ``acc_scale`` and ``acc_bias`` (g) applied), ``gyro (N, 3)``
-    rad/s (counts / :data:`GYRO_COUNTS_PER_DEG_S`, minus the CONFIG's ``gyro_bias``), ``saturated (N,)``
-    (an axis at the raw limit: the accelerometer clips at 4 g), and the IMU frame (:func:`imu_frame`).
-    ValueError naming the recording when the device has no IMU samples or no light events.
+    Returns a dict: ``t (N,)`` s, ``acc (N, 3)`` m/s² (specific force, IMU frame: counts / the range of
+    :data:`ACC_COUNTS_PER_G` that matches 1 g at rest, times the CONFIG's ``acc_scale``, minus its
+    ``acc_bias`` — in m/s²: so the magnitude at rest is 9.8 m/s² on the tracker, the HMD and the
+    Knuckles; read as g it would be 8.2-10.3), ``gyro (N, 3)`` rad/s (counts /
+    ``gyro_counts_per_deg_s``, default ±500 deg/s of :data:`GYRO_COUNTS_PER_DEG_S`, minus the CONFIG's
+    ``gyro_bias`` in rad/s), ``saturated (N,)`` (an axis at the raw limit), the IMU frame
+    (:func:`imu_frame`), ``scales`` and ``dropped`` (samples off the clock). Time: the IMU's 48 MHz
+    timecode unwrapped with the light's (one device clock); samples more than 0.1 s off the median
+    offset to the host clock are dropped (the HMD of ``lh1_test_cal`` writes its first IMU samples,
+    before the light starts, with a timecode 16.5 s behind). ValueError naming the recording when the
+    device has no IMU samples or no light events.
     """
     rows = rec.imu.get(device)
     if not rows:
@@ -631,6 +638,9 @@ def imu_samples(rec: Recording, device: str):
         raise ValueError(f"{rec.path}: device {device!r} has no light events to put its IMU on their clock")
     _, t = _device_time(rec.light[device], rows)
     a = np.asarray(rows, float)
+    lag = t - a[:, 0]
+    keep = np.abs(lag - np.median(lag)) < 0.1
+    t, a = t[keep], a[keep]
     order = np.argsort(t, kind="stable")
     cfg = rec.configs.get(device, {}) or {}
     imu = cfg.get("imu") or {}
@@ -638,9 +648,20 @@ def imu_samples(rec: Recording, device: str):
     acc_bias = np.asarray(imu.get("acc_bias", cfg.get("acc_bias", [0, 0, 0])), float)
     gyro_bias = np.asarray(imu.get("gyro_bias", cfg.get("gyro_bias", [0, 0, 0])), float)
     raw_a, raw_g = a[:, 2:5], a[:, 5:8]
-    acc = (raw_a / ACC_COUNTS_PER_G * acc_scale - acc_bias) * STANDARD_GRAVITY
-    gyro = np.deg2rad(raw_g / GYRO_COUNTS_PER_DEG_S) - gyro_bias
+    # the accelerometer range: 1 g = the median magnitude of the quietest fifth of the samples
+    quiet = np.linalg.norm(raw_g - np.median(raw_g, 0), axis=1)
+    q = quiet <= np.percentile(quiet, 20)
+    one_g = float(np.median(np.linalg.norm(raw_a[q], axis=1)))
+    acc_cpg = min(ACC_COUNTS_PER_G, key=lambda c: abs(np.log(one_g / c)))
+    if gyro_counts_per_deg_s is None:
+        gyro_cpd, how = GYRO_COUNTS_PER_DEG_S[1], "default (±500 deg/s)"
+    else:
+        gyro_cpd, how = float(gyro_counts_per_deg_s), "given"
+    acc = raw_a / acc_cpg * STANDARD_GRAVITY * acc_scale - acc_bias
+    gyro = np.deg2rad(raw_g / gyro_cpd) - gyro_bias
     sat = np.any(np.abs(raw_a) >= IMU_SATURATION, 1) | np.any(np.abs(raw_g) >= IMU_SATURATION, 1)
     R, p = imu_frame(cfg)
     return {"t": t[order], "acc": acc[order], "gyro": gyro[order], "saturated": sat[order],
-            "imu_rotation": R, "imu_position": p}
+            "imu_rotation": R, "imu_position": p, "dropped": int(np.sum(~keep)),
+            "scales": {"acc_counts_per_g": acc_cpg, "acc_one_g_counts_at_rest": one_g,
+                       "gyro_counts_per_deg_s": gyro_cpd, "gyro_scale_from": how}}

@@ -15,7 +15,40 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["filter_recording"]
+__all__ = ["filter_recording", "gyro_range"]
+
+
+def gyro_range(tw, res, use, imu, min_pairs: int = 20) -> dict:
+    """Which gyro range (:data:`layoutkit.importers.libsurvive.GYRO_COUNTS_PER_DEG_S`) the device uses:
+    the attitude change between consecutive joint lighthouse poses (windows ``use``, <= 50 ms apart,
+    turning > 0.02 rad) against the gyro's integral over the same time at the default range; the
+    least-squares ratio picks the nearest range. ``counts_per_deg_s`` None when fewer than ``min_pairs``
+    pairs turned (a device at rest: the default stays)."""
+    from ..geometry import matrix_to_rotvec
+    from ..importers.libsurvive import GYRO_COUNTS_PER_DEG_S
+
+    R_ib = imu["imu_rotation"]
+    cpd0 = imu["scales"]["gyro_counts_per_deg_s"]
+    g = np.flatnonzero(res.success & use)
+    est, gyr = [], []
+    for a, b in zip(g[:-1], g[1:]):
+        if tw[b] - tw[a] > 0.05:
+            continue
+        m = (imu["t"] >= tw[a]) & (imu["t"] < tw[b])
+        if m.sum() < 3:
+            continue
+        rel = matrix_to_rotvec(R_ib.T @ res.rotation[a].T @ res.rotation[b] @ R_ib)
+        if np.linalg.norm(rel) < 0.02:
+            continue
+        est.append(rel)
+        gyr.append(imu["gyro"][m].mean(0) * (tw[b] - tw[a]))
+    if len(est) < min_pairs:
+        return {"pairs": len(est), "ratio": None, "counts_per_deg_s": None}
+    est, gyr = np.array(est), np.array(gyr)
+    k = float(np.sum(est * gyr) / np.sum(gyr * gyr))           # lighthouse / gyro at the default range
+    corr = float(np.corrcoef(est.ravel(), gyr.ravel())[0, 1])
+    cpd = min(GYRO_COUNTS_PER_DEG_S, key=lambda c: abs(np.log(cpd0 / k / c))) if k > 0 else None
+    return {"pairs": len(est), "ratio": k, "correlation": corr, "counts_per_deg_s": cpd}
 
 
 def filter_recording(recording, device: str, *, config=None, stations=None, lighthouse_config=None) -> dict:
@@ -49,16 +82,19 @@ def filter_recording(recording, device: str, *, config=None, stations=None, ligh
     def station_of(gen, ch):
         return smap.lh1.get(ch, ch) if gen == 1 else smap.lh2.get(ch, ch)
 
-    imu = imu_samples(rec, device)
-    R_ib, p_ib = imu["imu_rotation"], imu["imu_position"]
-    P_imu = (lay.positions - p_ib) @ R_ib                       # sensors in the IMU frame
-    sw = device_sweeps(rec.light[device], lay.n, station_of)
-    # the start: the first window solved with >= 2 stations, inside the IMU's time span
     fr, _ = device_frames(rec.light[device], lay.n, station_of)
     sf = StationFrames(fr.t, np.asarray([str(int(x)) for x in fr.stations()]), fr.angles)
     rows, tw, ang = window_table(sf, st, 0.02)
     res = solve_joint(lay.positions, ang, stations=st)
     two = (rows >= 0).sum(1) >= 2
+    imu = imu_samples(rec, device)
+    gyro_fit = gyro_range(tw, res, two, imu)
+    if gyro_fit["counts_per_deg_s"] is not None and gyro_fit["counts_per_deg_s"] != imu["scales"]["gyro_counts_per_deg_s"]:
+        imu = imu_samples(rec, device, gyro_counts_per_deg_s=gyro_fit["counts_per_deg_s"])
+    R_ib, p_ib = imu["imu_rotation"], imu["imu_position"]
+    P_imu = (lay.positions - p_ib) @ R_ib                       # sensors in the IMU frame
+    sw = device_sweeps(rec.light[device], lay.n, station_of)
+    # the start: the first window solved with >= 2 stations, inside the IMU's time span
     cand = np.flatnonzero(res.success & two & (tw > imu["t"][0] + 0.05))
     if cand.size == 0:
         raise ValueError(f"{recording}: {device}: no window solved from two stations to start the filter")
@@ -80,6 +116,7 @@ def filter_recording(recording, device: str, *, config=None, stations=None, ligh
     tbody = out["position"] - np.einsum("kij,j->ki", Rbody, p_ib)
     acc_ok = out["accepted"]
     summary = {"device": device, "sweeps": out["counts"], "imu_samples": int(imu["t"].size),
+               "imu_scales": imu["scales"], "gyro_range_fit": gyro_fit, "imu_dropped": imu["dropped"],
                "imu_saturated": int(imu["saturated"].sum()), "start_t": float(tw[k0]),
                "gravity_from_minus_z_deg": g_angle,
                "prior_rms_median_rad": float(np.nanmedian(out["prior_rms"][acc_ok])) if acc_ok.any() else None,
