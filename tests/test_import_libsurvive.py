@@ -253,3 +253,34 @@ def test_lh2_rotor_speed_of_each_channel_matches_the_sweep_rate(libsurvive_dir):
         same = (ch[1:] == c) & (ch[:-1] == c) & (ax[1:] == ax[:-1]) & (np.abs(np.diff(tc)) < 4800) & (np.diff(tc) != 0)
         slope = np.median(np.diff(a)[same] / (np.diff(tc)[same] / TICK_HZ))
         assert slope == pytest.approx(2 * np.pi * LH2_CHANNEL_HZ[c], rel=2e-3)
+
+
+def test_imu_samples_read_one_g_at_rest_on_the_light_clock(libsurvive_dir):
+    """Real IMU lines: the HMD (±4 g) and the Knuckles (±8 g) read 9.81 m/s² at rest within 1.5 % once
+    the range is taken from the data and the CONFIG's bias (m/s²) applied; the samples sit on the light's
+    clock (inside its time span); the HMD's first samples, written before the light starts with a
+    timecode 16.5 s behind, are dropped."""
+    from layoutkit.importers.libsurvive import imu_samples
+
+    rec = read_recording(libsurvive_dir / "lh1_test_cal_first4s.rec.gz")
+    for dev, cpg in (("HMD", 8192.0), ("T20", 4096.0)):
+        s = imu_samples(rec, dev)
+        assert s["scales"]["acc_counts_per_g"] == cpg
+        assert np.median(np.linalg.norm(s["acc"], axis=1)) == pytest.approx(9.80665, rel=0.015)
+        light_t = device_frames(rec.light[dev], 64, lambda g, c: c)[0].t
+        assert light_t.min() - 0.5 < s["t"].min() and s["t"].max() < light_t.max() + 0.5
+    assert imu_samples(rec, "HMD")["dropped"] >= 1
+
+
+def test_lh2_sweeps_repeat_at_the_channel_rate(libsurvive_dir):
+    """device_sweeps on the real LH2 recording: each plane of a channel comes back once per rotor turn,
+    1 / LH2_CHANNEL_HZ (median interval, 0.5 %)."""
+    from layoutkit.importers.libsurvive import LH2_CHANNEL_HZ, device_sweeps
+
+    rec = read_recording(libsurvive_dir / "lh2_test_cal_first4s.rec.gz")
+    sw = device_sweeps(rec.light["T20"], 32, lambda g, c: c)
+    for ch in np.unique(sw["station"]):
+        for plane in (0, 1):
+            t = sw["t"][(sw["station"] == ch) & (sw["axis"] == plane)]
+            d = np.diff(t)
+            assert np.median(d[d < 0.03]) == pytest.approx(1 / LH2_CHANNEL_HZ[ch], rel=5e-3)
