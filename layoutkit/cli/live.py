@@ -45,9 +45,11 @@ _common_options = [
 
 
 def _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
-                   corner_sigma_px, folder=None):
+                   corner_sigma_px, folder=None, camera_model=None):
     """A :class:`CameraConfig` from the camera flags (None without a camera), with the capture
-    folder's ``camera.json`` filling what the flags leave out."""
+    folder's ``camera.json`` filling what the flags leave out. ``--camera-model`` (a camera file
+    with the lens distortion), else a model recorded in the folder's ``camera.json``, makes the
+    camera side undistort (``--focal-length-px`` / ``--principal-point-px`` are then refused)."""
     from pathlib import Path
 
     from ._common import fail
@@ -55,10 +57,26 @@ def _camera_config(camera_device, focal_length_px, principal_point_px, camera_me
     src = camera_device if camera_device is not None else folder
     if src is None:
         return None
-    from ..io.camera import read_camera_meta
+    from ..io.camera import read_camera_meta, read_camera_model
     from ..live.camera import CameraConfig
 
-    meta = read_camera_meta(src) if Path(str(src)).is_dir() else None
+    try:
+        meta = read_camera_meta(src) if Path(str(src)).is_dir() else None
+        model = read_camera_model(camera_model) if camera_model is not None else None
+        if model is None and meta is not None and meta.camera_matrix is not None and not focal_length_px:
+            model = meta.camera_model()
+    except ValueError as exc:
+        fail(str(exc))
+    if model is not None:
+        if camera_model is not None and (focal_length_px or principal_point_px):
+            fail("--camera-model: gives the focal length and principal point; leave out --focal-length-px and "
+                 "--principal-point-px")
+        ar = aspect_ratio if aspect_ratio is not None else (meta.aspect_ratio if meta else None)
+        try:
+            return CameraConfig.from_model(model, method=camera_method, aspect_ratio=ar,
+                                           corner_sigma_px=corner_sigma_px)
+        except ValueError as exc:
+            fail(str(exc))
     f = focal_length_px or (meta.focal_length_px if meta else None)
     if f is None:
         if camera_device is None:
@@ -194,7 +212,7 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
                camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
-               solve_mode):
+               camera_model, solve_mode):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -212,7 +230,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                     filter_settings=filter_settings)
     beside = camera_folder_for(capture)
     cam_cfg = _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
-                             corner_sigma_px, folder=beside if beside.is_dir() else None)
+                             corner_sigma_px, folder=beside if beside.is_dir() else None, camera_model=camera_model)
     try:
         summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
                                  reference=reference, reference_units=reference_units,
@@ -287,7 +305,7 @@ def _quiet_exit():
 def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
              as_json, system_config, stations_path, filter_settings, camera_device, focal_length_px, principal_point_px,
-             camera_method, aspect_ratio, corner_sigma_px, solve_mode):
+             camera_method, aspect_ratio, corner_sigma_px, camera_model, solve_mode):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
@@ -318,7 +336,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
               idle_timeout=idle_timeout, overwrite=overwrite, camera_device=camera_device,
               stations=stations, system_config=cfg, solve=solve_mode,
               camera_config=_camera_config(camera_device, focal_length_px, principal_point_px, camera_method,
-                                           aspect_ratio, corner_sigma_px))
+                                           aspect_ratio, corner_sigma_px, camera_model=camera_model))
     try:
         if json_lines or no_dashboard or not sys.stderr.isatty():
             summary = run_live(port, layout_path, on_status=lambda m: click.echo(m, err=True), **kw)

@@ -1,6 +1,6 @@
 """Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
 
-Why one module of ~860 lines: the stages below (pairing, batching, the chunk solve with its
+Why one module of ~610 lines: the stages below (pairing, batching, the chunk solve with its
 continuity gate and motion compensation) pass per-station state to each other and to the one
 config class :class:`LiveConfig`; they are read as one data flow.
 
