@@ -260,7 +260,7 @@ def test_imu_samples_read_one_g_at_rest_on_the_light_clock(libsurvive_dir):
     the range is taken from the data and the CONFIG's bias (m/s²) applied; the samples sit on the light's
     clock (inside its time span); the HMD's first samples, written before the light starts with a
     timecode 16.5 s behind, are dropped."""
-    from layoutkit.importers.libsurvive import imu_samples
+    from layoutkit.importers.libsurvive_imu import imu_samples
 
     rec = read_recording(libsurvive_dir / "lh1_test_cal_first4s.rec.gz")
     for dev, cpg in (("HMD", 8192.0), ("T20", 4096.0)):

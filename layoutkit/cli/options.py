@@ -1,5 +1,8 @@
 """One click option per quantity (after rasterio's ``rio/options.py``).
 
+Why one module of ~610 lines: every option of every command lives here by design — one spelling,
+unit, range and default per quantity is only checkable when they are in one place.
+
 Every command that takes a quantity takes it through the object defined here, so a quantity has
 one spelling, one unit, one range and one default across the whole CLI. Old spellings stay for
 one release as *hidden* aliases that print a one-line deprecation note to stderr and feed the

@@ -1,7 +1,7 @@
 """The IMU-aided filter (:mod:`layoutkit.filter.imu`) on a libsurvive recording (issue 26 item 4).
 
 Reads the recording once: the device's layout (its CONFIG), its IMU frame (CONFIG ``imu``: ``plus_x``,
-``plus_z``, ``position``), its raw ``i`` lines (scaled by :func:`layoutkit.importers.libsurvive.imu_samples`)
+``plus_z``, ``position``), its raw ``i`` lines (scaled by :func:`layoutkit.importers.libsurvive_imu.imu_samples`)
 and every sweep as its own measurement at its own time (:func:`~layoutkit.importers.libsurvive.device_sweeps`,
 on the same device clock). The filter starts at the first window the joint solve
 (:func:`layoutkit.joint.solve_joint`, every station, the factory models) solves with two stations or
@@ -19,13 +19,13 @@ __all__ = ["filter_recording", "gyro_range"]
 
 
 def gyro_range(tw, res, use, imu, min_pairs: int = 20) -> dict:
-    """Which gyro range (:data:`layoutkit.importers.libsurvive.GYRO_COUNTS_PER_DEG_S`) the device uses:
+    """Which gyro range (:data:`layoutkit.importers.libsurvive_imu.GYRO_COUNTS_PER_DEG_S`) the device uses:
     the attitude change between consecutive joint lighthouse poses (windows ``use``, <= 50 ms apart,
     turning > 0.02 rad) against the gyro's integral over the same time at the default range; the
     least-squares ratio picks the nearest range. ``counts_per_deg_s`` None when fewer than ``min_pairs``
     pairs turned (a device at rest: the default stays)."""
     from ..geometry import matrix_to_rotvec
-    from ..importers.libsurvive import GYRO_COUNTS_PER_DEG_S
+    from ..importers.libsurvive_imu import GYRO_COUNTS_PER_DEG_S
 
     R_ib = imu["imu_rotation"]
     cpd0 = imu["scales"]["gyro_counts_per_deg_s"]
@@ -61,8 +61,9 @@ def filter_recording(recording, device: str, *, config=None, stations=None, ligh
     ``stations``, ``summary``. ValueError naming the recording for a device without IMU or light.
     """
     from ..filter.imu import ImuFilterConfig, run_imu_filter
-    from ..importers.libsurvive import (STANDARD_GRAVITY, device_frames, device_sweeps, imu_frame, imu_samples,
-                                        layout_of, libsurvive_stations, read_lighthouse_config, read_recording)
+    from ..importers.libsurvive import (device_frames, device_sweeps, layout_of, libsurvive_stations,
+                                        read_lighthouse_config, read_recording)
+    from ..importers.libsurvive_imu import STANDARD_GRAVITY, imu_samples
     from ..joint import solve_joint
     from .joint_solve import StationFrames, to_station_convention, window_table
 
