@@ -51,7 +51,7 @@ OUT = HERE / "results"
 SOURCES = (Path("/work/shared/data/libsurvive"), Path.home() / ".cache" / "layoutkit-realdata" / "survive")
 SPEED_BINS = (0.0, 0.05, 0.2, 0.5, 1.0, np.inf)          # m/s
 CAL_PRIOR = (np.deg2rad(1.0), 0.03)                     # station prior of the study's calibrate runs
-CAL_MAX_WINDOWS = 150                                     # per device
+CAL_MAX_WINDOWS = 100                                     # per device
 MIN_WINDOWS_FOR_CAL = 50
 
 
