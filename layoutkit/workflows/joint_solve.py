@@ -111,14 +111,16 @@ def _windows(fr: StationFrames, stations, window_s):
     return rows, tw, window_angles(to_station_convention(fr.angles, stations, sidx), rows)
 
 
-def window_velocity(tw, res, max_gap_s: float = 0.05):
+def window_velocity(tw, res, max_gap_s: float = 0.05, max_dev_m: float = 0.02, max_dev_rad: float = np.deg2rad(3.0)):
     """Body velocity of each window from the solved poses (offline: the least-squares slope over the
     solved windows within ``max_gap_s`` before and after it, the window itself included — both sides
     known, unlike replay's causal fit).
 
     tw (W,) s; res : the joint :class:`~layoutkit.pnp.PnPResult` (world frame). Returns ``omega (W, 3)``
     rad/s (world frame, left perturbation: ``R(t + d) = exp([omega d]x) R(t)``), ``v (W, 3)`` m/s and
-    ``known (W,)`` bool: False where fewer than 3 windows qualify or the velocity exceeds replay's
+    ``known (W,)`` bool: False where fewer than 3 windows qualify, where the neighbours stray from the
+    fitted line by more than ``max_dev_m`` / ``max_dev_rad`` (not one smooth motion: unrelated poses,
+    e.g. simulated random frames 1/60 s apart, or a sharp turn), or where the velocity exceeds replay's
     continuity limits (:class:`layoutkit.live.pipeline.LiveConfig` ``max_speed_m_s``,
     ``max_rate_deg_s``: not a motion, a jump)."""
     from ..geometry import matrix_to_rotvec
@@ -143,9 +145,16 @@ def window_velocity(tw, res, max_gap_s: float = 0.05):
         den = float(dtc @ dtc)
         if den <= 0:
             continue
-        v = dtc @ (res.translation[nb] - res.translation[k]) / den
-        w = dtc @ matrix_to_rotvec(res.rotation[nb] @ res.rotation[k].T) / den
+        dp = res.translation[nb] - res.translation[k]
+        dr = matrix_to_rotvec(res.rotation[nb] @ res.rotation[k].T)
+        v = dtc @ dp / den
+        w = dtc @ dr / den
         if np.linalg.norm(v) > lim.max_speed_m_s or np.linalg.norm(w) > np.deg2rad(lim.max_rate_deg_s):
+            continue
+        fit_p = dp.mean(0) + dtc[:, None] * v[None]
+        fit_r = dr.mean(0) + dtc[:, None] * w[None]
+        if (np.linalg.norm(dp - fit_p, axis=1).max() > max_dev_m
+                or np.linalg.norm(dr - fit_r, axis=1).max() > max_dev_rad):
             continue
         vel[k], omega[k], known[k] = v, w, True
     return omega, vel, known
