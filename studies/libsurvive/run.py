@@ -335,20 +335,22 @@ def write_markdown(results, path: Path):
          "from every station through its factory-calibrated model. *no-red.* = solved windows whose pose used exactly "
          "6 angles (no redundancy). libsurvive = its own poses reprojected on the same angles (its body frame fitted "
          "to favour it).", "",
-         "| recording | device | windows | solved | no-red. | joint median | per-station medians | libsurvive median | speed p90 m/s |",
-         "|---|---|---|---|---|---|---|---|---|"]
+         "| recording | device | windows | solved | no-red. joint | no-red. per station (of ok) | joint median | per-station medians | libsurvive median | speed p90 m/s |",
+         "|---|---|---|---|---|---|---|---|---|---|"]
     for rec in results:
         name = Path(rec["file"]).name
         if "import_error" in rec or "error" in rec:
-            L.append(f"| {name} | – | – | – | – | – | – | – | {rec.get('import_error') or rec.get('error')} |")
+            L.append(f"| {name} | – | – | – | – | – | – | – | – | {rec.get('import_error') or rec.get('error')} |")
             continue
         for dev, d in rec["devices"].items():
             if "skipped" in d:
-                L.append(f"| {name} | {dev} | skipped: {d['skipped']} | | | | | | |")
+                L.append(f"| {name} | {dev} | skipped: {d['skipped']} | | | | | | | |")
                 continue
             ps = ", ".join(f"{k}: {_fmt(v['residual']['median'])}" for k, v in d["per_station"].items())
+            nr = ", ".join(f"{k}: {v['no_redundancy_ok']} of {v['status_counts'].get('ok', 0)}"
+                           for k, v in d["per_station"].items())
             ls = d.get("libsurvive", {}).get("reprojection", {}).get("median")
-            L.append(f"| {name} | {dev} | {d['windows']} | {d['joint']['solved']} | {d['joint']['no_redundancy_ok']} | "
+            L.append(f"| {name} | {dev} | {d['windows']} | {d['joint']['solved']} | {d['joint']['no_redundancy_ok']} | {nr} | "
                      f"{_fmt(d['joint']['residual']['median'])} | {ps} | {_fmt(ls)} | {_fmt(d['speed']['p90'], '{:.2f}')} |")
     L += ["", "## Joint residual by speed (median per-window RMS): static model / motion-compensated / libsurvive", "",
           "| recording | device | " + " | ".join(f"{lo}-{hi if np.isfinite(hi) else '∞'} m/s" for lo, hi in
@@ -467,8 +469,12 @@ def main():
     ap.add_argument("--only", nargs="*", help="recordings whose name contains one of these")
     ap.add_argument("--no-calibrate", action="store_true")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--markdown-only", action="store_true", help="rewrite results.md from OUT/results.json")
     a = ap.parse_args()
     out = Path(a.out)
+    if a.markdown_only:
+        write_markdown(json.loads((out / "results.json").read_text())["recordings"], out / "results.md")
+        return
     out.mkdir(parents=True, exist_ok=True)
     results, series = [], {}
     with tempfile.TemporaryDirectory(prefix="libsurvive_study_") as tmp:
