@@ -51,7 +51,7 @@ OUT = HERE / "results"
 SOURCES = (Path("/work/shared/data/libsurvive"), Path.home() / ".cache" / "layoutkit-realdata" / "survive")
 SPEED_BINS = (0.0, 0.05, 0.2, 0.5, 1.0, np.inf)          # m/s
 CAL_PRIOR = (np.deg2rad(1.0), 0.03)                     # station prior of the study's calibrate runs
-CAL_MAX_WINDOWS = 100                                     # per device
+CAL_MAX_WINDOWS = 60                                      # per device
 MIN_WINDOWS_FOR_CAL = 50
 
 
@@ -109,7 +109,7 @@ def _reference(ddir: Path, dev: str, root: Path):
     return None
 
 
-def libsurvive_reprojection(positions, stations, tw, angles, ref, max_fit: int = 400, seed: int = 0):
+def libsurvive_reprojection(positions, stations, tw, angles, ref, max_fit: int = 200, seed: int = 0):
     """Per-window RMS residual (rad) of libsurvive's poses on the recorded ``angles (W, S, n, 2)``,
     interpolated to the window times ``tw`` (slerp; only inside its time range and gaps < 0.1 s),
     after the constant body-frame transform that minimises that residual (fitted, soft-L1, on at most
@@ -150,13 +150,10 @@ def libsurvive_reprojection(positions, stations, tw, angles, ref, max_fit: int =
         fit = np.sort(rng.choice(fit, max_fit, replace=False))
     # start: libsurvive frame → layout frame as the median of the per-window transforms is not known
     # here; start from identity and from the four 180-degree turns (IMU frames are often flipped)
-    best = None
-    for r0 in ([0, 0, 0], [np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi]):
-        x0 = np.array(r0 + [0.0, 0.0, 0.0], float)
-        f = lambda x: np.nan_to_num(resid(x, fit)[0][np.isfinite(A[fit])], nan=0.0)  # noqa: E731
-        sol = least_squares(f, x0, loss="soft_l1", f_scale=1e-3, max_nfev=200)
-        if best is None or sol.cost < best.cost:
-            best = sol
+    f = lambda x: np.nan_to_num(resid(x, fit)[0][np.isfinite(A[fit])], nan=0.0)  # noqa: E731
+    starts = [np.array(r0 + [0.0, 0.0, 0.0], float) for r0 in ([0, 0, 0], [np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi])]
+    x0 = min(starts, key=lambda x: float(np.sum(np.log1p((f(x) / 1e-3) ** 2))))   # the best start only
+    best = least_squares(f, x0, loss="soft_l1", f_scale=1e-3, max_nfev=100)
     r, _, _ = resid(best.x, np.arange(inside.sum()))
     out[inside] = np.sqrt(np.nanmean(r.reshape(len(r), -1) ** 2, axis=1))
     return out, {"rotvec_deg": np.degrees(best.x[:3]).tolist(), "translation_mm": (best.x[3:] * 1e3).tolist()}
@@ -467,18 +464,28 @@ def figures(results, series, out: Path):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", nargs="*", help="recordings whose name contains one of these")
+    ap.add_argument("--part", default=None, help="K/N: every N-th recording from the K-th (split a run over processes)")
     ap.add_argument("--no-calibrate", action="store_true")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--markdown-only", action="store_true", help="rewrite results.md from OUT/results.json")
+    ap.add_argument("--merge", nargs="+", default=None,
+                    help="merge the results.json + series.npz of these --part runs into --out (tables, figures)")
     a = ap.parse_args()
     out = Path(a.out)
     if a.markdown_only:
         write_markdown(json.loads((out / "results.json").read_text())["recordings"], out / "results.md")
         return
+    if a.merge:
+        merge(a.merge, out)
+        return
     out.mkdir(parents=True, exist_ok=True)
     results, series = [], {}
     with tempfile.TemporaryDirectory(prefix="libsurvive_study_") as tmp:
-        for p in recordings(a.only):
+        recs = recordings(a.only)
+        if a.part:
+            k, n = (int(x) for x in a.part.split("/"))
+            recs = recs[k::n]
+        for p in recs:
             print(f"{p.name} ...", flush=True)
             try:
                 r, s = study_recording(p, Path(tmp), not a.no_calibrate)
@@ -495,6 +502,52 @@ def main():
             from layoutkit.io.atomic import atomic_write_text
 
             atomic_write_text(out / "results.json", json.dumps(to_jsonable({"recordings": results}), indent=1) + "\n")
+            save_series(series, out / "series.npz")
+    write_markdown(results, out / "results.md")
+    figures(results, series, out)
+
+
+def save_series(series, path: Path):
+    """The per-window / per-sweep arrays the figures need (not part of results.json)."""
+    flat = {}
+    for (rec, dev), s in series.items():
+        for k, v in s.items():
+            if isinstance(v, dict):
+                for kk, vv in v.items():
+                    flat[f"{rec}|{dev}|{k}|{kk}"] = np.asarray(vv)
+            elif v is not None:
+                flat[f"{rec}|{dev}|{k}"] = np.asarray(v)
+    np.savez_compressed(path, **flat)
+
+
+def load_series(path: Path) -> dict:
+    series: dict = {}
+    with np.load(path) as z:
+        for key in z.files:
+            parts = key.split("|")
+            s = series.setdefault((parts[0], parts[1]), {"libsurvive": None})
+            if len(parts) == 3:
+                s[parts[2]] = z[key]
+            else:
+                s.setdefault(parts[2], {})[parts[3]] = z[key]
+    return series
+
+
+def merge(dirs, out: Path):
+    """One results.json / results.md / figures from several --part runs (recording order of each)."""
+    from layoutkit.io.atomic import atomic_write_text
+    from layoutkit.io.jsonfile import to_jsonable
+
+    results, series = [], {}
+    for d in dirs:
+        d = Path(d)
+        results += json.loads((d / "results.json").read_text())["recordings"]
+        if (d / "series.npz").exists():
+            series.update(load_series(d / "series.npz"))
+    names = [p.name for p in recordings()]
+    results.sort(key=lambda r: names.index(Path(r["file"]).name) if Path(r["file"]).name in names else 99)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps(to_jsonable({"recordings": results}), indent=1) + "\n")
     write_markdown(results, out / "results.md")
     figures(results, series, out)
 
