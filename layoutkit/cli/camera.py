@@ -30,8 +30,8 @@ def camera_attitude(input, focal_length_px, principal_point, method, aspect_rati
 
     INPUT: an image, a folder of images, a video file, a capture device index (0, 1, ...) or a
     corners CSV (t,u1,v1,...,u4,v4 in paper (u, v) pixels, v up; or t,x1,y1,...,x4,y4 pixels).
-    Prints Euler angles Z→Y→X (deg) of R_ct in the paper's camera convention per frame.
-    For a real camera with lens distortion use `layoutkit camera attitude IMAGE --camera CAM.yml`.
+    Prints Euler angles Z→Y→X (deg) of R_ct in the paper's camera convention per frame; exits 1
+    when no frame was solved. For a real camera with lens distortion use `layoutkit camera attitude IMAGE --camera CAM.yml`.
     """
     if focal_length_px <= 0:
         fail(f"--focal-length-px must be positive, got {focal_length_px}")
@@ -44,13 +44,19 @@ def camera_attitude(input, focal_length_px, principal_point, method, aspect_rati
         fail(str(e))
     if as_json:
         echo_json(out)
-        return
-    click.echo(f"{out['source']}: {out['n_solved']}/{out['n_frames']} frames solved ({method})")
-    click.echo(f"{'t_s':>10} {'status':>16} {'theta1_deg':>11} {'theta2_deg':>11} {'theta3_deg':>11}")
-    for fr in out["frames"]:
-        th = fr["euler_zyx_deg"]
-        vals = " ".join(f"{v:11.4f}" for v in th) if th is not None else " ".join(["        nan"] * 3)
-        click.echo(f"{fr['t_s']:10.3f} {fr['status']:>16} {vals}")
+    else:
+        click.echo(f"{out['source']}: {out['n_solved']}/{out['n_frames']} frames solved ({method})")
+        click.echo(f"{'t_s':>10} {'status':>16} {'theta1_deg':>11} {'theta2_deg':>11} {'theta3_deg':>11}")
+        for fr in out["frames"]:
+            th = fr["euler_zyx_deg"]
+            vals = " ".join(f"{v:11.4f}" for v in th) if th is not None else " ".join(["        nan"] * 3)
+            click.echo(f"{fr['t_s']:10.3f} {fr['status']:>16} {vals}")
+    if not out["n_solved"]:  # a run that produced nothing says why and exits non-zero
+        from collections import Counter
+
+        why = Counter(fr["status"] for fr in out["frames"]).most_common(1)
+        fail(f"no frame of {out['n_frames']} solved" + (f" (most common status: {why[0][0]}, {why[0][1]} frames)"
+                                                        if why else f": no frame read from {input}"), code=1)
 
 
 @click.group("camera", short_help="Real camera: calibrate its lens; face attitude in photos.")

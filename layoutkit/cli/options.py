@@ -29,7 +29,7 @@ from click.core import ParameterSource
 from ..units import ARCSEC, LENGTH_UNIT_NAMES, LENGTH_UNITS, RHO_PAPER, SIGMA_THETA_PAPER
 
 __all__ = [
-    "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
+    "option", "explicit", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
     "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
@@ -147,6 +147,14 @@ def _main_callback(dest: str, user_callback: Callable | None, required: bool = F
             value = user_callback(ctx, param, value)
         return value
     return cb
+
+
+def explicit(ctx: click.Context, dest: str) -> bool:
+    """Whether parameter ``dest`` was given (on the command line, the environment or through a deprecated
+    alias) rather than left at its default: lets a command take a value from an input file when the user
+    did not set it (``score LAYOUT`` takes the layout's recorded rho, half-angle, ...)."""
+    src = ctx.get_parameter_source(dest)
+    return src not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None) or (_META + dest) in ctx.meta
 
 
 def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]] = (), callback=None,

@@ -337,12 +337,19 @@ class CameraReader:
         self.processor = CameraProcessor(config)
         self.writer = None
         if record_dir is not None:
+            # a folder source made by the bench simulator names its serial stream: the recording keeps
+            # that tie, so a replay can tell whether the frames belong to the capture (io/runtie.py)
+            from ..io.runtie import read_file_tie
+
+            tie = read_file_tie(source) if Path(str(source)).is_dir() else None
+            extra = {"run": tie.to_dict()} if tie is not None else {}
             if config.camera_model is not None:  # the capture records the lens it was solved with
                 meta = CameraMeta.from_model(config.camera_model, source=str(source), clock="host-monotonic",
-                                             aspect_ratio=config.aspect_ratio)
+                                             aspect_ratio=config.aspect_ratio, extra=extra)
             else:
                 meta = CameraMeta(focal_length_px=config.focal_length_px, principal_point_px=config.principal_point_px,
-                                  source=str(source), clock="host-monotonic", aspect_ratio=config.aspect_ratio)
+                                  source=str(source), clock="host-monotonic", aspect_ratio=config.aspect_ratio,
+                                  extra=extra)
             self.writer = CameraIndexWriter(record_dir, meta)
         self._q: queue.Queue = queue.Queue()
         self._stop = threading.Event()
@@ -498,7 +505,7 @@ class LiveCrossCheck:
             out["state"] = "estimating clock and alignment" if self._thread is not None else "collecting frames"
             return out
         if self._est[0] == "failed":
-            out["state"] = f"alignment failed: {self._est[1]}"
+            out["state"] = f"cross-check not usable: {self._est[1]}"
             return out
         off, drift, X, Y, vf = self._est
         new = range(self._done, n)

@@ -406,7 +406,8 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: LiveConfig, dop=None):
         ad, pd = np.array(dop[0]), np.array(dop[1])
     else:
         ad, pd = _dop(P, Rs, ts, ok, lit, config, cal)
-    failed = np.where(np.asarray(sol.status) == _status.AMBIGUOUS, _status.AMBIGUOUS, _status.SOLVER_FAILED)
+    st0 = np.asarray(sol.status)  # ambiguous and low-redundancy poses keep their names (layoutkit.status)
+    failed = np.where(np.isin(st0, (_status.AMBIGUOUS, _status.LOW_REDUNDANCY)), st0, _status.SOLVER_FAILED)
     stat = np.where(~ok, failed,
                     np.where(rr > config.max_residual_sigma * config.sigma_theta, _status.HIGH_RESIDUAL, _status.OK))
     return Rs, ts, ok, rr, ad, pd, stat
