@@ -95,7 +95,8 @@ class BundleResult:
     rotation (K, 3, 3), translation (K, 3): sample poses (world); parameters : list of
     :class:`ParameterEstimate`; residual_before / residual_after : (K, S, n, 2) rad (NaN = no
     angle), before = with the starting parameters and each sample's best pose under them;
-    success, status ("ok", "not_converged", "too_few"), message; nfev; sigma_scale: sqrt of the
+    success, status ("ok", "not_converged", "too_few", "nothing_determined": every free parameter
+    held as unobservable, nothing adjusted), message; nfev; sigma_scale: sqrt of the
     residual variance in units of the given sigma.
     """
 
@@ -561,6 +562,8 @@ def _global_covariance(J, K):
     the per-sample 6 × 6 pose blocks of ``J^T J``."""
     Jc = J.tocsc()
     Jp, Jg = Jc[:, : 6 * K], Jc[:, 6 * K:]
+    if Jg.shape[1] == 0:                                       # every global parameter held
+        return np.zeros((0, 0)), np.zeros(0, bool)
     Hgg = (Jg.T @ Jg).toarray()
     Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], K, 6)
     inv = np.linalg.pinv(_pose_blocks(Jp, K))
@@ -890,7 +893,14 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     msg = (f"{sol.message.strip()} ({sol.nfev} evaluations); residual scale {np.sqrt(s2):.3g} sigma; "
            f"{cnt['unobservable']} parameter(s) unobservable, {cnt['weakly_observable']} weakly observable "
            f"(held at their start), {cnt['suspect']} suspect")
-    return BundleResult(new_st, P + off, R, t, params, before_res, after, sol.status > 0, status, msg,
+    if pb.N == 6 * K:                                          # nothing left to adjust: say so, never "ok"
+        status = "nothing_determined"
+        n_weak = len(weak) + len(st_weak)
+        n_free = len(free_cal) + len(free_station)
+        msg = (f"the {int(good_s.sum())} samples determine none of the {n_free} free parameter(s) "
+               f"({n_free - n_weak} unobservable, {n_weak} weakly observable; all held at their start): "
+               f"nothing adjusted")
+    return BundleResult(new_st, P + off, R, t, params, before_res, after, status == "ok", status, msg,
                         int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost), "timing_s": tau})
 
 

@@ -103,6 +103,20 @@ def _residual_layout(parts, devs):
                            else devs[0].layout.ids)
 
 
+def _nothing_to_calibrate(frames_paths, stations_path, stations, res, reference_path, station_columns) -> str:
+    """The error of a run that adjusts nothing: what the data lacked, which files, what to give."""
+    files = ", ".join(str(p) for p in frames_paths)
+    note = ""
+    if not any(station_columns):
+        note = (f"; {'the frame table has no' if len(frames_paths) == 1 else 'no frame table has a'} 'station' "
+                f"column, so every row is the first station ({stations[0].id!r} of {stations_path})")
+    gauge = "" if reference_path is not None else (
+        f"; the first station's pose fixes the frame, so {'it has' if len(stations) == 1 else 'the others have'} "
+        f"only {'its calibration terms' if len(stations) == 1 else 'their poses and calibration terms'} to adjust")
+    return (f"{files}: nothing to calibrate: {res.message}{note}{gauge}. Give frames from two stations or more "
+            f"(a 'station' column naming {stations_path}'s ids), more or moving frames, or --reference poses")
+
+
 def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, reference_path=None,
                     sensor_offsets: bool = False, sensor_timing: bool = False, sigma: float,
                     offset_prior: float = 1e-3, offset_bound: float = 5e-3, calibration_prior: float = 0.1,
@@ -131,7 +145,7 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
     from ..io.stations import read_stations, write_stations
     from ..joint import WINDOW_S
     from ..layout import load_layout
-    from .calibrate_devices import cross_validate, device_windows, fit_devices, joint_residual
+    from .calibrate_devices import NO_FIT, cross_validate, device_windows, fit_devices, joint_residual
 
     frames_paths = [frames_path] if isinstance(frames_path, (str, Path)) else list(frames_path)
     layout_paths = [layout_path] if isinstance(layout_path, (str, Path)) else list(layout_path)
@@ -148,10 +162,11 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
     if not stations:
         raise ValueError(f"{stations_path}: no stations")
     win = WINDOW_S if window_s is None else window_s
-    devs, names = [], []
+    devs, names, frs = [], [], []
     for fp, lp in zip(frames_paths, layout_paths):
         layout = load_layout(lp)
         fr = read_station_frames(fp, layout)
+        frs.append(fr)
         name = _device_name(fp, names)
         names.append(name)
         try:
@@ -183,8 +198,9 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
         ba_kw.update(reference=reference, reference_sigma=reference_sigma)
     res, parts = fit_devices(devs, stations, selects, sigma=sigma, max_windows=None if selects else max_samples,
                              seed=seed, **ba_kw)
-    if res.status == "too_few":
-        raise ValueError(f"{frames_paths[0]}: {res.message}")
+    if res.status in NO_FIT:
+        raise ValueError(_nothing_to_calibrate(frames_paths, stations_path, stations, res, reference_path,
+                                               [f.station_column for f in frs]))
     folds = []
     if cross_validation and reference_path is None:
         folds = cross_validate(devs, stations, sigma=sigma, max_windows=max_samples, seed=seed, **ba_kw)

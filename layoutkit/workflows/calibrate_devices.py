@@ -30,10 +30,12 @@ import numpy as np
 from ..layout import Layout
 
 __all__ = ["DeviceWindows", "device_windows", "joint_residual", "fit_devices", "cross_validate",
-           "SAME_TOLERANCE", "fold_verdict"]
+           "SAME_TOLERANCE", "NO_FIT", "fold_verdict"]
 
 #: A held-out residual within this fraction of the factory stations' counts as the same.
 SAME_TOLERANCE = 0.01
+#: Bundle-adjustment statuses with no fitted stations to evaluate (:class:`layoutkit.calibrate.BundleResult`).
+NO_FIT = ("too_few", "nothing_determined")
 
 
 @dataclass(frozen=True)
@@ -181,7 +183,7 @@ def cross_validate(devs, stations, *, sigma: float, max_windows: int | None = No
             others = [x for j, x in enumerate(devs) if j != k]
             res, _ = fit_devices(others, stations, sigma=sigma, max_windows=max_windows, seed=seed, **ba_kw)
             fac = joint_residual(d, stations)["median_rad"]
-            cal = joint_residual(d, res.stations)["median_rad"] if res.status != "too_few" else None
+            cal = joint_residual(d, res.stations)["median_rad"] if res.status not in NO_FIT else None
             folds.append({"kind": "device", "fit_on": [x.name for x in others], "held_out": d.name,
                           "factory_rad": fac, "calibrated_rad": cal,
                           "ratio": None if (fac is None or cal is None) else cal / fac,
@@ -201,7 +203,7 @@ def cross_validate(devs, stations, *, sigma: float, max_windows: int | None = No
         for d, sel in zip(devs, second):
             fac = joint_residual(d, stations, select=sel)["median_rad"]
             cal = None
-            if res.status != "too_few":
+            if res.status not in NO_FIT:
                 sl = parts[d.name]["sensors"]
                 cal = joint_residual(d, res.stations, res.points_body[sl], select=sel,
                                      latency=res.extra["timing_s"][sl])["median_rad"]

@@ -24,10 +24,12 @@ __all__ = ["StationFrames", "read_station_frames", "station_index", "frame_file_
 
 class StationFrames:
     """Rows of a frame table: ``t (R,)`` s, ``station (R,)`` text, ``angles (R, n, 2)`` rad in the
-    layout's sensor order (NaN = not seen)."""
+    layout's sensor order (NaN = not seen); ``station_column``: False when the file had no ``station``
+    column (every row station 0)."""
 
-    def __init__(self, t, station, angles):
+    def __init__(self, t, station, angles, station_column: bool = True):
         self.t, self.station, self.angles = t, station, angles
+        self.station_column = station_column
 
 
 def read_station_frames(path, layout: Layout) -> StationFrames:
@@ -39,7 +41,8 @@ def read_station_frames(path, layout: Layout) -> StationFrames:
     ang = np.array(fr.angles, float)
     ang[~np.isfinite(ang)] = np.nan
     st = fr.stations() if hasattr(fr, "stations") else (fr.station if fr.station is not None else np.zeros(len(fr.t), int))
-    return StationFrames(np.asarray(fr.t, float), np.asarray([str(int(x)) for x in st]), ang)
+    return StationFrames(np.asarray(fr.t, float), np.asarray([str(int(x)) for x in st]), ang,
+                         station_column=getattr(fr, "station", None) is not None)
 
 
 def station_index(labels, stations) -> np.ndarray:
