@@ -57,11 +57,15 @@ def _quat_rotvec(q_wxyz) -> np.ndarray:
     return matrix_to_rotvec(quaternion_to_matrix(np.asarray(q_wxyz, float).reshape(-1, 4), scalar_first=True))
 
 
-def import_libsurvive(recording, out_dir, *, device: str | None = None, config=None) -> dict:
+def import_libsurvive(recording, out_dir, *, device: str | None = None, config=None, imu_filter: bool = False,
+                      filter_stations=None) -> dict:
     """A libsurvive recording → ``out_dir/<device>/{layout.json, frames.csv, reference*.csv}`` and
     ``out_dir/stations.json``.
 
     config : the lighthouse configuration JSON; default ``<recording>.json`` when it exists.
+    imu_filter : also run the IMU-aided filter on every device with IMU lines
+    (:func:`layoutkit.workflows.imu_filter.imu_filter_devices`: ``<device>/imu_filter_poses.csv``),
+    through ``filter_stations`` (a stations JSON, e.g. ``calibrate``'s) or the recording's own.
     Returns a summary: per device frames, lit sensors, dropped events by reason; stations; where
     a truncated recording ended.
     """
@@ -139,6 +143,11 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         write_reference(ddir / "reference_external.csv", a[:, 0], _quat_rotvec(a[:, 4:8]), a[:, 1:4])
         summary["devices"].setdefault(name, {})["reference_external"] = {
             "file": str(ddir / "reference_external.csv"), "poses": len(a)}
+    if imu_filter:
+        from .imu_filter import imu_filter_devices
+
+        summary["imu_filter"] = imu_filter_devices(recording, out, [d for d in devices if d in rec.light], rec=rec,
+                                                   stations=filter_stations, lighthouse_config=config)
     return summary
 
 
