@@ -56,9 +56,13 @@ from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, check_sta
 
 __all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "jacobian_sparsity", "to_ba", "from_ba",
            "station_to_ba", "station_from_ba", "static_segments", "timing_gain", "STATIC_POSITION_TOL",
-           "STATIC_ROTATION_TOL"]
+           "STATIC_ROTATION_TOL", "PRIOR_DOMINATED"]
 
 UNOBSERVABLE_RATIO = 0.5
+#: Status of a device's own sensor term (offset, latency) whose sd exceeds UNOBSERVABLE_RATIO of its
+#: prior: it is a prior-constrained unknown, so it is adjusted (never held), but its value is set
+#: mostly by the prior — the data carry less than 3x the prior's information about it.
+PRIOR_DOMINATED = "prior_dominated"
 #: The Schur LM stops when this many accepted steps together lowered the cost by less than STALL_RTOL of it.
 STALL_ITERATIONS = 10
 STALL_RTOL = 1e-6
@@ -75,7 +79,8 @@ SUSPECT_SIGMAS = 5.0
 class ParameterEstimate:
     """One global parameter: ``name`` (e.g. ``station 1 axis 0 phase``), ``value``, ``std`` (None when not
     fitted; includes the layout consider term), ``start``, ``unit``, ``status`` ("ok", "suspect",
-    "weakly_observable", "unobservable" or "fixed"; module docstring), ``correlation``: multiple
+    "weakly_observable", "unobservable" or "fixed"; module docstring; a sensor offset / latency:
+    "ok" or :data:`PRIOR_DOMINATED`, adjusted either way), ``correlation``: multiple
     correlation with all other unknowns at the last solve where it was free (None if never free)."""
 
     name: str
@@ -872,16 +877,16 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                 gi = pb.c_off + 3 * q + c - 6 * K
                 bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * offset_prior
                 params.append(ParameterEstimate(f"sensor {labels[i]} offset {'xyz'[c]}", float(off[i, c]),
-                                                None if bad else float(std[gi]), 0.0, "m",
-                                                "unobservable" if bad else "ok"))
+                                                None if null[gi] else float(std[gi]), 0.0, "m",
+                                                PRIOR_DOMINATED if bad else "ok"))
     tau = pb.tau_of(sol.x)
     if sensor_timing:
         for q, i in enumerate(adj):
             gi = pb.c_tim + q - 6 * K
             bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * timing_prior
             params.append(ParameterEstimate(f"sensor {labels[i]} timing", float(tau[i]),
-                                            None if bad else float(std[gi]), 0.0, "s",
-                                            "unobservable" if bad else "ok"))
+                                            None if null[gi] else float(std[gi]), 0.0, "s",
+                                            PRIOR_DOMINATED if bad else "ok"))
     new_st = []
     for s, st in enumerate(stations):
         c = Calibration(station_from_ba(cal[s], st.kind), st.kind, st.calibration.gib_argument if st.calibration else "ideal")
@@ -889,10 +894,14 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     R = np.where(good[:, None, None], R, np.nan)
     t = np.where(good[:, None], t, np.nan)
     status = "ok" if sol.status > 0 else "not_converged"
-    cnt = {k: sum(p.status == k for p in params) for k in ("unobservable", "weakly_observable", "suspect")}
+    cnt = {k: sum(p.status == k for p in params) for k in ("unobservable", "weakly_observable", "suspect",
+                                                            PRIOR_DOMINATED)}
     msg = (f"{sol.message.strip()} ({sol.nfev} evaluations); residual scale {np.sqrt(s2):.3g} sigma; "
            f"{cnt['unobservable']} parameter(s) unobservable, {cnt['weakly_observable']} weakly observable "
            f"(held at their start), {cnt['suspect']} suspect")
+    if cnt[PRIOR_DOMINATED]:
+        msg += (f"; {cnt[PRIOR_DOMINATED]} sensor term(s) adjusted but set mostly by their prior "
+                f"(sd > {UNOBSERVABLE_RATIO:g} prior: {PRIOR_DOMINATED})")
     if pb.N == 6 * K:                                          # nothing left to adjust: say so, never "ok"
         status = "nothing_determined"
         n_weak = len(weak) + len(st_weak)

@@ -187,3 +187,31 @@ def test_a_station_change_that_only_absorbs_one_device_is_not_written(tmp_path, 
     np.testing.assert_allclose(written[1].translation, truth[1].translation)
     assert (tmp_path / "out" / "stations_fitted.json").exists()
     assert rep["devices"]["A"]["at_rest"] and rep["devices"]["A"]["body_poses"] == 1
+
+
+def test_sensor_offsets_the_data_barely_see_are_adjusted_and_said_to_be_prior_dominated(rng):
+    """A body at rest (one pose, 30 samples) with 0.5 mm sensor errors and --sensor-offsets (prior
+    1 mm): an offset along a sensor's lines of sight barely changes its angles (and an unseen sensor's
+    not at all), so some components' sd exceeds half the prior. They are reported ``prior_dominated``
+    with that sd, the others ``ok`` below half of it; the prior-dominated ones of sensors with angles
+    are adjusted (not held at 0), those without stay at 0 — the message says so and does not count
+    them as held."""
+    from layoutkit.calibrate import PRIOR_DOMINATED
+
+    truth = stations_looking_at(STATION_POSITIONS, (0, 0, 0), kind="lh1")
+    lay, a = _device(rng, truth, 16, 30, moving=False, offsets=0.5e-3)
+    ini = solve_joint(lay.positions, a, stations=truth)
+    res = bundle_adjust(lay.positions, a, truth, sigma=2e-5, initial_poses=(ini.rotation, ini.translation),
+                        fit_calibration=False, sensor_offsets=True, offset_prior=1e-3, layout_sigma=0.0,
+                        pose_of=np.zeros(30, int))
+    off = [p for p in res.parameters if " offset " in p.name]
+    pd = [p for p in off if p.status == PRIOR_DOMINATED]
+    ok = [p for p in off if p.status == "ok"]
+    assert pd and ok and len(pd) + len(ok) == len(off)
+    assert all(p.std > 0.5e-3 for p in pd) and all(p.std <= 0.5e-3 for p in ok)
+    lit = np.isfinite(a[0]).all(-1).any(0)                       # sensors with angles (one pose: sample 0)
+    pd_lit = [p for p in pd if lit[int(p.name.split()[1])]]
+    assert pd_lit and all(p.value != 0.0 for p in pd_lit)        # adjusted, not held
+    assert all(p.value == 0.0 for p in pd if not lit[int(p.name.split()[1])])   # no angles: the prior alone
+    assert f"{len(pd)} sensor term(s) adjusted but set mostly by their prior" in res.message
+    assert "0 parameter(s) unobservable" in res.message

@@ -94,8 +94,10 @@ def _print(rep: dict) -> None:
     for f in rep["transfer"]["folds"]:
         click.echo(f"held out {f['held_out']}: {fmt(f['factory_rad'])} -> {fmt(f['calibrated_rad'])} rad "
                    f"({f['verdict']})")
+    pd = rep.get("prior_dominated") or []
+    pd = f", {len(pd)} sensor term(s) adjusted but set mostly by their prior" if pd else ""
     click.echo(f"{len(rep['unobservable'])} parameter(s) unobservable, {len(rep['weakly_observable'])} weakly "
-               f"observable (held at their start); wrote {rep['outputs']['stations']} "
+               f"observable (held at their start){pd}; wrote {rep['outputs']['stations']} "
                f"({rep['stations_written']}), {rep['outputs']['report']}")
     if rep["transfer"]["status"] == "does_not_transfer":
         click.echo(f"warning: the calibration does not transfer: {rep['transfer']['message']}", err=True)

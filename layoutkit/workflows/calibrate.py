@@ -273,6 +273,7 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
                         "status": p.status, "correlation": p.correlation} for p in res.parameters],
         "unobservable": [p.name for p in res.parameters if p.status == "unobservable"],
         "weakly_observable": [p.name for p in res.parameters if p.status == "weakly_observable"],
+        "prior_dominated": [p.name for p in res.parameters if p.status == "prior_dominated"],
         "suspect": [p.name for p in res.parameters if p.status == "suspect"],
         "residuals_before": residual_summary(res.residual_before, stations, rl),
         "residuals_after": residual_summary(res.residual_after, stations, rl),
@@ -308,7 +309,8 @@ def _raw_median(devs, stations):
 
 def _determined(parameters) -> dict:
     """Which terms the data determine, by group: counts of each status (``ok``/``suspect`` = fitted;
-    ``unobservable``/``weakly_observable`` = held at the start; ``fixed`` = not adjusted)."""
+    ``unobservable``/``weakly_observable`` = held at the start; ``fixed`` = not adjusted;
+    ``prior_dominated`` = a device's sensor term adjusted, but its sd is > half its prior)."""
     groups: dict = {}
     for p in parameters:
         words = p.name.split()

@@ -2,6 +2,8 @@
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python studies/libsurvive/run.py            # every recording
     OPENBLAS_NUM_THREADS=1 .venv/bin/python studies/libsurvive/run.py --only lh1_test_cal --no-calibrate
+    # the committed results (calibration only where the study needs it: ~25 min on a loaded 2-core machine)
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python studies/libsurvive/run.py --calibrate-only lh1_test_cal index-yank
 
 Recordings: ``/work/shared/data/libsurvive/*.rec.gz`` and ``~/.cache/layoutkit-realdata/survive/*.rec.gz``
 (``jdavidberger/libsurvive-extras-data``, MIT; the cache is made by ``shared/realdata/prepare.sh``;
@@ -16,7 +18,8 @@ stations from the recording's ``.json`` / ``LH_POSE``, factory calibration):
 - **residuals**: median per-window RMS, joint and per station (the per-station solve);
 - **motion**: the body speed of each window (central differences of our joint poses) and the
   joint residual per speed bin with and without motion compensation (each station's rows at
-  their own time, constant velocity across the window: ``solve --solve joint --motion``);
+  their own time, constant velocity across the window: ``solve --solve joint --motion-compensation``),
+  and again through the stations the recording's calibration wrote (where it was calibrated);
 - **libsurvive's own poses** (``POSE`` lines, else its ``EXTERNAL_POSE`` replay solution) reprojected
   on the same recorded angles through the same stations, per speed bin. libsurvive reports the pose
   of its own body frame (the IMU / head frame), a constant transform from the layout's frame; that
@@ -162,6 +165,7 @@ def libsurvive_reprojection(positions, stations, tw, angles, ref, max_fit: int =
 def study_device(name, ddir: Path, root: Path, stations):
     from layoutkit.layout import load_layout
     from layoutkit.pnp import STATUS_NAMES
+    from layoutkit.status import LOW_REDUNDANCY
     from layoutkit.workflows.accuracy import precision_accuracy
     from layoutkit.workflows.joint_solve import read_station_frames, solve_joint_frames, station_index, to_station_convention
     from layoutkit.joint import solve_joint
@@ -178,6 +182,8 @@ def study_device(name, ddir: Path, root: Path, stations):
            "joint": {"status_counts": counts, "solved": int(ok.sum()),
                      "no_redundancy_ok": int(np.sum(ok & (used == 6))),
                      "one_spare_angle_ok": int(np.sum(ok & (used == 7))),
+                     "status_ok_below_8_angles": int(np.sum((res.status == 0) & (used < 8))),
+                     "low_redundancy": int(np.sum(res.status == LOW_REDUNDANCY)),
                      "residual": _stats(res.residual_rms[ok])}}
     # per-station solve: each row alone through its station's model
     sidx = station_index(fr.station, stations)
@@ -194,6 +200,8 @@ def study_device(name, ddir: Path, root: Path, stations):
         c = {STATUS_NAMES.get(int(k), str(int(k))): int(v) for k, v in zip(*np.unique(r1.status[mm], return_counts=True))}
         out["per_station"][str(st.id)] = {"rows": int(mm.sum()), "status_counts": c,
                                           "no_redundancy_ok": int(np.sum(mm & r1.success & (used1 == 6))),
+                                          "low_redundancy": int(np.sum(mm & (r1.status == LOW_REDUNDANCY))),
+                                          "status_ok_below_8_angles": int(np.sum(mm & (r1.status == 0) & (used1 < 8))),
                                           "residual": _stats(r1.residual_rms[mm & r1.success])}
     # motion: speed per window, joint residual by speed with and without motion compensation
     speed = _speed(tw, res)
@@ -216,6 +224,20 @@ def study_device(name, ddir: Path, root: Path, stations):
     out["precision_accuracy"] = pa
     return out, {"tw": tw, "speed": speed, "res": res.residual_rms, "ok": ok, "resm": resm.residual_rms,
                  "okm": resm.success, "libsurvive": out.get("libsurvive") and rms}
+
+
+def speed_with_stations(ddir: Path, stations, speed):
+    """The joint residual by speed (``speed (W,)`` from the factory-station solve, same windows) with
+    and without motion compensation through ``stations`` (e.g. the calibrated ones)."""
+    from layoutkit.layout import load_layout
+    from layoutkit.workflows.joint_solve import read_station_frames, solve_joint_frames
+
+    lay = load_layout(ddir / "layout.json")
+    fr = read_station_frames(ddir / "frames.csv", lay)
+    _, res, _, _ = solve_joint_frames(fr, lay, stations)
+    _, resm, _, _ = solve_joint_frames(fr, lay, stations, motion_compensation=True)
+    return {"static_model": _by_speed(speed, np.where(res.success, res.residual_rms, np.nan)),
+            "motion_compensated": _by_speed(speed, np.where(resm.success, resm.residual_rms, np.nan))}
 
 
 def imu_filter_device(path: Path, dev: str, stations, ref, label: str):
@@ -300,6 +322,15 @@ def study_recording(path: Path, work: Path, calibrate: bool):
             out["calibration"] = calibrate_recording(root, usable, root / "stations.json", work / (root.name + "_cal"))
         except ValueError as exc:
             out["calibration"] = {"error": str(exc)}
+    # motion with the calibrated stations: the factory stations' error (1e-3 rad on index-yank) hides
+    # what motion compensation does; through the stations the calibration wrote it shows
+    cal = out.get("calibration", {})
+    if cal.get("stations_file") and Path(cal["stations_file"]).exists():
+        cal_st = list(read_stations(cal["stations_file"]))
+        for dev, d in out["devices"].items():
+            if "speed" in d and (d["speed"]["p90"] or 0) > 0.2:
+                d["residual_by_speed_calibrated"] = speed_with_stations(root / dev, cal_st, series[dev]["speed"])
+                d["residual_by_speed_calibrated"]["stations"] = cal.get("stations_written")
     # the IMU-aided filter on the devices that moved and have IMU lines
     for dev, d in out["devices"].items():
         if "speed" not in d or not (d["speed"]["p90"] or 0) > 0.2 or summ["line_types"].get("i", 0) == 0:
@@ -329,10 +360,11 @@ def _fmt(v, f="{:.3g}"):
 def write_markdown(results, path: Path):
     L = ["# libsurvive recordings through layoutkit (issue 26)", "",
          "Generated by `studies/libsurvive/run.py`; numbers in rad unless marked. Joint = one pose per 20 ms window "
-         "from every station through its factory-calibrated model. *no-red.* = solved windows whose pose used exactly "
-         "6 angles (no redundancy). libsurvive = its own poses reprojected on the same angles (its body frame fitted "
-         "to favour it).", "",
-         "| recording | device | windows | solved | no-red. joint | no-red. per station (of ok) | joint median | per-station medians | libsurvive median | speed p90 m/s |",
+         "from every station through its factory-calibrated model. *low-red.* = windows with status `low_redundancy` "
+         "(6 or 7 seen angles: the pose is returned but not ok; before issue 26 item 2 these were ok) and, in brackets, "
+         "`ok` windows with fewer than 8 angles (0 everywhere = none slips through). libsurvive = its own poses "
+         "reprojected on the same angles (its body frame fitted to favour it).", "",
+         "| recording | device | windows | solved | low-red. joint (ok < 8 angles) | low-red. per station (rows) | joint median | per-station medians | libsurvive median | speed p90 m/s |",
          "|---|---|---|---|---|---|---|---|---|---|"]
     for rec in results:
         name = Path(rec["file"]).name
@@ -344,10 +376,11 @@ def write_markdown(results, path: Path):
                 L.append(f"| {name} | {dev} | skipped: {d['skipped']} | | | | | | | |")
                 continue
             ps = ", ".join(f"{k}: {_fmt(v['residual']['median'])}" for k, v in d["per_station"].items())
-            nr = ", ".join(f"{k}: {v['no_redundancy_ok']} of {v['status_counts'].get('ok', 0)}"
+            nr = ", ".join(f"{k}: {v.get('low_redundancy', '–')} of {v['rows']} ({v.get('status_ok_below_8_angles', '–')})"
                            for k, v in d["per_station"].items())
+            jl = f"{d['joint'].get('low_redundancy', '–')} ({d['joint'].get('status_ok_below_8_angles', '–')})"
             ls = d.get("libsurvive", {}).get("reprojection", {}).get("median")
-            L.append(f"| {name} | {dev} | {d['windows']} | {d['joint']['solved']} | {d['joint']['no_redundancy_ok']} | {nr} | "
+            L.append(f"| {name} | {dev} | {d['windows']} | {d['joint']['solved']} | {jl} | {nr} | "
                      f"{_fmt(d['joint']['residual']['median'])} | {ps} | {_fmt(ls)} | {_fmt(d['speed']['p90'], '{:.2f}')} |")
     L += ["", "## Joint residual by speed (median per-window RMS): static model / motion-compensated / libsurvive", "",
           "| recording | device | " + " | ".join(f"{lo}-{hi if np.isfinite(hi) else '∞'} m/s" for lo, hi in
@@ -362,6 +395,11 @@ def write_markdown(results, path: Path):
             cells = [f"{_fmt(x['median_rad'])} / {_fmt(y['median_rad'])} / {_fmt(z['median_rad'])} (n={x['windows']})"
                      for x, y, z in zip(a, b, c)]
             L.append(f"| {Path(rec['file']).name} | {dev} | " + " | ".join(cells) + " |")
+            if "residual_by_speed_calibrated" in d:
+                a, b = d["residual_by_speed_calibrated"]["static_model"], d["residual_by_speed_calibrated"]["motion_compensated"]
+                cells = [f"{_fmt(x['median_rad'])} / {_fmt(y['median_rad'])} / – (n={x['windows']})" for x, y in zip(a, b)]
+                L.append(f"| {Path(rec['file']).name} | {dev}, stations calibrated on this recording "
+                         f"({d['residual_by_speed_calibrated'].get('stations')}) | " + " | ".join(cells) + " |")
     L += ["", "## Calibration (all devices of a recording at once) and cross-validation", "",
           "| recording | device | given stations | calibrated stations | + own terms | folds (held out: given → calibrated, verdict) | stations written |",
           "|---|---|---|---|---|---|---|"]
@@ -466,6 +504,8 @@ def main():
     ap.add_argument("--only", nargs="*", help="recordings whose name contains one of these")
     ap.add_argument("--part", default=None, help="K/N: every N-th recording from the K-th (split a run over processes)")
     ap.add_argument("--no-calibrate", action="store_true")
+    ap.add_argument("--calibrate-only", nargs="*", default=None,
+                    help="calibrate only the recordings whose name contains one of these (the others: --no-calibrate)")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--markdown-only", action="store_true", help="rewrite results.md from OUT/results.json")
     ap.add_argument("--merge", nargs="+", default=None,
@@ -488,7 +528,8 @@ def main():
         for p in recs:
             print(f"{p.name} ...", flush=True)
             try:
-                r, s = study_recording(p, Path(tmp), not a.no_calibrate)
+                cal = not a.no_calibrate and (a.calibrate_only is None or any(c in p.name for c in a.calibrate_only))
+                r, s = study_recording(p, Path(tmp), cal)
             except Exception as exc:  # a study records what broke and goes on with the next recording
                 import traceback
 
@@ -538,12 +579,14 @@ def merge(dirs, out: Path):
     from layoutkit.io.atomic import atomic_write_text
     from layoutkit.io.jsonfile import to_jsonable
 
-    results, series = [], {}
-    for d in dirs:
+    byname, series = {}, {}
+    for d in dirs:                                  # a recording in a later dir replaces an earlier one
         d = Path(d)
-        results += json.loads((d / "results.json").read_text())["recordings"]
+        for r in json.loads((d / "results.json").read_text())["recordings"]:
+            byname[Path(r["file"]).name] = r
         if (d / "series.npz").exists():
             series.update(load_series(d / "series.npz"))
+    results = list(byname.values())
     names = [p.name for p in recordings()]
     results.sort(key=lambda r: names.index(Path(r["file"]).name) if Path(r["file"]).name in names else 99)
     out.mkdir(parents=True, exist_ok=True)
