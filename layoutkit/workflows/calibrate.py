@@ -267,7 +267,10 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
         "layout_sigma_m": None if sensor_offsets else float(offset_prior if layout_sigma is None else layout_sigma),
         "devices": devices,
         "transfer": transfer,
-        "stations_written": "given (the fit did not transfer; the fit is in stations_fitted.json)" if worse else "fitted",
+        "stations_written": ("given (the fit did not transfer; the fit is in stations_fitted.json)" if worse
+                             else "fitted" if any(p.name.startswith("station") and p.status in ("ok", "suspect")
+                                                  for p in res.parameters)
+                             else "fitted (= the given: the data determine no station term)"),
         "determined": determined,
         "parameters": [{"name": p.name, "value": p.value, "std": p.std, "start": p.start, "unit": p.unit,
                         "status": p.status, "correlation": p.correlation} for p in res.parameters],
