@@ -221,7 +221,7 @@ def test_station_ids_unique_from_the_config_order(libsurvive_dir, tmp_path):
     rec.write_text("\n".join(lines) + "\n")
     r = CliRunner().invoke(main, ["import", "libsurvive", str(rec), "--out", str(tmp_path / "o"), "--json"])
     assert r.exit_code == 0, r.output
-    info = json.loads(r.output)["stations"]["stations"]
+    info = json.loads(r.stdout)["stations"]["stations"]
     st = read_stations(tmp_path / "o" / "stations.json")
     assert [x.id for x in st] == ["LH0", "LH1", "LH2"]
     assert [x.source_id for x in st] == ["2147483647"] * 3
@@ -300,7 +300,7 @@ def test_import_imu_filter_agrees_with_the_joint_solve_at_rest(lh1, libsurvive_d
     r = CliRunner().invoke(main, ["import", "libsurvive", str(libsurvive_dir / "lh1_test_cal_first4s.rec.gz"),
                                   "--out", str(out), "--imu-filter", "--json"])
     assert r.exit_code == 0, r.output
-    f = json.loads(r.output)["imu_filter"]["HMD"]
+    f = json.loads(r.stdout)["imu_filter"]["HMD"]
     assert f["imu_frame_from"].startswith("no CONFIG imu block: half turn about z")
     assert f["gravity_from_minus_z_deg"] < 3.0
     assert f["sweeps"]["accepted"] > 0.9 * f["sweeps"]["sweeps"]
