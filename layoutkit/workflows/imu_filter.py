@@ -163,13 +163,13 @@ def filter_pose_table(result: dict):
     order); ``status`` ok = the sweep was accepted (pose after its update), ``high_residual`` = the
     chi² gate rejected it (the pose predicted from the IMU and the earlier sweeps), ``too_few_lit`` =
     fewer than ``min_sensors`` angles (the prediction), ``no_start`` = before the filter started
-    (no pose), lost (no pose; ``solver_failed`` where the status table has no ``lost``);
+    (no pose), ``lost`` (no pose: the filter restarts from the next joint lighthouse pose);
     ``residual_rms`` = the sweep's residual after its update (accepted) or before it (the others);
     extra columns ``prior_residual_rms`` (rad, before the update), ``nis``, ``axis`` (LH1 axis / LH2
     plane), ``vx, vy, vz`` (m/s, world, the IMU frame's velocity)."""
     from ..geometry import matrix_to_rotvec
     from ..io.poses import PoseTable
-    from ..status import CODES, HIGH_RESIDUAL, NO_START, OK, SOLVER_FAILED, TOO_FEW_LIT
+    from ..status import HIGH_RESIDUAL, LOST, NO_START, OK, TOO_FEW_LIT
 
     s = result["sweeps"]
     K = len(s["t"])
@@ -181,7 +181,7 @@ def filter_pose_table(result: dict):
     status[np.isfinite(s["nis"])] = HIGH_RESIDUAL
     status[s["accepted"]] = OK
     status[~has & ~s["lost"]] = NO_START
-    status[s["lost"]] = CODES.get("lost", SOLVER_FAILED)
+    status[s["lost"]] = LOST
     res = np.where(s["accepted"], s["posterior_rms"], s["prior_rms"])
     res = np.where(has, res, np.nan)
     v = s["velocity"]
