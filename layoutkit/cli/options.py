@@ -157,6 +157,13 @@ def explicit(ctx: click.Context, dest: str) -> bool:
     return src not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None) or (_META + dest) in ctx.meta
 
 
+def _unset_none(default) -> dict:
+    """``{"default": default}``, or ``{}`` for None: click 8.5 takes an explicit ``default=None`` as a
+    given default, so ``required=True`` was never checked (``calibrate`` without ``--stations`` went
+    on with None and ended in a traceback, issue 29). Not given, the default is None all the same."""
+    return {} if default is None else {"default": default}
+
+
 def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]] = (), callback=None,
            silent_aliases: Iterable[str] = (), **kw):
     """A click option ``flag`` delivering parameter ``dest``, with hidden deprecated ``aliases``.
@@ -168,6 +175,8 @@ def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]
     e.g. ``import libsurvive --out DIR`` in issue 10, next to the visible ``--out-dir``).
     """
     required = bool(kw.pop("required", False))
+    if kw.get("default", 0) is None:
+        del kw["default"]                                      # see _unset_none
     aliases = tuple((a, True) for a in aliases) + tuple((a, False) for a in silent_aliases)
     alias_type = kw.get("type")
     alias_flag = kw.get("is_flag", False)
@@ -291,7 +300,7 @@ def json_out_option(f=None, *, help: str = "Also write the JSON to this file ('-
 
 def out_file_option(f=None, *, required: bool = True, help: str = "Output file.", default=None):
     """``--out FILE``: the command's output file. The command receives ``out``."""
-    deco = click.option("--out", "out", type=click.Path(dir_okay=False), required=required, default=default,
+    deco = click.option("--out", "out", type=click.Path(dir_okay=False), required=required, **_unset_none(default),
                         help=help)
     return deco(f) if f is not None else deco
 
@@ -316,17 +325,19 @@ def report_option(f=None, *, help: str = "Write a report folder (JSON + plots) h
     return deco(f) if f is not None else deco
 
 
-def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md)."):
-    """``--layout FILE``. The command receives ``layout_path``."""
+def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md).",
+                  multiple: bool = False):
+    """``--layout FILE``. The command receives ``layout_path`` (a tuple with ``multiple``: the option
+    may be given once per input, e.g. one layout per device of ``calibrate``)."""
     deco = click.option("--layout", "layout_path", type=click.Path(dir_okay=False), required=required,
-                        default=None, help=help)
+                        help=help, multiple=multiple)
     return deco(f) if f is not None else deco
 
 
 def envelope_option(f=None, *, required: bool = True, help: str = "Operating envelope TOML (docs/envelope.md)."):
     """``--envelope FILE``. The command receives ``envelope_path``."""
     deco = click.option("--envelope", "envelope_path", type=click.Path(dir_okay=False), required=required,
-                        default=None, help=help)
+                        help=help)
     return deco(f) if f is not None else deco
 
 
@@ -415,7 +426,7 @@ def stations_option(f=None, *, required: bool = False,
                     help: str = "Stations JSON (station poses, calibration), e.g. from layoutkit import."):
     """``--stations FILE``: a stations JSON (station poses and calibration). The command receives
     ``stations_path``."""
-    deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False), default=None,
+    deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False),
                         required=required, metavar="FILE", help=help)
     return deco(f) if f is not None else deco
 
@@ -517,7 +528,7 @@ def camera_model_option(f=None, *, flags=("--camera-model",), required: bool = F
     """The camera model file (matrix + lens distortion; :mod:`layoutkit.io.camera`). ``flags``:
     ``camera attitude`` spells it ``--camera`` (issue 28), ``live``/``replay`` ``--camera-model``
     (their ``--camera`` is the attitude-CSV reference). The command receives ``camera_model``."""
-    deco = click.option(*flags, "camera_model", type=click.Path(exists=True, dir_okay=False), default=None,
+    deco = click.option(*flags, "camera_model", type=click.Path(exists=True, dir_okay=False),
                         required=required, metavar="CAM.yml", help=help)
     return deco(f) if f is not None else deco
 
@@ -565,6 +576,16 @@ def solve_mode_option(f=None):
     deco = click.option("--solve", "solve_mode", type=click.Choice(SOLVE_MODES), default=None,
                         help="joint: one pose per 20 ms window from all stations (station 'joint'); per-station: "
                              "one pose per station frame. Default: joint when several stations are given.")
+    return deco(f) if f is not None else deco
+
+
+def motion_compensation_option(f=None, *, help: str | None = None):
+    """``--motion-compensation/--no-motion-compensation`` (default None: the command decides, on for a
+    joint solve). The command receives ``motion_compensation``."""
+    deco = click.option("--motion-compensation/--no-motion-compensation", "motion_compensation", default=None,
+                        help=help or ("--solve joint: each station's angles at their own time in the 20 ms window, "
+                                      "the body at constant velocity (from the neighbouring poses); only windows "
+                                      "whose motion moves the angles by > 0.25 sigma. Default on."))
     return deco(f) if f is not None else deco
 
 
