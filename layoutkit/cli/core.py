@@ -7,7 +7,8 @@ from ..units import ARCSEC
 from ._common import call_or_fail, echo_json, emit_json, fail
 from .options import NONNEGATIVE, POSITIVE
 from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
-                      registry_choice, rho_option, seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
+                      motion_compensation_option, registry_choice, rho_option, seed_option, sigma_option, scheduler_option,
+                      solve_mode_option, stations_option,
                       ignore_calibration_option,
                       workers_option)
 
@@ -109,8 +110,9 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, statio
 @json_flag(help="Print a JSON summary.")
 @filter_options
 @solve_mode_option
+@motion_compensation_option
 def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, calibrated, ignore_calibration,
-              as_json, filter_settings, solve_mode):
+              as_json, filter_settings, solve_mode, motion_compensation):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
 
     Bad frames (too few angles, inf, angles outside (0, pi), all behind) get a status each and the
@@ -140,7 +142,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
         several = False
     if several:  # joint: one pose per window through every station's calibrated forward model
         summary = call_or_fail(solve_station_file, frames_path, lay, stations_path, out=out, mode="joint",
-                               sigma=sigma, rho=rho, ignore_calibration=ignore_calibration)
+                               sigma=sigma, rho=rho, ignore_calibration=ignore_calibration,
+                               motion_compensation=motion_compensation is not False)
         if as_json:
             echo_json(summary)
         else:
@@ -149,6 +152,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
             if "predicted_position_sigma_m" in summary:
                 click.echo(f"position scatter {summary['position_scatter_m'] * 1e3:.3f} mm; DOP prediction "
                            f"{summary['predicted_position_sigma_m'] * 1e3:.3f} mm")
+            if "precision_accuracy" in summary:
+                click.echo(f"precision vs accuracy: {summary['precision_accuracy']['message']}")
         if summary["solved"] == 0:
             fail(summary.get("reason", "no pose solved"), code=1)
         return
