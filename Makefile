@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test bench clean
+.PHONY: venv demo test test-fast test-install bench clean
 
 venv: $(STAMP)
 
@@ -17,8 +17,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m layoutkit demo --out-dir out/demo
 
+# the whole suite, slow tests included (what CI runs; <= 4 min on 2 idle cores)
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q
+
+# the development loop: slow tests deselected (< 1 min on 2 idle cores)
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -n 2 -q -m "not slow and not install"
+
+# the wheel installed with every dependency into a fresh venv, then `layoutkit demo` (minutes)
+test-install: $(STAMP)
+	$(BIN)/python -m pytest -q -m install tests/test_install.py
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

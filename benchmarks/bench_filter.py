@@ -44,7 +44,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run, not the figures)")
     args = ap.parse_args(argv)
     from layoutkit.layout import load_layout
-    from layoutkit.workflows import filter_scenarios as wf
+    from layoutkit.studies import filter_scenarios as wf
 
     lay = load_layout(LAYOUT)
     q = args.quick

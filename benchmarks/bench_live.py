@@ -42,11 +42,11 @@ def make_capture(layout, seconds: float, path: Path, seed: int = 1):
 
 def decode_and_solve(layout, data: bytes, chunk_frames: int = 2048) -> int:
     """Decoder + pose pipeline only (no JSON/CSV sinks): returns frames solved."""
-    from layoutkit.live.pipeline import PipelineConfig, PosePipeline
+    from layoutkit.live.pipeline import LiveConfig, PosePipeline
     from layoutkit.live.protocols import get_protocol
 
     dec = get_protocol("layoutkit")(n_sensors=layout.n)
-    pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=layout.n, chunk_frames=chunk_frames,
+    pipe = PosePipeline(layout.positions, LiveConfig(n_sensors=layout.n, chunk_frames=chunk_frames,
                                                          chunk_seconds=float("inf")))
     step = 1 << 16
     for i in range(0, len(data), step):

@@ -1,5 +1,5 @@
 """Motion compensation of the live pipeline: RMS pose error vs truth / DOP prediction, with and
-without ``PipelineConfig.motion_compensation``, at several tumble rates (docs/live.md "Motion
+without ``LiveConfig.motion_compensation``, at several tumble rates (docs/live.md "Motion
 compensation").
 
     .venv/bin/python benchmarks/bench_live_motion.py [--seconds 30] [--seeds 3]
@@ -40,9 +40,9 @@ def sweeps_of(sw):
 
 
 def solve(layout, sweeps, on: bool):
-    from layoutkit.live.pipeline import PipelineConfig, PosePipeline
+    from layoutkit.live.pipeline import LiveConfig, PosePipeline
 
-    pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=layout.n, chunk_frames=2048,
+    pipe = PosePipeline(layout.positions, LiveConfig(n_sensors=layout.n, chunk_frames=2048,
                                                          chunk_seconds=float("inf"), motion_compensation=on))
     chunks = pipe.feed(sweeps) + pipe.flush(end_of_stream=True)
     return {k: np.concatenate([getattr(c, k) for c in chunks])
@@ -53,8 +53,8 @@ def errors(sw, c):
     """Squared errors and squared predictions (attitude deg², position m²) of the evaluated frames."""
     from layoutkit.dop import pose_errors
     from layoutkit.geometry import rotvec_to_matrix
-    from layoutkit.live.pipeline import STATUS_OK
-    from layoutkit.noise import SIGMA_THETA_PAPER
+    from layoutkit.status import OK as STATUS_OK
+    from layoutkit.units import SIGMA_THETA_PAPER
 
     x = sw.axis == 0
     i = np.searchsorted(sw.t[x], c["t"])

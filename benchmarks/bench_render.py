@@ -79,7 +79,7 @@ def main():
     t0 = time.perf_counter()
     from layoutkit import render
     from layoutkit.geometry import rotvec_to_matrix
-    from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER
+    from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
     from layoutkit.quality import tracking_quality_map
     from layoutkit.visibility import visible_sensors
 

@@ -7,12 +7,16 @@ import warnings
 import numpy as np
 
 __all__ = ["as_array", "check_finite", "read_structured", "number_list", "unknown_keys", "check_extent",
-           "ValidationWarning", "OddSizeWarning", "MIN_PLAUSIBLE_EXTENT_M", "MAX_PLAUSIBLE_EXTENT_M"]
+           "ValidationWarning", "OddSizeWarning", "MIN_PLAUSIBLE_EXTENT_M", "MAX_PLAUSIBLE_EXTENT_M",
+           "MAX_PLAUSIBLE_RANGE_M", "check_range"]
 
 #: Smallest / largest plausible extent of a spacecraft (mesh or sensor layout) in metres; outside
 #: this the length unit of the file is suspect.
 MIN_PLAUSIBLE_EXTENT_M = 0.01
 MAX_PLAUSIBLE_EXTENT_M = 100.0
+#: Farthest plausible lighthouse-to-target distance in metres (LH2 base stations are specified to
+#: ~7-10 m; laser sweeps are useless far beyond): a larger range is read in the wrong unit.
+MAX_PLAUSIBLE_RANGE_M = 30.0
 
 
 class ValidationWarning(UserWarning):
@@ -59,6 +63,14 @@ def check_extent(extent_m: float, what: str, units: str, lo: float = MIN_PLAUSIB
         warnings.warn(OddSizeWarning(f"{what} span {extent_m:.4g} m read as {units!r}, {side} than any plausible "
                                      f"spacecraft ({lo:g}-{hi:g} m): the numbers are probably in another unit"),
                       stacklevel=3)
+
+
+def check_range(range_m: float, what: str, hi: float = MAX_PLAUSIBLE_RANGE_M) -> None:
+    """Warn (:class:`OddSizeWarning`) when a lighthouse-to-target distance of ``range_m`` metres is
+    farther than any lighthouse reaches: the numbers are probably millimetres."""
+    if range_m > hi:
+        warnings.warn(OddSizeWarning(f"{what}: {range_m:.4g} m is farther than any lighthouse reaches (<= {hi:g} m): "
+                                     f"the numbers are probably millimetres ({range_m / 1000:.4g} m?)"), stacklevel=3)
 
 
 def as_array(x, name: str, shape: tuple, dtype=float) -> np.ndarray:

@@ -178,15 +178,43 @@ def pose_dop(points_body, rotation, translation, rho: float = 0.0, visible=None,
              stations: "list[Station] | None" = None) -> DopResult:
     """ADOP/PDOP of a sensor layout at one or many poses (Chen eqs. 18–22).
 
-    points_body : (n, 3) or (..., n, 3) float, m, sensor positions in the body frame.
-    rotation : (..., 3, 3), translation : (..., 3) m — body pose ``p = R p_body + t`` in the frame
-        of the single lighthouse (``stations=None``) or in the world frame of ``stations``.
-    rho : same-rotor correlation (0.8717 measured in the paper).
-    visible : (..., n) bool for one station or (..., S, n) for S stations (lit sensors), or with a
-        trailing axis of 2, ``(..., n, 2)`` / ``(..., S, n, 2)``, per angle; default all sensors.
-    stations : poses in one world frame; each station's kind (LH1 sweeps / LH2 planes) and
-        calibration enter through its forward model's Jacobian (:func:`layoutkit.lighthouse.measure_jacobian`).
-    Returns a :class:`DopResult` with batch shape ``(...)``; numerical degeneracy is a status.
+    The predicted pose covariance per unit angle noise, ``H = A^-1 J^T R_theta J A^-1`` with the
+    angle Jacobian ``J`` (eqs. 10–14) and the same-rotor correlation ``R_theta`` (eq. 19); ADOP and
+    PDOP are the root traces of its attitude and position blocks (eq. 22). Multiply by the angle
+    noise sigma (rad) for the predicted precision (:func:`predicted_precision`, eq. 24).
+
+    Args:
+        points_body: (n, 3) or (..., n, 3) float, m — sensor positions in the body frame.
+        rotation: (..., 3, 3) and translation: (..., 3) m — the body pose ``p = R p_body + t`` in
+            the frame of the single lighthouse (``stations=None``; z = boresight) or in the world
+            frame of ``stations``.
+        rho: same-rotor correlation of the angle noise, in [0, 1) (0.8717 measured in the paper).
+        visible: lit sensors, (..., n) bool for one station or (..., S, n) for S stations, or with
+            a trailing axis of 2 (``(..., n, 2)`` / ``(..., S, n, 2)``) per angle; default all.
+        stations: optional list of :class:`layoutkit.lighthouse.Station` with poses in one world
+            frame; each station's kind (LH1 sweeps / LH2 planes) and calibration enter through its
+            forward model's Jacobian (:func:`layoutkit.lighthouse.measure_jacobian`).
+
+    Returns:
+        :class:`DopResult` with batch shape ``(...)``: ``adop`` deg of attitude per rad of angle
+        noise, ``pdop`` m per rad, ``cov`` (..., 6, 6) H in (dphi rad, dt m) per rad² (rotation
+        first, left perturbation in the station/world frame), ``status`` codes of
+        :mod:`layoutkit.status` (fewer than 6 seen angles: ``too_few_lit``; singular geometry:
+        ``degenerate``; both with inf DOP), ``n_visible``. Numerical degeneracy is a status, never
+        an exception.
+
+    Example (the Chen target's 12 sensors 2 m in front of one station, the paper's rho):
+
+    >>> import numpy as np
+    >>> from layoutkit.shapes import chen_target
+    >>> P = chen_target()[1].positions
+    >>> r = pose_dop(P, np.eye(3), [0.0, 0.0, 2.0], rho=0.8717)
+    >>> r.message, r.cov.shape
+    ('ok', (6, 6))
+    >>> bool(np.isclose(r.adop, np.degrees(np.sqrt(np.trace(r.cov[:3, :3])))))  # Chen eq. 22
+    True
+    >>> pose_dop(P[:2], np.eye(3), [0.0, 0.0, 2.0]).message  # 4 angles for 6 unknowns
+    '1 pose(s) with fewer than 3 lit sensors (6 angles), 0 with singular geometry'
     """
     P = as_array(points_body, "points_body", (..., None, 3))
     R = as_array(rotation, "rotation", (..., 3, 3))

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .geometry import look_at_rotation, random_rotations, rotvec_to_matrix
-from ._validate import read_structured
+from ._validate import check_range, read_structured
 from .lighthouse import Station
 
 __all__ = ["ATTITUDE_KINDS", "Envelope", "load_envelope", "sample_cone_rotations", "sample_cone_directions"]
@@ -107,6 +107,7 @@ class Envelope:
         r = tuple(float(x) for x in self.range_m)
         if len(r) != 2 or not (0.0 < r[0] <= r[1]) or not all(map(math.isfinite, r)):
             raise ValueError(f"range_m: expected [min, max] with 0 < min <= max, got {list(self.range_m)}")
+        check_range(r[1], f"range_m {list(r)}")
         if not (0.0 <= float(self.boresight_cone_deg) <= 90.0):
             raise ValueError(f"boresight_cone_deg: expected a half-angle in [0, 90], got {self.boresight_cone_deg}")
         if self.attitude not in ATTITUDE_KINDS:
@@ -222,15 +223,21 @@ class Envelope:
 
 def load_envelope(path) -> Envelope:
     """Read an envelope TOML file; ``ValueError`` naming the file for bad syntax or content."""
+    import warnings
+
     path = Path(path)
     d = read_structured(path, "envelope", "TOML", tomllib.loads, tomllib.TOMLDecodeError)
     try:
-        env = Envelope.from_dict(d, base_dir=path.parent)
-        if env.attitude == "trajectory":
-            env.poses()  # read the CSV now so that its errors name this file
-        return env
+        with warnings.catch_warnings(record=True) as caught:  # re-issued below, naming this file
+            warnings.simplefilter("always")
+            env = Envelope.from_dict(d, base_dir=path.parent)
+            if env.attitude == "trajectory":
+                env.poses()  # read the CSV now so that its errors name this file
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
+    for w in caught:
+        warnings.warn(type(w.message)(f"{path}: {w.message}"), stacklevel=2)
+    return env
 
 
 def _reject_unknown(d: dict, allowed: set, where: str) -> None:

@@ -16,9 +16,9 @@ window time; with a body angular velocity ``omega`` (rad/s, world frame) and vel
 the pose station s saw is ``R_s' = exp([omega dt_s]x) R``, ``t_s' = t + v dt_s`` (constant
 velocity across the window); the rotation Jacobian becomes ``l x (E^T a)`` with ``E = exp([omega dt_s]x)``.
 
-Start: every station alone through :func:`layoutkit.pnp.solve_pnp` (its angles first undistorted
-by :func:`layoutkit.lighthouse.undistort` and, for LH2, turned into LH1-equivalent angles — for the
-start only), taken to the world frame; per frame the start with the lowest joint cost wins.
+Start: every station alone through the ideal-LH1 solver :func:`layoutkit.pnp_lh1.solve_pnp_lh1`
+(its angles first undistorted by :func:`layoutkit.lighthouse.undistort` and, for LH2, turned into
+LH1-equivalent angles — for the start only), taken to the world frame; per frame the start with the lowest joint cost wins.
 """
 from __future__ import annotations
 
@@ -27,8 +27,10 @@ import numpy as np
 from ._validate import as_array
 from .geometry import rotvec_to_matrix
 from .lighthouse import Station, lh2_to_lh1_angles, measure_jacobian, undistort
-from .pnp import (PnPResult, STATUS_AMBIGUOUS, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_NOT_CONVERGED, STATUS_OK,
-                  STATUS_TOO_FEW, solve_pnp)
+from .pnp_lh1 import solve_pnp_lh1
+from .pnp_result import PnPResult, concat_results
+from .status import AMBIGUOUS as STATUS_AMBIGUOUS, BEHIND as STATUS_BEHIND, DEGENERATE as STATUS_DEGENERATE
+from .status import NOT_CONVERGED as STATUS_NOT_CONVERGED, OK as STATUS_OK, TOO_FEW_LIT as STATUS_TOO_FEW
 
 __all__ = ["solve_joint", "model_angles_jacobian", "group_windows", "window_angles", "ray_midpoints",
            "firmware_corrected_angles", "crossing_beam_positions", "MIN_ANGLES", "DEFAULT_CHUNK",
@@ -111,7 +113,7 @@ def _start(P, ang, mask, stations):
         if st.kind == "lh2":
             a = lh2_to_lh1_angles(a)
         lit = np.all(np.isfinite(a), -1)
-        r = solve_pnp(P, a, lit)
+        r = solve_pnp_lh1(P, a, lit)
         # an ambiguous single-station pose is still a start: the joint fit over stations decides
         ok = r.success | (r.status == STATUS_NOT_CONVERGED) | (r.status == STATUS_AMBIGUOUS)
         Rw = np.einsum("ij,fjk->fik", st.rotation, np.where(ok[:, None, None], r.rotation, np.eye(3)))
@@ -185,7 +187,7 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
     initial : optional ``(R (F, 3, 3), t (F, 3))`` world start; default the per-station solves.
     dt, velocity : optional motion compensation (see :func:`model_angles_jacobian`; dt (F, S) or
         (F, S, 2) per axis).
-    Returns a :class:`layoutkit.pnp.PnPResult` (world frame; ``residual_rms`` over the used angles).
+    Returns a :class:`layoutkit.pnp_result.PnPResult` (world frame; ``residual_rms`` over the used angles).
     Frames with fewer than :data:`MIN_ANGLES` usable angles (or no station start) get
     ``STATUS_TOO_FEW``; singular normal equations ``STATUS_DEGENERATE``; a used point behind its
     station ``STATUS_BEHIND``. Never raises on bad angle values.
@@ -227,11 +229,7 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
                                       None if dt is None else dt[s0:e],
                                       None if velocity is None else (velocity[0][s0:e], velocity[1][s0:e]),
                                       max_iterations))
-    fields = ("rotation", "translation", "success", "status", "residual_rms", "iterations")
-    if not parts:
-        return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, int),
-                         np.zeros(0), np.zeros(0, int))
-    return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in fields))
+    return concat_results(parts)
 
 
 def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> PnPResult:

@@ -41,6 +41,7 @@ __all__ = [
     "measure_jacobian",
     "distort",
     "undistort",
+    "to_sweep_angles",
     "calibration_from_libsurvive",
     "calibration_from_crazyflie",
     "calibration_from_dict",
@@ -283,10 +284,31 @@ class Calibration:
 def measure(points_lh, calib: "Calibration | None" = None, kind: str | None = None) -> np.ndarray:
     """Calibrated (distorted) angles of points in the station frame: the forward model.
 
-    points_lh : (..., n, 3) m, station frame (z = boresight).
-    calib : :class:`Calibration` or None (ideal; ``kind`` then picks LH1 or LH2, default LH1).
-    Returns (..., n, 2) rad: LH1 ``[theta_x', theta_y']`` (as :func:`sweep_angles` when ideal),
-    LH2 light-plane angles (as :func:`lh2_sweep_angles` when ideal).
+    The angles a station of the given kind reports for points in its frame, with its calibration's
+    per-axis terms (phase, tilt, curve, gib, ogee; docs/calibration.md §2). Solvers minimise
+    residuals against it (:mod:`layoutkit.joint`); they never pre-correct the measurements.
+
+    Args:
+        points_lh: (..., n, 3) float, m — points in the station frame (z = boresight, Chen eq. 2).
+        calib: :class:`Calibration` or None (ideal station).
+        kind: ``"lh1"`` or ``"lh2"`` for an ideal station (default LH1); must equal
+            ``calib.kind`` when both are given (else ``ValueError``).
+
+    Returns:
+        (..., n, 2) float, rad: LH1 sweep angles ``[theta_x', theta_y']`` (as :func:`sweep_angles`
+        when ideal, in (0, pi) for z > 0), or LH2 light-plane angles (as :func:`lh2_sweep_angles`
+        when ideal).
+
+    Example (ideal LH1: the sweep angles; a point on the boresight is at 90° on both axes):
+
+    >>> import numpy as np
+    >>> p = np.array([[0.0, 0.0, 2.0], [0.3, -0.2, 2.0]])
+    >>> np.degrees(measure(p)[0]).tolist()
+    [90.0, 90.0]
+    >>> bool(np.allclose(measure(p), sweep_angles(p)))
+    True
+    >>> measure(p, Calibration.zero("lh2")).shape  # LH2: two light-plane angles per point
+    (2, 2)
     """
     return measure_jacobian(points_lh, calib, kind, jacobian=False)[0]
 
@@ -483,6 +505,24 @@ def undistort(measured, calib: Calibration, *, max_iterations: int = 5, tol: flo
         est[active] = est[active] + d
         active[active] = np.any(~(np.abs(d) < tol), -1)
     return est
+
+
+def to_sweep_angles(measured, kind: str, calibration: Calibration | None = None, *, max_iterations: int = 20,
+                    tol: float = 1e-9) -> np.ndarray:
+    """A station's angles ``(..., 2)`` rad in its own convention (``kind`` "lh1": sweep angles,
+    "lh2": light-plane angles) → LH1-equivalent sweep angles ``[theta_x, theta_y]``; with a
+    ``calibration``, the ideal ones.
+
+    The one path from what a decoder measures to what the ideal PnP fits: the calibration's
+    fixed-point inverse (:func:`undistort`, to ``tol`` or ``max_iterations`` steps; the firmware's
+    own is 5 steps / 5e-4 rad) when ``calibration`` is given, then for LH2 the light planes → sweep
+    angles (:func:`lh2_to_lh1_angles`). NaN (a sensor not seen) stays NaN.
+    """
+    a = np.asarray(measured, float)
+    if calibration is not None:
+        with np.errstate(invalid="ignore"):
+            a = undistort(a, calibration, max_iterations=max_iterations, tol=tol)
+    return lh2_to_lh1_angles(a) if kind == "lh2" else a
 
 
 # -------------------------------------------------------------- the two public conventions

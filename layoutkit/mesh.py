@@ -36,6 +36,28 @@ class MeshUnitsWarning(MeshWarning, OddSizeWarning):
     """The mesh's size is implausible for a spacecraft in the given unit (probably the wrong --units)."""
 
 
+
+def _check_binary_stl_size(path: Path) -> None:
+    """A binary STL's header gives its triangle count N; the file must then be 84 + 50 N bytes.
+    A shorter one was cut off (a copy or download that did not finish): say so, with the sizes,
+    instead of whatever the partial parse yields ("no faces" or a silently smaller mesh)."""
+    import struct
+
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(84)
+    if len(head) < 84:
+        if head.lstrip().lower().startswith(b"solid"):
+            return  # a (tiny) ASCII STL: trimesh's parser says what is wrong with it
+        raise ValueError(f"{path}: truncated STL: {size} bytes, shorter than the 84-byte binary header")
+    (n,) = struct.unpack("<I", head[80:84])
+    want = 84 + 50 * n
+    if size == want or head.lstrip().lower().startswith(b"solid"):
+        return  # complete binary, or ASCII (trimesh's parser checks that)
+    if size < want:
+        raise ValueError(f"{path}: truncated binary STL: the header announces {n} triangles ({want} bytes), "
+                         f"the file has {size} bytes ({(size - 84) // 50} whole triangles)")
+
 def load_mesh(path, units: str = "m"):
     """Read a mesh file and return a :class:`trimesh.Trimesh` in metres (body frame).
 
@@ -63,6 +85,8 @@ def load_mesh(path, units: str = "m"):
         raise ValueError(f"{path}: no such mesh file")
     if path.stat().st_size == 0:
         raise ValueError(f"{path}: empty file")
+    if fmt == "stl":
+        _check_binary_stl_size(path)
     try:
         loaded = trimesh.load(str(path), file_type=fmt, process=False)
     except Exception as exc:  # trimesh raises many types for malformed files

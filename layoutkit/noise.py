@@ -1,12 +1,12 @@
-"""Sweep-angle noise: sigma, same-rotor correlation rho, quantisation (Chen §3.3, design §3)."""
+"""Sweep-angle noise: sigma, same-rotor correlation rho, quantisation (Chen §3.3, design §3).
+
+The paper's values (``SIGMA_THETA_PAPER``, ``RHO_PAPER``) live in :mod:`layoutkit.units`.
+"""
 from __future__ import annotations
 
 import numpy as np
 
-from .units import RHO_PAPER, SIGMA_THETA_PAPER  # re-exported: the constants live in units.py
-
-__all__ = ["SIGMA_THETA_PAPER", "RHO_PAPER", "angle_correlation", "sample_angle_noise"]
-
+__all__ = ["angle_correlation", "sample_angle_noise"]
 
 
 def angle_correlation(n: int, rho: float) -> np.ndarray:

@@ -513,12 +513,10 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
 
     w, h = _check_size(size)
     dpi = 100
-    fig = Figure(figsize=(w / dpi, h / dpi), dpi=dpi)
+    fs = min(w / 1600, h / 1200) * 1.25  # font scale: the text keeps its share of a smaller picture
+    fig = Figure(figsize=(w / dpi, h / dpi), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
-    fig.suptitle(title or "Tracking quality over all viewing directions", fontsize=16, y=0.985)
-    fig.text(0.5, 0.935, (f"station at {q.distance:g} m looking at the target origin; same-sweep correlation "
-                          f"rho = {q.rho:g}; {q.roll.size} station rolls about the line of sight in [0°, 90°)"),
-             ha="center", fontsize=11)
+    fig.suptitle(title or "Tracking quality over all viewing directions", fontsize=16 * fs)
     halo = [patheffects.withStroke(linewidth=2.5, foreground="white")]
     axes_marks = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
                   "+z": (0, 0, 1), "-z": (0, 0, -1)}
@@ -549,15 +547,16 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
         if sigma_theta is not None and fin.size and "PDOP" in unit:
             label += (f" — 1σ position at σθ = {sigma_theta:.3g} rad: "
                       f"{1e3 * fin.min() * sigma_theta:.3g} to {1e3 * fin.max() * sigma_theta:.3g} mm")
-        cb.set_label(label, fontsize=10)
+        cb.set_label(label, fontsize=10 * fs)
+        cb.ax.tick_params(labelsize=8 * fs)
         if "lit" in name:
             cb.set_ticks(np.arange(0, top + 1, max(1, (top + 1) // 10)))
-        ax.set_title(name, fontsize=12, pad=14)
+        ax.set_title(name, fontsize=12 * fs, pad=14 * fs)
         # graticule as plain lines (matplotlib's tick-based geo grid costs ~0.1 s per panel)
         ax.grid(False)
         ax.set_xticks([])
         ax.set_yticks(np.deg2rad([-60, -30, 0, 30, 60]))
-        ax.tick_params(labelsize=8)
+        ax.tick_params(labelsize=8 * fs)
         s = np.linspace(-np.pi / 2, np.pi / 2, 61)
         for lo in np.deg2rad(np.arange(-135, 180, 45)):
             ax.plot(np.full_like(s, lo), s, color="white", alpha=0.6, lw=0.5)
@@ -567,18 +566,18 @@ def _tracking_map_mollweide(q, out, size, title, sigma_theta):
         for lbl, v in axes_marks.items():
             lon = np.arctan2(v[1], v[0])
             lat = np.arcsin(v[2])
-            ax.plot(lon, lat, marker="+", color="black", ms=8, mew=1.5, path_effects=halo)
-            ax.annotate(lbl, (lon, lat), xytext=(5, 3), textcoords="offset points", fontsize=10, color="black",
+            ax.plot(lon, lat, marker="+", color="black", ms=8 * fs, mew=1.5, path_effects=halo)
+            ax.annotate(lbl, (lon, lat), xytext=(5 * fs, 3 * fs), textcoords="offset points", fontsize=10 * fs, color="black",
                         fontweight="bold", path_effects=halo)
     frac = q.summary()["tracked_solid_angle_fraction"]
-    from .io.figures import CAPTION_GID, save_figure
+    from .io.figures import save_figure
 
-    fig.text(0.5, 0.01, (f"Station direction in the body frame (longitude atan2(y, x), latitude asin(z)); "
-                         f"grey: fewer than {q.min_lit} sensors lit or singular; blue line: {q.min_lit}-sensor "
-                         f"boundary. Tracked at every roll over {100 * frac:.1f} % of the sphere."),
-             ha="center", fontsize=10, gid=CAPTION_GID)
-    fig.subplots_adjust(left=0.03, right=0.97, top=0.9, bottom=0.06, wspace=0.1, hspace=0.25)
-    save_figure(fig, out, caption="", dpi=dpi, close=False)
+    caption = (f"Station at {q.distance:g} m looking at the target origin; same-sweep correlation rho = {q.rho:g}; "
+               f"{q.roll.size} station rolls about the line of sight in [0°, 90°). Station direction in the body "
+               f"frame (longitude atan2(y, x), latitude asin(z)); grey: fewer than {q.min_lit} sensors lit or "
+               f"singular; blue line: {q.min_lit}-sensor boundary. Tracked at every roll over {100 * frac:.1f} % "
+               f"of the sphere.")
+    save_figure(fig, out, caption=caption, dpi=dpi, close=False, size_px=(w, h), fontsize=9 * fs)
     return out
 
 

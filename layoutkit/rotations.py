@@ -26,7 +26,36 @@ import numpy as np
 
 from .geometry import attitude_error, matrix_to_rotvec, nearest_rotation
 
-__all__ = ["chordal_mean", "wahba", "relative_rotvec_pairs", "RotationPairFit", "fit_rotation_pair"]
+__all__ = ["chordal_mean", "wahba", "relative_rotvec_pairs", "RotationPairFit", "fit_rotation_pair",
+           "quaternion_to_matrix", "matrix_to_quaternion"]
+
+
+def quaternion_to_matrix(q, *, scalar_first: bool = False) -> np.ndarray:
+    """Unit quaternions ``(..., 4)`` → rotation matrices ``(..., 3, 3)`` (active, ``p' = R p``).
+
+    The one place that knows quaternion component orders: ``[x, y, z, w]`` (scipy, the filter,
+    ``qx,qy,qz,qw`` CSV columns) or, with ``scalar_first``, ``[w, x, y, z]`` (libsurvive). Every
+    row must have a non-zero norm (it is normalised).
+    """
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(q, float)
+    R = Rotation.from_quat(q.reshape(-1, 4), scalar_first=scalar_first).as_matrix()
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quaternion(R, *, scalar_first: bool = False) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` → unit quaternions ``(..., 4)`` with a non-negative scalar
+    part, in the order of :func:`quaternion_to_matrix` (``[x, y, z, w]``, or ``[w, x, y, z]`` with
+    ``scalar_first``)."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, float)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    q = np.where(q[:, 3:] < 0, -q, q)
+    if scalar_first:
+        q = q[:, [3, 0, 1, 2]]
+    return q.reshape(R.shape[:-2] + (4,))
 
 
 def chordal_mean(rotations, weights=None) -> np.ndarray:

@@ -34,3 +34,33 @@ def libsurvive_dir():
     from pathlib import Path
 
     return Path(__file__).parent / "data" / "libsurvive"
+
+
+@pytest.fixture(autouse=True)
+def _figures_without_overlaps(monkeypatch):
+    """Every matplotlib figure any test saves is checked for overlapping text and panels
+    (:func:`layoutkit.io.figures.layout_problems`: bounding boxes of titles, labels, tick labels,
+    legends, captions; a colour bar over a panel). Issue 29 item 6: every figure type a report or
+    study writes is rendered by some test, so each one is checked here."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.figure
+
+    from layoutkit.io.figures import layout_problems
+
+    seen = []
+    orig = matplotlib.figure.Figure.savefig
+
+    def checking_savefig(self, fname, *a, **kw):
+        problems = layout_problems(self)
+        if problems:
+            name = getattr(fname, "name", fname)
+            title = self._suptitle.get_text() if self._suptitle is not None else (
+                self.axes[0].get_title() if self.axes else "")
+            seen.append(f"{name} ({title}): " + "; ".join(problems))
+        return orig(self, fname, *a, **kw)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", checking_savefig)
+    yield
+    assert not seen, "figures with overlapping text or panels:\n" + "\n".join(seen)

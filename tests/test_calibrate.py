@@ -23,6 +23,7 @@ def _adjust(cap, **kw):
                          initial_poses=(ini.rotation, ini.translation), **kw)
 
 
+@pytest.mark.slow
 def test_recovery_within_three_sigma_small_monte_carlo():
     """3 simulated captures (LH1 and LH2, with sensor offsets of 0.5 mm RMS): >= 95 % of the observable
     parameters within 3 reported sigma of the truth, and the residuals fall to the noise (|r| median
@@ -43,6 +44,7 @@ def test_recovery_within_three_sigma_small_monte_carlo():
     assert np.mean(np.abs(z) < 3) >= 0.95, np.sort(np.abs(z))[-10:]
 
 
+@pytest.mark.slow
 def test_schur_lm_agrees_with_least_squares_on_the_sparse_problem(rng):
     """Same cost, two optimisers: the Schur-complement LM and scipy.optimize.least_squares (trf, exact
     trust-region steps on the analytic Jacobian) find the same calibration to a quarter of its sigma."""
@@ -98,6 +100,7 @@ def test_unobservable_parameters_are_reported_not_fitted(rng):
     assert by["station 0 axis 0 tilt"].status == "ok"
 
 
+@pytest.mark.slow
 def test_layout_consider_sd_matches_monte_carlo_scatter():
     """Monte-Carlo vs predicted covariance: sensor offsets of 0.3 mm per coordinate that are NOT adjusted;
     the reported sds (noise + the layout consider term, layout_sigma = 0.3 mm) match the scatter of
@@ -133,6 +136,7 @@ def _static_capture(rng, K=60):
     return cap, a, start
 
 
+@pytest.mark.slow
 def test_static_capture_calibration_is_held_not_fitted(rng):
     """One static pose cannot separate tilt, curve and gib from the station pose and sensor offsets
     (the real HMD sample's situation): every calibration parameter comes back unobservable or
@@ -152,6 +156,7 @@ def test_static_capture_calibration_is_held_not_fitted(rng):
         np.testing.assert_allclose(to_ba(h.calibration.params), to_ba(s.calibration.params), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_parameter_far_from_its_factory_value_is_suspect(rng):
     """A moving capture whose factory calibration has station 0's axis-0 phase 0.02 rad off (20+ sd):
     the fit recovers the truth within 3 sd and flags exactly that kind of parameter 'suspect'; with
@@ -191,6 +196,7 @@ def _write_frames(path, cap, ids):
                 w.writerow([repr(0.1 * k + 0.008 * s), str(s)] + ["" if not np.isfinite(x) else repr(float(x)) for x in a])
 
 
+@pytest.mark.slow
 def test_cli_calibrate_then_joint_solve(tmp_path, rng):
     """`layoutkit calibrate FRAMES --layout L --stations S --out DIR` writes stations.json, layout.json,
     report.json; residuals fall from the uncalibrated level to the noise; `layoutkit solve --stations

@@ -276,6 +276,15 @@ def test_sigma_rad_is_converted_exactly(capsys):
     assert math.isclose(p["sigma"], 4.014e-5, rel_tol=1e-15) and math.isclose(q["sigma"], p["sigma"], rel_tol=1e-15)
 
 
+def test_mm_lengths_arrive_in_metres(capsys):
+    """``--spacing-mm 7.5`` reaches the command as metres (7.5 / 1000, the unit table's factor);
+    0 is refused where a length must be positive."""
+    p, _ = _parse("candidates", [MESH, "--spacing-mm", "7.5", "--out", "c.json"], capsys)
+    assert "spacing_mm" not in p and math.isclose(p["spacing"], 7.5e-3, rel_tol=1e-15)
+    r = CliRunner().invoke(main, ["candidates", MESH, "--spacing-mm", "0", "--out", "c.json"])
+    assert r.exit_code == 2 and "--spacing-mm" in r.output
+
+
 def test_new_spelling_wins_over_alias(capsys):
     p, err = _parse("render", [MESH, "--out-dir", "new", "--out", "old"], capsys)
     assert p["out_dir"] == "new" and "deprecated" in err

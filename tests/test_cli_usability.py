@@ -203,6 +203,7 @@ def test_optimize_wrong_units_warns_in_one_line(tmp_path, small_envelope):
     assert _error_lines(r) == ["error: k: expected 1 <= k <= 1 (number of candidates), got 12"]
 
 
+@pytest.mark.slow
 def test_optimize_summary_starts_on_first_line(tmp_path, small_envelope):
     """The progress bar goes to stderr: stdout is the summary alone (no stray blank first line)."""
     r = CliRunner().invoke(main, ["optimize", MESH, "--sensors", "12", "--envelope", small_envelope,

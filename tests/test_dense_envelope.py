@@ -69,6 +69,7 @@ def run():
     return hull, cand, env, prep, design, dense, info
 
 
+@pytest.mark.slow
 def test_dense_loop_holds_better_on_heldout_than_design_only(run):
     """Held-out worst ADOP (1,000 fresh poses, untracked = inf) of the dense-loop layout is no worse
     than that of the layout optimised on the 40 design poses only, and the design-only layout is
@@ -141,6 +142,7 @@ def whole_run():
     return hull, cand, env, prep, dense, info
 
 
+@pytest.mark.slow
 def test_whole_dense_set_loop_is_a_true_one_swap_optimum_on_it(whole_run):
     """Default seed_poses="all" and a dense set that fits: the working set is the whole dense set (plus any
     coverage poses that joined), the reported dense value equals a pose_dop recount over design, dense and
@@ -217,6 +219,7 @@ def test_far_range_copies_keep_attitude_and_bearing_and_dominate():
     assert checked > 2000
 
 
+@pytest.mark.slow
 def test_far_range_loop_seeds_copies_and_reports_the_whole_dense_set():
     """far_range=True: the dense set is design + dense poses and a far-range copy of each (2 × 1,540
     rows), the seed of the working set is copies, the reported dense value is the pose_dop recount over
@@ -242,6 +245,7 @@ def test_far_range_loop_seeds_copies_and_reports_the_whole_dense_set():
         dense_optimize(traj, 24, kw, dense_poses=10, far_range=True)
 
 
+@pytest.mark.slow
 def test_range_sweep_brackets_every_lit_set_change_and_reaches_the_ray_worst():
     """range_sweep_poses against exhaustive search along each ray: on a fine grid of 1,001 ranges over
     1–3 m (same attitude and bearing) the lit set of random 24-sensor layouts (mesh occlusion included)
@@ -285,6 +289,7 @@ def test_range_sweep_brackets_every_lit_set_change_and_reaches_the_ray_worst():
     assert changes > 20
 
 
+@pytest.mark.slow
 def test_range_sweep_loop_value_covers_the_swept_rays():
     """range_sweep=True: the loop's dense value is at least the independent recount (pose_dop) over the
     design and dense poses and the swept rays of its layout, the swept poses that joined are counted, and a

@@ -52,6 +52,7 @@ def test_derived_file_on_full_disk_names_the_file_and_leaves_nothing(small_disk,
     assert list(small_disk.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_capture_on_full_disk_keeps_prefix_and_reports_elsewhere(small_disk, tmp_path):
     """`live --record` onto a full disk: the capture holds an exact prefix of the bytes the device
     sent, the report goes to the other disk, exit 2 with the capture named."""

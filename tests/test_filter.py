@@ -15,13 +15,13 @@ from scipy.spatial.transform import Rotation
 from layoutkit.filter import EkfConfig, ErrorStateEKF, PlainSweepModel, SweepTracker
 from layoutkit.filter.consistency import chi2_band, nees, pose_error, run_sweeps
 from layoutkit.filter.models import angle_gradient
-from layoutkit.filter.so3 import quat_from_rotvec, quat_mul, quat_to_matrix, quat_to_rotvec
+from layoutkit.filter.so3 import quat_from_matrix, quat_from_rotvec, quat_mul, quat_to_matrix, quat_to_rotvec
 from layoutkit.lighthouse import lh2_to_lh1_angles as lh2_planes_to_lh1
 from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.layout import load_layout
 from layoutkit.lighthouse import Station, lh2_sweep_angles, sweep_angles
 from layoutkit.live.simulator import simulate_sweeps
-from layoutkit.workflows import filter_scenarios as wf
+from layoutkit.studies import filter_scenarios as wf
 
 LAYOUT = "tests/data/chen_layout.json"
 
@@ -83,6 +83,24 @@ def test_quaternion_helpers_match_scipy():
     np.testing.assert_allclose(quat_to_matrix(quat_from_rotvec([1e-9, 0, 0])), np.eye(3), atol=1e-9)
 
 
+def test_quaternion_orders_have_one_owner():
+    """The filter's closed-form quat_to_matrix agrees with the rotations core's pair (both orders),
+    and a libsurvive [w, x, y, z] quaternion means the same rotation as its [x, y, z, w] reordering
+    (scipy as the reference)."""
+    from layoutkit.rotations import matrix_to_quaternion, quaternion_to_matrix
+
+    q = Rotation.random(50, random_state=7).as_quat()
+    R = Rotation.from_quat(q).as_matrix()
+    np.testing.assert_allclose(np.stack([quat_to_matrix(x) for x in q]), R, atol=1e-15)
+    np.testing.assert_allclose(quaternion_to_matrix(q), R, atol=1e-15)
+    np.testing.assert_allclose(quaternion_to_matrix(q[:, [3, 0, 1, 2]], scalar_first=True), R, atol=1e-15)
+    back = matrix_to_quaternion(R)
+    assert np.all(back[:, 3] >= 0)
+    np.testing.assert_allclose(np.abs(np.sum(back * q, 1)), 1.0, atol=1e-12)  # same rotation, either sign
+    np.testing.assert_allclose(matrix_to_quaternion(R, scalar_first=True), back[:, [3, 0, 1, 2]])
+    np.testing.assert_allclose(quat_from_matrix(R[0]), back[0])
+
+
 def test_static_covariance_equals_summed_fisher_information(layout):
     """Closed form: with no process noise and zero-velocity pseudo-measurements the pose covariance
     after N sweeps equals (P0^-1 + sum_k J_k^T R_k^-1 J_k)^-1 of the sweeps' angle Jacobians with
@@ -138,6 +156,7 @@ def test_hidden_station_and_reflections(layout):
     assert r["sigma_pos_m_max_hidden"] > r["sigma_pos_m_before_hidden"]  # one station less: less certain
 
 
+@pytest.mark.slow
 def test_nees_nis_consistency_small(layout):
     """Monte Carlo vs the filter's covariance: over 8 tumbles the time-averaged ANEES (6 dof) and the
     NIS per dof are inside generous bands (the full 50-run check is benchmarks/bench_filter.py)."""
@@ -279,7 +298,8 @@ def test_replay_filter_json_lines_through_the_cli(tmp_path):
     from click.testing import CliRunner
 
     from layoutkit.cli import main
-    from layoutkit.live.reference import read_pose_csv
+    from layoutkit.io.poses import read_reference
+    from layoutkit.live.reference import PoseTrack
 
     cap, truth = tmp_path / "cap.bin", tmp_path / "TRUTH.csv"
     r = CliRunner().invoke(main, ["fake-fpga", "--layout", LAYOUT, "--out", str(cap), "--truth", str(truth),
@@ -296,7 +316,7 @@ def test_replay_filter_json_lines_through_the_cli(tmp_path):
     assert all(len(x["cov_pos_m"]) == 3 and len(x["cov_rot_deg"]) == 3 for x in recs)
     ok = [x for x in recs if x["status"] == "ok"]
     assert len(ok) / len(recs) > 0.98
-    tr = read_pose_csv(truth)
+    tr = PoseTrack.from_reference(read_reference(truth))
     t = np.array([x["t"] for x in ok])
     _, p_true, v = tr.at(t)
     p = np.array([x["translation"] for x in ok])

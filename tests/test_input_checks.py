@@ -75,7 +75,7 @@ def test_dop_with_three_lit_is_underdetermined():
 
 def test_dop_nan_rotvec_is_an_error():
     r = _run(["dop", "--layout", LAYOUT, "--rotvec-deg", "nan", "0", "0"])
-    assert r.exit_code == 2 and r.output.startswith("error: --rotvec-deg: expected 3 finite numbers, got nan 0.0 0.0")
+    assert r.exit_code == 2 and r.output.startswith("error: Invalid value for '--rotvec-deg': 'nan' is not a finite number")
     assert "Traceback" not in r.output
 
 

@@ -15,7 +15,8 @@ import pytest
 from click.testing import CliRunner
 
 from layoutkit.geometry import attitude_error, random_rotations, rotvec_to_matrix
-from layoutkit.io.poses import JOINT, POSE_COLUMNS, PoseTable, PoseWriter, iter_poses, read_poses, write_poses
+from layoutkit.io.poses import (JOINT, POSE_COLUMNS, PoseTable, PoseWriter, iter_poses, read_poses, read_reference,
+                                write_poses)
 from layoutkit.io.sidecar import CaptureSidecar, read_sidecar
 from layoutkit.io.stations import read_stations, station_from_dict, station_to_dict, write_stations
 from layoutkit.layout import save_layout
@@ -87,8 +88,11 @@ def _writers(tmp_path):
 def _readers():
     """Every reader of the pose table → function(path) → (t, R (N,3,3), translation) of the finite rows."""
     from layoutkit.envelope import Envelope
-    from layoutkit.live.reference import read_pose_csv
+    from layoutkit.live.reference import PoseTrack
     from layoutkit.live.simulator import load_trajectory
+
+    def read_pose_csv(p):
+        return PoseTrack.from_reference(read_reference(p))
 
     def io_read(p):
         tb = read_poses(p)
@@ -111,7 +115,7 @@ def _readers():
         return tr.t, tr.rotation, tr.translation
 
     return {"io.read_poses": io_read, "io.iter_poses": io_iter, "simulator.load_trajectory": trajectory,
-            "envelope trajectory": envelope, "reference.read_pose_csv": reference}
+            "envelope trajectory": envelope, "io.read_reference": reference}
 
 
 def test_every_writer_read_by_every_reader_agrees(tmp_path):
@@ -136,7 +140,7 @@ def test_every_writer_read_by_every_reader_agrees(tmp_path):
                     read(path)
                 continue
             t, R, tr = read(path)
-            if rname == "reference.read_pose_csv":  # drops repeated times (two sweeps per frame)
+            if rname == "io.read_reference":  # drops repeated times (two sweeps per frame)
                 keep = np.concatenate([[True], np.diff(t_ref) > 0])
                 t_r, R_r, tr_r = t_ref[keep], R_ref[keep], tr_ref[keep]
             elif rname == "envelope trajectory":
@@ -167,8 +171,11 @@ def test_degrees_file_fed_to_the_radians_readers_is_rejected(tmp_path):
     the file, the line and the columns, from every reader; the same numbers under ``rx_deg``
     columns read as np.radians of them (independent conversion)."""
     from layoutkit.envelope import Envelope
-    from layoutkit.live.reference import read_pose_csv
+    from layoutkit.live.reference import PoseTrack
     from layoutkit.live.simulator import load_trajectory
+
+    def read_pose_csv(p):
+        return PoseTrack.from_reference(read_reference(p))
 
     bad = _csv(tmp_path / "deg.csv", "t,rx,ry,rz,tx,ty,tz", DEG_ROWS)
     want = (rf"^{bad}: line 2: columns rx,ry,rz: rotation vector norm 5.385 > pi — pose tables hold the rotation "

@@ -142,6 +142,7 @@ def _replay(bench, *extra):
     return json.loads(r.output)
 
 
+@pytest.mark.slow
 def test_bench_session_against_truth(bench):
     """End to end against the simulator's truth: clock offset, camera ← lighthouse and body ← face
     rotations recovered within their own reported uncertainty (6 s of motion separates X from Y
@@ -161,6 +162,7 @@ def test_bench_session_against_truth(bench):
         assert cam[k] is not None
 
 
+@pytest.mark.slow
 def test_replay_is_deterministic_and_counts_corrupt_frames(bench, tmp_path):
     """The same folder twice gives identical figures; a corrupt and a missing frame are counted by
     status while the serial side is unaffected."""
@@ -183,6 +185,7 @@ def test_replay_is_deterministic_and_counts_corrupt_frames(bench, tmp_path):
     assert s["camera"]["frames"] == 120
 
 
+@pytest.mark.slow
 def test_live_session_with_both_streams(bench, tmp_path):
     """A live session over a real pty with the camera folder played at its timing: the camera frames
     are recorded byte for byte before solving, the summary has the camera object, and replaying the

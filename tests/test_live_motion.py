@@ -1,4 +1,4 @@
-"""Motion compensation of the live pipeline (PipelineConfig.motion_compensation, docs/live.md).
+"""Motion compensation of the live pipeline (LiveConfig.motion_compensation, docs/live.md).
 
 The hardware simulator draws every sweep's angles from the pose at that sweep's own sync time, so
 a frame pairs an X sweep at t and a Y sweep at t + 8.33 ms. Without compensation the PnP fits one
@@ -13,10 +13,11 @@ import pytest
 from layoutkit.dop import pose_errors, rms
 from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.live.frames import SweepMeasurement
-from layoutkit.live.pipeline import STATUS_OK, PipelineConfig, PosePipeline
+from layoutkit.live.pipeline import LiveConfig, PosePipeline
 from layoutkit.live.simulator import simulate_sweeps, spin_motion
-from layoutkit.noise import SIGMA_THETA_PAPER
+from layoutkit.units import SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
+from layoutkit.status import OK as STATUS_OK
 
 WARM_UP_S = 0.5  # frames before this have no (or a start-up) velocity estimate; not evaluated
 
@@ -33,7 +34,7 @@ def solve(layout, sw, chunk_frames=256, **cfg):
     ang = sw.measured_angles()
     sweeps = [SweepMeasurement(float(sw.t[k]), int(sw.station[k]), int(sw.axis[k]), ang[k], int(sw.seq[k]))
               for k in range(sw.t.size)]
-    pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=layout.n, chunk_frames=chunk_frames, **cfg))
+    pipe = PosePipeline(layout.positions, LiveConfig(n_sensors=layout.n, chunk_frames=chunk_frames, **cfg))
     chunks = pipe.feed(sweeps) + pipe.flush(end_of_stream=True)
     c = {k: np.concatenate([getattr(ch, k) for ch in chunks])
          for k in ("t", "rotation", "translation", "status", "adop", "pdop")}
@@ -85,6 +86,7 @@ def test_noise_free_constant_velocity_is_removed(layout):
     assert out[True][0].max() < 0.05 and out[True][1].max() < 0.05
 
 
+@pytest.mark.slow
 def test_compensation_chunking_and_gaps(layout):
     """1-frame chunks (live) and 500-frame chunks (replay) agree far below the noise (0.02 σ); the
     first frames of the stream and of the track after a 1 s gap (no velocity yet) are not

@@ -12,9 +12,11 @@ from layoutkit.dop import pose_dop, pose_errors, rms
 from layoutkit.geometry import rotvec_to_matrix
 from layoutkit.lighthouse import in_field_of_view, lh2_sweep_angles, sweep_angles
 from layoutkit.live.frames import SweepMeasurement
-from layoutkit.live.pipeline import (STATUS_JUMP, STATUS_OK, STATUS_TOO_FEW_LIT, PipelineConfig, PosePipeline,
-                                     SweepPairer, lh2_to_lh1_angles)
-from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, sample_angle_noise
+from layoutkit.lighthouse import lh2_to_lh1_angles
+from layoutkit.live.pipeline import LiveConfig, PosePipeline, SweepPairer
+from layoutkit.status import JUMP as STATUS_JUMP, OK as STATUS_OK, TOO_FEW_LIT as STATUS_TOO_FEW_LIT
+from layoutkit.noise import sample_angle_noise
+from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 from layoutkit.shapes import chen_target
 from layoutkit.visibility import facing_mask
 
@@ -50,7 +52,7 @@ def make_sweeps(layout, F, rng, sigma=SIGMA_THETA_PAPER, rho=RHO_PAPER, station=
 
 
 def run(layout, sweeps, **cfg):
-    pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=layout.n, **cfg))
+    pipe = PosePipeline(layout.positions, LiveConfig(n_sensors=layout.n, **cfg))
     chunks = pipe.feed(sweeps) + pipe.flush(end_of_stream=True)
     cat = {k: np.concatenate([getattr(c, k) for c in chunks]) for k in
            ("t", "rotation", "translation", "status", "adop", "pdop", "n_lit")}
@@ -182,8 +184,8 @@ def test_lh2_plane_angles_convert_to_lh1_angles():
 
 def test_bad_configuration_messages(layout):
     with pytest.raises(ValueError, match=r"^n_sensors: expected >= 1, got 0$"):
-        PipelineConfig(n_sensors=0)
+        LiveConfig(n_sensors=0)
     with pytest.raises(ValueError, match=r"^min_lit: expected >= 3, got 2$"):
-        PipelineConfig(n_sensors=12, min_lit=2)
+        LiveConfig(n_sensors=12, min_lit=2)
     with pytest.raises(ValueError, match=r"^points_body: expected shape \(4, 3\), got \(12, 3\)$"):
-        PosePipeline(layout.positions, PipelineConfig(n_sensors=4))
+        PosePipeline(layout.positions, LiveConfig(n_sensors=4))

@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from layoutkit.geometry import attitude_error, matrix_to_rotvec, random_rotations, rotvec_to_matrix
-from layoutkit.live.reference import (PoseTrack, align_reference, estimate_alignment, estimate_time_offset,
-                                      read_pose_csv)
+from layoutkit.io.poses import read_reference
+from layoutkit.live.reference import PoseTrack, align_reference, estimate_alignment, estimate_time_offset
 
 DEG = np.pi / 180
 
@@ -128,7 +128,7 @@ def test_csv_formats_and_units_agree(tmp_path, form):
         cols, att = ",".join(f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)), R.reshape(50, 9)
     path = tmp_path / "ref.csv"
     np.savetxt(path, np.column_stack([t, att, p * 1e3]), delimiter=",", header="t," + cols + ",x,y,z", comments="")
-    tr = read_pose_csv(path, units="mm")
+    tr = PoseTrack.from_reference(read_reference(path, units="mm"))
     np.testing.assert_allclose(tr.t, t)
     assert attitude_error(tr.rotation, R).max() < 1e-9
     np.testing.assert_allclose(tr.translation, p, atol=1e-12)
@@ -137,11 +137,14 @@ def test_csv_formats_and_units_agree(tmp_path, form):
 def test_csv_errors(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("t,a,b\n0,1,2\n1,2,3\n")
-    with pytest.raises(ValueError, match=r"expected attitude columns rx,ry,rz or qx,qy,qz,qw or r11..r33, "
-                                         r"got header \['t', 'a', 'b'\]$"):
-        read_pose_csv(path)
+    with pytest.raises(ValueError, match=r"expected attitude columns rx,ry,rz or qx,qy,qz,qw or r11..r33 and/or "
+                                         r"position columns x,y,z or tx,ty,tz, got header \['t', 'a', 'b'\]$"):
+        read_reference(path)
     with pytest.raises(ValueError, match=r"^units: expected one of \['cm', 'in', 'm', 'mm'\], got 'inch'$"):
-        read_pose_csv(path, units="inch")
+        read_reference(path, units="inch")
+    path.write_text("t,x,y,z\n0,1,2,3\n1,2,3,4\n")
+    with pytest.raises(ValueError, match=r"bad.csv: a position-only reference: the alignment needs attitude"):
+        PoseTrack.from_reference(read_reference(path))
     with pytest.raises(ValueError, match=r"^PoseTrack: times must be strictly increasing$"):
         PoseTrack(np.array([0.0, 0.0]), np.stack([np.eye(3)] * 2))
 

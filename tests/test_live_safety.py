@@ -28,6 +28,7 @@ def _live(*args, **kw):
                           text=True, timeout=60, **kw)
 
 
+@pytest.mark.slow
 def test_record_onto_existing_capture_is_refused_and_file_untouched(tmp_path):
     """Regression (item 1): ``live --record`` onto an existing capture used to truncate it (453,600
     → 22,680 bytes). Now: exit 2, one error line naming the file, every byte unchanged; the

@@ -95,6 +95,7 @@ def test_ordered_reduce_is_exact_and_bounded():
     assert out == [2 * c.count + c.index for c in plan] and order == list(range(11))
 
 
+@pytest.mark.slow
 def test_validate_matches_dop_and_is_identical_on_a_localcluster(tmp_path, small_envelope):
     args = ["validate", str(LAYOUT), "--envelope", small_envelope, "--frames", "12000", "--chunk-frames", "3000",
             "--json"]

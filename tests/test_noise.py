@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from layoutkit.noise import RHO_PAPER, SIGMA_THETA_PAPER, angle_correlation, sample_angle_noise
+from layoutkit.noise import angle_correlation, sample_angle_noise
+from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
 
 
 def test_correlation_matrix_eq19():

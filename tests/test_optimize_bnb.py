@@ -38,6 +38,7 @@ def _problem(inst, rho):
     return build_problem(jac, inst["visible"][:, None], rho, K, 4, parse_objective("worst-adop"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed,rho,grouped", [(1, RHO_PAPER, True), (4, RHO_PAPER, False), (6, 0.0, True)])
 def test_bnb_returns_exhaustive_optimum_and_valid_bounds(seed, rho, grouped):
     pb = _problem(_inst(seed), rho)
@@ -162,6 +163,7 @@ def test_bnb_with_remote_solver_returns_exhaustive_optimum():
     assert b.bound >= opt * (1 - 1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("two_stations", [False, True])
 def test_node_bound_matches_cvxpy_and_stays_below_exhaustive_node_optimum(two_stations):
     """Random nodes (sites fixed to 0/1, group counts bounded), one station and two stations with
@@ -197,6 +199,7 @@ def test_node_bound_matches_cvxpy_and_stays_below_exhaustive_node_optimum(two_st
     assert compared >= 6
 
 
+@pytest.mark.slow
 def test_node_bound_certified_for_truncated_solves_and_restricted_sites():
     """The dual bound holds for any dual point: Clarabel stopped after 2–6 iterations, or a site
     set restricted to a few sites without column generation, still gives bounds <= the exhaustive
@@ -223,6 +226,7 @@ def test_node_bound_certified_for_truncated_solves_and_restricted_sites():
     assert weaker >= 3  # the truncated solves really were truncated
 
 
+@pytest.mark.slow
 def test_pipeline_reports_branch_and_bound_certificate():
     """In the pipeline (forked B&B beside the search): the bound rises above the relaxation's, stays
     <= the exhaustive optimum, the gap reaches 1 %; "off" keeps the relaxation bound; no child is left."""
@@ -252,6 +256,7 @@ def test_pipeline_reports_branch_and_bound_certificate():
         optimize_layout(**inst, k=K, rho=RHO_PAPER, branch_and_bound="maybe")
 
 
+@pytest.mark.slow
 def test_cli_branch_and_bound_switch(tmp_path, capsys):
     """`layoutkit optimize` reports the B&B summary by default and none with --no-branch-and-bound
     (the bound is then the relaxation's)."""

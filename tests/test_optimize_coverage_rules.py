@@ -50,6 +50,7 @@ def _brute(pos, R, t, st, vis, k, rule, m=4):
     return best
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rule,m", [("any-station", 4), ("each-station", 4), ("joint", 7)])
 def test_rule_exhaustive_and_pipeline_match_brute_force(two_station, rule, m):
     """(joint counts station-sensor pairs, so m = 7 there to make the rule bind)"""

@@ -87,6 +87,7 @@ def _run_with_signal(tmp_path, sig, at_stage, at_count):
                         k_range=(9, 11), render=False, progress=progress, time_limit=8)
 
 
+@pytest.mark.slow
 def test_sigterm_keeps_best_and_finished_k(tmp_path):
     """SIGTERM at the start of the second k's local search: k = 9 finished, k = 10 returns its best
     so far marked interrupted, k = 11 is not started; the layout file is written."""
@@ -110,6 +111,7 @@ def test_ctrl_c_during_relaxation_returns_a_layout_without_bound(tmp_path):
     assert [r["status"] for r in s["k_sweep"]][1:] == ["not run (interrupted)"] * 2
 
 
+@pytest.mark.slow
 def test_cli_dense_tilt_coverage_flags_and_heldout_matches_score(tmp_path):
     """optimize --dense-poses/--max-tilt-deg/--coverage: design, dense and held-out statistics; the
     held-out worst ADOP equals an independent `layoutkit score` of the written layout on the same
@@ -145,6 +147,7 @@ def test_cli_dense_tilt_coverage_flags_and_heldout_matches_score(tmp_path):
     assert sc["worst_adop"] == pytest.approx(sets["heldout"]["worst_adop"], rel=1e-9)
 
 
+@pytest.mark.slow
 def test_cli_tilt_toward_station_writes_meridional_axes_and_rejects_a_zero_axis(tmp_path):
     """optimize --max-tilt-deg --tilt-toward station: every tilted sensor of the written layout has its
     axis at 15° from its site's surface normal, in the plane of that normal and the mean body-frame

@@ -107,6 +107,7 @@ def test_meridional_tilts_lie_in_the_plane_of_normal_and_axis():
         tilt_orientations(pos, nor, 20.0, toward=[0, 0, 0])
 
 
+@pytest.mark.slow
 def test_meridional_tilt_toward_the_station_finds_the_exhaustive_optimum():
     """Exhaustive search with the 2 meridional orientations towards/away from the mean station direction
     (body frame, from the instance's poses): the pipeline equals it, and it beats the untilted optimum."""

@@ -1,4 +1,4 @@
-"""Tests of the batched PnP solver (layoutkit.pnp).
+"""Tests of the batched PnP solver (layoutkit.pnp, its LH1 fast path layoutkit.pnp_lh1).
 
 Kinds of proof used: exact recovery of known poses from noise-free synthetic angles (closed form),
 first-order optimality of the returned estimate (gradient of the angle cost by the independent
@@ -12,8 +12,9 @@ import pytest
 from layoutkit.dop import angle_jacobian, pose_dop
 from layoutkit.geometry import attitude_error, random_rotations, transform_points
 from layoutkit.lighthouse import in_field_of_view, sweep_angles
-from layoutkit.noise import SIGMA_THETA_PAPER, sample_angle_noise
-from layoutkit import pnp
+from layoutkit.noise import sample_angle_noise
+from layoutkit.units import SIGMA_THETA_PAPER
+from layoutkit import pnp_lh1
 from layoutkit.pnp import (PNP_SOLVERS, STATUS_DEGENERATE, STATUS_INVALID_ANGLE, STATUS_NO_START, STATUS_OK,
                            STATUS_TOO_FEW, PnPResult,
                            solve_pnp)
@@ -232,9 +233,9 @@ def test_normal_equations_match_dop_angle_jacobian(rng):
     R, t = poses(30, P12, rng)
     ang = angles_of(P12, R, t) + 1e-3 * rng.standard_normal((30, 12, 2))
     vis = rng.random((30, 12)) < 0.8
-    fr = pnp._Frames(P12, ang, vis)
-    ev = pnp._eval(fr, R.reshape(30, 9).T.copy(), t.T.copy())
-    A, g = pnp._normal_equations(fr, ev)
+    fr = pnp_lh1._Frames(P12, ang, vis)
+    ev = pnp_lh1._eval(fr, R.reshape(30, 9).T.copy(), t.T.copy())
+    A, g = pnp_lh1._normal_equations(fr, ev)
     p = transform_points(R, t, P12)
     J = (angle_jacobian(p, p - t[:, None, :]) * vis[..., None, None]).reshape(30, 24, 6)
     r = ((ang - sweep_angles(p)) * vis[..., None]).reshape(30, 24)
@@ -307,6 +308,6 @@ def test_angle_residual_series_matches_arctan2(qmax, rng):
     (short series, long series, exact fallback), including negative denominators."""
     den = rng.uniform(0.5, 2.0, 2000)
     num = rng.uniform(-qmax, qmax, 2000) * den
-    np.testing.assert_allclose(pnp._atan_ratio(num, den), np.arctan2(num, den), rtol=0, atol=1e-17)
+    np.testing.assert_allclose(pnp_lh1._atan_ratio(num, den), np.arctan2(num, den), rtol=0, atol=1e-17)
     den[0] = -1.0
-    np.testing.assert_allclose(pnp._atan_ratio(num, den), np.arctan2(num, den), rtol=0, atol=1e-17)
+    np.testing.assert_allclose(pnp_lh1._atan_ratio(num, den), np.arctan2(num, den), rtol=0, atol=1e-17)

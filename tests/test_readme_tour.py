@@ -119,6 +119,7 @@ def test_every_shortening_applies():
     ("live", ["run.lkcap", "truth.csv", "val/report.json", "truth-live.csv", "cap.lkcap", "val-live/report.json"]),
     ("studies", ["groups.json"]),
 ])
+@pytest.mark.slow
 def test_readme_tour_runs(tmp_path, group, files):
     lines = [ln for ln in tour_lines() if _group(ln) == group]
     assert lines

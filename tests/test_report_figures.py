@@ -9,6 +9,7 @@ study plots, and the tracking-quality map.
 """
 from __future__ import annotations
 
+import os
 from types import SimpleNamespace
 
 import matplotlib
@@ -18,7 +19,7 @@ import matplotlib.figure  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from layoutkit.io.figures import CAPTION_GID  # noqa: E402
+from layoutkit.io.figures import CAPTION_GID, layout_problems  # noqa: E402
 
 
 def _title(fig):
@@ -45,9 +46,13 @@ def saved(monkeypatch):
                     labels_ok = False
         counts = [ax for ax in self.axes if "count" in ax.get_ylabel() or "lit sensors" in ax.get_ylabel()]
         int_ticks = all(np.allclose(ax.get_yticks(), np.round(ax.get_yticks())) for ax in counts)
-        seen.append({"path": str(getattr(fname, "name", fname)), "title": _title(self), "labels": labels_ok,
+        title = self._suptitle.get_text() if self._suptitle is not None else ""
+        seen.append({"path": str(getattr(fname, "name", fname)) + f" ({title or self.axes[0].get_title()})", "title": _title(self), "labels": labels_ok,
                      "caption": any(t.get_gid() == CAPTION_GID and t.get_text().strip() for t in self.texts),
-                     "int_ticks": int_ticks})
+                     "int_ticks": int_ticks, "layout": layout_problems(self)})
+        if os.environ.get("LAYOUTKIT_FIGURE_DUMP"):  # development aid: every problem, untruncated
+            with open(os.environ["LAYOUTKIT_FIGURE_DUMP"], "a") as fh:
+                fh.write(f"{seen[-1]['path']}: {seen[-1]['layout']}\n")
         return orig(self, fname, *a, **kw)
 
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", checking_savefig)
@@ -56,8 +61,9 @@ def saved(monkeypatch):
 
 def _assert_all(seen, n_min):
     assert len(seen) >= n_min, seen
-    bad = [s for s in seen if not (s["title"] and s["labels"] and s["caption"] and s["int_ticks"])]
-    assert not bad, bad
+    bad = [s for s in seen if not (s["title"] and s["labels"] and s["caption"] and s["int_ticks"])
+           or s["layout"]]
+    assert not bad, [(s["path"], s["layout"]) for s in bad]
 
 
 def test_live_report_figures(tmp_path, saved):

@@ -247,3 +247,25 @@ def test_dask_is_imported_only_inside_the_commands():
             "print(','.join(m for m in ('dask', 'distributed', 'bokeh') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_terminal_ends_a_localcluster_sweep_without_tracebacks(tmp_path, small_envelope):
+    """Ctrl-C reaches the whole foreground process group, Dask's nanny and worker processes too:
+    they used to die with a KeyboardInterrupt traceback each (printed twice through the nanny)
+    while the sweep itself stopped cleanly (issue 29). SIGINT to the group of a real LocalCluster
+    sweep: one 'interrupted:' line, no traceback, the finished cells kept."""
+    sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 3")
+    (tmp_path / "sweep.toml").write_text(sweep)
+    out = tmp_path / "out"
+    p = subprocess.Popen([str(BIN / "layoutkit"), "sweep", str(tmp_path / "sweep.toml"), "--out", str(out),
+                          "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    try:
+        _wait(lambda: (out / "cells").exists() and len(_cells(out)) >= 1, 120, "a first cell")
+        os.killpg(p.pid, signal.SIGINT)  # what a terminal does on Ctrl-C
+        so, se = p.communicate(timeout=60)
+    finally:
+        _kill(p)
+    assert "interrupted:" in se and "Traceback" not in se, se
+    assert 1 <= len(_cells(out)) < 6

@@ -155,8 +155,11 @@ def track_corners(times, corners_uv, focal_length, method: str = "zhai", initial
 
 def read_corners_csv(path, principal_point=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """Read a corners CSV (see module docstring) → ``(t (T,), corners_uv (T, 4, 2))`` paper (u, v) px."""
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (a corners CSV is text)") from None
     if not rows:
         raise ValueError(f"{path}: empty corners CSV")
     head = [h.strip().lower() for h in rows[0]]

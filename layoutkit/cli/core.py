@@ -216,16 +216,14 @@ def study_chen(groups, frames, chunk_frames, seed, dynamic_seconds, sensor_error
     """Chen et al. (2024) static precision (Fig. 5) and dynamic accuracy (Table 2) in simulation.
 
     The static frames run as chunked Dask tasks (default: a LocalCluster on this machine)."""
-    from rich.console import Console
-    from rich.progress import Progress
-
     from ..studies.chen2024 import StudyConfig, run_chen2024, write_outputs
     from .distributed import executor_from_flags
+    from .progress import progress_bar
 
     cfg = StudyConfig(groups=groups, frames=frames, seed=seed, dynamic_seconds=dynamic_seconds,
                       sensor_error_mm=sensor_error_mm, chunk_frames=chunk_frames)
     with executor_from_flags(scheduler, workers, quiet=as_json or json_out == "-") as ex, \
-            Progress(transient=True, console=Console(stderr=True)) as prog:
+            progress_bar("static frames", quiet=as_json or json_out == "-") as prog:
         task = prog.add_task("static frames", total=groups * frames)
         res = run_chen2024(cfg, progress=lambda k: prog.advance(task, k), executor=ex)
     paths = write_outputs(res, out_dir)

@@ -41,12 +41,10 @@ class _CellProgress:
     def __enter__(self):
         if self.quiet:
             return None
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from .progress import progress_bar
 
-        self.p = Progress(TextColumn("cells"), BarColumn(), MofNCompleteColumn(),
-                          TextColumn("running {task.fields[running]}  failed {task.fields[failed]}"),
-                          TimeElapsedColumn(), console=Console(stderr=True))
+        self.p = progress_bar("cells", fields="running {task.fields[running]}  failed {task.fields[failed]}",
+                              transient=False)
         self.p.__enter__()
         self.task = None
 
@@ -141,11 +139,10 @@ def validate_cmd(layout_path, envelope_path, frames, mesh_path, units, half_angl
     from ..workflows.validate import run_validate
 
     with executor_from_flags(scheduler, workers, quiet=as_json) as ex:
-        from rich.console import Console
-        from rich.progress import Progress
+        from .progress import progress_bar
 
         try:
-            with Progress(transient=True, console=Console(stderr=True), disable=as_json) as prog:
+            with progress_bar("frames", quiet=as_json) as prog:
                 task = prog.add_task("frames", total=frames)
                 res = run_validate(layout_path, envelope_path, frames, executor=ex, sigma=sigma, rho=rho, seed=seed,
                                    mesh=mesh_path, units=units, half_angle_deg=half_angle_deg,

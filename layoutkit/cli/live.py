@@ -100,7 +100,7 @@ def _add(options):
 
 
 def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, filter_settings=None):
-    from ..workflows.live import LiveOptions
+    from ..live.pipeline import LiveConfig
 
     kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation)
     if filter_settings is not None:
@@ -112,7 +112,7 @@ def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, fi
             from ._common import fail
 
             fail(f"--filter: {exc}")
-    return LiveOptions(**kw)
+    return LiveConfig(**kw)
 
 
 def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
@@ -252,10 +252,13 @@ def _most_common_reason(summary: dict) -> str:
 
 
 def _stations_arg(stations_path, system_config):
-    """Stations for a live run: a stations JSON, else the system config's stations, else None."""
+    """The system config read once (or None) and the stations of a live run: a stations JSON, else
+    the system config's stations, else None."""
+    from ..io.systemconfig import read_system_config
     from ..workflows.live import stations_from_files
 
-    return stations_from_files(stations_path, system_config)
+    cfg = None if system_config is None else read_system_config(system_config)
+    return cfg, stations_from_files(stations_path, cfg)
 
 
 def _quiet_exit():
@@ -305,11 +308,15 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
         fail(f"--duration: expected a positive number of seconds, got {duration}")
     opts = _options(rho, sigma, live=True, motion_compensation=motion_compensation,
                     filter_settings=filter_settings)
+    try:
+        cfg, stations = _stations_arg(stations_path, system_config)
+    except ValueError as exc:
+        fail(str(exc))
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
               idle_timeout=idle_timeout, overwrite=overwrite, camera_device=camera_device,
-              stations=_stations_arg(stations_path, system_config), system_config=system_config, solve=solve_mode,
+              stations=stations, system_config=cfg, solve=solve_mode,
               camera_config=_camera_config(camera_device, focal_length_px, principal_point_px, camera_method,
                                            aspect_ratio, corner_sigma_px))
     try:

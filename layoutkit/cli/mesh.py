@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, emit_json, fail
-from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option,
+from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option, length_mm_option,
                       min_visible_option, out_file_option, seed_option, units_option)
 
 _units_option = units_option(what="the mesh file (converted to metres)")
@@ -46,8 +46,7 @@ def mesh_info_cmd(mesh, units, as_json):
 @click.command("candidates", short_help="Evenly spaced candidate photodiode sites on a mesh.")
 @click.argument("mesh", type=click.Path(dir_okay=False))
 @_units_option
-@click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), required=True,
-              help="Minimum distance between candidate sites, mm.")
+@length_mm_option("--spacing-mm", "spacing", required=True, help="Minimum distance between candidate sites, mm.")
 @click.option("--keepout-box", multiple=True, metavar="X0,Y0,Z0,X1,Y1,Z1",
               help="Axis-aligned keep-out box in the body frame, mm (repeatable).")
 @click.option("--keepout-part", multiple=True, metavar="NAME", help="Keep-out named part / face group (repeatable).")
@@ -60,7 +59,7 @@ def mesh_info_cmd(mesh, units, as_json):
 @seed_option
 @out_file_option(help="Candidates file (layout JSON).")
 @json_flag(help="Print a JSON summary.")
-def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_cone, normal_cone, flat_only,
+def candidates_cmd(mesh, units, spacing, keepout_box, keepout_part, keepout_cone, normal_cone, flat_only,
                    max_count, seed, out, as_json):
     """Evenly spaced candidate photodiode sites with outward normals, saved as a layout file."""
     from ..candidates import parse_keepout
@@ -73,7 +72,7 @@ def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_c
         if normal_cone is not None:
             cone = parse_keepout("cone:" + normal_cone)
             nf = (cone.direction, cone.half_angle_deg)
-        lay, msgs = make_candidates(mesh, spacing=spacing_mm * 1e-3, units=units, keepout=keep, flat_only=flat_only,
+        lay, msgs = make_candidates(mesh, spacing=spacing, units=units, keepout=keep, flat_only=flat_only,
                                     normal_filter=nf, seed=seed, max_count=max_count, out=out)
     except ValueError as exc:
         fail(str(exc))
@@ -81,6 +80,7 @@ def candidates_cmd(mesh, units, spacing_mm, keepout_box, keepout_part, keepout_c
     for e in lay.extra:
         if "part" in e:
             parts[e["part"]] = parts.get(e["part"], 0) + 1
+    spacing_mm = round(spacing * 1e3, 9)
     summary = {"out": out, "count": lay.n, "spacing_mm": spacing_mm, "parts": parts, "warnings": list(msgs)}
     if as_json:
         echo_json(summary)

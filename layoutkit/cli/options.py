@@ -23,12 +23,12 @@ from typing import Callable, Iterable
 import click
 from click.core import ParameterSource
 
-from ..units import ARCSEC, LENGTH_UNIT_NAMES, RHO_PAPER, SIGMA_THETA_PAPER
+from ..units import ARCSEC, LENGTH_UNIT_NAMES, LENGTH_UNITS, RHO_PAPER, SIGMA_THETA_PAPER
 
 __all__ = [
     "option", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
-    "report_option", "layout_option", "envelope_option", "distance_m_option", "allow_odd_size_option",
+    "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options", "Number", "finite", "finite_types",
@@ -330,6 +330,18 @@ def distance_m_option(f=None, *, default: float = 2.0, help: str = "Distance, m.
     deco = option("--distance-m", "distance_m", type=click.FloatRange(min=0.0, min_open=True), default=default,
                   show_default=True, aliases=("--distance",), help=help)
     return deco(f) if f is not None else deco
+
+
+def length_mm_option(flag: str, dest: str, *, default: float | None = None, required: bool = False,
+                     allow_zero: bool = False, help: str = ""):
+    """A length the user gives in millimetres (``flag`` ends in ``-mm``); the command receives ``dest``
+    in metres (the one mm → m conversion, :data:`layoutkit.units.LENGTH_UNITS`). ``default`` is in
+    mm, as ``--help`` shows it; ``allow_zero``: 0 is accepted (else the length must be > 0)."""
+    def to_m(ctx, param, value):
+        return None if value is None else float(value) * LENGTH_UNITS["mm"]
+
+    return option(flag, dest, type=Number(0.0, min_open=not allow_zero), default=default,
+                  show_default=default is not None, required=required, callback=to_m, help=help)
 
 
 def allow_odd_size_option(f=None):

@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from ..rotations import matrix_to_quaternion
+
 __all__ = ["quat_from_rotvec", "quat_mul", "quat_to_matrix", "quat_from_matrix", "quat_to_rotvec"]
 
 
@@ -42,7 +44,9 @@ def quat_mul(a, b) -> np.ndarray:
 
 
 def quat_to_matrix(q) -> np.ndarray:
-    """Unit quaternion ``[x, y, z, w]`` → rotation matrix (3, 3)."""
+    """Unit quaternion ``[x, y, z, w]`` → rotation matrix (3, 3): the closed form of
+    :func:`layoutkit.rotations.quaternion_to_matrix` on plain floats (the per-sweep hot path;
+    tests/test_filter.py checks that both agree)."""
     x, y, z, w = np.asarray(q, float).tolist()
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
@@ -52,11 +56,9 @@ def quat_to_matrix(q) -> np.ndarray:
 
 
 def quat_from_matrix(R) -> np.ndarray:
-    """Rotation matrix (3, 3) → unit quaternion ``[x, y, z, w]`` with w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, float)).as_quat()
-    return -q if q[3] < 0 else q
+    """Rotation matrix (3, 3) → unit quaternion ``[x, y, z, w]`` with w >= 0
+    (:func:`layoutkit.rotations.matrix_to_quaternion`, the owner of quaternion orders)."""
+    return matrix_to_quaternion(R)
 
 
 def quat_to_rotvec(q) -> np.ndarray:

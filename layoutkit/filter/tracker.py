@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..lighthouse import Station, lh2_to_lh1_angles, undistort
+from ..lighthouse import Station, to_sweep_angles
 from ..units import RAD2DEG
 from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile
 from .so3 import quat_to_rotvec
@@ -213,7 +213,8 @@ class SweepTracker:
 
     def _try_init(self, s: int, t: float, st: Station) -> bool:
         """PnP on the recent angles of station ``s`` (see the module docstring); True when started."""
-        from ..pnp import STATUS_AMBIGUOUS, solve_pnp
+        from ..pnp import solve_pnp
+        from ..status import AMBIGUOUS as STATUS_AMBIGUOUS
 
         rec = self._recent.get(s)
         if rec is None:
@@ -228,10 +229,8 @@ class SweepTracker:
             return False  # the same lit set failed moments ago: wait for new sensors or fresh angles
         self._tried[s] = (key, t)
         ang = ang.copy()
-        if st.calibration is not None:  # the start only; the updates go through the forward model
-            ang[lit] = undistort(ang[lit], st.calibration, max_iterations=20, tol=1e-9)
-        if st.kind == "lh2":
-            ang[lit] = lh2_to_lh1_angles(ang[lit])
+        # the start only (ideal angles); the updates go through the forward model
+        ang[lit] = to_sweep_angles(ang[lit], st.kind, st.calibration)
         self.counters.pnp_tries += 1
         a = np.where(lit[:, None], ang, np.pi / 2)
         sol = solve_pnp(self.points_body, a[None], lit[None])

@@ -281,10 +281,9 @@ def station_rotation_from_quaternion(q) -> np.ndarray:
     libsurvive: ``p_world = R(q) p_lh + pos``; layoutkit: ``p_st = FLIP p_lh``, so
     ``p_world = (R(q) FLIP) p_st + pos`` (``FLIP`` has det +1: a proper rotation, 180° about x).
     """
-    from scipy.spatial.transform import Rotation
+    from ..rotations import quaternion_to_matrix
 
-    w, x, y, z = (float(v) for v in q)
-    return Rotation.from_quat([x, y, z, w]).as_matrix() @ FLIP
+    return quaternion_to_matrix(np.asarray(q, float)[:4], scalar_first=True) @ FLIP
 
 
 def libsurvive_to_theta(angle) -> np.ndarray:

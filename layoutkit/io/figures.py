@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["save_figure", "figure_problems", "integer_ticks", "CAPTION_GID"]
+__all__ = ["save_figure", "figure_problems", "integer_ticks", "layout_problems", "CAPTION_GID"]
 
 CAPTION_GID = "layoutkit-caption"
 
@@ -41,6 +41,65 @@ def figure_problems(fig) -> list[str]:
     return problems
 
 
+def _texts(fig):
+    """(name, text artist) of every visible, non-empty text the figure draws."""
+    out = []
+    for t in fig.texts:
+        out.append(("caption" if t.get_gid() == CAPTION_GID else "figure text", t))
+    if getattr(fig, "_suptitle", None) is not None:
+        out.append(("suptitle", fig._suptitle))
+    for i, a in enumerate(fig.axes):
+        name = a.get_title() or a.get_label() or f"axes {i}"
+        out += [(f"{name}: title", t) for t in (a.title, a._left_title, a._right_title)]
+        if a.axison:
+            out += [(f"{name}: x label", a.xaxis.label), (f"{name}: y label", a.yaxis.label)]
+            for axis, tag in ((a.xaxis, "x tick"), (a.yaxis, "y tick")):
+                lo, hi = sorted(axis.get_view_interval())
+                for tick in axis.get_major_ticks():
+                    if lo - 1e-9 * (hi - lo) <= tick.get_loc() <= hi + 1e-9 * (hi - lo):
+                        out += [(f"{name}: {tag}", tick.label1), (f"{name}: {tag}", tick.label2)]
+        out += [(f"{name}: text", t) for t in a.texts]
+        leg = a.get_legend()
+        if leg is not None:
+            out += [(f"{name}: legend", t) for t in leg.get_texts()]
+    return [(n, t) for n, t in out if t and t.get_visible() and t.get_text().strip()]
+
+
+def layout_problems(fig, *, pad_px: float = 0.5) -> list[str]:
+    """Overlaps a reader would see: text artists whose boxes intersect (titles, labels, tick labels,
+    legends, captions, annotations; two tick labels of one axis included) and a data axes drawn over
+    another (a colour bar over a panel). Draws the figure first. (Nothing is cut by the edge: report
+    figures are saved with a tight bounding box.)
+    Tick labels of the two axes of one axes meeting at its corner are not counted."""
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    boxes = [(n, t, t.get_window_extent(r).expanded(1.0, 1.0)) for n, t in _texts(fig)]
+    problems = []
+    for i in range(len(boxes)):
+        ni, ti, bi = boxes[i]
+        for j in range(i + 1, len(boxes)):
+            nj, tj, bj = boxes[j]
+            if ti is tj:
+                continue
+            ov_w = min(bi.x1, bj.x1) - max(bi.x0, bj.x0)
+            ov_h = min(bi.y1, bj.y1) - max(bi.y0, bj.y0)
+            if ov_w > pad_px and ov_h > pad_px:
+                same_axes = ni.rsplit(":", 1)[0] == nj.rsplit(":", 1)[0]
+                if same_axes and {ni.rsplit(": ", 1)[-1], nj.rsplit(": ", 1)[-1]} == {"x tick", "y tick"}:
+                    continue
+                problems.append(f"{ni} {ti.get_text()!r} overlaps {nj} {tj.get_text()!r}")
+    axes = [a for a in fig.axes if a.get_visible() and a.axison]
+    for i in range(len(axes)):
+        for j in range(i + 1, len(axes)):
+            a, b = axes[i].get_window_extent(r), axes[j].get_window_extent(r)
+            if min(a.x1, b.x1) - max(a.x0, b.x0) > 2 and min(a.y1, b.y1) - max(a.y0, b.y0) > 2:
+                inset = axes[i].get_label() == "inset" or axes[j].get_label() == "inset"
+                if not inset:
+                    problems.append(f"axes {axes[i].get_title() or axes[i].get_label() or i} and "
+                                    f"{axes[j].get_title() or axes[j].get_label() or j} overlap")
+    return problems
+
+
 def integer_ticks(ax, axis: str = "y") -> None:
     """Whole-number ticks on ``axis`` ('x', 'y' or 'both') for counts."""
     from matplotlib.ticker import MaxNLocator
@@ -49,24 +108,66 @@ def integer_ticks(ax, axis: str = "y") -> None:
         getattr(ax, f"{name}axis").set_major_locator(MaxNLocator(integer=True))
 
 
-def save_figure(fig, path, *, caption: str, dpi: int = 110, close: bool = True) -> Path:
+def _wrapped(caption: str, width_pt: float, fontsize: float) -> str:
+    import textwrap
+
+    chars = max(30, int(width_pt / (0.52 * fontsize)))
+    return "\n".join(textwrap.wrap(caption, chars)) or caption
+
+
+def _place_caption(fig, caption: str, fontsize: float = 7.0):
+    """The caption line(s) under everything the figure draws: wrapped to the drawn width and put
+    below the lowest artist (saved with a tight bounding box, so nothing is moved or cut)."""
+    fig.canvas.draw()
+    box = fig.get_tightbbox(fig.canvas.get_renderer())  # inches
+    y = (box.y0 * fig.dpi - 4.0) / fig.bbox.height
+    x = max(box.x0 * fig.dpi, 0.0) / fig.bbox.width
+    return fig.text(x, y, _wrapped(caption, box.width * 72.0, fontsize), fontsize=fontsize, ha="left", va="top",
+                    color="0.25", gid=CAPTION_GID)
+
+
+def _reserve_caption(fig, caption: str, fontsize: float):
+    """A picture of an exact pixel size: the caption at the bottom edge and a constrained layout of
+    everything else in the rest (titles, colour bars and labels included)."""
+    t = fig.text(0.01, 0.004, _wrapped(caption, fig.bbox.width * 72.0 / fig.dpi * 0.98, fontsize),
+                 fontsize=fontsize, ha="left", va="bottom", color="0.25", gid=CAPTION_GID)
+    fig.canvas.draw()
+    frac = min(0.4, (t.get_window_extent(fig.canvas.get_renderer()).height + 6.0) / fig.bbox.height)
+    engine = fig.get_layout_engine()
+    if engine is not None and hasattr(engine, "set") and "rect" in engine.get():
+        engine.set(rect=(0.0, frac, 1.0, 1.0 - frac))
+    else:  # colour bars made without a layout engine cannot join one later: move the panels up
+        fig.subplots_adjust(bottom=max(fig.subplotpars.bottom, frac + 0.02))
+    return t
+
+
+def save_figure(fig, path, *, caption: str, dpi: int = 110, close: bool = True,
+                size_px: tuple[int, int] | None = None, fontsize: float = 7.0) -> Path:
     """Add ``caption`` under ``fig``, check it (:func:`figure_problems`), write ``path`` atomically.
 
+    The caption goes below the lowest artist and the picture is saved with a tight bounding box,
+    so no axes are moved after a layout (a colour bar stays beside its panel) and no text is cut.
+    ``size_px``: the picture must be exactly W × H pixels (a size the user asked for): the caption
+    sits at the bottom edge and a constrained layout places the rest above it.
     Returns the path. Raises ValueError naming the file and what is missing."""
     from .atomic import atomic_write
 
     path = Path(path)
-    fig.text(0.01, 0.003, caption, fontsize=7, ha="left", va="bottom", color="0.25", gid=CAPTION_GID, wrap=True)
+    if size_px is not None:
+        _reserve_caption(fig, caption, fontsize)
+    else:
+        _place_caption(fig, caption, fontsize)
     problems = figure_problems(fig)
     if problems:
         import matplotlib.pyplot as plt
 
         plt.close(fig)
         raise ValueError(f"{path}: report figure is missing: {', '.join(problems)}")
-    if fig.get_layout_engine() is None:  # room for the caption line
-        fig.subplots_adjust(bottom=max(fig.subplotpars.bottom, 0.12))
+    if size_px is None and fig.get_layout_engine() is not None:  # placed: the layout must not move it now
+        fig.set_layout_engine("none")
+    tight = {} if size_px is not None else {"bbox_inches": "tight", "pad_inches": 0.08}
     with atomic_write(path, "wb") as fh:
-        fig.savefig(fh, format=path.suffix.lstrip(".") or "png", dpi=dpi)
+        fig.savefig(fh, format=path.suffix.lstrip(".") or "png", dpi=dpi, **tight)
     if close:
         import matplotlib.pyplot as plt
 

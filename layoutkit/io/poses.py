@@ -2,7 +2,8 @@
 
 Every pose file layoutkit writes or reads — ``layoutkit solve --out``, the live/replay
 ``poses.csv``, the simulator's ``TRUTH.csv``, ``fake-fpga --motion`` and envelope trajectories —
-is this one table. Columns, in this order::
+is this one table. Foreign reference streams (motion capture, camera attitude: quaternion or
+matrix columns, position only, ``.npy``) are read here too (:func:`read_reference`). Columns, in this order::
 
     t, station, status, rx, ry, rz, tx, ty, tz, residual_rms[, extra, ...]
 
@@ -31,6 +32,9 @@ whose rotations all stay below pi degrees cannot be told from radians; name the 
 Writing is atomic (:func:`layoutkit.io.atomic.atomic_write`); :class:`PoseWriter` streams chunks
 of a long run into one file that appears complete when the writer closes. Reading streams too
 (:func:`iter_poses`), so memory stays bounded for any length.
+
+Why one module of ~610 lines: the pose table and the foreign reference streams share the column
+rules (unit tags, the degrees check) — one reader of every pose file.
 """
 from __future__ import annotations
 
@@ -57,6 +61,8 @@ __all__ = [
     "rotvec_columns",
     "check_rotvec_radians",
     "format_poses",
+    "ReferenceTable",
+    "read_reference",
 ]
 
 #: The fixed leading columns of every pose table, in file order.
@@ -419,11 +425,14 @@ def iter_poses(path, *, chunk_rows: int = 65536, default_length_unit: str = "m")
     with fh:
         lineno = 0
         header = None
-        for line in fh:
-            lineno += 1
-            if line.strip() and not line.lstrip().startswith("#"):
-                header = read_pose_header(path, line, default_length_unit=default_length_unit)
-                break
+        try:
+            for line in fh:
+                lineno += 1
+                if line.strip() and not line.lstrip().startswith("#"):
+                    header = read_pose_header(path, line, default_length_unit=default_length_unit)
+                    break
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text file (a pose table is CSV text)") from None
         if header is None:
             raise ValueError(f"{path}: empty pose table (no header)")
         rows, first = [], None
@@ -462,3 +471,148 @@ def format_poses(table: PoseTable) -> str:
     buf.write(",".join(table.columns) + "\n")
     buf.write(_format_rows(table))
     return buf.getvalue()
+
+
+# ------------------------------------------------------------------- foreign reference streams
+
+@dataclass(frozen=True)
+class ReferenceTable:
+    """A reference pose stream as read (motion capture, a camera attitude stream, TRUTH.csv).
+
+    t : (N,) s, sorted (any clock origin); rotvec : (N, 3) rad or None (position only);
+    translation : (N, 3) m or None (attitude only); dropped : rows left out for a non-finite time
+    or value; path : the file.
+    """
+
+    t: np.ndarray
+    rotvec: np.ndarray | None
+    translation: np.ndarray | None
+    dropped: int = 0
+    path: str = ""
+
+
+_REF_POS = (("x", "y", "z"), ("tx", "ty", "tz"))
+_REF_QUAT = ("qx", "qy", "qz", "qw")
+_REF_MATRIX = tuple(f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
+
+
+def read_reference(path, units: str = "m") -> ReferenceTable:
+    """Read a reference stream: THE reader of pose files that are not ours (and of ours).
+
+    CSV with a header: ``t`` (s, any clock origin); attitude as ``rx,ry,rz`` (rotation vector,
+    rad; ``rx_deg,...`` for degrees, the rules of this module), ``qx,qy,qz,qw`` (quaternion, scalar
+    last) or ``r11..r33`` (row-major matrix), optional; position as ``x,y,z`` or ``tx,ty,tz`` in
+    ``units`` ("m", "cm", "mm", "in"), optional; at least one of the two. A layoutkit pose table
+    (TRUTH.csv, ``poses.csv``) is one such file (read by :func:`read_poses`, ``tx_mm`` tags
+    honoured). Or ``.npy``: an ``(N, 4)`` array ``t, x, y, z`` or ``(N, 7)`` ``t, rx, ry, rz, x, y, z``.
+    Rows with a non-finite time or value (attitude, position) are dropped and counted; at least 2
+    rows must remain. Every error is a ``ValueError`` naming the file (and line and column).
+    """
+    from ..geometry import matrix_to_rotvec, nearest_rotation
+    from ..rotations import quaternion_to_matrix
+
+    if units not in LENGTH_UNITS:
+        raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
+    path = Path(path)
+    scale = LENGTH_UNITS[units]
+    if not path.is_file():
+        raise ValueError(f"{path}: no such reference file")
+    if path.suffix == ".npy":
+        try:
+            a = np.asarray(np.load(path, allow_pickle=False), float)
+        except (ValueError, OSError):
+            raise ValueError(f"{path}: not a readable .npy array") from None
+        if a.ndim != 2 or a.shape[1] not in (4, 7):
+            raise ValueError(f"{path}: expected an (N, 4) array t,x,y,z or (N, 7) t,rx,ry,rz,x,y,z, got {a.shape}")
+        t, rv, pos, lines, check = a[:, 0], (a[:, 1:4] if a.shape[1] == 7 else None), a[:, -3:] * scale, None, None
+    else:
+        try:
+            with open(path, newline="") as fh:
+                first = fh.readline()
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text (CSV) file") from None
+        raw = next(csv.reader([first]), [])
+        head = [h.strip().lower() for h in raw]
+        col = {h: i for i, h in enumerate(head)}
+        if "t" not in col:
+            raise ValueError(f"{path}: no 't' column (header {head})")
+        rot = rotvec_columns(path, raw)
+        if rot is not None and (all(c in col for c in _POS) or any(h.startswith("tx_") for h in head)):
+            try:
+                read_pose_header(path, first, default_length_unit=units)
+                is_table = True
+            except ValueError:
+                is_table = False
+            if is_table:  # a pose table: its own reader
+                tb = read_poses(path, default_length_unit=units)
+                keep = np.all(np.isfinite(tb.rotvec), -1) & np.all(np.isfinite(tb.translation), -1)
+                return _reference(path, tb.t[keep], tb.rotvec[keep], tb.translation[keep], int(np.sum(~keep)))
+        quat = [col[c] for c in _REF_QUAT] if all(c in col for c in _REF_QUAT) else None
+        mat = [col[c] for c in _REF_MATRIX] if all(c in col for c in _REF_MATRIX) else None
+        pos_cols = next(([col[c] for c in names] for names in _REF_POS if all(c in col for c in names)), None)
+        if rot is None and quat is None and mat is None and pos_cols is None:
+            raise ValueError(f"{path}: expected attitude columns rx,ry,rz or qx,qy,qz,qw or r11..r33 and/or "
+                             f"position columns x,y,z or tx,ty,tz, got header {head}")
+        data, lines = _numeric_rows(path, raw)
+        t = data[:, col["t"]]
+        pos = None if pos_cols is None else data[:, pos_cols] * scale
+        rv, check = None, None
+        if rot is not None:
+            rv = data[:, rot[0]] * rot[1]
+            check = None if rot[2] else [raw[i].strip() for i in rot[0]]
+        elif quat is not None or mat is not None:
+            A = data[:, quat] if quat is not None else data[:, mat]
+            ok = np.all(np.isfinite(A), 1) & (np.linalg.norm(A, axis=1) > 0)
+            rv = np.full((len(t), 3), np.nan)
+            if ok.any():
+                R = quaternion_to_matrix(A[ok]) if quat is not None else nearest_rotation(A[ok].reshape(-1, 3, 3))
+                rv[ok] = matrix_to_rotvec(R)
+    keep = np.isfinite(t)
+    for x in (rv, pos):
+        if x is not None:
+            keep &= np.all(np.isfinite(x), 1)
+    if check is not None:
+        check_rotvec_radians(path, rv[keep], check, line_numbers=lines[keep])
+    if keep.sum() < 2:
+        raise ValueError(f"{path}: fewer than 2 rows with a finite time and values")
+    return _reference(path, t[keep], None if rv is None else rv[keep], None if pos is None else pos[keep],
+                      int(np.sum(~keep)))
+
+
+def _reference(path, t, rv, pos, dropped) -> ReferenceTable:
+    order = np.argsort(t, kind="stable")
+    return ReferenceTable(t[order], None if rv is None else rv[order], None if pos is None else pos[order],
+                          dropped, str(path))
+
+
+def _numeric_rows(path, header):
+    """The rows of a headed numeric CSV as ``(data (N, C) float, line numbers (N,))``; an empty
+    cell is NaN, blank lines are skipped; a row of another width or a cell that is not a number is
+    a ValueError naming the line and column."""
+    names = [h.strip() for h in header]
+    rows, lines = [], []
+    with open(path, newline="") as fh:
+        next(fh, None)
+        for k, line in enumerate(fh, start=2):
+            if line.strip():
+                rows.append(line.rstrip("\r\n").split(","))
+                lines.append(k)
+    lines = np.asarray(lines, np.int64)
+    if not rows:
+        return np.zeros((0, len(names))), lines
+    lens = np.fromiter((len(r) for r in rows), np.int64, len(rows))
+    if np.any(lens != len(names)):
+        k = int(np.flatnonzero(lens != len(names))[0])
+        raise ValueError(f"{path}: line {lines[k]}: {lens[k]} fields, the header has {len(names)}")
+    cells = np.char.strip(np.array(rows, dtype=str))
+    cells = np.where(cells == "", "nan", cells)
+    try:
+        return cells.astype(float), lines
+    except ValueError:
+        for r, c in np.ndindex(cells.shape):
+            try:
+                float(cells[r, c])
+            except ValueError:
+                raise ValueError(f"{path}: line {lines[r]}, column {names[c]!r}: {rows[r][c].strip()[:30]!r} "
+                                 "is not a number") from None
+        raise

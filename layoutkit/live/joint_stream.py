@@ -30,8 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import status as _status
 from ..io.poses import JOINT
 from ..joint import WINDOW_S
+from .continuity import continuity_gate, motion_history, recent_velocity
+from .posechunk import PoseChunk, empty_pose_arrays
 
 __all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "crossing_beam_windows",
            "MOTION_MIN_SIGMA"]
@@ -160,7 +163,7 @@ def crossing_beam_windows(windows, stations, n_sensors: int):
 
 
 def solve_windows(points_body, windows, config, stations, state: dict | None = None):
-    """Joint poses of a batch of windows → :class:`~layoutkit.live.pipeline.PoseChunk` (world frame).
+    """Joint poses of a batch of windows → :class:`~layoutkit.live.posechunk.PoseChunk` (world frame).
 
     points_body : (n, 3) m. windows : list of :class:`JointWindow`. config : the run's
     :class:`~layoutkit.live.pipeline.LiveConfig` (``min_lit``, noise, residual limit, continuity
@@ -182,9 +185,6 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     from ..dop import pose_dop
     from ..geometry import matrix_to_rotvec
     from ..joint import solve_joint
-    from ..pnp import STATUS_OK as PNP_OK, STATUS_TOO_FEW as PNP_TOO_FEW
-    from .pipeline import (STATUS_HIGH_RESIDUAL, STATUS_OK, STATUS_SOLVER_FAILED, STATUS_TOO_FEW_LIT, PoseChunk,
-                           empty_pose_arrays, _continuity_gate, _motion_history, _recent_velocity)
 
     state = {} if state is None else state
     P = np.asarray(points_body, float)
@@ -200,15 +200,15 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         a = ang[idx]
         sol = solve_joint(P, a, stations=stations)
         Rs, ts, rr = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
-        ok = np.asarray(sol.status) == PNP_OK
+        ok = np.asarray(sol.status) == _status.OK
         # body velocity from the recent joint poses (causal; NaN at the start of a stream, after a gap
         # or a jump), kept whether or not it is used
         # (from windows with two or more stations when there are: a one-station window of a small
         # deck is ~100x less precise, and its pose would make the velocity noise)
         zero = np.zeros(idx.size)
         vok = ok & (have[idx].sum(1) >= min(2, S))
-        w, v = _recent_velocity(t[idx], Rs, ts, vok, zero, zero, state.get("motion"), config)
-        state["motion"] = _motion_history(state.get("motion"), t[idx], Rs, ts, vok, zero, zero, config.motion_window)
+        w, v = recent_velocity(t[idx], Rs, ts, vok, zero, zero, state.get("motion"), config)
+        state["motion"] = motion_history(state.get("motion"), t[idx], Rs, ts, vok, zero, zero, config.motion_window)
         known = np.all(np.isfinite(w), 1) & np.all(np.isfinite(v), 1)
         # the RMS angle change the known motion makes across each window's measurement times
         sm = _motion_sigma(P, ts, w, v, dt[idx], have[idx], stations)
@@ -230,11 +230,11 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             pd = np.where(ok, d.pdop, np.inf)
         else:
             ad = pd = np.full(idx.size, np.inf)
-        st = np.where(~ok, np.where(np.asarray(sol.status) == PNP_TOO_FEW, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED),
-                      np.where(rr > limit, STATUS_HIGH_RESIDUAL, STATUS_OK))
-        st, cand = _continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
+        st = np.where(~ok, np.where(np.asarray(sol.status) == _status.TOO_FEW_LIT, _status.TOO_FEW_LIT, _status.SOLVER_FAILED),
+                      np.where(rr > limit, _status.HIGH_RESIDUAL, _status.OK))
+        st, cand = continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
         state["jump"] = cand
-        good = np.flatnonzero(st == STATUS_OK)
+        good = np.flatnonzero(st == _status.OK)
         if good.size:
             j = good[-1]
             state["last"] = (Rs[j].copy(), ts[j].copy(), float(t[idx][j]))
@@ -252,15 +252,13 @@ def _compensate(P, a, dt, Rs, ts, rr, use, w, v, stations, solve_joint):
     """Second pass with constant body velocity across the window (world frame, left perturbation)
     for the windows ``use`` (first pass converged, velocity known). Returns the poses, residuals
     and which windows were compensated."""
-    from ..pnp import STATUS_OK as PNP_OK
-
     fix = np.flatnonzero(use)
     comp = np.zeros(len(Rs), bool)
     if fix.size == 0:
         return Rs, ts, rr, comp
     sol = solve_joint(P, a[fix], stations=stations, dt=dt[fix], velocity=(w[fix], v[fix]),
                       initial=(Rs[fix], ts[fix]))
-    took = np.asarray(sol.status) == PNP_OK
+    took = np.asarray(sol.status) == _status.OK
     k = fix[took]
     Rs, ts, rr = Rs.copy(), ts.copy(), rr.copy()
     Rs[k], ts[k], rr[k] = np.asarray(sol.rotation)[took], np.asarray(sol.translation)[took], \

@@ -1,6 +1,6 @@
 """Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
 
-Why one module of ~680 lines: the stages below (pairing, batching, the chunk solve with its
+Why one module of ~860 lines: the stages below (pairing, batching, the chunk solve with its
 continuity gate and motion compensation) pass per-station state to each other and to the one
 config class :class:`LiveConfig`; they are read as one data flow.
 
@@ -19,7 +19,7 @@ Frame time. A frame's ``t`` is the sync time of its X sweep (axis 0), in the dec
 (seconds since the capture started, device clock) — the definition of the simulator's TRUTH.csv
 (``docs/live-io.md``). Poses are in the station frame of a single station or, when the set-up
 gives station poses, in the common world frame (design §2). The Y sweep comes 8.33 ms later; with
-``PipelineConfig.motion_compensation`` its angles are first moved to ``t`` with the body velocity
+``LiveConfig.motion_compensation`` its angles are first moved to ``t`` with the body velocity
 of the recent poses (``docs/live.md`` "Motion compensation"), otherwise the pose blends both times.
 """
 from __future__ import annotations
@@ -31,40 +31,22 @@ import numpy as np
 from .. import status as _status
 from .._validate import as_array
 from ..geometry import matrix_to_rotvec
-from ..lighthouse import LH1_ROTOR_RPM, Station, lh2_to_lh1_angles  # noqa: F401  (re-export)
+from ..lighthouse import LH1_ROTOR_RPM, Station, to_sweep_angles
 from ..units import RHO_PAPER, SIGMA_THETA_PAPER
+from .continuity import continuity_gate, motion_history, recent_velocity
 from .frames import SweepMeasurement
+from .joint_stream import JointWindower, solve_windows
+from .posechunk import STATUS_NAMES, PoseChunk, empty_pose_arrays
 
 __all__ = [
-    "STATUS_OK",
-    "STATUS_TOO_FEW_LIT",
-    "STATUS_SOLVER_FAILED",
-    "STATUS_HIGH_RESIDUAL",
-    "STATUS_JUMP",
-    "STATUS_AMBIGUOUS",
-    "STATUS_NAMES",
     "LiveConfig",
-    "PipelineConfig",
     "AngleFrame",
     "SweepPairer",
     "FrameBatcher",
-    "PoseChunk",
-    "lh2_to_lh1_angles",
     "motion_corrected_angles",
     "solve_chunk",
     "PosePipeline",
 ]
-
-# Pose status codes (per frame). Only STATUS_OK poses are "good"; the others are counted as bad.
-STATUS_OK = _status.OK
-STATUS_TOO_FEW_LIT = _status.TOO_FEW_LIT
-STATUS_SOLVER_FAILED = _status.SOLVER_FAILED
-STATUS_HIGH_RESIDUAL = _status.HIGH_RESIDUAL
-STATUS_JUMP = _status.JUMP
-STATUS_AMBIGUOUS = _status.AMBIGUOUS  # two poses fit the angles equally well (planar ambiguity, layoutkit.pnp)
-#: The pipeline's statuses by name: the codes and names of the one table, :mod:`layoutkit.status`.
-STATUS_NAMES = {c: _status.NAMES[c] for c in (STATUS_OK, STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED,
-                                               STATUS_HIGH_RESIDUAL, STATUS_JUMP, STATUS_AMBIGUOUS)}
 
 LH2_ROTOR_HZ_MIN = 48.0  # slowest LH2 channel (design §3: ~50–54 Hz)
 #: ``LiveConfig.solve`` values (the CLI's ``--solve`` choices, :data:`layoutkit.cli.options.SOLVE_MODES`).
@@ -76,8 +58,6 @@ CALIBRATION_MODES = ("model", "undistort")
 @dataclass(frozen=True)
 class LiveConfig:
     """The ONE settings class of a live/replay run: pose pipeline and session sinks.
-
-    (``PipelineConfig`` and ``layoutkit.workflows.live.LiveOptions`` are old names of this class.)
 
     n_sensors : sensors in the layout (length of ``SweepMeasurement.angles``); None = taken from
         the layout when the pipeline starts (:meth:`resolved`).
@@ -91,10 +71,10 @@ class LiveConfig:
         first station's (:meth:`resolved`), :data:`~layoutkit.lighthouse.LH1_ROTOR_RPM` without stations.
     sigma_theta : rad, angle noise for predictions (Chen eq. 24); rho : same-rotor correlation (eq. 19).
     max_residual_sigma : a solved pose whose RMS angle residual exceeds this many sigma_theta is
-        reported with STATUS_HIGH_RESIDUAL (never as good).
+        reported ``high_residual`` (never as good).
     max_rate_deg_s, max_speed_m_s, gate_sigma, reacquire_s : continuity gate. A pose further from
         the last good pose of its station than ``max_rate · dt + gate_sigma · predicted sigma``
-        (attitude, and likewise position) is reported with STATUS_JUMP: with 4-5 lit sensors a
+        (attitude, and likewise position) is reported ``jump``: with 4-5 lit sensors a
         wrong PnP basin can fit the angles as well as the right one. After ``reacquire_s``
         without a good pose the next pose is accepted as is, and ``reacquire_frames`` consecutive
         jumped poses that agree with each other become the new track.
@@ -187,10 +167,6 @@ class LiveConfig:
         return replace(self, n_sensors=int(n_sensors), rotor_rpm=rpm, motion_compensation=mc)
 
 
-#: Old name of :class:`LiveConfig`.
-PipelineConfig = LiveConfig
-
-
 @dataclass(frozen=True)
 class AngleFrame:
     """One pose frame: both sweep angles of every sensor from one station.
@@ -260,7 +236,7 @@ class SweepPairer:
             self.unpaired += 2  # both sweeps are lost
             return None
         raw = np.stack([np.asarray(x.angles, float), ang], -1)
-        angles = lh2_to_lh1_angles(raw) if m.kind == "lh2" else raw
+        angles = to_sweep_angles(raw, m.kind)
         self.paired += 1
         if m.kind == "lh2":
             per = self.lh2_periods.get(int(m.station), 0.02)
@@ -303,85 +279,6 @@ class FrameBatcher:
         return out
 
 
-@dataclass(frozen=True)
-class PoseChunk:
-    """Poses of ``F`` consecutive frames (arrays over frames).
-
-    t : (F,) s (frame time, X sweep sync); station : (F,) int; n_lit : (F,) int;
-    rotation : (F, 3, 3), translation : (F, 3) m — body pose ``p = R p_body + t`` in the station
-        (or world) frame, NaN where no pose; rotvec : (F, 3) rad;
-    status : (F,) int (STATUS_*); residual_rms : (F,) rad (RMS angle residual of the PnP fit);
-    adop : (F,) deg/rad, pdop : (F,) m/rad — Chen eq. (22) at the solved pose with its lit set
-        and ``rho`` (inf where no pose); lit : (F, n) bool.
-    Joint poses (``station`` = :data:`layoutkit.io.poses.JOINT`, one per window, world frame) also
-    carry n_stations : (F,) int, stations in the window, and lit_by_station : (F, S) int, sensors
-    lit on both axes per station; ``n_lit`` counts lit (sensor, station) pairs.
-    """
-
-    t: np.ndarray
-    station: np.ndarray
-    n_lit: np.ndarray
-    rotation: np.ndarray
-    translation: np.ndarray
-    rotvec: np.ndarray
-    status: np.ndarray
-    residual_rms: np.ndarray
-    adop: np.ndarray
-    pdop: np.ndarray
-    lit: np.ndarray
-    n_stations: np.ndarray | None = None
-    lit_by_station: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return int(self.t.shape[0])
-
-    @property
-    def good(self) -> np.ndarray:
-        """(F,) bool, frames with a trusted pose."""
-        return self.status == STATUS_OK
-
-    @property
-    def success(self) -> np.ndarray:
-        """(F,) bool, same as :attr:`good` (the layoutkit.status convention's name)."""
-        return self.good
-
-    @property
-    def message(self) -> str:
-        """One line: statuses of the chunk's frames by name (:mod:`layoutkit.status`)."""
-        return _status.summarize(self.status, STATUS_NAMES)
-
-    def records(self):
-        """Yield one plain dict per frame with a pose (the ``--json-lines`` contract).
-
-        Joint poses: ``"station": "joint"``, plus ``n_stations`` (stations in the window) and
-        ``lit_by_station`` (sensors lit on both axes, per station index)."""
-        from ..io.poses import JOINT
-
-        for i in range(len(self)):
-            if self.status[i] in (STATUS_TOO_FEW_LIT, STATUS_SOLVER_FAILED):
-                continue
-            rec = {
-                "t": float(self.t[i]),
-                "rotvec": [float(v) for v in self.rotvec[i]],
-                "translation": [float(v) for v in self.translation[i]],
-                "n_lit": int(self.n_lit[i]),
-                "status": STATUS_NAMES[int(self.status[i])],
-                "adop": _finite_or_none(self.adop[i]),
-                "pdop": _finite_or_none(self.pdop[i]),
-                "residual_rms": _finite_or_none(self.residual_rms[i]),
-                "station": "joint" if self.station[i] == JOINT else int(self.station[i]),
-            }
-            if self.n_stations is not None:
-                rec["n_stations"] = int(self.n_stations[i])
-                rec["lit_by_station"] = [int(v) for v in self.lit_by_station[i]]
-            yield rec
-
-
-def _finite_or_none(x):
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
 def _solver():
     from ..pnp import solve_pnp  # the core solver (layoutkit/pnp.py)
 
@@ -389,13 +286,7 @@ def _solver():
 
 
 
-def empty_pose_arrays(n: int):
-    """The result arrays of ``n`` frames or windows before solving: ``R (n, 3, 3)``, ``t (n, 3)``,
-    ``residual_rms (n,)`` NaN; ``status (n,)`` too-few-lit; ``adop, pdop (n,)`` inf."""
-    return (np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan),
-            np.full(n, STATUS_TOO_FEW_LIT, int), np.full(n, np.inf), np.full(n, np.inf))
-
-def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
+def solve_chunk(points_body, frames: list[AngleFrame], config: LiveConfig,
                 initial: dict | None = None, stations: "list[Station] | None" = None,
                 calibrations: dict | None = None) -> PoseChunk:
     """Solve the poses of a chunk of frames (batched PnP, then batched DOP).
@@ -405,7 +296,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         frame with ``layoutkit.pnp.solve_pnp``, started from ``initial[station] = (R, t)`` when given
         (the previous pose), and mapped to the world frame when ``stations`` are given.
     initial : dict station -> (R (3, 3), t (3,), time s); updated in place with the last good pose
-        (also the reference of the continuity gate, see :class:`PipelineConfig`), and with the
+        (also the reference of the continuity gate, see :class:`LiveConfig`), and with the
         recent poses per pass under ``("motion", station)`` when ``config.motion_compensation``:
         then the Y angles of every frame with a velocity estimate are moved to its X time and the
         frame is solved again (:func:`_compensate_motion`).
@@ -448,7 +339,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
             (Rs, ts, ok, rr, ad, pd, stat), initial[("motion", int(s))] = _compensate_motion(
                 solve_pnp, P, t[idx], dty[idx], a, lit[idx], (Rs, ts, ok, rr, ad, pd, stat), init,
                 initial.get(("jump", int(s))), initial.get(("motion", int(s))), config)
-        stat, cand = _continuity_gate(t[idx], Rs, ts, stat, ad, pd, init, initial.get(("jump", int(s))), config)
+        stat, cand = continuity_gate(t[idx], Rs, ts, stat, ad, pd, init, initial.get(("jump", int(s))), config)
         initial[("jump", int(s))] = cand
         if stations is not None:
             S = stations[int(s)]
@@ -457,7 +348,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
         R[idx], tr[idx], res[idx], status[idx] = Rs, ts, rr, stat
         adop[idx] = np.where(ok, ad, np.inf)
         pdop[idx] = np.where(ok, pd, np.inf)
-        good = np.flatnonzero(stat == STATUS_OK)
+        good = np.flatnonzero(stat == _status.OK)
         if good.size:
             j = idx[good[-1]]
             Rl, tl = R[j], tr[j]
@@ -472,7 +363,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: PipelineConfig,
                      status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit)
 
 
-def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
+def _solve_frames(solve_pnp, P, a, lit, kw, config: LiveConfig, dop=None):
     """PnP + DOP + residual status of one station's frames: a (F, n, 2) rad, lit (F, n).
 
     dop : None, or ``(adop (F,), pdop (F,))`` to reuse instead of computing them (a re-solve
@@ -487,10 +378,7 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
     kw = dict(kw)
     cal, raw = kw.pop("calibration", None), kw.pop("raw", None)
     if cal is not None:
-        from ..lighthouse import undistort
-
-        ideal = undistort(np.where(lit[..., None], raw, np.nan), cal, max_iterations=20, tol=1e-9)
-        a = np.where(lit[..., None], lh2_to_lh1_angles(ideal) if cal.kind == "lh2" else ideal, np.pi / 2)
+        a = np.where(lit[..., None], to_sweep_angles(np.where(lit[..., None], raw, np.nan), cal.kind, cal), np.pi / 2)
     sol = solve_pnp(P, a, lit, sigma=config.sigma_theta, rho=config.rho, **kw)
     ok = np.array(sol.success, bool)
     Rs, ts = np.array(sol.rotation, float), np.array(sol.translation, float)
@@ -498,7 +386,6 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
     status0 = np.asarray(sol.status)
     if cal is not None:
         from ..joint import solve_joint
-        from ..pnp import STATUS_AMBIGUOUS as PNP_AMB, STATUS_OK as PNP_OK
 
         go = np.flatnonzero(np.all(np.isfinite(Rs), (1, 2)) & np.all(np.isfinite(ts), 1))
         if go.size:
@@ -510,8 +397,8 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
                 np.asarray(ref.residual_rms)[took]
             st_ref = np.asarray(ref.status)[took]
             status0 = status0.copy()
-            status0[k] = np.where(status0[k] == PNP_AMB, PNP_AMB, st_ref)
-            ok = status0 == PNP_OK
+            status0[k] = np.where(status0[k] == _status.AMBIGUOUS, _status.AMBIGUOUS, st_ref)
+            ok = status0 == _status.OK
             bad = go[~took]
             ok[bad] = False
         sol = type(sol)(Rs, ts, ok, status0, rr, sol.iterations)
@@ -519,15 +406,13 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: PipelineConfig, dop=None):
         ad, pd = np.array(dop[0]), np.array(dop[1])
     else:
         ad, pd = _dop(P, Rs, ts, ok, lit, config, cal)
-    from ..pnp import STATUS_AMBIGUOUS as PNP_AMBIGUOUS
-
-    failed = np.where(np.asarray(sol.status) == PNP_AMBIGUOUS, STATUS_AMBIGUOUS, STATUS_SOLVER_FAILED)
+    failed = np.where(np.asarray(sol.status) == _status.AMBIGUOUS, _status.AMBIGUOUS, _status.SOLVER_FAILED)
     stat = np.where(~ok, failed,
-                    np.where(rr > config.max_residual_sigma * config.sigma_theta, STATUS_HIGH_RESIDUAL, STATUS_OK))
+                    np.where(rr > config.max_residual_sigma * config.sigma_theta, _status.HIGH_RESIDUAL, _status.OK))
     return Rs, ts, ok, rr, ad, pd, stat
 
 
-def _dop(P, R, t, ok, lit, config: PipelineConfig, calibration=None):
+def _dop(P, R, t, ok, lit, config: LiveConfig, calibration=None):
     """ADOP (F,) deg/rad and PDOP (F,) m/rad at poses R (F, 3, 3), t (F, 3) (placeholder where not ok);
     with a ``calibration`` through that station model's Jacobian (station frame)."""
     from ..dop import pose_dop
@@ -538,93 +423,15 @@ def _dop(P, R, t, ok, lit, config: PipelineConfig, calibration=None):
     return np.array(d.adop, float), np.array(d.pdop, float)
 
 
-def _small_log(D) -> np.ndarray:
-    """Rotation vectors (..., 3) rad of rotation matrices D (..., 3, 3) with angle < pi."""
-    s = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1)
-    sn = np.linalg.norm(s, axis=-1)
-    ang = np.arctan2(sn, 0.5 * (np.trace(D, axis1=-2, axis2=-1) - 1.0))
-    return s * np.where(sn > 1e-300, ang / np.maximum(sn, 1e-300), 1.0)[..., None]
-
-
-def _recent_velocity(t, R, tr, good, adop, pdop, history, config: PipelineConfig):
-    """Body velocity of every frame from the recent good poses of its station (causal).
-
-    t (F,) s, R (F, 3, 3), tr (F, 3) m: one station's poses (station frame) in time order, good (F,)
-    bool the ones to use, adop/pdop (F,) their DOP; history: the previous chunk's tail (dict of
-    arrays ``t, R, tr, adop, pdop``) or None. The series = history + good poses; consecutive
-    entries more than ``motion_window_s`` apart, or further apart than the continuity gate allows,
-    start a new segment. Frame k's velocity is the least-squares slope over the last
-    ``motion_window`` entries before it (same segment as the latest, within ``motion_window_s``
-    of t[k]), relative to the latest one: rotation vectors of ``R_j R_ref^T`` (left perturbation,
-    station frame) and ``t_j - t_ref``. Only earlier poses enter (a frame's own noise never feeds
-    back into its correction, and the result does not depend on chunking).
-    Returns ``(omega (F, 3) rad/s, v (F, 3) m/s)``; NaN rows where fewer than 3
-    entries qualify or the estimate exceeds ``max_rate_deg_s`` / ``max_speed_m_s``.
-    """
-    W = config.motion_window
-    g = np.flatnonzero(good)
-    if history is not None and g.size and history["t"][-1] > t[g[0]]:
-        history = None  # time ran backwards (device reset): forget
-    H = 0 if history is None else history["t"].size
-    T, Rser, tser, aser, pser = ((x if H == 0 else np.concatenate([history[k], x])) for k, x in
-                                 (("t", t[g]), ("R", R[g]), ("tr", tr[g]), ("adop", adop[g]), ("pdop", pdop[g])))
-    N, F = T.size, t.size
-    omega = np.full((F, 3), np.nan)
-    vel = np.full((F, 3), np.nan)
-    if N < 3 or F == 0:
-        return omega, vel
-    rate = np.deg2rad(config.max_rate_deg_s)
-    k_sig = config.gate_sigma * config.sigma_theta
-    dt = np.diff(T)
-    step_a = np.linalg.norm(_small_log(Rser[1:] @ np.swapaxes(Rser[:-1], -1, -2)), axis=-1)
-    step_d = np.linalg.norm(np.diff(tser, axis=0), axis=-1)
-    cons = ((dt > 0) & (dt <= config.motion_window_s)
-            & (step_a <= rate * dt + k_sig * np.deg2rad(np.maximum(aser[1:], aser[:-1])))
-            & (step_d <= config.max_speed_m_s * dt + k_sig * np.maximum(pser[1:], pser[:-1])))
-    seg = np.concatenate([[0], np.cumsum(~cons)])
-    order = np.concatenate([np.full(H, -1), g])
-    e = np.searchsorted(order, np.arange(F), side="left")  # entries before each frame
-    ref = np.clip(e - 1, 0, N - 1)
-    j = e[:, None] - W + np.arange(W)  # (F, W), the last W entries
-    jc = np.clip(j, 0, N - 1)
-    age = t[:, None] - T[jc]
-    m = (j >= 0) & (seg[jc] == seg[ref][:, None]) & (age >= 0) & (age <= config.motion_window_s)
-    m &= (e >= 1)[:, None]
-    s = np.where(m, T[jc] - T[ref][:, None], 0.0)
-    cnt = m.sum(1)
-    sbar = s.sum(1) / np.maximum(cnt, 1)
-    ds = np.where(m, s - sbar[:, None], 0.0)
-    den = np.sum(ds * ds, 1)
-    y = np.concatenate([_small_log(Rser[jc] @ np.swapaxes(Rser[ref], -1, -2)[:, None]),
-                        tser[jc] - tser[ref][:, None]], -1)  # (F, W, 6)
-    slope = np.einsum("fw,fwi->fi", ds, y) / np.where(den > 0, den, 1.0)[:, None]
-    has = (cnt >= 3) & (den > 0)
-    has &= (np.linalg.norm(slope[:, :3], axis=-1) <= rate) & (np.linalg.norm(slope[:, 3:], axis=-1)
-                                                             <= config.max_speed_m_s)
-    omega[has], vel[has] = slope[has, :3], slope[has, 3:]
-    return omega, vel
-
-
-def _motion_history(history, t, R, tr, good, adop, pdop, size: int) -> dict | None:
-    """The last ``size`` good poses of a station (after ``history``), for the next chunk's velocity."""
-    g = np.flatnonzero(good)
-    if history is not None and g.size and history["t"][-1] > t[g[0]]:
-        history = None
-    new = {"t": t[g], "R": R[g], "tr": tr[g], "adop": adop[g], "pdop": pdop[g]}
-    if history is not None:
-        new = {k: np.concatenate([history[k], v]) for k, v in new.items()}
-    return {k: v[-size:].copy() for k, v in new.items()} if new["t"].size else history
-
-
-def _compensate_motion(solve_pnp, P, t, dt_y, angles, lit, first, last, cand, history, config: PipelineConfig):
-    """Motion-compensated poses of one station's frames (see :class:`PipelineConfig`).
+def _compensate_motion(solve_pnp, P, t, dt_y, angles, lit, first, last, cand, history, config: LiveConfig):
+    """Motion-compensated poses of one station's frames (see :class:`LiveConfig`).
 
     t (F,) s, dt_y (F,) s (Y sync − X sync; NaN = no correction), angles (F, n, 2) rad, lit (F, n);
     first = the uncorrected solution (arrays as from :func:`_solve_frames`); last, cand: the
     continuity gate's state; history: None or, per pass, the station's previous poses of that pass
-    (:func:`_motion_history`).
+    (:func:`~layoutkit.live.continuity.motion_history`).
     Pass i (``motion_passes`` of them): velocity of every frame from the pass-i poses that the gate
-    accepts (:func:`_recent_velocity`, after the pass-i history), Y angles moved to the X time
+    accepts (:func:`~layoutkit.live.continuity.recent_velocity`, after the pass-i history), Y angles moved to the X time
     (:func:`motion_corrected_angles` at the pass-i pose), PnP started from the pass-i pose → the
     pass-(i+1) poses. Pass 1 uses uncorrected poses, whose X/Y-blend bias shifts with the geometry
     (~1 % of the rate); pass 2 re-estimates from corrected ones. Each pass's velocity comes from
@@ -637,10 +444,10 @@ def _compensate_motion(solve_pnp, P, t, dt_y, angles, lit, first, last, cand, hi
     moved = np.zeros(t.size, bool)
     for i in range(config.motion_passes):
         Rs, ts, ok, _, ad, pd, stat = cur
-        gated, _ = _continuity_gate(t, Rs, ts, stat, ad, pd, last, cand, config)
+        gated, _ = continuity_gate(t, Rs, ts, stat, ad, pd, last, cand, config)
         h = None if history is None else history[i]
-        w, v = _recent_velocity(t, Rs, ts, gated == STATUS_OK, ad, pd, h, config)
-        new_history.append(_motion_history(h, t, Rs, ts, gated == STATUS_OK, ad, pd, config.motion_window))
+        w, v = recent_velocity(t, Rs, ts, gated == _status.OK, ad, pd, h, config)
+        new_history.append(motion_history(h, t, Rs, ts, gated == _status.OK, ad, pd, config.motion_window))
         fix = np.flatnonzero(ok & np.isfinite(w[:, 0]) & np.isfinite(dt_y))
         if fix.size == 0:
             continue
@@ -685,58 +492,6 @@ def motion_corrected_angles(points_body, rotation, translation, omega, velocity,
     return out
 
 
-def _continuity_gate(t, R, tr, status, adop, pdop, last, cand, config: PipelineConfig):
-    """Mark good poses that jump away from the last good pose (see :class:`PipelineConfig`).
-
-    t (F,) s, R (F, 3, 3), tr (F, 3) m, status (F,), adop/pdop (F,) of one station's frames in
-    time order; last = (R, t, time) of the previous good pose or None; cand = (R, t, time, count)
-    a chain of mutually consistent jumped poses or None — after ``reacquire_frames`` of them the
-    chain is accepted as the new track (so a wrong reference cannot hold the gate shut for long).
-    Returns ``(status, cand)``.
-    """
-    from ..geometry import attitude_error
-
-    good = np.flatnonzero(status == STATUS_OK)
-    if good.size == 0:
-        return status, cand
-    rate = np.deg2rad(config.max_rate_deg_s)
-    k_sig = config.gate_sigma * config.sigma_theta
-
-    def near(k, ref):
-        dt = t[k] - ref[2]
-        a = attitude_error(R[k], ref[0])
-        d = np.linalg.norm(tr[k] - ref[1], axis=-1)
-        return (a <= rate * dt + k_sig * np.deg2rad(adop[k])) & (d <= config.max_speed_m_s * dt + k_sig * pdop[k])
-
-    if cand is None:
-        # fast path: every good pose agrees with the good pose before it -> nothing to gate
-        if last is not None:
-            ref = (np.concatenate([last[0][None], R[good[:-1]]]), np.concatenate([last[1][None], tr[good[:-1]]]),
-                   np.concatenate([[last[2]], t[good[:-1]]]))
-            cur = good
-        else:
-            ref, cur = (R[good[:-1]], tr[good[:-1]], t[good[:-1]]), good[1:]
-        gap = t[cur] - ref[2]
-        if cur.size == 0 or np.all(near(cur, ref) | (gap > config.reacquire_s) | (gap < 0)):
-            return status, None
-    status = status.copy()
-    for k in good:  # slow path: sequential against the last accepted pose
-        gap = t[k] - last[2] if last is not None else 0.0
-        # no reference, a long gap, or time running backwards (device reset): accept and restart
-        if last is None or gap > config.reacquire_s or gap < 0 or bool(near(k, last)):
-            last, cand = (R[k], tr[k], t[k]), None
-            continue
-        status[k] = STATUS_JUMP
-        if cand is not None and bool(near(k, cand)):
-            cand = (R[k], tr[k], t[k], cand[3] + 1)
-        else:
-            cand = (R[k], tr[k], t[k], 1)
-        if cand[3] >= config.reacquire_frames:
-            status[k] = STATUS_OK
-            last, cand = (R[k], tr[k], t[k]), None
-    return status, cand
-
-
 @dataclass
 class PipelineCounters:
     """Running counters of the pipeline (frames, not sweeps)."""
@@ -767,7 +522,7 @@ class PosePipeline:
     """
 
     points_body: np.ndarray
-    config: PipelineConfig
+    config: LiveConfig
     stations: "list[Station] | None" = None
     counters: PipelineCounters = field(default_factory=PipelineCounters)
     calibrations: dict | None = None
@@ -784,8 +539,6 @@ class PosePipeline:
             if not self.stations:
                 raise ValueError("solve 'joint': station poses are required (a stations file, the capture's "
                                  "sidecar stations or a system config's geometry)")
-            from .joint_stream import JointWindower
-
             self.windower = JointWindower(len(self.stations), self.config.window_s)
             self.window_batcher = FrameBatcher(self.config.chunk_frames, self.config.chunk_seconds)
 
@@ -839,8 +592,6 @@ class PosePipeline:
 
     def _solve(self, frames) -> PoseChunk:
         if self.windower is not None:
-            from .joint_stream import solve_windows
-
             ch = solve_windows(self.points_body, frames, self.config, self.stations, self.previous)
         else:
             ch = solve_chunk(self.points_body, frames, self.config, self.previous, self.stations, self.calibrations)
@@ -851,7 +602,7 @@ class PosePipeline:
         g = int(np.sum(ch.good))
         c.good += g
         c.bad += len(ch) - g
-        c.too_few_lit += int(np.sum(ch.status == STATUS_TOO_FEW_LIT))
+        c.too_few_lit += int(np.sum(ch.status == _status.TOO_FEW_LIT))
         for code in np.unique(ch.status):
             name = STATUS_NAMES[int(code)]
             c.by_status[name] = c.by_status.get(name, 0) + int(np.sum(ch.status == code))

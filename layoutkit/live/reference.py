@@ -21,32 +21,22 @@ needs none of this.
 """
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .._validate import as_array
-from ..geometry import matrix_to_rotvec, nearest_rotation, rotvec_to_matrix
+from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..rotations import fit_rotation_pair
-from ..units import LENGTH_UNITS
 
 __all__ = [
     "PoseTrack",
-    "read_pose_csv",
     "angular_speed",
     "estimate_time_offset",
     "Alignment",
     "estimate_alignment",
     "align_reference",
 ]
-
-_ROTVEC = ("rx", "ry", "rz")
-_QUAT = ("qx", "qy", "qz", "qw")
-_MATRIX = tuple(f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3))
-_POS = (("tx", "ty", "tz"), ("x", "y", "z"))
-
 
 @dataclass(frozen=True)
 class PoseTrack:
@@ -76,6 +66,18 @@ class PoseTrack:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
+    @classmethod
+    def from_reference(cls, ref) -> "PoseTrack":
+        """The track of a reference stream read by :func:`layoutkit.io.poses.read_reference` (sorted;
+        of repeated times the first row is kept). ValueError naming the file for a position-only
+        stream (the alignment needs attitude)."""
+        if ref.rotvec is None:
+            raise ValueError(f"{ref.path}: a position-only reference: the alignment needs attitude columns "
+                             "(rx,ry,rz or qx,qy,qz,qw or r11..r33)")
+        keep = np.concatenate([[True], np.diff(ref.t) > 0])
+        return cls(ref.t[keep], rotvec_to_matrix(ref.rotvec[keep]),
+                   None if ref.translation is None else ref.translation[keep])
+
     def at(self, times, max_gap: float | None = None):
         """Interpolated poses at ``times (F,)`` s: rotations by SLERP, translations linearly.
 
@@ -98,84 +100,6 @@ class PoseTrack:
             tr = (1 - a)[:, None] * self.translation[k] + a[:, None] * self.translation[k + 1]
             tr[~valid] = np.nan
         return R, tr, valid
-
-
-def read_pose_csv(path, units: str = "m") -> PoseTrack:
-    """Read a reference pose stream (motion capture, camera attitude, TRUTH.csv) from CSV.
-
-    Columns: ``t`` (s); attitude as ``rx,ry,rz`` (rotation vector, rad; ``rx_deg,...`` for
-    degrees, the rules of :mod:`layoutkit.io.poses`), ``qx,qy,qz,qw`` (quaternion, scalar last)
-    or ``r11..r33`` (row-major matrix); position as ``tx,ty,tz`` or ``x,y,z`` in ``units`` ("m",
-    "cm", "mm", "in"), optional. A layoutkit pose table (TRUTH.csv, ``poses.csv``) is one such
-    file and is read by :func:`layoutkit.io.poses.read_poses`. Rows with non-finite values are
-    skipped.
-    """
-    from ..io.poses import check_rotvec_radians, read_pose_header, read_poses, rotvec_columns
-
-    if units not in LENGTH_UNITS:
-        raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
-    scale = LENGTH_UNITS[units]
-    try:
-        with open(path, newline="") as fh:
-            first = fh.readline()
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such reference file") from None
-    raw = next(csv.reader([first]), [])
-    header = [h.strip().lower() for h in raw]
-    col = {h: i for i, h in enumerate(header)}
-    if "t" not in col:
-        raise ValueError(f"{path}: expected a 't' column, got header {header}")
-    rot = rotvec_columns(path, raw)
-    if rot is not None and (all(c in col for c in ("tx", "ty", "tz")) or any(h.startswith("tx_") for h in header)):
-        try:
-            read_pose_header(path, first, default_length_unit=units)
-            is_table = True
-        except ValueError:
-            is_table = False
-        if is_table:  # a pose table: the one reader
-            tb = read_poses(path, default_length_unit=units)
-            keep = np.all(np.isfinite(tb.rotvec), -1) & np.all(np.isfinite(tb.translation), -1)
-            return _track(tb.t[keep], rotvec_to_matrix(tb.rotvec[keep]), tb.translation[keep])
-    if rot is not None:
-        att = ("rotvec", rot[0])
-    elif all(c in col for c in _QUAT):
-        att = ("quat", [col[c] for c in _QUAT])
-    elif all(c in col for c in _MATRIX):
-        att = ("matrix", [col[c] for c in _MATRIX])
-    else:
-        raise ValueError(f"{path}: expected attitude columns rx,ry,rz or qx,qy,qz,qw or r11..r33, "
-                         f"got header {header}")
-    pos = next(([col[c] for c in names] for names in _POS if all(c in col for c in names)), None)
-    try:
-        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as exc:
-        raise ValueError(f"{path}: bad reference row ({exc})") from None
-    lines = np.arange(len(data)) + 2
-    fin = np.all(np.isfinite(data), axis=1)
-    data, lines = data[fin], lines[fin]
-    t = data[:, col["t"]]
-    kind, idx = att
-    a = data[:, idx]
-    if kind == "rotvec":
-        if rot[2]:
-            a = a * rot[1]
-        else:
-            check_rotvec_radians(path, a, [raw[i].strip() for i in idx], line_numbers=lines)
-        R = rotvec_to_matrix(a)
-    elif kind == "quat":
-        R = Rotation.from_quat(a).as_matrix()
-    else:
-        R = nearest_rotation(a.reshape(-1, 3, 3))
-    tr = None if pos is None else data[:, pos] * scale
-    return _track(t, R, tr)
-
-
-def _track(t, R, tr) -> PoseTrack:
-    """Sorted by time, duplicate times dropped."""
-    order = np.argsort(t, kind="stable")
-    keep = np.concatenate([[True], np.diff(t[order]) > 0])
-    order = order[keep]
-    return PoseTrack(t[order], R[order], None if tr is None else tr[order])
 
 
 def angular_speed(track: PoseTrack, times, baseline: float) -> np.ndarray:

@@ -1,10 +1,11 @@
 """A live or replay run in memory: decoder set-up, pose pipeline and sinks (JSON lines, the
 poses table, static-group precision, truth errors, decimated series for the report).
 
-:class:`LiveSession` takes bytes and gives :class:`~layoutkit.live.pipeline.PoseChunk` s; it is
+:class:`LiveSession` takes bytes and gives :class:`~layoutkit.live.posechunk.PoseChunk` s; it is
 configured by ONE :class:`~layoutkit.live.pipeline.LiveConfig`. :func:`make_decoder` builds the
 registered decoder from the station set-up (:data:`layoutkit.live.protocols.PROTOCOLS`), and
-:func:`session_for` a whole session from a capture sidecar. What a command does with files
+:func:`session_for` a whole session from a :class:`RunSetup` (the run's frozen configuration; a
+capture's sidecar records it). What a command does with files
 (reading captures, ports, reference files, writing reports) is :mod:`layoutkit.workflows.live`.
 """
 from __future__ import annotations
@@ -20,11 +21,12 @@ from ..geometry import rotvec_to_matrix
 from ..io.poses import POSE_COLUMNS, PoseTable, PoseWriter
 from ..io.sidecar import CaptureSidecar
 from ..layout import Layout
-from .pipeline import STATUS_NAMES, LiveConfig, PoseChunk, PosePipeline
+from .pipeline import LiveConfig, PosePipeline
+from .posechunk import STATUS_NAMES, PoseChunk
 from .stats import DecimatedSeries, ErrorAccumulator, StaticGroupTracker
 
-__all__ = ["LiveConfig", "LiveSession", "POSES_EXTRAS", "POSES_HEADER", "make_decoder", "session_for",
-           "calibrated_setup"]
+__all__ = ["LiveSession", "POSES_EXTRAS", "POSES_HEADER", "PoseStore", "RunSetup", "config_record", "make_decoder",
+           "session_for", "calibrated_setup"]
 
 #: Extra columns of ``poses.csv`` after the pose table's fixed ones (:mod:`layoutkit.io.poses`).
 POSES_EXTRAS = ("n_lit", "adop_deg_per_rad", "pdop_m_per_rad")
@@ -47,7 +49,11 @@ class LiveSession:
     decoded sweep, its outputs replace the frame records on ``json_out`` and its summary goes
     under ``"filter"``. calibrations : optional dict station index -> Calibration for stations
     without a known pose (per-station solving through the forward model, ``options.calibration ==
-    "model"``); stations' own calibrations are used too.
+    "model"``); stations' own calibrations are used too. columns : column joiners (``names``,
+    ``join(chunk) -> {name: (F,)}``, ``summary()``; e.g. :class:`layoutkit.live.firmware.FirmwareComparison`):
+    their columns are written into the pose table beside the pose, their summaries go under
+    :attr:`column_summaries`. keep_good : keep every good pose in memory (:class:`PoseStore`,
+    72 bytes a pose) for a comparison after the run (references aligned from the whole run).
     """
 
     layout: Layout
@@ -59,6 +65,8 @@ class LiveSession:
     poses_path: Path | None = None
     sweep_sink: object = None
     calibrations: dict | None = None
+    columns: tuple = ()
+    keep_good: bool = False
 
     def __post_init__(self):
         self.options = o = self.options.resolved(self.layout.n, self.stations)
@@ -82,7 +90,8 @@ class LiveSession:
         if self.poses_path is not None:
             self.poses_path = Path(self.poses_path)
             self.poses_path.parent.mkdir(parents=True, exist_ok=True)
-            self._poses = PoseWriter(self.poses_path, POSES_EXTRAS)
+            self._poses = PoseWriter(self.poses_path, POSES_EXTRAS + tuple(n for c in self.columns for n in c.names))
+        self.good_poses = PoseStore() if self.keep_good else None
         self.wall_start = time.monotonic()
         self.t_first = None
         self.t_last = None
@@ -132,16 +141,21 @@ class LiveSession:
         if self.json_out is not None and self.filter is None:
             self.json_out.write("".join(json.dumps(r) + "\n" for r in ch.records()))
             self.json_out.flush()
+        joined = {}
+        for c in self.columns:
+            joined.update(c.join(ch))
         if self._poses is not None:
             self._poses.write(PoseTable(ch.t, ch.rotvec, ch.translation, ch.station, ch.status, ch.residual_rms, {
                 "n_lit": ch.n_lit, "adop_deg_per_rad": np.where(np.isfinite(ch.adop), ch.adop, np.nan),
-                "pdop_m_per_rad": np.where(np.isfinite(ch.pdop), ch.pdop, np.nan)}))
+                "pdop_m_per_rad": np.where(np.isfinite(ch.pdop), ch.pdop, np.nan), **joined}))
         g = ch.good
         self.dop_series.extend(np.column_stack([ch.t, np.where(g, ch.adop, np.nan),
                                                 np.where(g, ch.pdop, np.nan), ch.n_lit]))
         if not g.any():
             return
         t, R, tr, a, p = ch.t[g], ch.rotation[g], ch.translation[g], ch.adop[g], ch.pdop[g]
+        if self.good_poses is not None:
+            self.good_poses.append(t, ch.rotvec[g], tr, a, p)
         self.pose_sample.extend(np.column_stack([t, ch.rotvec[g], tr, a]))
         self.static.update(t, R, tr, a, p)
         if self.truth_err is not None:
@@ -223,6 +237,11 @@ class LiveSession:
             self.finished["filter"] = self.filter.summary(self.finished["truth"])
         return self.finished
 
+    @property
+    def column_summaries(self) -> list:
+        """The column joiners' summaries (after :meth:`finish`)."""
+        return [c.summary() for c in self.columns]
+
     def pose_track(self):
         """The decimated good poses as a :class:`PoseTrack` (for reference alignment), or None."""
         from ..live.reference import PoseTrack
@@ -234,6 +253,25 @@ class LiveSession:
         return PoseTrack(a[:, 0], rotvec_to_matrix(a[:, 1:4]), a[:, 4:7])
 
 
+class PoseStore:
+    """Every good pose of a run, in memory (append-only chunks): ``t (N,)`` s, ``rotvec (N, 3)``
+    rad, ``translation (N, 3)`` m, ``adop (N,)`` deg/rad, ``pdop (N,)`` m/rad — 72 bytes a pose."""
+
+    def __init__(self):
+        self._chunks = []
+
+    def append(self, t, rotvec, translation, adop, pdop) -> None:
+        self._chunks.append(np.column_stack([t, rotvec, translation, adop, pdop]))
+
+    def __len__(self) -> int:
+        return sum(len(c) for c in self._chunks)
+
+    def chunks(self):
+        """Yield ``(t, rotvec, translation, adop, pdop)`` per stored chunk, in time order of arrival."""
+        for c in self._chunks:
+            yield c[:, 0], c[:, 1:4], c[:, 4:7], c[:, 7], c[:, 8]
+
+
 def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | None = None):
     """The registered decoder ``protocol`` for ``n_sensors``: options from the stations (rotor,
     clock; :meth:`~layoutkit.live.protocols.ProtocolEntry.make_decoder`) overridden by ``options``."""
@@ -242,42 +280,109 @@ def make_decoder(protocol: str, n_sensors: int, stations=None, options: dict | N
     return protocol_entry(protocol).make_decoder(n_sensors, stations, options)
 
 
-def session_for(layout: Layout, sidecar: CaptureSidecar | None = None, *, protocol: str | None = None,
-                options: LiveConfig | None = None, truth=None, json_out=None, poses_path=None,
-                sweep_sink=None) -> LiveSession:
-    """A :class:`LiveSession` for ``layout`` set up from a capture sidecar (protocol + options,
-    stations); ``protocol`` overrides the sidecar's (default ``layoutkit``). truth : a
-    :class:`~layoutkit.live.reference.PoseTrack` or None."""
-    sc = CaptureSidecar.from_dict(sidecar or {})
-    name = protocol or sc.protocol or "layoutkit"
-    options = options or LiveConfig()
-    stations, dec_options, cals = calibrated_setup(list(sc.stations), sc.protocol_options, options.calibration)
-    dec = make_decoder(name, layout.n, stations or None, dec_options)
-    return LiveSession(layout, dec, options, stations or None, truth, json_out, poses_path, sweep_sink,
-                       calibrations=cals)
+@dataclass(frozen=True)
+class RunSetup:
+    """The configuration of one live / replay run: what its bytes are decoded and solved with.
 
+    Frozen and resolved once (files read once, objects passed on): built from the command's
+    arguments (``live``) or from a capture's sidecar and the arguments (``replay``,
+    :meth:`from_sidecar`). A capture records it (:meth:`sidecar`); the sidecar is a record, not
+    the configuration.
 
-def calibrated_setup(stations: list, protocol_options: dict, mode: str = "model"):
-    """Stations and decoder options for a calibration ``mode`` (:class:`LiveConfig` ``calibration``).
-
-    "model": a Crazyflie system config named in the decoder options (``system_config``) gives its
-    calibrations to the stations of the same index that have none, and the decoder is told not to
-    pre-correct (``calibrate=False``: it emits the measured angles, the solvers fit them through
-    :func:`layoutkit.lighthouse.measure`). "undistort": the stations lose their calibrations and
-    the decoder corrects the angles (the Bitcraze decoders' firmware-style inverse; the
-    ``layoutkit`` protocol then solves uncalibrated). Returns ``(stations, decoder options,
-    calibrations)`` with ``calibrations`` a dict station index -> :class:`~layoutkit.lighthouse.Calibration`
-    (also for stations without a known pose: the per-station solve needs no pose) or None.
+    layout : the :class:`Layout`. protocol : a registered protocol name
+    (:data:`layoutkit.live.protocols.PROTOCOLS`). protocol_options : decoder options as recorded
+    (JSON values: clock offset, ...). stations : tuple of :class:`~layoutkit.lighthouse.Station`
+    (world poses; empty = unknown). system_config : the Crazyflie system configuration
+    (:class:`layoutkit.io.systemconfig.SystemConfig`, read once) whose calibrations the run uses,
+    or None. config : the run's :class:`LiveConfig`.
     """
-    opts = dict(protocol_options or {})
-    if mode == "undistort":
+
+    layout: Layout
+    protocol: str = "layoutkit"
+    protocol_options: dict = field(default_factory=dict)
+    stations: tuple = ()
+    system_config: object = None
+    config: LiveConfig = field(default_factory=LiveConfig)
+
+    def __post_init__(self):
+        opts = dict(self.protocol_options or {})
+        opts.pop("system_config", None)  # the loaded object is the run's; the path is a record
+        object.__setattr__(self, "protocol_options", opts)
+        object.__setattr__(self, "stations", tuple(self.stations or ()))
+
+    @classmethod
+    def from_sidecar(cls, sidecar, layout: Layout, *, protocol: str | None = None, config: LiveConfig | None = None,
+                     stations=None, system_config=None) -> "RunSetup":
+        """The run a capture's sidecar describes, with the command's overrides: ``protocol``,
+        ``stations`` (replace the sidecar's when given), ``system_config`` (a loaded
+        :class:`~layoutkit.io.systemconfig.SystemConfig`; default: the file the sidecar names, read
+        here once)."""
+        sc = CaptureSidecar.from_dict(sidecar or {})
+        cfg = system_config
+        if cfg is None and sc.protocol_options.get("system_config"):
+            from ..io.systemconfig import read_system_config
+
+            cfg = read_system_config(sc.protocol_options["system_config"])
+        return cls(layout, protocol or sc.protocol or "layoutkit", sc.protocol_options,
+                   tuple(stations) if stations else sc.stations, cfg, config or LiveConfig())
+
+    def sidecar(self, **fields) -> CaptureSidecar:
+        """The capture sidecar that records this run (``fields``: port, source, ... of
+        :class:`~layoutkit.io.sidecar.CaptureSidecar`); the settings go under ``live_config``."""
+        opts = dict(self.protocol_options)
+        if self.system_config is not None and getattr(self.system_config, "source", None):
+            opts["system_config"] = self.system_config.source
+        extra = dict(fields.pop("extra", {}) or {})
+        extra.setdefault("live_config", config_record(self.config))
+        return CaptureSidecar(protocol=self.protocol, protocol_options=opts, stations=self.stations,
+                              layout=self.layout.to_dict(), extra=extra, **fields)
+
+
+def config_record(config: LiveConfig) -> dict:
+    """A :class:`LiveConfig` as plain JSON values (what a capture records of its run)."""
+    from dataclasses import asdict, fields as dc_fields, is_dataclass
+
+    out = {}
+    for f in dc_fields(config):
+        v = getattr(config, f.name)
+        out[f.name] = asdict(v) if is_dataclass(v) else v
+    return out
+
+
+def session_for(setup: RunSetup, *, truth=None, json_out=None, poses_path=None, sweep_sink=None, columns=(),
+                keep_good: bool = False) -> LiveSession:
+    """A :class:`LiveSession` for a :class:`RunSetup`: the stations and decoder options of its
+    calibration mode (:func:`calibrated_setup`), the registered decoder. truth : a
+    :class:`~layoutkit.live.reference.PoseTrack` or None; ``sweep_sink``, ``columns``,
+    ``keep_good`` as :class:`LiveSession`."""
+    stations, dec_options, cals = calibrated_setup(setup)
+    dec = make_decoder(setup.protocol, setup.layout.n, stations or None, dec_options)
+    return LiveSession(setup.layout, dec, setup.config, stations or None, truth, json_out, poses_path, sweep_sink,
+                       calibrations=cals, columns=tuple(columns), keep_good=keep_good)
+
+
+def calibrated_setup(setup: RunSetup):
+    """Stations and decoder options of a run for its calibration mode (:class:`LiveConfig`
+    ``calibration``); no file is read (the system config is the setup's object).
+
+    "model": the system config gives its calibrations to the stations of the same index that have
+    none, and the decoder is told not to pre-correct (``calibrate=False``: it emits the measured
+    angles, the solvers fit them through :func:`layoutkit.lighthouse.measure`). "undistort": the
+    stations lose their calibrations and the decoder corrects the angles with the system config's
+    (the Bitcraze decoders' firmware-style inverse; the ``layoutkit`` protocol then solves
+    uncalibrated). Returns ``(stations (list), decoder options, calibrations)`` with
+    ``calibrations`` a dict station index -> :class:`~layoutkit.lighthouse.Calibration` (also for
+    stations without a known pose: the per-station solve needs no pose) or None.
+    """
+    stations = list(setup.stations)
+    opts = dict(setup.protocol_options)
+    cfg = setup.system_config
+    if cfg is not None:
+        opts["system_config"] = cfg  # the decoders take the loaded object
+    if setup.config.calibration == "undistort":
         return [replace(st, calibration=None) for st in stations], opts, None
     cals = {k: st.calibration for k, st in enumerate(stations) if st.calibration is not None}
-    cfg_path = opts.get("system_config")
-    if cfg_path:
-        from ..io.systemconfig import read_system_config
-
-        cfg = read_system_config(cfg_path)
+    if cfg is not None:
         kind = "lh1" if cfg.system_type == 1 else "lh2"
         for sid, cal in cfg.calibs.items():
             if sid < len(stations):

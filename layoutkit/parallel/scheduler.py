@@ -201,6 +201,25 @@ class DistributedExecutor:
 
 
 @contextlib.contextmanager
+def _children_ignore_sigint():
+    """Processes started inside (the LocalCluster's nannies and workers) ignore SIGINT: Ctrl-C in a
+    terminal reaches the whole process group, and workers that take it die with a traceback each
+    (printed twice through the nanny) while the parent is still stopping them cleanly. The parent
+    keeps its own handler; it closes the cluster."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+@contextlib.contextmanager
 def allow_child_processes():
     """Let code in a Dask worker start ``multiprocessing`` children.
 
@@ -255,7 +274,7 @@ def open_executor(scheduler: str | None = None, workers: int | None = None):
         n = int(workers) if workers is not None else default_workers()
         # non-daemonic workers: a task may start a child process (the optimiser runs its relaxation
         # in a forked child to enforce time limits); the nanny still stops its worker on exit
-        with dask.config.set({"distributed.worker.daemon": False}):
+        with dask.config.set({"distributed.worker.daemon": False}), _children_ignore_sigint():
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                    silence_logs=logging.ERROR)
         client = Client(cluster)

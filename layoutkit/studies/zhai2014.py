@@ -65,6 +65,14 @@ def case_truth(case: str, times):
     return theta, frame_rotation(c["axis"], theta)
 
 
+def _eta(t0: float, done: int, total: int) -> str:
+    """`` (12 s, ETA 34 s)``: elapsed and estimated remaining time of a loop started at ``t0``."""
+    if done <= 0:
+        return ""
+    el = time.perf_counter() - t0
+    return f" ({el:.0f} s, ETA {el / done * (total - done):.0f} s)"
+
+
 def flyaround_case(case: str, times, rng, blur_sigma_px: float = 0.7, noise_sigma: float = 2.0,
                    supersample: int = 8, threshold: float = 80.0, progress=None) -> dict:
     """Render → detect → solve one ground-test case; returns arrays (SI units, rad).
@@ -100,7 +108,7 @@ def flyaround_case(case: str, times, rng, blur_sigma_px: float = 0.7, noise_sigm
                 uv_det[k] = corners_to_paper(det.corners_px, crop.principal_point)
                 rms[k] = det.rms_px
             if progress and k % 100 == 0:
-                progress(f"{case}: frame {k}/{len(times)}")
+                progress(f"{case}: frame {k}/{len(times)}{_eta(t0, k, len(times))}")
     elapsed = time.perf_counter() - t0
     # corner error against the projected truth, matching labels by nearest neighbour
     d = np.linalg.norm(uv_det[:, :, None] - uv_true[:, None], axis=-1)

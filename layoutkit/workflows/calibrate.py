@@ -270,7 +270,7 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
         "outputs": {"stations": str(out / "stations.json"), "layout": str(out / "layout.json"),
                     "report": str(out / "report.json"), "plot": str(out / "residuals.png")},
     }
-    from .._json import to_jsonable
+    from ..io.jsonfile import to_jsonable
 
     atomic_write_text(out / "report.json", json.dumps(to_jsonable(report), indent=2) + "\n")
     return report

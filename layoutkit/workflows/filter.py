@@ -4,7 +4,7 @@
 :class:`FilterSink` runs the filter beside the frame-by-frame pipeline of a live / replay session
 (every decoded sweep in, one JSON line per sweep out, error statistics against a truth, the
 filtered pose table); :func:`filter_frames` / :func:`filter_table` do the same for a frame table.
-The simulated scenarios and benchmarks are in :mod:`layoutkit.workflows.filter_scenarios`.
+The simulated scenarios and benchmarks are in :mod:`layoutkit.studies.filter_scenarios`.
 """
 from __future__ import annotations
 

@@ -37,15 +37,19 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
     from ..visibility import facing_mask
 
     rng = np.random.default_rng(seed)
+    if len(layout.ids) < min_lit:
+        raise ValueError(f"the layout has {len(layout.ids)} sensors: no pose can light the {min_lit} a frame needs")
     if stations is None:
         Rs, ts, vs = [], [], []
-        n_have = 0
+        n_have = n_drawn = 0
         while n_have < frames:
             R, t = poses_in_front(max(64, 2 * frames), rng)
             v = facing_mask(layout.positions, layout.normals, R, t, half_angle_deg=half_angle_deg)
             k = v.sum(1) >= min_lit
             Rs.append(R[k]); ts.append(t[k]); vs.append(v[k])
             n_have += int(k.sum())
+            n_drawn += len(k)
+            _check_acceptance(n_have, n_drawn, frames, min_lit, half_angle_deg)
         R = np.concatenate(Rs)[:frames]
         t = np.concatenate(ts)[:frames]
         v = np.concatenate(vs)[:frames]
@@ -56,12 +60,26 @@ def simulate_frames(layout: Layout, frames: int, *, seed: int, sigma: float, rho
                                     half_angle_deg=half_angle_deg, min_lit=min_lit, rate_hz=rate_hz, quantize=quantize)
 
 
+def _check_acceptance(n_have: int, n_drawn: int, frames: int, min_lit: int, half_angle_deg: float,
+                      max_draws: int = 10_000_000) -> None:
+    """Bounded work for the pose draws: a layout that (almost) never lights ``min_lit`` sensors at
+    a pose of the area in front of the station is refused at once instead of drawing forever."""
+    if n_drawn < 2000:
+        return
+    if n_have == 0:
+        raise ValueError(f"no pose of {n_drawn} drawn in front of the station lights {min_lit} sensors of this "
+                         f"layout (half-angle {half_angle_deg:g} deg): can it ever? check the normals")
+    if frames * n_drawn / n_have > max_draws:
+        raise ValueError(f"only {n_have} of {n_drawn} poses drawn in front of the station light {min_lit} sensors of "
+                         f"this layout: {frames} frames would need ~{frames * n_drawn / n_have:.3g} draws")
+
+
 def _simulate_station_frames(layout, frames, stations, rng, *, sigma, rho, half_angle_deg, min_lit, rate_hz,
                              quantize, max_rounds: int = 200) -> Frames:
     """:func:`simulate_frames` with stations (see there); ValueError when no pose in front of station 0
     lights ``min_lit`` sensors of every station."""
     from ..geometry import transform_points
-    from ..lighthouse import lh2_to_lh1_angles, measure, quantize_angles, sweep_angles
+    from ..lighthouse import measure, quantize_angles, sweep_angles, to_sweep_angles
     from ..noise import sample_angle_noise
     from ..simulate import poses_in_front
     from ..visibility import facing_mask
@@ -98,7 +116,7 @@ def _simulate_station_frames(layout, frames, stations, rng, *, sigma, rho, half_
             else measure(p, st.calibration)
         a = a + sample_angle_noise(a.shape[:-1], sigma, rho, rng)
         if st.kind == "lh2":
-            a = lh2_to_lh1_angles(a)
+            a = to_sweep_angles(a, "lh2")
         elif quantize:
             a = quantize_angles(a, st.rotor_rpm, st.clock_hz)
         a[~v[:, q]] = np.nan
@@ -277,15 +295,13 @@ def _solve_calibrated(layout, angles, seen, cal, noise, initial=None):
     test kept: the ideal solver with its test runs on the undistorted angles (the same geometry); a
     frame it calls ambiguous stays ``STATUS_AMBIGUOUS`` and its runner-up is refined through the model.
     angles : the frame table's LH1-equivalent angles (LH2 rows turned into light-plane angles here)."""
-    from ..lighthouse import lh2_to_lh1_angles, sweep_to_lh2_angles, undistort
-    from ..pnp import STATUS_AMBIGUOUS, STATUS_NO_START, solve_pnp
+    from ..lighthouse import sweep_to_lh2_angles, to_sweep_angles
+    from ..pnp import solve_pnp
+    from ..status import AMBIGUOUS as STATUS_AMBIGUOUS, NO_START as STATUS_NO_START
 
     a_model = sweep_to_lh2_angles(angles) if cal.kind == "lh2" else np.asarray(angles, float)
     a_model = np.where(seen, a_model, np.nan)
-    with np.errstate(invalid="ignore"):
-        ideal = undistort(a_model, cal, max_iterations=20, tol=1e-9)
-    if cal.kind == "lh2":
-        ideal = lh2_to_lh1_angles(ideal)
+    ideal = to_sweep_angles(a_model, cal.kind, cal)
     ref = solve_pnp(layout.positions, ideal, seen & np.isfinite(ideal), initial=initial, **noise)
     have = np.all(np.isfinite(ref.translation), 1) & np.all(np.isfinite(ref.rotation), (1, 2))
     ini = (np.where(have[:, None, None], ref.rotation, np.nan), np.where(have[:, None], ref.translation, np.nan))
@@ -330,6 +346,69 @@ def _solve_by_station(layout, angles, seen, st, cals, noise, initial=None):
     return R, T, status, res, alt_R, alt_T
 
 
+def _world_poses(R, T, ok, st, stations) -> dict:
+    """The ok poses in the world frame (``world_rotvec``, ``world_translation``), the mean world
+    pose per station and, with two stations, how far apart their means are."""
+    from scipy.spatial.transform import Rotation
+
+    wr = np.full((len(st), 3), np.nan)
+    wt = np.full((len(st), 3), np.nan)
+    per = {}
+    for s in np.unique(st):
+        if int(s) not in stations:
+            raise ValueError(f"frame table has station {int(s)} but the stations file has {sorted(stations)}")
+        S = stations[int(s)]
+        k = ok & (st == s)
+        if not k.any():
+            continue
+        Rw = np.einsum("ij,fjk->fik", S.rotation, R[k])
+        tw = T[k] @ S.rotation.T + S.translation
+        wr[k], wt[k] = matrix_to_rotvec(Rw), tw
+        per[str(int(s))] = {"frames": int(k.sum()), "mean_rotvec": Rotation.from_matrix(Rw).mean().as_rotvec().tolist(),
+                            "median_translation": np.median(tw, 0).tolist()}
+    out = {"world_rotvec": wr, "world_translation": wt, "world_per_station": per}
+    keys = list(per)
+    if len(keys) >= 2:
+        a_, b_ = per[keys[0]], per[keys[1]]
+        dR = Rotation.from_rotvec(a_["mean_rotvec"]) * Rotation.from_rotvec(b_["mean_rotvec"]).inv()
+        out["world_between_stations"] = {
+            "stations": keys[:2], "translation_m": float(np.linalg.norm(np.subtract(a_["median_translation"], b_["median_translation"]))),
+            "rotation_deg": float(np.degrees(np.linalg.norm(dR.as_rotvec())))}
+    return out
+
+
+def _truth_errors(layout, fr, R, T, ok, amb, alt_R, alt_T, seen, sigma, rho) -> dict:
+    """Errors of the ok poses against the frame table's truth (gross failures apart; the ambiguous
+    frames' candidates; with ``sigma`` the Chen eq. (24) prediction at the truth)."""
+    from ..dop import GROSS_FAILURE_DEG, gross_failures, pose_dop, pose_errors, predicted_precision, rms
+    from ..status import DESCRIPTIONS
+
+    e_r, e_t = pose_errors(R[ok], T[ok], fr.truth_rotation[ok], fr.truth_translation[ok])
+    # gross: > 1 deg off — with 4 coplanar lit sensors the planar two-fold ambiguity is
+    # undecidable under noise for some poses (docs/pnp.md), so report them apart
+    gross = gross_failures(e_r)
+    good = ~gross
+    out = dict(rms_rot_deg=float(np.degrees(rms(e_r))), rms_trans_m=float(rms(e_t)),
+               max_rot_deg=float(np.degrees(e_r.max())),
+               gross_failures=int(gross.sum()),
+               gross_failures_by_status={DESCRIPTIONS[0]: int(gross.sum())},
+               rms_rot_deg_without_gross=float(np.degrees(rms(e_r[good]))),
+               rms_trans_m_without_gross=float(rms(e_t[good])))
+    ia = np.flatnonzero(amb)
+    if ia.size:  # neither candidate is reported as the pose; say how often the truth is among them
+        e1, _ = pose_errors(R[ia], T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
+        e2, _ = pose_errors(alt_R[ia], alt_T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
+        out["gross_failures_by_status"]["ambiguous (best candidate)"] = int(np.sum(np.degrees(e1) > GROSS_FAILURE_DEG))
+        out["ambiguous"] = {"frames": int(ia.size),
+                            "truth_within_1deg_of_a_candidate": int(np.sum(np.degrees(np.minimum(e1, e2)) <= GROSS_FAILURE_DEG))}
+    if sigma is not None:
+        sel = np.flatnonzero(ok)[good]
+        d = pose_dop(layout.positions, fr.truth_rotation[sel], fr.truth_translation[sel], rho=rho, visible=seen[sel])
+        pr, pt = predicted_precision(d.adop, d.pdop, sigma)  # Chen eq. (24)
+        out.update(predicted_rms_rot_deg=float(pr), predicted_rms_trans_m=float(pt))
+    return out
+
+
 def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho: float = 0.0,
                  method: str = "lm", stations: dict | None = None, static: bool = False,
                  ignore_calibration: bool = False) -> dict:
@@ -348,8 +427,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     Returns a summary dict plus per-frame arrays ``t, station, status, rotvec, translation,
     residual_rms, success``.
     """
-    from ..dop import GROSS_FAILURE_DEG, gross_failures, pose_dop, pose_errors, predicted_precision, rms
-    from ..pnp import STATUS_AMBIGUOUS, STATUS_NAMES, STATUS_NO_START, STATUS_OK
+    from ..status import AMBIGUOUS as STATUS_AMBIGUOUS, DESCRIPTIONS, NO_START as STATUS_NO_START, OK as STATUS_OK
 
     seen = ~np.isnan(fr.angles)
     st = fr.stations()
@@ -370,7 +448,7 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
             second = int(np.sum(s2 == STATUS_OK))
     ok = status == STATUS_OK
     amb = status == STATUS_AMBIGUOUS
-    names = {int(k): STATUS_NAMES.get(int(k), str(k)) for k in np.unique(status)}
+    names = {int(k): DESCRIPTIONS.get(int(k), str(k)) for k in np.unique(status)}
     counts = {names[int(k)]: int(v) for k, v in zip(*np.unique(status, return_counts=True))}
     rv = np.full((len(fr.t), 3), np.nan)
     has_pose = ok | amb  # an ambiguous frame keeps its best candidate (its status says so)
@@ -408,60 +486,13 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     else:
         out["message"] = f"{int(ok.sum())} / {len(fr.t)} frames solved"
     if stations is not None:
-        from scipy.spatial.transform import Rotation
-
-        wr = np.full((len(fr.t), 3), np.nan)
-        wt = np.full((len(fr.t), 3), np.nan)
-        per = {}
-        for s in np.unique(st):
-            if int(s) not in stations:
-                raise ValueError(f"frame table has station {int(s)} but the stations file has {sorted(stations)}")
-            S = stations[int(s)]
-            k = ok & (st == s)
-            if not k.any():
-                continue
-            Rw = np.einsum("ij,fjk->fik", S.rotation, R[k])
-            tw = T[k] @ S.rotation.T + S.translation
-            wr[k], wt[k] = matrix_to_rotvec(Rw), tw
-            per[str(int(s))] = {"frames": int(k.sum()), "mean_rotvec": Rotation.from_matrix(Rw).mean().as_rotvec().tolist(),
-                                "median_translation": np.median(tw, 0).tolist()}
-        out["world_rotvec"], out["world_translation"] = wr, wt
-        out["world_per_station"] = per
-        keys = list(per)
-        if len(keys) >= 2:
-            a_, b_ = per[keys[0]], per[keys[1]]
-            dR = Rotation.from_rotvec(a_["mean_rotvec"]) * Rotation.from_rotvec(b_["mean_rotvec"]).inv()
-            out["world_between_stations"] = {
-                "stations": keys[:2], "translation_m": float(np.linalg.norm(np.subtract(a_["median_translation"], b_["median_translation"]))),
-                "rotation_deg": float(np.degrees(np.linalg.norm(dR.as_rotvec())))}
+        out.update(_world_poses(R, T, ok, st, stations))
     if static:
         out["static"] = {str(int(s)): static_precision(layout, fr.angles[ok & (st == s)], seen[ok & (st == s)],
                                                        R[ok & (st == s)], T[ok & (st == s)])
                          for s in np.unique(st)}
     if fr.truth_rotation is not None and ok.any():
-        e_r, e_t = pose_errors(R[ok], T[ok], fr.truth_rotation[ok], fr.truth_translation[ok])
-        # gross: > 1 deg off — with 4 coplanar lit sensors the planar two-fold ambiguity is
-        # undecidable under noise for some poses (docs/pnp.md), so report them apart
-        gross = gross_failures(e_r)
-        good = ~gross
-        out.update(rms_rot_deg=float(np.degrees(rms(e_r))), rms_trans_m=float(rms(e_t)),
-                   max_rot_deg=float(np.degrees(e_r.max())),
-                   gross_failures=int(gross.sum()),
-                   gross_failures_by_status={STATUS_NAMES[0]: int(gross.sum())},
-                   rms_rot_deg_without_gross=float(np.degrees(rms(e_r[good]))),
-                   rms_trans_m_without_gross=float(rms(e_t[good])))
-        ia = np.flatnonzero(amb)
-        if ia.size:  # neither candidate is reported as the pose; say how often the truth is among them
-            e1, _ = pose_errors(R[ia], T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
-            e2, _ = pose_errors(alt_R[ia], alt_T[ia], fr.truth_rotation[ia], fr.truth_translation[ia])
-            out["gross_failures_by_status"]["ambiguous (best candidate)"] = int(np.sum(np.degrees(e1) > GROSS_FAILURE_DEG))
-            out["ambiguous"] = {"frames": int(ia.size),
-                                "truth_within_1deg_of_a_candidate": int(np.sum(np.degrees(np.minimum(e1, e2)) <= GROSS_FAILURE_DEG))}
-        if sigma is not None:
-            sel = np.flatnonzero(ok)[good]
-            d = pose_dop(layout.positions, fr.truth_rotation[sel], fr.truth_translation[sel], rho=rho, visible=seen[sel])
-            pr, pt = predicted_precision(d.adop, d.pdop, sigma)  # Chen eq. (24)
-            out.update(predicted_rms_rot_deg=float(pr), predicted_rms_trans_m=float(pt))
+        out.update(_truth_errors(layout, fr, R, T, ok, amb, alt_R, alt_T, seen, sigma, rho))
     return out
 
 

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .._json import to_jsonable
+from ..io.jsonfile import to_jsonable
 from ..io.atomic import atomic_write_text
 from ..io.frames import write_frame_table
 from ..layout import Layout
 
-__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "cfusdlog_replay_source", "firmware_comparison", "import_reference", "write_layout",
+__all__ = ["import_vive_config", "import_libsurvive", "import_cfusdlog", "cfusdlog_capture", "cfusdlog_replay_source", "import_reference", "write_layout",
            "write_reference"]
 
 
@@ -50,10 +50,11 @@ def import_vive_config(path, out) -> dict:
 # ---------------------------------------------------------------- libsurvive
 
 def _quat_rotvec(q_wxyz) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    """libsurvive pose quaternions ``(N, 4)`` ``[w, x, y, z]`` → rotation vectors ``(N, 3)`` rad."""
+    from ..geometry import matrix_to_rotvec
+    from ..rotations import quaternion_to_matrix
 
-    q = np.asarray(q_wxyz, float).reshape(-1, 4)
-    return Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_rotvec()
+    return matrix_to_rotvec(quaternion_to_matrix(np.asarray(q_wxyz, float).reshape(-1, 4), scalar_first=True))
 
 
 def _libsurvive_stations(rec, cfg: dict) -> tuple[list, list[dict], dict, dict]:
@@ -190,19 +191,13 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
 
 # ---------------------------------------------------------------- cfusdlog
 
-DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
-
-
 def _deck_layout() -> Layout:
     """The Lighthouse deck's 4 sensors (``models/crazyflie_lighthouse_deck.layout.json``; the
     firmware's ``sensorDeckPositions``)."""
     from ..layout import load_layout
+    from ..resources import model_path
 
-    if DECK_LAYOUT.exists():
-        return load_layout(DECK_LAYOUT)
-    L, W = 0.015, 0.0075  # installed without the models folder: the same numbers
-    P = np.array([[-L, W, 0.0], [-L, -W, 0.0], [L, W, 0.0], [L, -W, 0.0]])
-    return Layout(P, np.tile([0.0, 0.0, 1.0], (4, 1)), ("0", "1", "2", "3"))
+    return load_layout(model_path("crazyflie_lighthouse_deck.layout.json"))
 
 
 def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
@@ -234,17 +229,18 @@ def deck_bytes(ev: dict, *, sync_every: int = 64) -> tuple[bytes, dict]:
     return b"".join(out), notes
 
 
-def cfusdlog_capture(log) -> tuple[bytes, "object"]:
+def cfusdlog_capture(log, ul=None) -> tuple[bytes, "object"]:
     """A Crazyflie microSD log → ``(deck UART bytes, CaptureSidecar)`` in memory, for ``replay LOG``
     without an import step: protocol ``bitcraze-lh2``, the deck layout, the deck-to-log clock offset
     (as :func:`import_cfusdlog`; no stations: give ``--system-config`` or ``--stations``).
-    ValueError naming the file when it has no ``lhUartFrame`` events."""
+    ul : the log already read (:func:`layoutkit.importers.cfusdlog.read_cfusdlog`; default: read
+    ``log``). ValueError naming the file when it has no ``lhUartFrame`` events."""
     from ..importers.cfusdlog import read_cfusdlog
     from ..io.sidecar import CaptureSidecar
-    from ..live.protocols.bitcraze import DECK_CLOCK_HZ
+    from ..io.systemconfig import DECK_CLOCK_HZ
 
     log = Path(log)
-    ul = read_cfusdlog(log)
+    ul = read_cfusdlog(log) if ul is None else ul
     if "lhUartFrame" not in ul.events or len(ul.events["lhUartFrame"]["t"]) == 0:
         raise ValueError(f"{log}: no lhUartFrame events (event types: {sorted(ul.events)}); enable the "
                          "lighthouse deck's UART frame event trigger when logging")
@@ -315,6 +311,8 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     system config's ``systemType`` or the stations.
     Returns ``{"mode", "sidecar", "bytes" | "frames", "stats", "kind", "firmware" (the log's own
     position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``.
+    system_config : a path or a loaded :class:`~layoutkit.io.systemconfig.SystemConfig`; the log is
+    read once.
     ValueError naming the file and listing the event types found when nothing can be solved.
     """
     from ..importers.cfusdlog import firmware_positions, read_cfusdlog, sweep_events
@@ -350,7 +348,7 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
         if kind == "lh1":
             raise ValueError(f"{log}: an LH1 system cannot be replayed from lhUartFrame events (the pulse widths "
                              f"that identify LH1 sync pulses are not logged); log lhAngle events (found: {_found(ul)})")
-        data, sc = cfusdlog_capture(log)
+        data, sc = cfusdlog_capture(log, ul)
         info["source"] = "lhUartFrame"
         return {"mode": "uart", "bytes": data, "sidecar": sc, "kind": "lh2", "firmware": fw, "info": info}
     if ev is None:
@@ -374,45 +372,6 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     info.update(source=ev.source, kind=kind, events=int(len(ev.t)), frames=len(frames))
     return {"mode": "angles", "frames": frames, "source": EventFrameSource(stats), "sidecar": sc, "kind": kind,
             "firmware": fw, "info": info}
-
-
-def firmware_comparison(poses_path, firmware: dict, *, max_gap_s: float = 0.05) -> dict:
-    """Our ok poses (``poses.csv``) vs the log's own position estimates, on the same clock and in the
-    same world frame (no alignment): each estimate interpolated linearly at our pose times (only
-    where two estimate rows within ``max_gap_s`` bracket the pose). Per source: compared poses,
-    RMS / median / max distance (m), mean offset (m, ours − firmware). Adds the columns
-    ``firmware_<label>_x/y/z`` (NaN where none) to ``poses.csv`` (rewritten atomically)."""
-    from ..io.poses import read_poses, write_poses
-
-    poses_path = Path(poses_path)
-    tab = read_poses(poses_path)
-    out, extra = {}, dict(tab.extras or {})
-    for label, fw in firmware.items():
-        tf, pf = fw["t"], fw["position"]
-        o = np.argsort(tf, kind="stable")
-        tf, pf = tf[o], pf[o]
-        j = np.searchsorted(tf, tab.t)
-        inside = (j > 0) & (j < len(tf))
-        jj = np.clip(j, 1, max(len(tf) - 1, 1))
-        gap = tf[jj] - tf[jj - 1] if len(tf) > 1 else np.full(len(tab.t), np.inf)
-        use = inside & (gap <= max_gap_s)
-        w = np.where(use, (tab.t - tf[jj - 1]) / np.where(gap > 0, gap, 1.0), 0.0)
-        p = np.where(use[:, None], pf[jj - 1] + w[:, None] * (pf[jj] - pf[jj - 1]) if len(tf) > 1 else np.nan, np.nan)
-        for k, ax in enumerate("xyz"):
-            extra[f"firmware_{label}_{ax}"] = p[:, k]
-        ok = use & tab.ok & np.all(np.isfinite(tab.translation), 1)
-        d = tab.translation[ok] - p[ok]
-        r = np.linalg.norm(d, axis=1)
-        out[label] = {"event": fw["event"], "rows": int(len(tf)), "compared_poses": int(ok.sum()),
-                      "rms_distance_m": float(np.sqrt(np.mean(r ** 2))) if r.size else None,
-                      "median_distance_m": float(np.median(r)) if r.size else None,
-                      "max_distance_m": float(r.max()) if r.size else None,
-                      "mean_offset_m": d.mean(0).tolist() if r.size else None,
-                      "columns": [f"firmware_{label}_{ax}" for ax in "xyz"]}
-    from dataclasses import replace
-
-    write_poses(poses_path, replace(tab, extras=extra))
-    return out
 
 
 def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
@@ -450,7 +409,7 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     summary = {"log": str(log), "version": ul.version, "crc_ok": ul.crc_ok, "ended": ul.ended,
                "event_types": {k: int(len(v["t"])) for k, v in ul.events.items()}}
-    summary.update(_import_sweep_events(log, ul, sweeps, out, cfg, system_config))
+    summary.update(_import_sweep_events(log, ul, sweeps, out, cfg))
     lh1 = _uart_is_lh1(ul, summary.get("kind"))
     if not has_uart or lh1:
         # an LH1 log's UART frames cannot be decoded (no pulse widths, no channel): never a capture
@@ -512,7 +471,7 @@ def _firmware_angles(ul, out) -> tuple[int, Path]:
     return rows, fa
 
 
-def _import_sweep_events(log, ul, sweeps, out, cfg, system_config) -> dict:
+def _import_sweep_events(log, ul, sweeps, out, cfg) -> dict:
     """The sweep-angle events as a frame table ``out/frames.csv`` (LH1-equivalent measured angles,
     station column; :mod:`layoutkit.io.frames`) with ``out/layout.json`` (the deck) and, with a
     system config, ``out/stations.json``; the log's own position estimates as position-only pose
@@ -534,7 +493,7 @@ def _import_sweep_events(log, ul, sweeps, out, cfg, system_config) -> dict:
     if cfg is not None:
         ids = sorted(cfg.stations)
         stations = [cfg.stations[i] for i in ids] if ids == list(range(len(ids))) else None
-    kind = _log_kind(ul, sweeps, stations, system_config)
+    kind = _log_kind(ul, sweeps, stations, cfg)
     if kind is None:
         res["frames_error"] = (f"{log}: {sweeps.source} events do not tell LH1 from LH2 base stations; give "
                                "--system-config to write frames.csv")
@@ -571,12 +530,12 @@ def import_reference(path, out, *, units: str = "m") -> dict:
     """A motion-capture reference (pose or position only; CSV or .npy) → a pose table ``out``
     (station ``joint`` = the reference's own world frame; position-only rows have an empty
     rotation). Any clock origin is kept as it is: the replay's offset search handles hours."""
-    from ..importers.mocap import read_reference
-    from ..io.poses import JOINT, PoseTable, write_poses
+    from ..io.poses import JOINT, PoseTable, read_reference, write_poses
 
     ref = read_reference(path, units)
     n = len(ref.t)
     rv = np.full((n, 3), np.nan) if ref.rotvec is None else ref.rotvec
-    write_poses(out, PoseTable(ref.t, rv, ref.position, station=np.full(n, JOINT), status=np.zeros(n, int)))
+    pos = np.full((n, 3), np.nan) if ref.translation is None else ref.translation
+    write_poses(out, PoseTable(ref.t, rv, pos, station=np.full(n, JOINT), status=np.zeros(n, int)))
     return {"file": str(path), "out": str(out), "rows": n, "dropped_rows": ref.dropped,
-            "position_only": ref.rotvec is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}
+            "position_only": ref.rotvec is None, "attitude_only": ref.translation is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}

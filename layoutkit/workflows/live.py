@@ -2,56 +2,61 @@
 truth / motion capture / camera references, write the validation report. Used by
 ``layoutkit replay`` / ``layoutkit live`` and by studies.
 
+Each input file is read once and passed on as an object: the capture's sidecar, a Crazyflie log
+(:func:`layoutkit.workflows.importers.cfusdlog_replay_source`), the system config
+(:func:`layoutkit.io.systemconfig.read_system_config`), the reference files. The run's
+configuration is one frozen :class:`~layoutkit.live.session.RunSetup` (a capture's sidecar records
+it). ``poses.csv`` is written once, as the run goes, with the firmware's own estimates joined in
+(:class:`~layoutkit.live.firmware.FirmwareComparison`).
+
 Memory stays flat for any run length: bytes are decoded as they arrive, frames are solved in
 chunks, every pose is written out (JSON lines, ``poses.csv``) and only running statistics and
-bounded, decimated series are kept (:mod:`layoutkit.live.stats`).
+bounded, decimated series are kept (:mod:`layoutkit.live.stats`) — except when a reference is
+compared: its alignment is estimated from the whole run, so the good poses are kept in memory
+(72 bytes a pose, :class:`~layoutkit.live.session.PoseStore`) for the comparison at the end.
 """
 from __future__ import annotations
 
-import tempfile
 import time
 from pathlib import Path
 
 from ..geometry import rotvec_to_matrix
-from ..io.poses import iter_poses
 from ..io.sidecar import CaptureSidecar
 from ..layout import Layout, load_layout
 from ..live.pipeline import LiveConfig
-from ..live.session import POSES_EXTRAS, POSES_HEADER, LiveSession, make_decoder, session_for  # noqa: F401
+from ..live.session import POSES_EXTRAS, POSES_HEADER, LiveSession, RunSetup, session_for
 from ..live.stats import ErrorAccumulator
 from ..units import SIGMA_THETA_PAPER
 
 __all__ = [
-    "LiveConfig",
-    "LiveOptions",
     "LiveSession",
     "POSES_HEADER",
     "POSES_EXTRAS",
+    "RunSetup",
+    "open_session",
     "session_from_sidecar",
     "replay_capture",
     "run_live",
     "reference_accuracy",
     "resolve_solve_mode",
+    "stations_from_files",
 ]
 
 _READ_BYTES = 1 << 16
 
 
-#: Old name of :class:`layoutkit.live.pipeline.LiveConfig` (the one live/replay config).
-LiveOptions = LiveConfig
-
-
 # ----------------------------------------------------------------------------------- helpers
 
-def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA_PAPER, tau: float | None = None,
+def reference_accuracy(poses, reference, *, sigma_theta: float = SIGMA_THETA_PAPER, tau: float | None = None,
                        max_offset: float | None = None, series_capacity: int = 20000, sample=None) -> dict:
-    """Accuracy of the poses in ``poses_csv`` against a reference stream (Chen eq. 25).
+    """Accuracy of a run's good poses against a reference stream (Chen eq. 25).
 
-    reference : :class:`PoseTrack` in its own frames (motion capture, or a camera attitude stream
-    with translation None). The clock offset and the fixed frames are estimated from ``sample``
-    (a decimated :class:`PoseTrack` of good lighthouse poses) by
-    :func:`layoutkit.live.reference.align_reference`, then every good pose is compared in a
-    streaming pass over the CSV. Returns a dict with ``alignment``, ``errors`` and ``series``.
+    poses : the run's :class:`~layoutkit.live.session.PoseStore` (every good pose). reference :
+    :class:`PoseTrack` in its own frames (motion capture, or a camera attitude stream with
+    translation None). The clock offset and the fixed frames are estimated from ``sample`` (a
+    decimated :class:`PoseTrack` of good lighthouse poses) by
+    :func:`layoutkit.live.reference.align_reference`, then every good pose is compared. Returns a
+    dict with ``alignment``, ``errors`` and ``series``.
     """
     from ..live.reference import align_reference
 
@@ -63,26 +68,29 @@ def reference_accuracy(poses_csv, reference, *, sigma_theta: float = SIGMA_THETA
         out["message"] = al.message
         return out
     acc = ErrorAccumulator(sigma_theta, series_capacity)
-    for tb in iter_poses(poses_csv):  # streaming pass, columns by name
-        tb = tb.take(tb.ok)
-        if not len(tb):
-            continue
-        Rr, tr, v = al.apply(reference, tb.t)
+    for t, rotvec, translation, adop, pdop in poses.chunks():
+        Rr, tr, v = al.apply(reference, t)
         if not v.any():
             continue
-        R = rotvec_to_matrix(tb.rotvec[v])
-        t = tb.translation[v]
-        if tr is None:  # attitude only: translation error reported as 0
-            tr = t
-        else:
-            tr = tr[v]
-        acc.update(tb.t[v], R, t, Rr[v], tr, tb.extras["adop_deg_per_rad"][v], tb.extras["pdop_m_per_rad"][v])
+        R = rotvec_to_matrix(rotvec[v])
+        p = translation[v]
+        tr = p if tr is None else tr[v]  # attitude only: translation error reported as 0
+        acc.update(t[v], R, p, Rr[v], tr, adop[v], pdop[v])
     s = acc.summary()
     out["errors"] = None if s is None else s.as_dict()
     out["attitude_only"] = reference.translation is None
     out["series"] = acc.series.array()
     out["message"] = "ok" if s is not None else "no overlap between poses and reference"
     return out
+
+
+def _track(path, units: str = "m"):
+    """A reference file (TRUTH.csv, motion capture, camera attitude) as a
+    :class:`~layoutkit.live.reference.PoseTrack` (:func:`layoutkit.io.poses.read_reference`)."""
+    from ..io.poses import read_reference
+    from ..live.reference import PoseTrack
+
+    return PoseTrack.from_reference(read_reference(path, units))
 
 
 def _layout_from(layout, sidecar: CaptureSidecar) -> Layout:
@@ -98,74 +106,64 @@ def _layout_from(layout, sidecar: CaptureSidecar) -> Layout:
     raise ValueError("no layout: pass --layout (the capture's sidecar names none that can be loaded)")
 
 
-def _protocol_from(sidecar: CaptureSidecar, protocol: str | None):
-    return (protocol or sidecar.protocol or "layoutkit"), dict(sidecar.protocol_options)
+def open_session(setup: RunSetup, *, truth=None, json_out=None, poses_path=None, firmware=None,
+                 keep_good: bool = False) -> LiveSession:
+    """A :class:`LiveSession` for ``setup`` with the file side's sinks: the per-sweep EKF
+    (:class:`~layoutkit.workflows.filter.FilterSink`, ``filter_poses.csv`` beside ``poses_path``)
+    when ``setup.config.filter`` is set, the firmware's own position estimates joined into the pose
+    table (``firmware``: :func:`layoutkit.importers.cfusdlog.firmware_positions`), every good pose
+    kept for references (``keep_good``). truth : a PoseTrack (or a TRUTH.csv path)."""
+    from ..live.session import calibrated_setup
 
-
-def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, options: LiveConfig | None = None,
-                         truth=None, json_out=None, poses_path=None) -> LiveSession:
-    """:func:`layoutkit.live.session.session_for` with files resolved: ``layout`` a path or
-    :class:`Layout` (default: the sidecar's), ``truth`` a TRUTH.csv path or a PoseTrack.
-
-    sidecar : :class:`~layoutkit.io.sidecar.CaptureSidecar` or its dict.
-    """
-    from ..live.reference import read_pose_csv
-
-    sidecar = CaptureSidecar.from_dict(sidecar)
-    lay = _layout_from(layout, sidecar)
-    tr = read_pose_csv(truth) if isinstance(truth, (str, Path)) else truth
+    tr = _track(truth) if isinstance(truth, (str, Path)) else truth
     sink = None
-    if options is not None and options.filter is not None:  # the per-sweep EKF beside the frames
+    if setup.config.filter is not None:  # the per-sweep EKF beside the frames
+        from ..lighthouse import Station
         from .filter import FilterSink
-
-        from ..live.session import calibrated_setup
 
         fp = None if poses_path is None else Path(poses_path).with_name("filter_poses.csv")
         # the filter sees the sweeps the decoder emits: measured angles with the stations' (or the
         # system config's) calibrations in "model" mode, pre-corrected ones in "undistort" mode
-        sts, _, cals = calibrated_setup(list(sidecar.stations), sidecar.protocol_options, options.calibration)
+        sts, _, cals = calibrated_setup(setup)
         if not sts and cals and 0 in cals:
-            from ..lighthouse import Station
-
             sts = [Station(kind=cals[0].kind, rotor_rpm=3600.0 if cals[0].kind == "lh1" else 3000.0,
                            calibration=cals[0])]
-        sink = FilterSink(lay.positions, sts or None, options.filter, tr, json_out, fp)
-    return session_for(lay, sidecar, protocol=protocol, options=options, truth=tr, json_out=json_out,
-                       poses_path=poses_path, sweep_sink=sink)
+        sink = FilterSink(setup.layout.positions, sts or None, setup.config.filter, tr, json_out, fp)
+    columns = ()
+    if firmware:
+        from ..live.firmware import FirmwareComparison
+
+        columns = (FirmwareComparison(firmware),)
+    return session_for(setup, truth=tr, json_out=json_out, poses_path=poses_path, sweep_sink=sink, columns=columns,
+                       keep_good=keep_good)
+
+
+def session_from_sidecar(layout, sidecar, *, protocol: str | None = None, options: LiveConfig | None = None,
+                         truth=None, json_out=None, poses_path=None) -> LiveSession:
+    """:func:`open_session` for the run a capture's sidecar describes (``layout`` a path or
+    :class:`Layout`, default: the sidecar's; ``truth`` a TRUTH.csv path or a PoseTrack)."""
+    sidecar = CaptureSidecar.from_dict(sidecar)
+    setup = RunSetup.from_sidecar(sidecar, _layout_from(layout, sidecar), protocol=protocol, config=options)
+    return open_session(setup, truth=truth, json_out=json_out, poses_path=poses_path)
 
 
 def _finish_run(session: LiveSession, summary: dict, *, reference=None, reference_units="m", camera=None,
                 report_dir=None, reference_offset=None, camera_frames=None) -> dict:
-    from ..live.reference import read_pose_csv
-
     sample = session.pose_track()
     extra_series = {}
     for key, path, units, tau in (("reference", reference, reference_units, reference_offset),
                                   ("camera", camera, "m", None)):
         if path is None:
             continue
-        tr = read_pose_csv(path, units=units)
+        tr = _track(path, units)
         if key == "camera":
             tr = type(tr)(tr.t, tr.rotation, None)
-        res = reference_accuracy(session.poses_path, tr, sigma_theta=session.options.sigma_theta, sample=sample,
+        res = reference_accuracy(session.good_poses, tr, sigma_theta=session.options.sigma_theta, sample=sample,
                                  tau=tau)
         extra_series[key] = res.pop("series", None)
         summary[key] = res
     if camera_frames is not None:
-        from ..live.crosscheck import camera_crosscheck
-        from ..live.camera_report import write_camera_plots
-
-        frames, info = camera_frames
-        a = session.pose_sample.array()
-        cc = camera_crosscheck(a[:, 0], rotvec_to_matrix(a[:, 1:4]), a[:, 7], session.options.sigma_theta,
-                               frames.arrays(), truth=info.get("truth"), camera_counts=frames.counts(),
-                               clock=info.get("clock"), alignment=info.get("alignment"),
-                               corner_sigma_px=info.get("corner_sigma_px"))
-        cam = dict(cc.summary)
-        cam.update({k: v for k, v in info.items() if k not in ("truth", "clock", "alignment")})
-        summary["camera"] = cam
-        if report_dir is not None and cc.series:
-            summary.setdefault("camera_report", write_camera_plots(report_dir, cc))
+        summary.update(_camera_summary(session, camera_frames, report_dir))
     if session.truth_err is not None:
         extra_series["truth"] = session.truth_err.series.array()
     if report_dir is not None:
@@ -176,21 +174,37 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
     return summary
 
 
+def _camera_summary(session: LiveSession, camera_frames, report_dir) -> dict:
+    """The lighthouse vs camera cross-check of a run (``camera``, and ``camera_report`` with plots)."""
+    from ..live.camera_report import write_camera_plots
+    from ..live.crosscheck import camera_crosscheck
+
+    frames, info = camera_frames
+    a = session.pose_sample.array()
+    cc = camera_crosscheck(a[:, 0], rotvec_to_matrix(a[:, 1:4]), a[:, 7], session.options.sigma_theta,
+                           frames.arrays(), truth=info.get("truth"), camera_counts=frames.counts(),
+                           clock=info.get("clock"), alignment=info.get("alignment"),
+                           corner_sigma_px=info.get("corner_sigma_px"))
+    cam = dict(cc.summary)
+    cam.update({k: v for k, v in info.items() if k not in ("truth", "clock", "alignment")})
+    out = {"camera": cam}
+    if report_dir is not None and cc.series:
+        out["camera_report"] = write_camera_plots(report_dir, cc)
+    return out
+
+
 def stations_from_files(stations_path=None, system_config=None):
     """Stations given on the command line: a stations JSON (:mod:`layoutkit.io.stations`), else the
-    stations of a Crazyflie system config (base-station ids 0..k-1), else None."""
+    stations of a Crazyflie system config (a path or a loaded
+    :class:`~layoutkit.io.systemconfig.SystemConfig`; base-station ids 0..k-1), else None."""
     if stations_path:
         from ..io.stations import read_stations
 
         return list(read_stations(stations_path))
-    if system_config:
+    if system_config is not None:
         from ..io.systemconfig import read_system_config
 
-        cfg = read_system_config(system_config)
-        ids = sorted(cfg.stations)
-        if ids != list(range(len(ids))):
-            raise ValueError(f"{system_config}: base-station ids {ids} are not 0..k-1; give --stations")
-        return [cfg.stations[i] for i in ids] or None
+        return read_system_config(system_config).station_list()
     return None
 
 
@@ -210,6 +224,51 @@ def resolve_solve_mode(solve: str | None, stations, options: LiveConfig | None) 
     return replace(options, solve=solve)
 
 
+def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_config, solve, cfusdlog_source):
+    """Every input of a replay read once: ``(RunSetup, the cfusdlog source dict or None)``."""
+    from dataclasses import replace
+
+    from ..io.sidecar import read_sidecar
+    from ..io.systemconfig import read_system_config
+
+    cfg = None if system_config is None else read_system_config(system_config)
+    given = stations_from_files(stations, cfg) if (stations is not None or cfg is not None) else None
+    sidecar = read_sidecar(capture)
+    usd = None
+    if not sidecar.protocol and _is_cfusdlog(capture):
+        from .importers import cfusdlog_replay_source
+
+        usd = cfusdlog_replay_source(capture, stations=given, system_config=cfg, source=cfusdlog_source)
+        sidecar = usd["sidecar"]
+    setup = RunSetup.from_sidecar(sidecar, _layout_from(layout, sidecar), protocol=protocol, config=options,
+                                  stations=given, system_config=cfg)
+    return replace(setup, config=resolve_solve_mode(solve, setup.stations, setup.config)), usd
+
+
+def _feed_capture(s: LiveSession, capture: Path, usd, on_progress) -> None:
+    """Decode and solve the whole capture (the raw bytes in blocks: memory stays flat whatever its
+    length), or the frames of a Crazyflie log's sweep-angle events."""
+    import io
+
+    data = usd.get("bytes") if usd is not None else None
+    if usd is not None and usd["mode"] == "angles":
+        s.decoder = usd["source"]
+        frames = usd["frames"]
+        for k in range(0, len(frames), 4096):
+            s.feed_frames(frames[k:k + 4096])
+            if on_progress is not None:
+                on_progress(s)
+        data = b""
+    with (io.BytesIO(data) if data is not None else open(capture, "rb")) as rd:
+        while True:
+            block = rd.read(_READ_BYTES)
+            if not block:
+                break
+            s.feed_bytes(block)
+            if on_progress is not None:
+                on_progress(s)
+
+
 def replay_capture(capture, layout=None, *, protocol: str | None = None, options: LiveConfig | None = None,
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
@@ -220,15 +279,16 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
     layout : path or :class:`Layout` (default: from the sidecar). truth : TRUTH.csv (station frame,
     no alignment); reference : motion-capture CSV; camera : camera attitude CSV (both aligned in
-    time and frame from the data; ``reference_offset`` s fixes the clock offset instead). json_out : stream for ``--json-lines``. report_dir : write
-    ``report.json``, plots and ``poses.csv`` there. camera_device : a camera capture folder
-    (``fake-fpga --camera-out`` or a live session's ``CAPTURE.camera/``) solved with
-    ``camera_config`` (:class:`layoutkit.live.camera.CameraConfig`) and compared with the poses
-    (:func:`layoutkit.live.crosscheck.camera_crosscheck`); default: ``CAPTURE.camera/`` when it exists
-    and a config is given. stations : a stations JSON path replacing the sidecar's stations;
-    system_config : a Crazyflie system config YAML (calibration for the Bitcraze decoders, and the
-    stations when no stations file is given). solve : "joint", "per-station" or None (joint when
-    two or more stations with known poses are given; :func:`resolve_solve_mode`).
+    time and frame from the data; ``reference_offset`` s fixes the clock offset instead). json_out :
+    stream for ``--json-lines``. report_dir : write ``report.json``, plots and ``poses.csv`` there.
+    camera_device : a camera capture folder (``fake-fpga --camera-out`` or a live session's
+    ``CAPTURE.camera/``) solved with ``camera_config`` (:class:`layoutkit.live.camera.CameraConfig`)
+    and compared with the poses (:func:`layoutkit.live.crosscheck.camera_crosscheck`); default:
+    ``CAPTURE.camera/`` when it exists and a config is given. stations : a stations JSON path
+    replacing the sidecar's stations; system_config : a Crazyflie system config YAML (path or
+    loaded :class:`~layoutkit.io.systemconfig.SystemConfig`: calibration for the Bitcraze
+    decoders, and the stations when no stations file is given). solve : "joint", "per-station" or
+    None (joint when two or more stations with known poses are given; :func:`resolve_solve_mode`).
     A Crazyflie microSD log (cfusdlog, detected from its header) is replayed directly
     (:func:`layoutkit.workflows.importers.cfusdlog_replay_source`, ``cfusdlog_source``): its
     ``lhUartFrame`` events turned into the deck's bytes in memory (LH2), or its sweep-angle events
@@ -236,69 +296,26 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     estimates (crossing beam, state estimate) are compared with the joint poses
     (``summary["firmware_vs_ours"]``, columns ``firmware_*`` in ``poses.csv``).
     """
-    from ..io.sidecar import read_sidecar
-
     capture = Path(capture)
     if not capture.is_file():
         raise ValueError(f"{capture}: no such capture file")
-    sidecar = read_sidecar(capture)
-    data_override = usd = None
-    if not sidecar.protocol and _is_cfusdlog(capture):
-        from .importers import cfusdlog_replay_source
-
-        usd = cfusdlog_replay_source(capture, stations=stations_from_files(stations, system_config),
-                                     system_config=system_config, source=cfusdlog_source)
-        sidecar = usd["sidecar"]
-        data_override = usd.get("bytes")
-    if stations is not None or system_config is not None:
-        st = stations_from_files(stations, system_config)
-        opts = dict(sidecar.protocol_options)
-        if system_config is not None:
-            opts["system_config"] = str(system_config)
-        sidecar = sidecar.updated(stations=tuple(st) if st else sidecar.stations, protocol_options=opts)
-    options = resolve_solve_mode(solve, sidecar.stations, options)
-    with tempfile.TemporaryDirectory() as tmp:
-        poses = None
-        firmware = (usd or {}).get("firmware") if options.solve == "joint" else None
-        if report_dir is not None:
-            poses = Path(report_dir) / "poses.csv"
-        elif reference is not None or camera is not None or firmware:
-            poses = Path(tmp) / "poses.csv"
-        s = session_from_sidecar(layout, sidecar, protocol=protocol, options=options, truth=truth,
-                                 json_out=json_out, poses_path=poses)
-        if usd is not None and usd["mode"] == "angles":
-            s.decoder = usd["source"]
-            frames = usd["frames"]
-            for k in range(0, len(frames), 4096):
-                s.feed_frames(frames[k:k + 4096])
-                if on_progress is not None:
-                    on_progress(s)
-            data_override = b""
-        # the raw bytes in blocks (the timing index is not needed as fast as possible: memory stays
-        # flat whatever the capture's length)
-        import io
-
-        with (io.BytesIO(data_override) if data_override is not None else open(capture, "rb")) as rd:
-            while True:
-                data = rd.read(_READ_BYTES)
-                if not data:
-                    break
-                s.feed_bytes(data)
-                if on_progress is not None:
-                    on_progress(s)
-        summary = s.finish()
-        summary["capture"] = str(capture)
-        summary["protocol"] = _protocol_from(sidecar, protocol)[0]
-        if usd is not None:
-            summary["cfusdlog"] = usd["info"]
-            if firmware:
-                from .importers import firmware_comparison
-
-                # the firmware's own estimates beside ours (same clock, same world frame)
-                summary["firmware_vs_ours"] = firmware_comparison(poses, firmware)
-        cam = _camera_from_folder(capture, camera_device, camera_config)
-        return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
-                           report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
+    setup, usd = _replay_setup(capture, layout, protocol=protocol, options=options, stations=stations,
+                               system_config=system_config, solve=solve, cfusdlog_source=cfusdlog_source)
+    firmware = (usd or {}).get("firmware") if setup.config.solve == "joint" else None
+    poses = None if report_dir is None else Path(report_dir) / "poses.csv"
+    s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
+                     keep_good=reference is not None or camera is not None)
+    _feed_capture(s, capture, usd, on_progress)
+    summary = s.finish()
+    summary["capture"] = str(capture)
+    summary["protocol"] = setup.protocol
+    if usd is not None:
+        summary["cfusdlog"] = usd["info"]
+        if firmware:  # the firmware's own estimates beside ours (same clock, same world frame)
+            summary["firmware_vs_ours"] = s.column_summaries[0]
+    cam = _camera_from_folder(capture, camera_device, camera_config)
+    return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
+                       report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
 
 
 def _is_cfusdlog(path) -> bool:
@@ -332,10 +349,10 @@ def _camera_from_folder(capture, camera_device, camera_config):
 
 def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveConfig | None = None,
              record=None, duration: float | None = None, truth=None, reference=None, reference_units: str = "m",
-             reference_offset: float | None = None, camera=None, json_out=None, report_dir=None, baudrate: int | None = None, stations=None,
-             on_update=None, update_interval: float = 0.25, idle_timeout: float | None = None,
-             overwrite: bool = False, on_status=None, status_interval: float = 10.0, camera_device=None,
-             camera_config=None, system_config=None, solve: str | None = None) -> dict:
+             reference_offset: float | None = None, camera=None, json_out=None, report_dir=None,
+             baudrate: int | None = None, stations=None, on_update=None, update_interval: float = 0.25,
+             idle_timeout: float | None = None, overwrite: bool = False, on_status=None, status_interval: float = 10.0,
+             camera_device=None, camera_config=None, system_config=None, solve: str | None = None) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
     port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar);
@@ -348,7 +365,9 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     beside the serial one (:class:`layoutkit.live.camera.CameraReader`: own threads, host-clock
     stamps, frames kept raw in ``RECORD.camera/`` before they are solved); a camera that stops,
     stalls or sends corrupt frames never stops the serial side; the summary's ``camera`` object
-    compares both streams (the same computation as ``replay``).
+    compares both streams (the same computation as ``replay``). system_config : a Crazyflie
+    system config (path or loaded :class:`~layoutkit.io.systemconfig.SystemConfig`): its
+    calibrations; the capture records its path.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, the capture is fsynced and
     closed with everything received, the pending frames are solved and the report is written;
@@ -356,88 +375,34 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     run the same way: the capture keeps the valid prefix, the report is still written (it can be
     on another disk) and ``summary["capture_error"]`` says ``<capture>: <reason>``.
     """
+    from ..io.systemconfig import read_system_config
     from ..live.capture import CaptureWriter
     from ..live.sources import DEFAULT_BAUDRATE, ReconnectingSerial
     from ..live.stopping import stop_on_signals
 
-    options = resolve_solve_mode(solve, stations, options)
-    lay = _layout_from(layout, CaptureSidecar())
+    setup = RunSetup(_layout_from(layout, CaptureSidecar()), protocol, {}, tuple(stations or ()),
+                     None if system_config is None else read_system_config(system_config),
+                     resolve_solve_mode(solve, stations, options))
     baudrate = baudrate or DEFAULT_BAUDRATE
     settings = {"url": port, "baudrate": baudrate, "timeout": 0.05, "reconnect": True}
-    sidecar = CaptureSidecar(protocol=protocol, layout=lay.to_dict(), port=settings, stations=tuple(stations or ()),
-                             source="live",
-                             protocol_options={"system_config": str(system_config)} if system_config else {})
     # the capture first: an existing one is refused before the port is touched
-    writer = CaptureWriter(record, sidecar, overwrite=overwrite) if record is not None else None
-    with tempfile.TemporaryDirectory() as tmp, stop_on_signals() as stop:
+    writer = CaptureWriter(record, setup.sidecar(port=settings, source="live"), overwrite=overwrite) \
+        if record is not None else None
+    with stop_on_signals() as stop:
         try:
             src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
-            poses = Path(report_dir) / "poses.csv" if report_dir is not None else (
-                Path(tmp) / "poses.csv" if (reference is not None or camera is not None) else None)
-            s = session_from_sidecar(lay, CaptureSidecar(stations=sidecar.stations, protocol_options=sidecar.protocol_options),
-                                     protocol=protocol, options=options,
-                                     truth=truth, json_out=json_out, poses_path=poses)
+            s = open_session(setup, truth=truth, json_out=json_out,
+                             poses_path=Path(report_dir) / "poses.csv" if report_dir is not None else None,
+                             keep_good=reference is not None or camera is not None)
+            cam_reader = _start_camera(camera_device, camera_config, record, src)
         except BaseException:
             if writer is not None:
                 writer.close()
             raise
-        cam_reader = cam_live = None
-        if camera_device is not None and camera_config is not None:
-            from ..live.camera import CameraReader, LiveCrossCheck
-
-            try:
-                cam_reader = CameraReader(camera_device, camera_config,
-                                          camera_folder_for(record) if record is not None else None).start()
-            except (OSError, ValueError):
-                src.close()
-                if writer is not None:
-                    writer.close()
-                raise
-            cam_live = LiveCrossCheck(options.sigma_theta)
-        t_start = time.monotonic()
-        t_end = None if duration is None else t_start + duration
-        last_update = 0.0
-        last_byte = None
-        last_status = None
-        interrupted = False
-        capture_error = None
+        loop = _LiveLoop(src, s, writer, stop, port, cam_reader, on_update, update_interval, on_status,
+                         status_interval, idle_timeout)
         try:
-            while (t_end is None or time.monotonic() < t_end) and not stop.requested:
-                data = src.read(_READ_BYTES)
-                now = time.monotonic()
-                if data:
-                    if writer is not None:
-                        try:
-                            writer.write(data)  # raw bytes are kept before any decoding
-                        except OSError as exc:  # disk full: keep the prefix, stop, still report
-                            capture_error = f"{exc.filename}: {exc.strerror or exc}"
-                            break
-                    s.feed_bytes(data)
-                    s.flush_pending()  # one chunk per read: low latency, large chunks after a backlog
-                    last_byte = now
-                elif idle_timeout is not None and last_byte is not None and now - last_byte > idle_timeout:
-                    break
-                if on_status is not None and not src.connected and (
-                        last_status is None or now - last_status >= status_interval):
-                    st = src.state
-                    what = "refusing the device now at the path" if st.get("refusals") and st.get("connects") else (
-                        "disconnected" if st.get("connects") else "not connected yet")
-                    on_status(f"waiting for {port}: {what} ({st.get('last_error') or 'no such device'}); "
-                              f"{now - t_start:.0f} s so far, retrying (every <= {src.backoff_max:g} s); "
-                              + ("Ctrl-C or SIGTERM ends the run" if t_end is None else
-                                 f"the run ends in {t_end - now:.0f} s"))
-                    last_status = now
-                elif src.connected:
-                    last_status = None
-                if on_update is not None and now - last_update >= update_interval:
-                    snap = s.snapshot(src.state)
-                    if cam_reader is not None:
-                        snap["camera"] = {**cam_live.update(s.pose_sample.array(), cam_reader.processor.frames),
-                                          "error": cam_reader.error}
-                    on_update(snap)
-                    last_update = now
-        except KeyboardInterrupt:
-            interrupted = True
+            loop.run(duration)
         finally:
             src.close()
             if cam_reader is not None:
@@ -450,13 +415,93 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
         if cam_reader is not None:
             info = {k: v for k, v in cam_reader.stats().items() if k not in ("processed", "solved", "by_status")}
             cam_frames = (cam_reader.processor.frames, info)
-        stopped_by = stop.name or ("SIGINT" if interrupted else None)
-        summary.update(port=port, protocol=protocol, interrupted=interrupted or stop.requested, source=src.state,
-                       capture=None if record is None else str(record), stopped_by=stopped_by,
-                       capture_error=capture_error,
+        summary.update(port=port, protocol=protocol, interrupted=loop.interrupted or stop.requested, source=src.state,
+                       capture=None if record is None else str(record),
+                       stopped_by=stop.name or ("SIGINT" if loop.interrupted else None),
+                       capture_error=loop.capture_error,
                        capture_bytes=None if writer is None else writer.bytes_written)
         out = _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
                           report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam_frames)
         if on_update is not None:
             on_update(s.snapshot(src.state))
         return out
+
+
+def _start_camera(camera_device, camera_config, record, src):
+    """The camera stream beside the serial one (:class:`layoutkit.live.camera.CameraReader`), or None."""
+    if camera_device is None or camera_config is None:
+        return None
+    from ..live.camera import CameraReader
+
+    try:
+        return CameraReader(camera_device, camera_config,
+                            camera_folder_for(record) if record is not None else None).start()
+    except (OSError, ValueError):
+        src.close()
+        raise
+
+
+class _LiveLoop:
+    """The read loop of :func:`run_live`: port → capture (raw bytes first) → session, the dashboard
+    updates and the waiting-state messages; ends on duration, idle timeout, a signal, Ctrl-C
+    (``interrupted``) or a failed capture write (``capture_error``)."""
+
+    def __init__(self, src, session, writer, stop, port, cam_reader, on_update, update_interval, on_status,
+                 status_interval, idle_timeout):
+        self.src, self.s, self.writer, self.stop, self.port = src, session, writer, stop, port
+        self.cam_reader = cam_reader
+        self.cam_live = None
+        if cam_reader is not None:
+            from ..live.camera import LiveCrossCheck
+
+            self.cam_live = LiveCrossCheck(session.options.sigma_theta)
+        self.on_update, self.update_interval = on_update, update_interval
+        self.on_status, self.status_interval = on_status, status_interval
+        self.idle_timeout = idle_timeout
+        self.interrupted = False
+        self.capture_error = None
+
+    def run(self, duration) -> None:
+        src, s = self.src, self.s
+        t_start = time.monotonic()
+        t_end = None if duration is None else t_start + duration
+        last_update, last_byte, last_status = 0.0, None, None
+        try:
+            while (t_end is None or time.monotonic() < t_end) and not self.stop.requested:
+                data = src.read(_READ_BYTES)
+                now = time.monotonic()
+                if data:
+                    if self.writer is not None:
+                        try:
+                            self.writer.write(data)  # raw bytes are kept before any decoding
+                        except OSError as exc:  # disk full: keep the prefix, stop, still report
+                            self.capture_error = f"{exc.filename}: {exc.strerror or exc}"
+                            break
+                    s.feed_bytes(data)
+                    s.flush_pending()  # one chunk per read: low latency, large chunks after a backlog
+                    last_byte = now
+                elif self.idle_timeout is not None and last_byte is not None and now - last_byte > self.idle_timeout:
+                    break
+                if self.on_status is not None and not src.connected and (
+                        last_status is None or now - last_status >= self.status_interval):
+                    self.on_status(self._waiting(now - t_start, None if t_end is None else t_end - now))
+                    last_status = now
+                elif src.connected:
+                    last_status = None
+                if self.on_update is not None and now - last_update >= self.update_interval:
+                    snap = s.snapshot(src.state)
+                    if self.cam_reader is not None:
+                        snap["camera"] = {**self.cam_live.update(s.pose_sample.array(), self.cam_reader.processor.frames),
+                                          "error": self.cam_reader.error}
+                    self.on_update(snap)
+                    last_update = now
+        except KeyboardInterrupt:
+            self.interrupted = True
+
+    def _waiting(self, elapsed: float, remaining: float | None) -> str:
+        st = self.src.state
+        what = "refusing the device now at the path" if st.get("refusals") and st.get("connects") else (
+            "disconnected" if st.get("connects") else "not connected yet")
+        return (f"waiting for {self.port}: {what} ({st.get('last_error') or 'no such device'}); "
+                f"{elapsed:.0f} s so far, retrying (every <= {self.src.backoff_max:g} s); "
+                + ("Ctrl-C or SIGTERM ends the run" if remaining is None else f"the run ends in {remaining:.0f} s"))

@@ -15,8 +15,6 @@ from ..units import RHO_PAPER
 
 __all__ = ["prepare_problem", "mean_station_direction", "run_optimize", "write_report", "run_demo", "evaluate_layout"]
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def mean_station_direction(rotations, translations, stations):
     """Mean unit direction (3,) from the body to the stations, body frame, over poses
@@ -378,10 +376,11 @@ def run_demo(out_dir, quick=True, echo=print, progress=None, seed: int = 0):
     Writes ``out_dir/layout.json`` and the report folder ``out_dir/report``; returns the summary."""
     from ..envelope import load_envelope
     from ..mesh import load_mesh
+    from ..resources import model_path
 
     out_dir = Path(out_dir)
-    mesh_path = REPO / "models" / "chen_target.stl"
-    env = load_envelope(REPO / "models" / "chen_envelope.toml")
+    mesh_path = model_path("chen_target.stl")
+    env = load_envelope(model_path("chen_envelope.toml"))
     if quick:
         env = dataclasses.replace(env, count=min(env.count, 100))
     mesh = load_mesh(mesh_path)

@@ -83,7 +83,7 @@ def cell_task(prep: dict, opts: dict) -> dict:
     Returns a JSON-able dict: status, success, message, value, bound, gap, certified_by, min_k,
     selected_ids, stats, wall_s (s, this optimisation only), layout (layout JSON dict or None).
     """
-    from .._json import to_jsonable
+    from ..io.jsonfile import to_jsonable
     from ..layout import Layout
     from ..optimize import candidate_jacobians
     from ..parallel.scheduler import allow_child_processes
@@ -158,7 +158,7 @@ def run_sweep(sweep, out_dir, executor, *, progress=None, echo=print) -> dict:
     sweep : sweep TOML path or :class:`SweepConfig`; executor : from
     :func:`layoutkit.parallel.open_executor`; progress : ``callable(done, running, failed, total)``.
     """
-    from .._json import to_jsonable
+    from ..io.jsonfile import to_jsonable
 
     cfg = sweep if isinstance(sweep, SweepConfig) else load_sweep(sweep)
     out = Path(out_dir)

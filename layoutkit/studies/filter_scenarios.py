@@ -19,7 +19,7 @@ from ..filter.consistency import consistency, nees, pose_error, run_sweeps
 from ..geometry import attitude_error, look_at_rotation, rotvec_to_matrix
 from ..lighthouse import Station
 from ..units import RAD2DEG
-from .filter import filter_frames
+from ..workflows.filter import filter_frames
 
 __all__ = [
     "TUMBLE_CONFIG", "second_station", "measured", "track", "frame_by_frame", "errors_of",
@@ -59,14 +59,14 @@ def frame_by_frame(layout, sw, angles=None):
     translation, good, adop, pdop.
     """
     from ..live.frames import SweepMeasurement
-    from ..live.pipeline import PipelineConfig, PosePipeline
+    from ..live.pipeline import LiveConfig, PosePipeline
 
     a = measured(sw) if angles is None else angles
     keep = np.flatnonzero(np.any(np.isfinite(a), 1) | sw.emitted)
     sweeps = [SweepMeasurement(float(sw.t[k]), int(sw.station[k]), int(sw.axis[k]), a[k], int(sw.seq[k]))
               for k in keep]
     multi = len(sw.stations) > 1
-    pipe = PosePipeline(layout.positions, PipelineConfig(n_sensors=layout.n, chunk_frames=2048,
+    pipe = PosePipeline(layout.positions, LiveConfig(n_sensors=layout.n, chunk_frames=2048,
                                                          chunk_seconds=float("inf")),
                         list(sw.stations) if multi else None)
     chunks = pipe.feed(sweeps) + pipe.flush(end_of_stream=True)
@@ -311,7 +311,8 @@ def replay_throughput(layout, *, duration: float = 30.0, rounds: int = 5, seed: 
     from pathlib import Path
 
     from ..live.simulator import run_fake_fpga, simulate_stream
-    from .live import LiveOptions, replay_capture
+    from ..live.pipeline import LiveConfig
+    from ..workflows.live import replay_capture
 
     with tempfile.TemporaryDirectory() as tmp:
         cap = Path(tmp) / "cap.bin"
@@ -321,7 +322,7 @@ def replay_throughput(layout, *, duration: float = 30.0, rounds: int = 5, seed: 
         fsec, fcpu, fsweeps = [], [], 0
         for _ in range(rounds):
             for name in ("none", "ekf"):
-                opts = LiveOptions(filter=EkfConfig(**TUMBLE_CONFIG) if name == "ekf" else None)
+                opts = LiveConfig(filter=EkfConfig(**TUMBLE_CONFIG) if name == "ekf" else None)
                 t0 = time.perf_counter()
                 s = replay_capture(cap, layout, options=opts)
                 walls[name].append(time.perf_counter() - t0)
@@ -366,7 +367,7 @@ def real_static_jitter(frames_path, layout_path, stations_path, *, zupt: bool = 
     from ..dop import precision
     from ..io.stations import read_stations
     from ..layout import load_layout
-    from .frames import read_frames, solve_frames
+    from ..workflows.frames import read_frames, solve_frames
 
     lay = load_layout(layout_path)
     fr = read_frames(frames_path, lay)
