@@ -152,3 +152,32 @@ def test_cli_json_and_bad_folder(dataset, tmp_path):
     r = CliRunner().invoke(main, ["study", "bitcraze-dataset", "--data", str(empty), "--out", str(tmp_path / "o2")])
     lines = [x for x in r.output.splitlines() if x.strip()]
     assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:") and "empty" in lines[0], r.output
+
+
+def test_bad_files_in_the_folder_are_listed_not_fatal(dataset, tmp_path):
+    """Fault injection: in a copy of the dataset folder, one log emptied, one motion capture file
+    replaced by binary junk, a truncated copy of the other: the study still runs on what it can read,
+    lists each bad file with why (no traceback), and a folder where no log can be read is one
+    ``error:`` line, exit 2."""
+    import shutil
+
+    root, *_ = dataset
+    bad = tmp_path / "bad"
+    shutil.copytree(root, bad)
+    (bad / "lh2_crossingBeam_jitter" / "log00").write_bytes(b"")
+    (bad / "lh2_kalman_move" / "mocap00.npy").write_bytes(bytes(range(256)) * 4)
+    r = CliRunner().invoke(main, ["study", "bitcraze-dataset", "--data", str(bad), "--out", str(tmp_path / "o"),
+                                  "--json", "--scheduler", "synchronous"])
+    assert r.exit_code == 0, r.output[-2000:]
+    doc = json.loads(r.output)
+    why = {s["file"].split("bad/")[1]: s["reason"] for s in doc["skipped"]}
+    assert "not a Crazyflie microSD log" in why["lh2_crossingBeam_jitter/log00"]
+    assert "not a NumPy .npy array" in why["lh2_kalman_move/mocap00.npy"]
+    assert set(doc["sets"]) == {"lh2_kalman_move"}
+    data = (root / "lh2_kalman_move" / "log00").read_bytes()
+    (bad / "lh2_kalman_move" / "log00").write_bytes(data[:50])                      # header cut short
+    r = CliRunner().invoke(main, ["study", "bitcraze-dataset", "--data", str(bad), "--out", str(tmp_path / "o2"),
+                                  "--scheduler", "synchronous"])
+    lines = [x for x in r.output.splitlines() if x.strip()]
+    assert r.exit_code == 2 and lines[-1].startswith("error:") and "no log could be read" in lines[-1], r.output
+    assert "Traceback" not in r.output

@@ -36,6 +36,9 @@ Metrics (the dataset's README and scripts ``compute_jitter.py``, ``temporal_alig
 - **coverage** = the share of the log's 100 ms intervals (markers on → off) with an estimate, and
   estimates per second.
 
+Length (~650 lines): one study — discovery, the dataset's metrics and alignment, the tasks and its
+table and figures — read together, as ``studies/chen2024.py``.
+
 Logs run as tasks on the executor (:func:`layoutkit.parallel.open_executor`), one per log and
 method; each task streams its replay's JSON lines and keeps only the ok positions. Figures: the
 error over time and its CDF per method (moving sets), the positions' scatter (static sets).
@@ -51,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["METHODS", "LogItem", "discover", "usable_logs", "jitter", "coverage", "align_to_mocap", "firmware_series",
+__all__ = ["METHODS", "LogItem", "discover", "usable_logs", "read_mocap", "jitter", "coverage", "align_to_mocap", "firmware_series",
            "replay_positions", "evaluate_log", "run_study", "write_outputs", "DECK_LAYOUT"]
 
 DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
@@ -426,10 +429,36 @@ def run_study(data_dir, *, executor=None, progress=None, methods=("per-station",
                 progress(f"{items[k].name} {m}: {len(value['t'])} ok poses in {value['seconds']:.1f} s")
     logs = []
     for k, it in enumerate(items):
-        fw = firmware_series(it.log)
-        mocap = np.load(it.mocap) if it.mocap else None
+        try:
+            fw = firmware_series(it.log)
+        except ValueError as exc:          # not a log, damaged header: named, the study goes on
+            skipped.append({"file": it.log, "reason": str(exc)})
+            continue
+        mocap = None
+        if it.mocap:
+            try:
+                mocap = read_mocap(it.mocap)
+            except ValueError as exc:
+                skipped.append({"file": it.mocap, "reason": f"{exc}: firmware and our jitter only"})
         logs.append(_log_metrics(it, fw, ours[k], mocap))
+    if not logs:
+        raise ValueError(f"{data_dir}: no log could be read ({'; '.join(s['file'] + ': ' + s['reason'] for s in skipped)})")
     return {"logs": logs, "skipped": skipped, "sets": _set_summaries(logs)}
+
+
+def read_mocap(path) -> np.ndarray:
+    """A dataset motion capture file: ``.npy`` (M, 4) ``t`` ms, ``x, y, z`` m (NaN rows allowed);
+    ValueError naming the file for anything else."""
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{path}: not a NumPy .npy array ({type(exc).__name__}: {exc})") from None
+    if a.ndim != 2 or a.shape[1] < 4 or a.shape[0] < 2 or not np.issubdtype(a.dtype, np.number):
+        raise ValueError(f"{path}: expected an (M, 4) array of t ms, x, y, z, got shape {a.shape} {a.dtype}")
+    a = np.asarray(a[:, :4], float)
+    if not np.all(np.isfinite(a[:, 0])) or np.any(np.diff(a[:, 0]) <= 0):
+        raise ValueError(f"{path}: the time column (ms) is not finite and increasing")
+    return a
 
 
 def _set_summaries(logs) -> dict:
