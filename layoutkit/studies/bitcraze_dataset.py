@@ -84,7 +84,7 @@ class LogItem:
 
 def discover(data_dir) -> tuple[list, list]:
     """The usable logs under ``data_dir`` and what could not be used, with why: ``(items, skipped)``,
-    skipped = list of ``{"file", "reason"}`` (a set whose name is not a Lighthouse set, without a
+    skipped = list of ``{"file" (relative to data_dir), "reason"}`` (a set whose name is not a Lighthouse set, without a
     system config, a log without its motion capture file, a motion capture file without its log)."""
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
@@ -95,22 +95,22 @@ def discover(data_dir) -> tuple[list, list]:
         logs = sorted(p for p in d.iterdir() if re.fullmatch(r"log\d+", p.name))
         mocaps = sorted(p for p in d.iterdir() if re.fullmatch(r"mocap\d+\.npy", p.name))
         if m is None:
-            skipped.append({"file": str(d), "reason": "not a Lighthouse set (<lh1|lh2>_<crossingBeam|kalman>_"
+            skipped.append({"file": d.name, "reason": "not a Lighthouse set (<lh1|lh2>_<crossingBeam|kalman>_"
                                                       "<jitter|move|flight>): e.g. the flow-deck sets"})
             continue
         yml = d / "system-config.yaml"
         if not yml.is_file():
-            skipped.append({"file": str(d), "reason": "no system-config.yaml (station poses and calibration)"})
+            skipped.append({"file": d.name, "reason": "no system-config.yaml (station poses and calibration)"})
             continue
         if not logs:
-            skipped.append({"file": str(d), "reason": "no logNN file"})
+            skipped.append({"file": d.name, "reason": "no logNN file"})
         for p in mocaps:
             if not (d / p.name.replace("mocap", "log").removesuffix(".npy")).is_file():
-                skipped.append({"file": str(p), "reason": "no log with its number (the log was not published)"})
+                skipped.append({"file": f"{d.name}/{p.name}", "reason": "no log with its number (the log was not published)"})
         for lg in logs:
             mc = d / (lg.name.replace("log", "mocap") + ".npy")
             if not mc.is_file():
-                skipped.append({"file": str(lg), "reason": "no motion capture file with its number: firmware "
+                skipped.append({"file": f"{d.name}/{lg.name}", "reason": "no motion capture file with its number: firmware "
                                                           "and our jitter only"})
             items.append(LogItem(d.name, m.group(1), m.group(2), m.group(3), str(lg),
                                  str(mc) if mc.is_file() else None, str(yml)))
@@ -277,13 +277,19 @@ def _valid_ekf(t, angle_t) -> np.ndarray:
     return ok
 
 
+#: statuses whose poses a replay task keeps: ok, and high_residual (a solved pose whose residual says the
+#: station geometry disagrees; the diagnostic row only)
+_KEEP = ("ok", "high_residual")
+
+
 class _PoseLines(io.TextIOBase):
     """A text sink for ``replay_capture(json_out=...)``: parses every JSON line as it comes and keeps
-    the ok poses' time, position and station only (memory: 5 numbers per ok pose)."""
+    the time, position, station, station count and ok flag of the poses whose status is in
+    :data:`_KEEP` (memory: 7 numbers per pose)."""
 
     def __init__(self):
         self._buf = ""
-        self.t, self.p, self.station, self.n_stations = [], [], [], []
+        self.t, self.p, self.station, self.n_stations, self.ok = [], [], [], [], []
         self.lines = 0
         self.statuses: dict = {}
 
@@ -301,7 +307,8 @@ class _PoseLines(io.TextIOBase):
             st = d.get("status")
             self.statuses[st] = self.statuses.get(st, 0) + 1
             tr = d.get("translation")
-            if st == "ok" and tr is not None and all(v is not None for v in tr):
+            if st in _KEEP and tr is not None and all(v is not None for v in tr):
+                self.ok.append(st == "ok")
                 self.t.append(float(d["t"]))
                 self.p.append([float(v) for v in tr])
                 self.station.append(str(d.get("station")))
@@ -339,13 +346,39 @@ def replay_positions(log, system_config, method: str, layout=DECK_LAYOUT) -> dic
     dec = (summary or {}).get("decoder") or (summary or {}).get("decode") or {}
     return {"t": np.asarray(sink.t, float), "p": np.asarray(sink.p, float).reshape(-1, 3),
             "station": np.asarray(sink.station, str), "n_stations": np.asarray(sink.n_stations, int),
+            "ok": np.asarray(sink.ok, bool),
             "lines": sink.lines, "statuses": sink.statuses,
             "seconds": time.perf_counter() - t0, "message": msg,
             "decoder": {k: dec.get(k) for k in ("good", "dropped", "reasons") if k in dec}}
 
 
+def decode_check(log) -> dict:
+    """Our LH2 angles vs the firmware's ``lhAngle`` in the log, for both pulse processors
+    (:func:`layoutkit.live.cf_events.firmware_angle_check`): frames reproduced, max difference,
+    rotations/s, the deck clock fit. ``{"status": "no_data", ...}`` for a log without both event types."""
+    from ..live.cf_events import firmware_angle_check
+
+    out = {}
+    for proc in ("firmware", "phase"):
+        try:
+            r = firmware_angle_check(log, pulse_processor=proc)
+        except ValueError as exc:
+            return {"status": "no_data", "message": str(exc)}
+        if r["status"] != "ok":
+            return r
+        out[proc] = {k: r[k] for k in ("firmware_frames", "matched", "matched_share", "max_abs_diff_rad", "rotations",
+                                       "rotations_per_s", "repeats_dropped")}
+        out["clock"] = r["clock"]
+    return {"status": "ok", **out}
+
+
 def evaluate_log(item: LogItem, method: str) -> dict:
-    """One task: our replay of ``item`` by ``method`` (see :func:`replay_positions`), as plain arrays."""
+    """One task: our replay of ``item`` by ``method`` (see :func:`replay_positions`), as plain arrays;
+    method "decode": :func:`decode_check` instead."""
+    t0 = time.perf_counter()
+    if method == "decode":
+        return {"log": item.name, "method": method, "check": decode_check(item.log), "t": np.zeros(0),
+                "seconds": time.perf_counter() - t0}
     r = replay_positions(item.log, item.system_config, method)
     r["log"] = item.name
     r["method"] = method
@@ -365,22 +398,31 @@ def _streams(item: LogItem, fw: dict, ours: dict) -> dict:
         t, p = np.asarray(t, float)[keep], p[keep]
         out["fw_ekf"] = [("fw_ekf", t, p, _valid_ekf(t, fw["angle_t"]))]
     for method, r in ours.items():
+        if method == "decode":
+            continue
         key = f"ours_{method.replace('-', '_')}"
+        ok = r["ok"]
         if method == "per-station":
-            out[key] = [(f"{key}_{s}", r["t"][r["station"] == s], r["p"][r["station"] == s],
-                         np.ones(int((r["station"] == s).sum()), bool)) for s in sorted(set(r["station"].tolist()))]
+            out[key] = [(f"{key}_{s}", r["t"][ok & (r["station"] == s)], r["p"][ok & (r["station"] == s)],
+                         np.ones(int((ok & (r["station"] == s)).sum()), bool))
+                        for s in sorted(set(r["station"][ok].tolist()))]
         else:
-            out[key] = [(key, r["t"], r["p"], np.ones(len(r["t"]), bool))]
+            out[key] = [(key, r["t"][ok], r["p"][ok], np.ones(int(ok.sum()), bool))]
         if method == "joint":
-            # diagnostic: the ok windows that both stations saw (a one-station window of this 3 x 1.5 cm
-            # deck at 3-4 m is centimetres off until the replay's statuses say so)
+            # diagnostic: every window both stations saw, ok or high_residual (the solve's residual says
+            # the system config's two station poses disagree at the deck; the firmware's crossing beam
+            # reports the same as its delta): what decoding + joint solving give before the statuses
+            # and the station geometry are settled (issue 25 items 2, 3)
             two = r["n_stations"] >= 2
-            out["ours_joint_two_stations"] = [("ours_joint_two_stations", r["t"][two], r["p"][two], np.ones(int(two.sum()), bool))]
+            out["ours_joint_two_stations"] = [("ours_joint_two_stations", r["t"][two], r["p"][two],
+                                               np.ones(int(two.sum()), bool))]
     return out
 
 
 def _log_metrics(item: LogItem, fw: dict, ours: dict, mocap) -> dict:
     res = {"log": item.name, "set": item.set, "scenario": item.scenario, "methods": {}}
+    if "decode" in ours:
+        res["decode"] = ours["decode"].get("check") or {"status": "failed", "message": ours["decode"].get("message")}
     mk = fw["markers"]
     if mk is None:
         res["note"] = "no activeMarkerModeChanged on/off events: no temporal alignment, no coverage"
@@ -405,7 +447,7 @@ def _log_metrics(item: LogItem, fw: dict, ours: dict, mocap) -> dict:
     return res
 
 
-def run_study(data_dir, *, executor=None, progress=None, methods=("per-station", "joint", "filter")) -> dict:
+def run_study(data_dir, *, executor=None, progress=None, methods=("decode", "per-station", "joint", "filter")) -> dict:
     """Every usable log of ``data_dir``: our replays as executor tasks, the firmware's estimates and the
     metrics here. Returns ``{"logs": [per-log metrics], "skipped": [...], "sets": {set: summary}}``."""
     from ..parallel import SYNCHRONOUS, open_executor
@@ -422,24 +464,25 @@ def run_study(data_dir, *, executor=None, progress=None, methods=("per-station",
             k, m = handles[h]
             if not ok:
                 value = {"t": np.zeros(0), "p": np.zeros((0, 3)), "station": np.zeros(0, str),
-                         "n_stations": np.zeros(0, int), "lines": 0,
+                         "n_stations": np.zeros(0, int), "ok": np.zeros(0, bool), "lines": 0,
                          "statuses": {}, "seconds": float("nan"), "message": f"task failed: {value!r}"}
             ours[k][m] = value
             if progress is not None:
-                progress(f"{items[k].name} {m}: {len(value['t'])} ok poses in {value['seconds']:.1f} s")
+                what = (value.get("check", {}).get("status", "failed") if m == "decode" else f"{len(value['t'])} poses")
+                progress(f"{items[k].name} {m}: {what} in {value['seconds']:.1f} s")
     logs = []
     for k, it in enumerate(items):
         try:
             fw = firmware_series(it.log)
         except ValueError as exc:          # not a log, damaged header: named, the study goes on
-            skipped.append({"file": it.log, "reason": str(exc)})
+            skipped.append({"file": it.name, "reason": str(exc)})
             continue
         mocap = None
         if it.mocap:
             try:
                 mocap = read_mocap(it.mocap)
             except ValueError as exc:
-                skipped.append({"file": it.mocap, "reason": f"{exc}: firmware and our jitter only"})
+                skipped.append({"file": f"{it.set}/{Path(it.mocap).name}", "reason": f"{exc}: firmware and our jitter only"})
         logs.append(_log_metrics(it, fw, ours[k], mocap))
     if not logs:
         raise ValueError(f"{data_dir}: no log could be read ({'; '.join(s['file'] + ': ' + s['reason'] for s in skipped)})")
@@ -505,7 +548,7 @@ def _set_summaries(logs) -> dict:
 
 # ----------------------------------------------------------------------------------- outputs
 _LABELS = {"fw_crossing_beam": "firmware crossing beam", "fw_ekf": "firmware EKF", "ours_joint": "ours joint",
-           "ours_joint_two_stations": "ours joint, two-station windows only (diagnostic)",
+           "ours_joint_two_stations": "ours joint, every two-station window incl. high_residual (diagnostic, not ok)",
            "ours_filter": "ours filter (EKF)"}
 
 
@@ -549,6 +592,28 @@ def _table(res) -> str:
                              f"({_mm(m['error_rms_per_log_median_m'])}) | {_mm(m['error_mean_m'])} | "
                              f"{m['aligned_samples']} |")
         lines.append("")
+        for label, m in sorted(s["methods"].items()):
+            if not m["per_s_median"]:
+                why = (" (the filter takes the deck's sweeps; an LH1 log gives frames of the firmware's angles, "
+                       "which it does not take)" if label == "ours_filter" and name.startswith("lh1") else "")
+                lines.append(f"- {_label(label)}: no estimate in most logs of this set{why}.")
+        if any(not m["per_s_median"] for m in s["methods"].values()):
+            lines.append("")
+    dec = [(lg["log"], lg["decode"]) for lg in res["logs"] if (lg.get("decode") or {}).get("status") == "ok"]
+    if dec:
+        lines += ["## Decoding check: our angles vs the firmware's lhAngle in the same log", "",
+                  "The deck pulses (`lhUartFrame`) decoded by the firmware's pulse processor (crazyflie-firmware "
+                  "e9ff096, `pulse_processor=\"firmware\"`) and by ours (`\"phase\"`, the default); a firmware "
+                  "frame (an lhAngle burst's new station) is reproduced when a rotation of its channel has all its "
+                  "angles within 1e-6 rad. Clock: the deck-to-log rate fitted on the log.", "",
+                  "| log | lhAngle frames | reproduced (firmware / phase) | max abs diff rad | rotations/s firmware | "
+                  "rotations/s phase | repeats dropped (events) | clock rate ppm |", "|---|---|---|---|---|---|---|---|"]
+        for name, d in dec:
+            f, h = d["firmware"], d["phase"]
+            lines.append(f"| {name} | {f['firmware_frames']} | {f['matched']} / {h['matched']} | "
+                         f"{f['max_abs_diff_rad']:.1e} | {f['rotations_per_s']:.1f} | {h['rotations_per_s']:.1f} | "
+                         f"{f['repeats_dropped']} | {d['clock']['rate_ppm']:+.0f} |")
+        lines.append("")
     if res["skipped"]:
         lines += ["## Not used", ""] + [f"- `{s['file']}`: {s['reason']}" for s in res["skipped"]] + [""]
     return "\n".join(lines)
@@ -559,6 +624,7 @@ def _figures(res, out: Path) -> list:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     from ..io.figures import save_figure
 
@@ -584,6 +650,7 @@ def _figures(res, out: Path) -> list:
             ax[i, 0].set_title(_label(k), fontsize=8)
             ax[i, 0].set_ylabel("error mm")
             ax[i, 0].set_yscale("log")
+            ax[i, 0].yaxis.set_minor_formatter(NullFormatter())
         ax[-1, 0].set_xlabel("time since markers on, logs one after another (s)")
         fig.suptitle(f"{name}: error vs motion capture over time")
         fig.tight_layout(rect=(0, 0.03, 1, 1))
