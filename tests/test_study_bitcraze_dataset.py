@@ -181,3 +181,14 @@ def test_bad_files_in_the_folder_are_listed_not_fatal(dataset, tmp_path):
     lines = [x for x in r.output.splitlines() if x.strip()]
     assert r.exit_code == 2 and lines[-1].startswith("error:") and "no log could be read" in lines[-1], r.output
     assert "Traceback" not in r.output
+
+
+def test_table_with_a_decode_check_that_reproduced_nothing():
+    """A decoding check with no reproduced frame (max difference None) is written as '–', not a crash."""
+    from layoutkit.studies.bitcraze_dataset import _table
+
+    d = {"firmware_frames": 10, "matched": 0, "matched_share": 0.0, "max_abs_diff_rad": None, "rotations": 0,
+         "rotations_per_s": 0.0, "repeats_dropped": 0}
+    res = {"sets": {}, "skipped": [], "logs": [{"log": "x/log00", "decode": {"status": "ok", "firmware": d, "phase": d,
+                                                                            "clock": {"rate_ppm": -10940.0}}}]}
+    assert "| x/log00 | 10 | 0 / 0 | – |" in _table(res)

@@ -377,7 +377,8 @@ def evaluate_log(item: LogItem, method: str) -> dict:
     method "decode": :func:`decode_check` instead."""
     t0 = time.perf_counter()
     if method == "decode":
-        return {"log": item.name, "method": method, "check": decode_check(item.log), "t": np.zeros(0),
+        check = decode_check(item.log) if item.kind == "lh2" else {"status": "no_data", "message": "an LH1 log"}
+        return {"log": item.name, "method": method, "check": check, "t": np.zeros(0),
                 "seconds": time.perf_counter() - t0}
     r = replay_positions(item.log, item.system_config, method)
     r["log"] = item.name
@@ -610,9 +611,10 @@ def _table(res) -> str:
                   "rotations/s phase | repeats dropped (events) | clock rate ppm |", "|---|---|---|---|---|---|---|---|"]
         for name, d in dec:
             f, h = d["firmware"], d["phase"]
-            lines.append(f"| {name} | {f['firmware_frames']} | {f['matched']} / {h['matched']} | "
-                         f"{f['max_abs_diff_rad']:.1e} | {f['rotations_per_s']:.1f} | {h['rotations_per_s']:.1f} | "
-                         f"{f['repeats_dropped']} | {d['clock']['rate_ppm']:+.0f} |")
+            mx = "–" if f["max_abs_diff_rad"] is None else f"{f['max_abs_diff_rad']:.1e}"
+            lines.append(f"| {name} | {f['firmware_frames']} | {f['matched']} / {h['matched']} | {mx} | "
+                         f"{f['rotations_per_s']:.1f} | {h['rotations_per_s']:.1f} | {f['repeats_dropped']} | "
+                         f"{d['clock']['rate_ppm']:+.0f} |")
         lines.append("")
     if res["skipped"]:
         lines += ["## Not used", ""] + [f"- `{s['file']}`: {s['reason']}" for s in res["skipped"]] + [""]
