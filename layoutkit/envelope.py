@@ -45,7 +45,8 @@ from .geometry import look_at_rotation, random_rotations, rotvec_to_matrix
 from ._validate import check_range, read_structured
 from .lighthouse import Station
 
-__all__ = ["ATTITUDE_KINDS", "Envelope", "load_envelope", "sample_cone_rotations", "sample_cone_directions"]
+__all__ = ["ATTITUDE_KINDS", "Envelope", "load_envelope", "envelope_set", "sample_cone_rotations",
+           "sample_cone_directions"]
 
 ATTITUDE_KINDS = ("uniform", "cone", "trajectory")
 
@@ -238,6 +239,23 @@ def load_envelope(path) -> Envelope:
     for w in caught:
         warnings.warn(type(w.message)(f"{path}: {w.message}"), stacklevel=2)
     return env
+
+
+def envelope_set(envelope, count=None, seed=None):
+    """``(Envelope, R (P, 3, 3), t (P, 3))`` of ``envelope`` (path or :class:`Envelope`), optionally with
+    another pose ``count`` or ``seed`` (a dense or held-out set of the same envelope); world frame."""
+    import dataclasses
+
+    env = envelope if isinstance(envelope, Envelope) else load_envelope(envelope)
+    ch = {}
+    if count is not None:
+        ch["count"] = int(count)
+    if seed is not None:
+        ch["seed"] = int(seed)
+    if ch:
+        env = dataclasses.replace(env, **ch)
+    R, t = env.poses()
+    return env, R, t
 
 
 def _reject_unknown(d: dict, allowed: set, where: str) -> None:

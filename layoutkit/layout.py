@@ -18,20 +18,17 @@ from ._validate import as_array, check_extent, check_finite, number_list, read_s
 from ._validate import ValidationWarning
 from .units import LENGTH_UNITS
 
-__all__ = ["UNIT_SCALE", "Layout", "load_layout", "save_layout", "KNOWN_KEYS", "KNOWN_SENSOR_KEYS"]
+__all__ = ["Layout", "load_layout", "save_layout", "KNOWN_KEYS", "KNOWN_SENSOR_KEYS"]
 
 #: Top-level keys layoutkit itself reads or writes (docs/layout-format.md). Other top-level keys are
 #: metadata (importers add their own) and pass; unknown per-sensor keys warn (typos such as 'postion').
 KNOWN_KEYS = frozenset({"units", "sensors", "name", "note", "mesh", "mesh_sha256", "kind", "spacing_m", "flat_only",
                         "keepout", "objective", "units_source", "rho", "value", "bound", "gap", "certified_by",
-                        "method", "min_visible", "candidate_ids", "dop_stats", "envelope"})
+                        "method", "min_visible", "candidate_ids", "dop_stats", "envelope", "spec", "provenance"})
 #: Per-sensor keys layoutkit reads or writes.
 KNOWN_SENSOR_KEYS = frozenset({"id", "position", "normal", "face", "part", "candidate"})
 #: Two sensors closer than this (m) are the same place: an error.
 DUPLICATE_TOL_M = 1e-9
-
-#: Back-compat name of :data:`layoutkit.units.LENGTH_UNITS` (metres per unit).
-UNIT_SCALE = LENGTH_UNITS
 
 
 @dataclass(frozen=True)

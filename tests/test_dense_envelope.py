@@ -1,4 +1,4 @@
-"""Dense-envelope loop (issue 13): properties checked against an independent evaluation.
+"""Dense-envelope loop (issue 13; :mod:`layoutkit.optimize.dense`): properties checked against an independent evaluation.
 
 Proof kind: independent recomputation. Every held-out and dense-set value below is recomputed with
 :func:`layoutkit.dop.pose_dop` (batched 6 × 6 algebra, not the fused kernel the loop uses) on the
@@ -44,28 +44,35 @@ def _independent_adop(hull, cand, sel, R, t, stations):
     return np.where(vis.any(axis=1).sum(axis=1) >= 4, np.asarray(d.adop), np.inf)
 
 
+TUNING = {"patience": 1, "two_swap": False}
+
+
 def _visor_problem():
-    """The small visor both dense-loop fixtures optimise: hull, candidates, envelope, prepared
-    problem and the (fast, deterministic) optimiser keywords."""
-    from layoutkit.workflows.optimize import prepare_problem
+    """The small visor both dense-loop fixtures optimise: hull, candidates, envelope and the problem."""
+    from layoutkit.optimize import DesignProblem
 
     hull, cand = _visor(0.016)
     env = _envelope(40, 5)
-    prep = prepare_problem(hull, env, candidates=cand)
-    kw = dict(objective="worst-adop", rho=RHO, min_visible=4, method="polish",
-              ctx_options={"patience": 1, "two_swap": False})
-    return hull, cand, env, prep, kw
+    return hull, cand, env, DesignProblem.load(hull, env, candidates=cand)
+
+
+def _dense(problem, **dense):
+    """The dense loop with the (fast, deterministic) polish method: ``(result, info)``."""
+    from layoutkit.optimize import DenseSpec, OptimizeSpec, solve
+
+    spec = OptimizeSpec(k=24, rho=RHO, method="polish", seed=0, dense=DenseSpec(**{"coverage_poses": 0, **dense}))
+    r = solve(problem, spec, tuning=TUNING)
+    return r, r.info["dense"]
 
 
 @pytest.fixture(scope="module")
 def run():
-    from layoutkit.optimize import optimize_stations
-    from layoutkit.workflows.dense import dense_optimize
+    from layoutkit.optimize import OptimizeSpec, solve
 
-    hull, cand, env, prep, kw = _visor_problem()
-    design = optimize_stations(prep["jac"], prep["visible"], 24, rng=0, **kw)
-    dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=4, add=24, seed_poses=40,
-                                 min_sep=0.0, patience=4, later_patience=1)
+    hull, cand, env, prep = _visor_problem()
+    design = solve(prep, OptimizeSpec(k=24, rho=RHO, method="polish", seed=0), tuning=TUNING)
+    dense, info = _dense(prep, poses=1500, rounds=4, add=24, seed_poses=40, min_sep=0.0, patience=4,
+                         later_patience=1)
     return hull, cand, env, prep, design, dense, info
 
 
@@ -74,7 +81,7 @@ def test_dense_loop_holds_better_on_heldout_than_design_only(run):
     """Held-out worst ADOP (1,000 fresh poses, untracked = inf) of the dense-loop layout is no worse
     than that of the layout optimised on the 40 design poses only, and the design-only layout is
     over-fitted (its held-out worst exceeds its design value) — the effect the loop exists for."""
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.envelope import envelope_set
 
     hull, cand, env, prep, design, dense, info = run
     _, Rh, th = envelope_set(env, count=1000, seed=env.seed + 2)
@@ -84,20 +91,21 @@ def test_dense_loop_holds_better_on_heldout_than_design_only(run):
     assert np.isfinite(h_dense) and h_dense <= h_design
     # the loop's dense-set value is the layout's real worst case on the dense set
     _, Rd, td = envelope_set(env, count=1500, seed=env.seed + 1)
-    RD, tD = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
+    RD, tD = np.concatenate([prep.rotations, Rd]), np.concatenate([prep.translations, td])
     a = _independent_adop(hull, cand, dense.selected, RD, tD, env.stations)
     assert info["dense_value"] == pytest.approx(a.max(), rel=1e-7)
 
 
+@pytest.mark.slow
 def test_working_set_holds_the_worst_violators(run):
     """After round 0 the working set gains exactly the 24 worst dense poses of round 0's layout that
     exceed its working-set value by more than tol (min_sep = 0, every dense pose coverable here),
     recomputed independently; the space-filling seed and the returned working set are dense poses."""
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.envelope import envelope_set
 
     hull, cand, env, prep, design, dense, info = run
     _, Rd, td = envelope_set(env, count=1500, seed=env.seed + 1)
-    RD, tD = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
+    RD, tD = np.concatenate([prep.rotations, Rd]), np.concatenate([prep.translations, td])
     r0 = info["rounds"][0]
     a = _independent_adop(hull, cand, np.array(r0["selected"]), RD, tD, env.stations)
     in_work = np.zeros(len(RD), bool)
@@ -111,14 +119,14 @@ def test_working_set_holds_the_worst_violators(run):
     # the best layout's working set: rows of the dense set, design poses first
     W = info["working_rotations"]
     assert len(W) == info["working_set_poses"]
-    np.testing.assert_array_equal(W[:40], prep["rotations"])
+    np.testing.assert_array_equal(W[:40], prep.rotations)
     assert np.all(np.isin(np.round(W.reshape(len(W), -1), 12), np.round(RD.reshape(len(RD), -1), 12)).all(axis=1))
 
 
 def test_farthest_point_poses_is_maximin_greedy():
     """Farthest-point sampling against a brute-force re-statement on random descriptors: each pick
     maximises the distance to everything chosen before (start set included)."""
-    from layoutkit.workflows.dense import farthest_point_poses
+    from layoutkit.optimize.poses import farthest_point_poses
 
     rng = np.random.default_rng(3)
     X = rng.normal(size=(300, 4))
@@ -134,11 +142,9 @@ def test_farthest_point_poses_is_maximin_greedy():
 
 @pytest.fixture(scope="module")
 def whole_run():
-    from layoutkit.workflows.dense import dense_optimize
-
-    hull, cand, env, prep, kw = _visor_problem()
-    dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=3, coverage_poses=3000,
-                                 patience=2, later_patience=1, coverage_dop=True)  # seed_poses="all"
+    hull, cand, env, prep = _visor_problem()
+    dense, info = _dense(prep, poses=1500, rounds=3, coverage_poses=3000, patience=2, later_patience=1,
+                         coverage_dop=True)  # seed_poses="all"
     return hull, cand, env, prep, dense, info
 
 
@@ -152,11 +158,11 @@ def test_whole_dense_set_loop_is_a_true_one_swap_optimum_on_it(whole_run):
     or its 6 x 6 kernels): no swap lowers the worst case."""
     from layoutkit.dop_batch import batch_dop
     from layoutkit.visibility import envelope_visibility
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.envelope import envelope_set
 
     hull, cand, env, prep, dense, info = whole_run
     _, Rd, td = envelope_set(env, count=1500, seed=env.seed + 1)
-    RD, tD = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
+    RD, tD = np.concatenate([prep.rotations, Rd]), np.concatenate([prep.translations, td])
     assert info["seed_poses"] == 1500 - info["uncoverable_dense_poses"] and info["uncovered_dense_poses"] == 0
     assert info["dense_set_poses"] == 4540 and len(info["dense_adop"]) == 1540
     _, Rc, tc = envelope_set(env, count=3000, seed=env.seed + 3)
@@ -189,8 +195,8 @@ def test_far_range_copies_keep_attitude_and_bearing_and_dominate():
     Jacobian; ≥ 0.95 of it), so a working set of
     copies is conservative there; where parallax changes the lit set it may not be (why the originals stay)."""
     from layoutkit.visibility import envelope_visibility
-    from layoutkit.workflows.dense import far_range_poses
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize.poses import far_range_poses
+    from layoutkit.envelope import envelope_set
 
     hull, cand = _visor(0.016)
     env = _envelope(40, 5)
@@ -226,23 +232,23 @@ def test_far_range_loop_seeds_copies_and_reports_the_whole_dense_set():
     all of them, and a trajectory envelope is refused with a message naming the option."""
     import dataclasses
 
-    from layoutkit.workflows.dense import dense_optimize, far_range_poses
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize.poses import far_range_poses
+    from layoutkit.envelope import envelope_set
 
-    hull, cand, env, prep, kw = _visor_problem()
-    dense, info = dense_optimize(prep, 24, kw, dense_poses=1500, seed=0, rounds=2, seed_poses=300, add=24,
-                                 patience=1, later_patience=1, far_range=True)
+    hull, cand, env, prep = _visor_problem()
+    dense, info = _dense(prep, poses=1500, rounds=2, seed_poses=300, add=24, patience=1, later_patience=1,
+                         far_range=True)
     assert info["dense_set_poses"] == 2 * 1540 and len(info["dense_adop"]) == 2 * 1540
     assert np.all(info["seed_indices"] >= 1540) and len(info["seed_indices"]) == 300
     _, Rd, td = envelope_set(env, count=1500, seed=env.seed + 1)
-    R0, t0 = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
+    R0, t0 = np.concatenate([prep.rotations, Rd]), np.concatenate([prep.translations, td])
     Rf, tf = far_range_poses(env, R0, t0)
     a = _independent_adop(hull, cand, dense.selected, np.concatenate([R0, Rf]), np.concatenate([t0, tf]),
                           env.stations)
     assert info["dense_value"] == pytest.approx(a.max(), rel=1e-7)
-    traj = dict(prep, envelope=dataclasses.replace(env, attitude="trajectory", trajectory="poses.csv"))
+    traj = dataclasses.replace(prep, envelope=dataclasses.replace(env, attitude="trajectory", trajectory="poses.csv"))
     with pytest.raises(ValueError, match="far_range"):
-        dense_optimize(traj, 24, kw, dense_poses=10, far_range=True)
+        _dense(traj, poses=10, far_range=True)
 
 
 @pytest.mark.slow
@@ -253,8 +259,8 @@ def test_range_sweep_brackets_every_lit_set_change_and_reaches_the_ray_worst():
     grid is reached by the swept poses to 0.2 % (the grid's own resolution; within a segment of a fixed
     lit set the DOP grows with range, so the segment's worst is at a swept end)."""
     from layoutkit.visibility import envelope_visibility
-    from layoutkit.workflows.dense import range_sweep_poses
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize.poses import range_sweep_poses
+    from layoutkit.envelope import envelope_set
 
     hull, cand = _visor(0.016)
     env = _envelope(40, 5)
@@ -296,14 +302,13 @@ def test_range_sweep_loop_value_covers_the_swept_rays():
     trajectory envelope is refused naming the option."""
     import dataclasses
 
-    from layoutkit.workflows.dense import dense_optimize, range_sweep_poses
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize.poses import range_sweep_poses
+    from layoutkit.envelope import envelope_set
 
-    hull, cand, env, prep, kw = _visor_problem()
-    dense, info = dense_optimize(prep, 24, kw, dense_poses=600, seed=0, rounds=3, add=24, patience=1,
-                                 later_patience=1, range_sweep=True)
+    hull, cand, env, prep = _visor_problem()
+    dense, info = _dense(prep, poses=600, rounds=3, add=24, patience=1, later_patience=1, range_sweep=True)
     _, Rd, td = envelope_set(env, count=600, seed=env.seed + 1)
-    R0, t0 = np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])
+    R0, t0 = np.concatenate([prep.rotations, Rd]), np.concatenate([prep.translations, td])
     sel = dense.selected
     Rs, ts, _ = range_sweep_poses(env, R0, t0, cand.positions[sel], cand.normals[sel], 60.0)
     a = _independent_adop(hull, cand, sel, np.concatenate([R0, Rs]), np.concatenate([t0, ts]), env.stations)
@@ -311,6 +316,6 @@ def test_range_sweep_loop_value_covers_the_swept_rays():
     assert info["dense_value"] >= a.max() * (1 - 1e-7)
     assert a.max() > _independent_adop(hull, cand, sel, R0, t0, env.stations).max()  # the sweep finds worse
     assert info["joined_swept_poses"] > 0
-    traj = dict(prep, envelope=dataclasses.replace(env, attitude="trajectory", trajectory="poses.csv"))
+    traj = dataclasses.replace(prep, envelope=dataclasses.replace(env, attitude="trajectory", trajectory="poses.csv"))
     with pytest.raises(ValueError, match="range_sweep"):
-        dense_optimize(traj, 24, kw, dense_poses=10, range_sweep=True)
+        _dense(traj, poses=10, range_sweep=True)

@@ -10,9 +10,9 @@ import importlib
 import pytest
 
 #: module → whether it must hold examples (the public core documented with one each:
-#: solve_pnp, pose_dop, measure; optimize/core's optimize_layout / solve examples are run when present)
+#: solve_pnp, pose_dop, measure, and optimize_layout / solve in layoutkit.optimize.solver)
 MODULES = {"layoutkit.pnp": True, "layoutkit.dop": True, "layoutkit.lighthouse": True,
-           "layoutkit.optimize.core": False}
+           "layoutkit.optimize.solver": True}
 
 
 @pytest.mark.parametrize("name", sorted(MODULES))

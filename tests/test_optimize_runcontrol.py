@@ -72,6 +72,7 @@ def test_relaxation_killed_at_deadline_gives_no_bound():
 
 
 def _run_with_signal(tmp_path, sig, at_stage, at_count):
+    from layoutkit.optimize import DesignProblem, OptimizeSpec
     from layoutkit.workflows.optimize import run_optimize
 
     env = dataclasses.replace(load_envelope("models/chen_envelope.toml"), count=30)
@@ -83,8 +84,9 @@ def _run_with_signal(tmp_path, sig, at_stage, at_count):
             if seen["n"] == at_count:
                 os.kill(os.getpid(), sig)
 
-    return run_optimize("models/chen_target.stl", env, 9, out=tmp_path / "lay.json", spacing=0.014,
-                        k_range=(9, 11), render=False, progress=progress, time_limit=8)
+    spec = OptimizeSpec(k=9, time_limit_s=8)
+    problem = DesignProblem.for_spec("models/chen_target.stl", env, spec, spacing=0.014)
+    return run_optimize(problem, spec, out=tmp_path / "lay.json", k_range=(9, 11), render=False, progress=progress)
 
 
 @pytest.mark.slow
@@ -157,7 +159,8 @@ def test_cli_tilt_toward_station_writes_meridional_axes_and_rejects_a_zero_axis(
     from click.testing import CliRunner
 
     from layoutkit.cli import main
-    from layoutkit.workflows.optimize import mean_station_direction, prepare_problem
+    from layoutkit.optimize import DesignProblem
+    from layoutkit.optimize.design import mean_station_direction
 
     env = tmp_path / "env.toml"
     env.write_text(open("models/chen_envelope.toml").read().replace("count = 200", "count = 30"))
@@ -171,9 +174,9 @@ def test_cli_tilt_toward_station_writes_meridional_axes_and_rejects_a_zero_axis(
     s = json.loads(r.output)
     assert s["tilt_toward"] == "station" and s["max_tilt_deg"] == 15.0
     assert s["tilted_sensors"] >= 1  # (6 on this instance): the checks below see tilted axes
-    plain = prepare_problem("models/chen_target.stl", str(env), spacing=0.016)
-    w = mean_station_direction(plain["rotations"], plain["translations"], plain["stations"])
-    normal = dict(zip(plain["candidates"].ids, plain["candidates"].normals))
+    plain = DesignProblem.load("models/chen_target.stl", str(env), spacing=0.016)
+    w = mean_station_direction(plain.rotations, plain.translations, plain.stations)
+    normal = dict(zip(plain.candidates.ids, plain.candidates.normals))
     lay = json.loads(out.read_text())
     for x in lay["sensors"]:
         n, a = normal[x["x-site"]], np.asarray(x["normal"], float)

@@ -92,12 +92,13 @@ def test_optimize_report_figures_mark_worst_pose(tmp_path, saved):
     res = SimpleNamespace(success=True, adop=rng.uniform(500, 3000, P), pdop=rng.uniform(10, 50, P),
                           n_lit=rng.integers(4, 9, P), objective="worst-adop", value=3000.0, bound=2800.0,
                           gap=0.07, selected=np.arange(12))
-    prep = {"translations": rng.normal(size=(P, 3)) + [0, 0, 3], "stations": [SimpleNamespace(translation=np.zeros(3))],
-            "envelope": SimpleNamespace(reference_station=0)}
+    problem = SimpleNamespace(translations=rng.normal(size=(P, 3)) + [0, 0, 3],
+                              stations=[SimpleNamespace(translation=np.zeros(3))],
+                              envelope=SimpleNamespace(reference_station=0))
     summary = {"objective": "worst-adop", "min_visible": 4, "rho": 0.8717, "k_sweep": [
         {"k": k, "value": 3000.0 / k, "bound": 2800.0 / k, "stats": {"adop_deg_per_rad": {"median": 1000.0 / k}}}
         for k in (8, 10, 12)]}
-    write_report(tmp_path, prep, res, summary, render=False)
+    write_report(tmp_path, problem, res, summary, render=False)
     _assert_all(saved, 3)
     import matplotlib.pyplot as plt  # the worst pose is labelled in the legend of both panels
 

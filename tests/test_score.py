@@ -55,7 +55,7 @@ def test_score_json_matches_pose_dop(tmp_path):
 def test_coverage_rules_two_stations_by_explicit_count():
     import dataclasses
 
-    from layoutkit.workflows.score import layout_visibility
+    from layoutkit.optimize.design import layout_visibility
 
     env = dataclasses.replace(load_envelope("models/docking_two_stations.toml"), count=300)
     lay = load_layout(LAY)

@@ -58,6 +58,7 @@ def _cells(out):
 KEYS = ("status", "value", "bound", "gap", "selected_ids", "certified_by", "input_hash")
 
 
+@pytest.mark.slow
 def test_localcluster_and_synchronous_give_identical_cells(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope)
     r = CliRunner()
@@ -78,11 +79,14 @@ def test_localcluster_and_synchronous_give_identical_cells(tmp_path, small_envel
     for p in ("objective_vs_axes.png", "pareto_worst_adop_vs_k.png", "summary.json"):
         assert (tmp_path / "local" / p).stat().st_size > 0
     # a cell equals `layoutkit optimize` run directly on the same problem (independent path)
+    from layoutkit.optimize import DesignProblem, OptimizeSpec
     from layoutkit.workflows.optimize import run_optimize
 
     cell = next(c for c in ca.values() if c["axes"] == {"k": 6, "method": "pipeline"})
-    direct = run_optimize(str(tmp_path / "target.stl"), str(tmp_path / "envelope.toml"), 6, spacing=0.02,
-                          max_candidates=40, rho=0.8717, time_limit=120, method="pipeline", render=False)
+    spec = OptimizeSpec(k=6, rho=0.8717, time_limit_s=120, method="pipeline")
+    problem = DesignProblem.for_spec(str(tmp_path / "target.stl"), str(tmp_path / "envelope.toml"), spec, spacing=0.02,
+                                     max_candidates=40)
+    direct = run_optimize(problem, spec, render=False)
     assert direct["selected_ids"] == cell["selected_ids"]
     assert direct["value"] == pytest.approx(cell["value"], rel=1e-12)
     lay = json.loads((tmp_path / "local" / "cells" / cell["layout"]).read_text())
@@ -96,17 +100,15 @@ def test_sweep_file_errors_name_file_and_key(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [5, 'x']\n")
     with pytest.raises(ValueError, match=r"sweep.toml: axes.k\[1\]: expected an integer"):
         load_sweep(sweep)
-    sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [5]\nmax_tilt_deg = [0.0, 20.0]\n")
-    from layoutkit.workflows.sweep_config import tilt_supported
-
-    if not tilt_supported():
-        with pytest.raises(ValueError, match="max_tilt_deg: sensor tilt is not in this version"):
-            load_sweep(sweep)
+    sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [5]\nmax_tilt_deg = [0.0, 95.0]\n")
+    with pytest.raises(ValueError, match=r"sweep.toml: axes.max_tilt_deg\[1\]: expected a number in \[0.0, 90.0\)"):
+        load_sweep(sweep)
     sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [5]\nunits = ['m', 'mm']\n")
     with pytest.raises(ValueError, match="axes.units: cannot be swept"):
         load_sweep(sweep)
 
 
+@pytest.mark.slow
 def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [5, 400]\nmethod = [\"greedy\"]\n")
     r = CliRunner().invoke(main, ["sweep", str(sweep), "--out", str(tmp_path / "o"), "--scheduler", "synchronous"])
@@ -128,21 +130,20 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path, small_envelope)
     assert json.loads(r.stdout)["ran"] == 2 and "changed inputs" in r.stderr
 
 
-def test_tilt_axis_runs_once_the_optimiser_has_it(tmp_path, small_envelope):
-    """Same-computation check: a tilted cell equals `run_optimize(max_tilt_deg=...)` directly."""
-    from layoutkit.workflows.sweep_config import tilt_supported
-
-    if not tilt_supported():
-        pytest.skip("optimiser without sensor tilt")
+def test_tilt_axis_equals_optimize_with_tilt(tmp_path, small_envelope):
+    """Same-computation check: a tilted cell equals `run_optimize` with the same tilt directly."""
     sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [6]\nmax_tilt_deg = [0.0, 20.0]\n",
                        base_extra='method = "greedy"\n')
     r = CliRunner().invoke(main, ["sweep", str(sweep), "--out", str(tmp_path / "o"), "--scheduler", "synchronous"])
     assert r.exit_code == 0, r.output
     cells = {c["axes"]["max_tilt_deg"]: c for c in _cells(tmp_path / "o").values()}
+    from layoutkit.optimize import DesignProblem, OptimizeSpec
     from layoutkit.workflows.optimize import run_optimize
 
-    direct = run_optimize(str(tmp_path / "target.stl"), str(tmp_path / "envelope.toml"), 6, spacing=0.02,
-                          max_candidates=40, rho=0.8717, method="greedy", max_tilt_deg=20.0, render=False)
+    spec = OptimizeSpec(k=6, rho=0.8717, method="greedy", max_tilt_deg=20.0)
+    problem = DesignProblem.for_spec(str(tmp_path / "target.stl"), str(tmp_path / "envelope.toml"), spec, spacing=0.02,
+                                     max_candidates=40)
+    direct = run_optimize(problem, spec, render=False)
     assert cells[20.0]["status"] == direct["status"] == "ok"
     assert cells[20.0]["value"] == pytest.approx(direct["value"], rel=1e-12)
     assert cells[20.0]["candidates"] > cells[0.0]["candidates"]  # tilted orientations are candidates
@@ -176,6 +177,7 @@ def _kill(p):
 SLOW_AXES = "k = [5, 6, 7]\nmethod = [\"pipeline\"]\nseed = [1, 2]\n"
 
 
+@pytest.mark.slow
 def test_real_scheduler_worker_killed_midsweep_then_completes(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 1.5")
     (tmp_path / "sweep.toml").write_text(sweep)
@@ -216,6 +218,7 @@ def test_real_scheduler_worker_killed_midsweep_then_completes(tmp_path, small_en
                 p.kill()
 
 
+@pytest.mark.slow
 def test_killed_sweep_resumes_with_only_the_missing_cells(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 0.7")
     (tmp_path / "sweep.toml").write_text(sweep)

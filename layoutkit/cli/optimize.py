@@ -6,6 +6,7 @@ import math
 import click
 
 from ._common import echo_json, fail
+from .options import Conflict, flag_rules
 from .options import (allow_odd_size_option, coverage_option, envelope_option, half_angle_option, json_flag, min_visible_option,
                       out_file_option, registry_choice, report_option, rho_option, seed_option, time_limit_option,
                       units_option)
@@ -51,7 +52,7 @@ def _tilt_toward(ctx, param, value):
 @click.option("--candidates", "candidates_path", default=None, type=click.Path(dir_okay=False),
               help="Candidate sites (layout JSON from `layoutkit candidates`).")
 @click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
-              help="Sample candidate sites this far apart, mm (default 1 %% of the mesh size).")
+              help="Sample candidate sites this far apart, mm (default 1 % of the mesh size).")
 @click.option("--keepout-box", multiple=True, metavar="X0,Y0,Z0,X1,Y1,Z1",
               help="Keep-out box in the body frame, mm (repeatable; with --spacing-mm sampling).")
 @click.option("--fixed", default="", metavar="ID,...", help="Candidate ids placed in advance.")
@@ -82,6 +83,8 @@ def _tilt_toward(ctx, param, value):
 @click.option("--branch-and-bound/--no-branch-and-bound", "bnb", default=True, show_default=True,
               help="Tighten the certified bound by branch-and-bound in a second process beside the search "
                    "(worst-case objectives with a time limit; docs/optimize.md).")
+@flag_rules(Conflict("--candidates", "--spacing-mm", "the candidates file already fixes the sites"),
+            Conflict("--candidates", "--keepout-box", "keep-out boxes filter sampled sites; filter the file instead"))
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                  half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json,
@@ -90,7 +93,6 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
     import warnings
 
     from ..mesh import MeshUnitsWarning
-    from ..workflows.optimize import run_optimize
 
     with warnings.catch_warnings():  # mesh warnings (wrong --units, not watertight) as one line each
         warnings.showwarning = lambda msg, *a, **k: click.secho(f"warning: {msg}", fg="yellow", err=True)
@@ -99,11 +101,12 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
         else:  # asked for: one warning line (the command group makes odd sizes errors by default)
             warnings.simplefilter("default", MeshUnitsWarning)
         try:
-            s = _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
-                          spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-                          half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize,
-                          dict(coverage=coverage, max_tilt_deg=max_tilt_deg, tilt_toward=tilt_toward, dense_poses=dense_poses,
-                               branch_and_bound="auto" if bnb else "off"))
+            spec = _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fraction, min_spacing_mm,
+                         half_angle_deg, time_limit_s, seed, coverage, max_tilt_deg, tilt_toward, dense_poses, bnb)
+            s = _optimize(mesh, envelope_path, spec, dict(candidates=candidates_path, units=units,
+                                                          spacing=None if spacing_mm is None else spacing_mm * 1e-3,
+                                                          keepout=_keepout(keepout_box)),
+                          out, report_dir, k_range, no_render, as_json)
         except MeshUnitsWarning as exc:
             fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")
     if as_json:
@@ -118,43 +121,57 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
         raise SystemExit(1)
 
 
-def _optimize(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
-              spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
-              half_angle_deg, k_range, time_limit_s, seed, units, no_render, as_json, run_optimize, extra):
+def _keepout(keepout_box):
+    from ..candidates import parse_keepout
+
     try:
-        from ..optimize import parse_objective
+        return [parse_keepout("box:" + b) for b in keepout_box]
+    except ValueError as exc:
+        fail(str(exc))
 
-        w = None
-        if objective.strip().lower().endswith("weighted") and not weights:
-            fail(f"--objective {objective}: needs --weights A,B (weights of ADOP² in deg² and PDOP² in m²); "
-                 "no silent default")
-        if weights:
-            w = tuple(float(x) for x in weights.split(","))
-        parse_objective(objective, w)
-        keep = []
-        if keepout_box:
-            from ..candidates import parse_keepout
 
-            keep = [parse_keepout("box:" + b) for b in keepout_box]
-        fixed_ids = [f.strip() for f in fixed.split(",") if f.strip()]
-        from ..optimize.runcontrol import Interrupted
+def _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fraction, min_spacing_mm,
+          half_angle_deg, time_limit_s, seed, coverage, max_tilt_deg, tilt_toward, dense_poses, bnb):
+    """The :class:`layoutkit.optimize.OptimizeSpec` of the command's options (errors: exit 2 with the field)."""
+    from ..optimize import DenseSpec, OptimizeSpec
 
+    if weights and not objective.strip().lower().endswith("weighted"):
+        fail(f"--weights is for the *-weighted objectives; --objective {objective} would ignore it")
+    if objective.strip().lower().endswith("weighted") and not weights:
+        fail(f"--objective {objective}: needs --weights A,B (weights of ADOP² in deg² and PDOP² in m²); "
+             "no silent default")
+    try:
+        w = tuple(float(x) for x in weights.split(",")) if weights else None
+        return OptimizeSpec(k=k, objective=objective, weights=w, rho=rho, min_visible=min_visible, coverage=coverage,
+                            coverage_fraction=coverage_fraction, min_spacing_m=min_spacing_mm * 1e-3,
+                            half_angle_deg=half_angle_deg, max_tilt_deg=max_tilt_deg,
+                            tilt_toward=tuple(tilt_toward) if isinstance(tilt_toward, list) else tilt_toward,
+                            method=method, time_limit_s=time_limit_s, seed=seed,
+                            branch_and_bound="auto" if bnb else "off",
+                            fixed=tuple(f.strip() for f in fixed.split(",") if f.strip()),
+                            dense=DenseSpec(poses=dense_poses) if dense_poses else None)
+    except ValueError as exc:
+        fail(str(exc))
+
+
+def _optimize(mesh, envelope_path, spec, sources, out, report_dir, k_range, no_render, as_json):
+    """Load the problem once, run the workflow; a ValueError is a clear error (exit 2)."""
+    from ..optimize import DesignProblem
+    from ..optimize.runcontrol import Interrupted
+    from ..workflows.optimize import run_optimize
+
+    try:
+        problem = DesignProblem.for_spec(mesh, envelope_path, spec, **sources)
         with _progress(as_json) as prog:
             try:
-                s = run_optimize(mesh, envelope_path, k, out=out, report=report_dir, objective=objective, rho=rho,
-                                 method=method, candidates=candidates_path,
-                                 spacing=None if spacing_mm is None else spacing_mm * 1e-3, keepout=keep,
-                                 fixed_ids=fixed_ids, min_visible=min_visible, k_range=k_range, seed=seed,
-                                 units=units, min_spacing=min_spacing_mm * 1e-3, coverage_fraction=coverage_fraction,
-                                 time_limit=time_limit_s, progress=prog, sensor_half_angle_deg=half_angle_deg,
-                                 render=not no_render, echo=lambda m: click.echo(m, err=True), **extra)
+                return run_optimize(problem, spec, out=out, report=report_dir, k_range=k_range, progress=prog,
+                                    render=not no_render, echo=lambda m: click.echo(m, err=True))
             except Interrupted as exc:
                 click.secho(f"error: interrupted by {exc.signame} before any layout was found; nothing written",
                             fg="red", err=True)
                 raise SystemExit(143 if exc.signame == "SIGTERM" else 130)
     except ValueError as exc:
         fail(str(exc))
-    return s
 
 
 def _print_summary(s):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import (distance_m_option, envelope_option, half_angle_option, json_flag, layout_option,
+from .options import (distance_m_option, envelope_option, explicit, half_angle_option, json_flag, layout_option,
                       out_dir_option, rho_option, sigma_option, units_option)
 
 
@@ -27,8 +27,9 @@ def _views(text: str):
 
 
 @click.command("render", short_help="Off-screen PNGs: layout, coverage, quality map, views.")
-@click.argument("mesh", type=click.Path(dir_okay=False))
-@layout_option(required=False, help="Layout JSON (sensors to draw).")
+@click.argument("mesh", type=click.Path(dir_okay=False), required=False)
+@layout_option(required=False, help="Layout JSON (sensors to draw); one written by `layoutkit optimize` also gives "
+                                    "MESH, --envelope and --half-angle-deg when they are left out.")
 @click.option("--candidates", "candidates_path", type=click.Path(dir_okay=False),
               help="Candidate sites (layout JSON), drawn as grey points; alone with --envelope: coverage map.")
 @envelope_option(required=False, help="Envelope TOML: colour sensors by the fraction of poses in which they are lit.")
@@ -55,11 +56,14 @@ def _views(text: str):
               help="Station-view vertical view angle, deg (default: fit the target; the lighthouse sees 120).")
 @half_angle_option
 @json_flag(help="Print a JSON object with the written paths and summaries.")
-def render_cmd(mesh, layout_path, candidates_path, envelope_path, units, out_dir, size, views, quality_map, map_kind,
+@click.pass_context
+def render_cmd(ctx, mesh, layout_path, candidates_path, envelope_path, units, out_dir, size, views, quality_map, map_kind,
                distance_m, rho, grid_deg, roll_samples, sigma, station_view_pose, view_angle_deg,
                half_angle_deg, as_json):
     """Off-screen PNGs: the mesh with candidates and layout (coloured by envelope coverage), the
-    tracking-quality map over all viewing directions, and the view from a lighthouse."""
+    tracking-quality map over all viewing directions, and the view from a lighthouse.
+
+    MESH may be left out with a --layout written by `layoutkit optimize` (it records its mesh and envelope)."""
     try:
         size_px = _size(size)
         view_names = _views(views)
@@ -74,8 +78,10 @@ def render_cmd(mesh, layout_path, candidates_path, envelope_path, units, out_dir
             size=size_px, views=view_names, quality_map=quality_map,
             map_kinds=("mollweide", "sphere") if map_kind == "both" else (map_kind,),
             distance_m=distance_m, rho=rho, grid_deg=grid_deg, roll_samples=roll_samples, station_view_pose=pose,
-            view_angle_deg=view_angle_deg, sensor_half_angle_deg=half_angle_deg, sigma_theta=sigma)
-        res = render_design(mesh, out_dir=out_dir, units=units, layout_path=layout_path,
+            view_angle_deg=view_angle_deg,
+            sensor_half_angle_deg=half_angle_deg if explicit(ctx, "half_angle_deg") else None, sigma_theta=sigma)
+        res = render_design(mesh, out_dir=out_dir, units=units if explicit(ctx, "units") else None,
+                            layout_path=layout_path,
                             candidates_path=candidates_path, envelope_path=envelope_path, options=opts)
     except (ValueError, OSError, RenderingUnavailable) as exc:
         fail(str(exc))

@@ -4,15 +4,17 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import (coverage_option, envelope_option, half_angle_option, json_flag, min_visible_option,
+from .options import (coverage_option, envelope_option, explicit, half_angle_option, json_flag, min_visible_option,
                       report_option, rho_option, seed_option, units_option)
 
 
 @click.command("score", short_help="Score a layout over an envelope: DOP, coverage, usage.")
 @click.argument("layout", type=click.Path(dir_okay=False))
-@envelope_option
+@envelope_option(required=False, help="Operating envelope TOML (docs/envelope.md); default: the one the layout "
+                                      "records (layouts written by `layoutkit optimize`).")
 @click.option("--mesh", "mesh_path", default=None, type=click.Path(dir_okay=False),
-              help="Mesh for self-occlusion (without: acceptance cone and field of view only).")
+              help="Mesh for self-occlusion (default: the one the layout records; without either: acceptance "
+                   "cone and field of view only).")
 @units_option
 @rho_option
 @half_angle_option
@@ -25,19 +27,32 @@ from .options import (coverage_option, envelope_option, half_angle_option, json_
               help="Second layout scored over the same poses: side-by-side table (and CDF with --report).")
 @report_option
 @json_flag
-def score_cmd(layout, envelope_path, mesh_path, units, rho, half_angle_deg, coverage, min_visible, n_poses,
+@click.pass_context
+def score_cmd(ctx, layout, envelope_path, mesh_path, units, rho, half_angle_deg, coverage, min_visible, n_poses,
               seed, compare_path, report_dir, as_json):
     """Score LAYOUT over the envelope: DOP distribution, coverage by rule, per-sensor usage.
 
     --seed replaces the envelope's pose seed (a held-out pose set). ADOP in deg/rad, PDOP in m/rad;
-    statistics over the covered poses. Exit 1 if no pose is covered.
+    statistics over the covered poses. Exit 1 if no pose is covered. A layout written by `layoutkit
+    optimize` records its envelope, mesh and settings: what is not given here is taken from it
+    (the JSON's "sources" says what came from where).
     """
-    from ..workflows.score import score_layout
+    from ..workflows.score import FROM_LAYOUT, score_layout
+
+    def given(name, value):
+        return value if explicit(ctx, name) else None
+
+    from .progress import progress_bar
 
     try:
-        res = score_layout(layout, envelope_path, mesh=mesh_path, units=units, rho=rho,
-                           half_angle_deg=half_angle_deg, min_visible=min_visible, coverage=coverage,
-                           poses=n_poses, seed=seed, compare=compare_path, report=report_dir)
+        with progress_bar("poses", quiet=as_json or not n_poses) as bar:
+            task = bar.add_task("poses", total=n_poses)
+            res = score_layout(layout, envelope_path, mesh=mesh_path if mesh_path is not None else FROM_LAYOUT,
+                               units=given("units", units), rho=given("rho", rho),
+                               half_angle_deg=given("half_angle_deg", half_angle_deg),
+                               min_visible=given("min_visible", min_visible), coverage=given("coverage", coverage),
+                               poses=n_poses, seed=seed, compare=compare_path, report=report_dir,
+                               progress=lambda n: bar.advance(task, n))
     except ValueError as exc:
         fail(str(exc))
     out = {k: v for k, v in res.items() if not k.startswith("_")}

@@ -250,140 +250,160 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
         raise ValueError("branch_and_bound: only the worst-case objective with full coverage is supported")
     t0 = time.perf_counter()
     deadline = math.inf if deadline is None else float(deadline)
-    N, k = problem.N, problem.k
     if poses is None or len(poses) == 0:
-        z0 = np.full(N, k / N)
+        z0 = np.full(problem.N, problem.k / problem.N)
         poses = np.argsort(-relaxed_pose_values(problem, z0, use_rho))[:initial_poses]
     groups = site_groups(problem) if groups is None else [np.asarray(g, int) for g in groups]
-    G = len(groups)
-    gsize = np.array([len(g) for g in groups], float)
-    rel = DirectRelaxation(problem, groups, use_rho)
-    work = np.sort(np.unique(np.asarray(poses, int)))
-    n_poses = len(work)
-    nodes = 0
-    best_sel, best_v = None, math.inf
+    tree = _Tree(problem, groups, poses, deadline, use_rho, max_poses_per_round, pose_margin, remote)
     if incumbent is not None and incumbent[0] is not None and np.isfinite(incumbent[1]):
-        best_sel, best_v = np.sort(np.asarray(incumbent[0], int)), float(incumbent[1])
+        tree.best_sel, tree.best_v = np.sort(np.asarray(incumbent[0], int)), float(incumbent[1])
+    tree.start(root_bound, root_z)
+    status = tree.run(external, on_bound, gap_tol, max_nodes, max_candidates, max_strong, lookahead)
+    lb = tree.lower()
+    return BnbResult(float(lb), float(tree.best_v), tree.best_sel, tree.nodes, len(tree.heap) + len(tree.stuck),
+                     status == "complete", status, time.perf_counter() - t0, tree.n_poses)
 
-    def offer(sel):
-        nonlocal best_sel, best_v
-        v, feas = evaluate_subsets(problem, np.asarray(sel, int)[None])
-        if feas[0] and v[0] < best_v:
-            best_sel, best_v = np.sort(np.asarray(sel, int)), float(v[0])
 
-    def tally(out):
+class _Tree:
+    """The state of one :func:`branch_and_bound` run: the open nodes (a heap by bound), the incumbent, the
+    node relaxation and the pseudo-costs; its methods are the steps of the module docstring."""
+
+    def __init__(self, problem, groups, poses, deadline, use_rho, max_poses_per_round, pose_margin, remote):
+        self.problem, self.groups, self.deadline, self.use_rho = problem, groups, deadline, use_rho
+        self.max_poses_per_round, self.pose_margin, self.remote = max_poses_per_round, pose_margin, remote
+        self.k = problem.k
+        self.gsize = np.array([len(g) for g in groups], float)
+        self.rel = DirectRelaxation(problem, groups, use_rho)
+        self.work = np.sort(np.unique(np.asarray(poses, int)))
+        self.n_poses = len(self.work)
+        self.nodes = 0
+        self.best_sel, self.best_v = None, math.inf
+        self.counter = itertools.count()
+        self.heap = []  # (bound, tie, node arrays, z, expandable, prices, poses)
+        self.stuck = []  # bounds of open nodes that cannot be expanded (they still count)
+        self.ext = math.inf  # best value found outside B&B
+        self.pcost = {}  # pseudo-costs: (kind, j) -> [down gain sum, n, up gain sum, n] per unit of rounding
+        self.eps = 1e-6
+
+    # -- incumbent and certificate ------------------------------------------------------------------
+    def offer(self, sel):
+        """A selection met in the tree: its exact value may improve the incumbent (leaves, module item 3)."""
+        v, feas = evaluate_subsets(self.problem, np.asarray(sel, int)[None])
+        if feas[0] and v[0] < self.best_v:
+            self.best_sel, self.best_v = np.sort(np.asarray(sel, int)), float(v[0])
+
+    def cutoff(self):
+        return min(self.best_v, self.ext)
+
+    def lower(self):
+        """The certificate: min(incumbent, open node bounds) (module docstring, item 4)."""
+        return min(self.cutoff(), self.heap[0][0] if self.heap else math.inf, min(self.stuck, default=math.inf))
+
+    # -- node relaxations ---------------------------------------------------------------------------
+    def tally(self, out):
         """Count a node solve's relaxations (here or remote); its ``(bound, z, expandable, prices, poses)``."""
-        nonlocal nodes, n_poses
-        nodes += out[5]
-        n_poses = max(n_poses, out[6])
+        self.nodes += out[5]
+        self.n_poses = max(self.n_poses, out[6])
         return out[:5]
 
-    def solve(nd, parent_bound, zp=None, prices=None, poses=None):
-        return tally(_solve_node(problem, rel, nd, parent_bound, zp, prices, work if poses is None else poses,
-                                 deadline, use_rho, max_poses_per_round, pose_margin))
+    def solve(self, nd, parent_bound, zp=None, prices=None, poses=None):
+        return self.tally(_solve_node(self.problem, self.rel, nd, parent_bound, zp, prices,
+                                      self.work if poses is None else poses, self.deadline, self.use_rho,
+                                      self.max_poses_per_round, self.pose_margin))
 
-    counter = itertools.count()
-    heap = []  # (bound, tie, node arrays, z, expandable, prices, poses)
-    lo0 = np.zeros(N)
-    hi0 = np.ones(N)
-    lo0[problem.fixed] = 1.0
-    nd0 = (lo0, hi0, np.zeros(G), gsize.copy())
-    if root_z is not None and root_bound is not None and np.isfinite(root_bound):
-        root = (float(root_bound), np.asarray(root_z, float), True, None, work)
-    else:
-        root = solve(nd0, -math.inf)
-    stuck = []  # bounds of open nodes that cannot be expanded (they still count)
-    if np.isfinite(root[0]):
-        heapq.heappush(heap, (root[0], next(counter), nd0, root[1], root[2], root[3], root[4]))
-        if root[1] is not None:
-            _offer_integral(root[1], offer, k)
-    elif root[0] < 0:
-        stuck.append(-math.inf)  # the root was not solved (deadline): no certificate
+    def start(self, root_bound, root_z):
+        """The root node (the caller's relaxation, or solved here)."""
+        N = self.problem.N
+        lo0, hi0 = np.zeros(N), np.ones(N)
+        lo0[self.problem.fixed] = 1.0
+        nd0 = (lo0, hi0, np.zeros(len(self.groups)), self.gsize.copy())
+        if root_z is not None and root_bound is not None and np.isfinite(root_bound):
+            root = (float(root_bound), np.asarray(root_z, float), True, None, self.work)
+        else:
+            root = self.solve(nd0, -math.inf)
+        if np.isfinite(root[0]):
+            heapq.heappush(self.heap, (root[0], next(self.counter), nd0, root[1], root[2], root[3], root[4]))
+            if root[1] is not None:
+                _offer_integral(root[1], self.offer, self.k)
+        elif root[0] < 0:
+            self.stuck.append(-math.inf)  # the root was not solved (deadline): no certificate
+        self.eps = 1e-6 * max(abs(self.heap[0][0]) if self.heap else 1.0, 1e-12)
 
-    ext = [math.inf]  # best value found outside B&B
-
-    def cutoff():
-        return min(best_v, ext[0])
-
-    def lower():
-        return min(cutoff(), heap[0][0] if heap else math.inf, min(stuck, default=math.inf))
-
-    pcost = {}  # pseudo-costs: (kind, j) -> [down gain sum, n, up gain sum, n] per unit of rounding
-    eps = 1e-6 * max(abs(heap[0][0]) if heap else 1.0, 1e-12)
-
-    def pair(nd, c, b, z, prices, Q):
+    def pair(self, nd, c, b, z, prices, Q):
         """Solve both children of disjunction ``c`` (one remotely if a remote solver is free); each
         ``(node arrays, bound, z, expandable, prices, poses)`` or None if it holds no selection
         better than the incumbent (decided children are offered and closed here)."""
-        cnds = [_child_node(nd, groups, c, side) for side in (0, 1)]
+        cnds = [_child_node(nd, self.groups, c, side) for side in (0, 1)]
         todo = []
         for side, cnd in enumerate(cnds):
-            dsel = _decided(cnd[0], cnd[1], k)
+            dsel = _decided(cnd[0], cnd[1], self.k)
             if dsel is not None:
-                offer(dsel)
+                self.offer(dsel)
             else:
                 todo.append(side)
         outs = {}
+        remote = self.remote
         if len(todo) == 2 and remote is not None and remote.available():
-            remote.submit((cnds[1], b, z, prices, Q, deadline, max_poses_per_round, pose_margin))
-            outs[0] = solve(cnds[0], b, z, prices, Q)
-            outs[1] = tally(remote.get())
+            remote.submit((cnds[1], b, z, prices, Q, self.deadline, self.max_poses_per_round, self.pose_margin))
+            outs[0] = self.solve(cnds[0], b, z, prices, Q)
+            outs[1] = self.tally(remote.get())
         else:
             for side in todo:
-                outs[side] = solve(cnds[side], b, z, prices, Q)
+                outs[side] = self.solve(cnds[side], b, z, prices, Q)
         kids = [None, None]
         for side, (cb, cz, cexp, cpr, cQ) in outs.items():
             if cz is not None:
-                _offer_integral(cz, offer, k)
-            if np.isfinite(cb) and cb < cutoff():
+                _offer_integral(cz, self.offer, self.k)
+            if np.isfinite(cb) and cb < self.cutoff():
                 kids[side] = (cnds[side], cb, z if cz is None else cz, cexp,
                               None if cpr is None else cpr.astype(np.float32), Q if cQ is None else cQ)
         return kids
 
-    def push(kid):
-        if kid is not None and kid[1] < cutoff():
-            heapq.heappush(heap, (kid[1], next(counter), kid[0], kid[2], kid[3], kid[4], kid[5]))
+    def push(self, kid):
+        if kid is not None and kid[1] < self.cutoff():
+            heapq.heappush(self.heap, (kid[1], next(self.counter), kid[0], kid[2], kid[3], kid[4], kid[5]))
 
-    def learn(c, b, kids):
-        rec = pcost.setdefault((c[2], c[3]), [0.0, 0, 0.0, 0])
+    # -- reliability branching ------------------------------------------------------------------------
+    def learn(self, c, b, kids):
+        rec = self.pcost.setdefault((c[2], c[3]), [0.0, 0, 0.0, 0])
         for side, kid in enumerate(kids):
-            gain = (cutoff() if kid is None else kid[1]) - b
+            gain = (self.cutoff() if kid is None else kid[1]) - b
             if math.isfinite(gain):
                 rec[2 * side] += max(gain, 0.0) / max(c[5] if side == 0 else 1 - c[5], _INT_TOL)
                 rec[2 * side + 1] += 1
 
-    def estimate(c):
-        rec = pcost.get((c[2], c[3]))
+    def estimate(self, c):
+        rec = self.pcost.get((c[2], c[3]))
         if rec is not None and rec[1] and rec[3]:
             return rec[0] / rec[1] * c[5], rec[2] / rec[3] * (1 - c[5]), True
-        obs = [r for r in pcost.values() if r[1] and r[3]]
+        obs = [r for r in self.pcost.values() if r[1] and r[3]]
         if not obs:
             return 0.0, 0.0, False
         dn = np.mean([r[0] / r[1] for r in obs])
         up = np.mean([r[2] / r[3] for r in obs])
         return dn * c[5], up * (1 - c[5]), False
 
-    def _expand(b, nd, z, prices, Q):
+    def expand(self, b, nd, z, prices, Q, max_candidates, max_strong, lookahead):
         """Reliability branching (strong branching on candidates without pseudo-costs, product
         score); a strong-branching child that holds nothing better than the incumbent reduces the
         node to its sibling (same partition argument as item 2 of the module docstring)."""
         lo, hi, glo, ghi = nd
-        cands = _candidates(z, lo, hi, groups, glo, ghi)
+        cands = _candidates(z, lo, hi, self.groups, glo, ghi)
         best = None  # (score, candidate, kids)
         n_strong = stale = 0
         for c in cands[:max_candidates]:
-            d0, d1, reliable = estimate(c)
+            d0, d1, reliable = self.estimate(c)
             kids = None
-            if not reliable and n_strong < max_strong and stale < lookahead and time.perf_counter() < deadline:
-                kids = pair(nd, c, b, z, prices, Q)
+            if not reliable and n_strong < max_strong and stale < lookahead and time.perf_counter() < self.deadline:
+                kids = self.pair(nd, c, b, z, prices, Q)
                 n_strong += 1
-                learn(c, b, kids)
+                self.learn(c, b, kids)
                 if kids[0] is None or kids[1] is None:  # one side is closed: the node is its sibling
                     for kid in kids:
-                        push(kid)
+                        self.push(kid)
                     return
                 d0, d1 = kids[0][1] - b, kids[1][1] - b
-            score = max(d0, eps) * max(d1, eps)
+            score = max(d0, self.eps) * max(d1, self.eps)
             if best is None or score > best[0]:
                 best, stale = (score, c, kids), 0
             elif kids is not None:
@@ -392,45 +412,39 @@ def branch_and_bound(problem: Problem, *, root_bound=None, root_z=None, poses=No
             return
         _, c, kids = best
         if kids is None:
-            kids = pair(nd, c, b, z, prices, Q)
-            learn(c, b, kids)
+            kids = self.pair(nd, c, b, z, prices, Q)
+            self.learn(c, b, kids)
         for kid in kids:
-            push(kid)
+            self.push(kid)
 
-    status = "deadline"
-    while True:
-        if external is not None:
-            ext[0] = min(ext[0], float(external()))  # a feasible value (its selection stays with the caller)
-        lb = lower()
-        if on_bound is not None:
-            on_bound(lb, best_v, nodes, len(heap) + len(stuck), best_sel)
-        if not heap:
-            status = "complete" if not stuck else "stuck"
-            break
-        if cutoff() <= (1 + gap_tol) * lb:
-            status = "gap reached"
-            break
-        if time.perf_counter() >= deadline:
-            break
-        if max_nodes is not None and nodes >= max_nodes:
-            status = "node limit"
-            break
-        b, _, nd, z, expandable, prices, Q = heapq.heappop(heap)
-        if b >= cutoff():
-            continue  # nothing better than the incumbent in here
-        if not expandable:
-            stuck.append(b)
-            continue
-        lo, hi, glo, ghi = nd
-        sel = _decided(lo, hi, k)
-        if sel is not None:
-            offer(sel)  # a single selection: its exact value closes the node
-            continue
-        _expand(b, nd, z, prices, Q)
-    lb = lower()
-    complete = status == "complete"
-    return BnbResult(float(lb), float(best_v), best_sel, nodes, len(heap) + len(stuck), complete,
-                     status, time.perf_counter() - t0, n_poses)
+    # -- best-first loop ----------------------------------------------------------------------------
+    def run(self, external, on_bound, gap_tol, max_nodes, max_candidates, max_strong, lookahead):
+        """Expand the node with the smallest bound until a stop rule; returns the status."""
+        while True:
+            if external is not None:
+                self.ext = min(self.ext, float(external()))  # a feasible value (its selection stays with the caller)
+            lb = self.lower()
+            if on_bound is not None:
+                on_bound(lb, self.best_v, self.nodes, len(self.heap) + len(self.stuck), self.best_sel)
+            if not self.heap:
+                return "complete" if not self.stuck else "stuck"
+            if self.cutoff() <= (1 + gap_tol) * lb:
+                return "gap reached"
+            if time.perf_counter() >= self.deadline:
+                return "deadline"
+            if max_nodes is not None and self.nodes >= max_nodes:
+                return "node limit"
+            b, _, nd, z, expandable, prices, Q = heapq.heappop(self.heap)
+            if b >= self.cutoff():
+                continue  # nothing better than the incumbent in here
+            if not expandable:
+                self.stuck.append(b)
+                continue
+            sel = _decided(nd[0], nd[1], self.k)
+            if sel is not None:
+                self.offer(sel)  # a single selection: its exact value closes the node
+                continue
+            self.expand(b, nd, z, prices, Q, max_candidates, max_strong, lookahead)
 
 
 def _offer_integral(z, offer, k):

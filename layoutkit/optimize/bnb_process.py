@@ -14,16 +14,18 @@ import time
 
 import numpy as np
 
+from .bnb import NodeServer, bnb_applicable, branch_and_bound
 from .problem import Problem
 from .relaxation import RelaxResult
+from .runcontrol import Interrupted, worker_setup
+
+__all__ = ["start_bnb"]
 
 
-def _start_bnb(problem: Problem, ctx):
+def start_bnb(problem: Problem, ctx):
     """Start branch-and-bound in a forked child when it can help (worst case with full coverage,
     finite deadline with room left); None otherwise. It starts before the pipeline's relaxation and
     solves its own root."""
-    from .bnb import bnb_applicable
-
     if ctx.bnb == "off" or not bnb_applicable(problem):
         return None
     if not math.isfinite(ctx.deadline) or ctx.deadline - time.perf_counter() < ctx.bnb_min_s:
@@ -79,8 +81,6 @@ class _BnbChild:
         """Wait (while the gap exceeds ``ctx.bnb_gap``, for at most ``ctx.bnb_wait`` times the time
         since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
         bound into the result."""
-        from .methods import Interrupted
-
         now = time.perf_counter()
         until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
         history = []  # (time, bound) while waiting
@@ -150,9 +150,6 @@ class _ServerSolver:
 
 def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked child
     """Node relaxations for the B&B child (:class:`layoutkit.optimize.bnb.NodeServer`) until its pipe closes."""
-    from .bnb import NodeServer
-    from .methods import worker_setup
-
     worker_setup(nice=10)
     server = NodeServer(problem)
     while True:
@@ -165,9 +162,6 @@ def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked c
 
 
 def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs in the forked child
-    from .bnb import branch_and_bound
-    from .methods import worker_setup
-
     worker_setup(nice=10)  # a busy machine gives its cores to the search first (the layout), B&B second
 
     def publish(lb, value, nodes, n_open, inc=None):

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .problem import Problem
+from .problem import Problem, conflict_pairs
 from .relaxation import _weight_matrix, _whitening
 
 __all__ = ["NodeSolve", "DirectRelaxation"]
@@ -88,10 +88,7 @@ class DirectRelaxation:
         self.cbar = float(np.median(self._c))  # one scale of t for every pose set
         self._cache = {}
         self.lit = problem.lit.astype(float)
-        self.conflict_pairs = None
-        if problem.conflict is not None:
-            i, j = np.nonzero(np.triu(problem.conflict, 1))
-            self.conflict_pairs = (i, j)
+        self.conflict_pairs = conflict_pairs(problem) if problem.conflict is not None else None
 
     def _pose(self, p):
         """``(A columns (m, N), b (m,), n, tfac)`` of pose p's LMI (module docstring), cached."""
@@ -196,6 +193,13 @@ class DirectRelaxation:
                 a[np.arange(keep.sum()), j[keep]] = 1.0
                 A.append(a)
                 b.append(np.ones(int(keep.sum())))
+        for c in self.problem.cliques:  # one orientation per site, over the sites in S (still valid)
+            cs = c[np.isin(c, S)]
+            if len(cs) >= 2:
+                a = np.zeros(N)
+                a[cs] = 1.0
+                A.append(a[None])
+                b.append(np.ones(1))
         return np.vstack(A), np.concatenate(b)
 
     # ------------------------------------------------------------------ dual bound

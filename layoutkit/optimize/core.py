@@ -1,4 +1,10 @@
-"""``optimize_layout``: choose k photodiode sites with a certified lower bound (design §6)."""
+"""The array core of the optimiser: :func:`optimize_stations` (Jacobians + visibility in, an
+:class:`OptimizeResult` with a certified bound out) and the per-candidate helpers it needs.
+
+:func:`layoutkit.optimize.solve` (a :class:`~layoutkit.optimize.design.DesignProblem` and an
+:class:`~layoutkit.optimize.spec.OptimizeSpec`) and :func:`layoutkit.optimize.optimize_layout` (arrays of
+one station) both end here.
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -8,29 +14,30 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._validate import as_array, check_finite
+from .._validate import as_array
 from ..dop import angle_jacobian
-from .coverage import analyse_coverage
-from .methods import METHODS, Context, Interrupted
+from .coverage import analyse_coverage, minimum_k
+from .methods import METHODS, Context, MethodOutput
 from .objectives import parse_objective
 from .problem import build_problem, exact_dop
 from .relaxation import fallback_bound
+from .runcontrol import Interrupted
+from .spec import BNB_CHOICES
+from .stats import nested_stats, pose_stats
 
 # wall-time budget of the default pipeline when the caller gives none (s); small problems stop
 # much earlier (when random kicks stop improving)
 DEFAULT_PIPELINE_TIME_S = 100.0
-#: values of ``branch_and_bound`` (:func:`optimize_layout`)
-BNB_CHOICES = ("auto", "off")
 # seconds of a time limit kept for the exact evaluation of the result after the method stops
 _FINISH_RESERVE_S = 0.05
 
-__all__ = ["BNB_CHOICES", "OptimizeResult", "optimize_layout", "optimize_stations", "candidate_jacobians",
-           "sweep_k", "spacing_conflicts"]
+__all__ = ["OptimizeResult", "optimize_stations", "candidate_jacobians", "spacing_conflicts"]
 
 
 @dataclass(frozen=True)
 class OptimizeResult:
-    """Result of :func:`optimize_layout`.
+    """Result of :func:`layoutkit.optimize.solve`, :func:`layoutkit.optimize.optimize_layout` and
+    :func:`optimize_stations`.
 
     selected : (k,) int, sorted candidate indices (empty if nothing feasible was found).
     value : objective of ``selected`` with the exact metric (Chen eq. 18 with rho, lit sensors only,
@@ -65,16 +72,9 @@ class OptimizeResult:
     info: dict = field(default_factory=dict)
 
     def stats(self) -> dict:
-        """Per-pose DOP statistics (median, mean, p95, max) over the poses with enough lit sensors."""
-        ok = np.isfinite(self.adop)
-        out = {}
-        for nm, a in (("adop_deg_per_rad", self.adop), ("pdop_m_per_rad", self.pdop)):
-            x = a[ok]
-            out[nm] = ({"median": float(np.median(x)), "mean": float(np.mean(x)),
-                        "p95": float(np.percentile(x, 95)), "max": float(np.max(x))} if len(x) else {})
-        out["poses"] = int(len(self.adop))
-        out["poses_covered"] = int(ok.sum())
-        return out
+        """Per-pose DOP statistics (median, mean, p95, max) over the poses with a finite ADOP (the covered
+        ones: an uncovered pose has ADOP inf), :func:`layoutkit.optimize.stats.nested_stats`."""
+        return nested_stats(pose_stats(self.adop, self.pdop, np.isfinite(self.adop)))
 
 
 def candidate_jacobians(positions, rotations, translations, stations=None):
@@ -113,80 +113,11 @@ def spacing_conflicts(positions, min_spacing):
     return C
 
 
-def optimize_layout(positions, normals, visible, rotations, translations, k, *,
-                    objective="worst-adop", rho=0.0, min_visible=4, method="pipeline", rng=None,
-                    fixed=(), min_spacing=0.0, coverage_fraction=1.0, weights=None,
-                    time_limit=None, progress=None, max_tilt_deg=0.0, tilt_directions=4,
-                    half_angle_deg=60.0, fov_deg=120.0, branch_and_bound="auto") -> OptimizeResult:
-    """Choose ``k`` of N candidate sites minimising an envelope DOP objective (design §6).
-
-    positions : (N, 3) float, m, candidate sites in the body frame; normals : (N, 3) outward normals
-        (carried for the caller; visibility already encodes the acceptance cone).
-    visible : (P, N) bool, candidate lit at pose p (FOV, cone, occlusion).
-    rotations : (P, 3, 3), translations : (P, 3) m — body pose in the frame of one lighthouse station
-        at the origin (``p_lh = R p + t``).
-    k : sensors to place. objective : see :func:`layoutkit.optimize.parse_objective`
-        ("worst-adop", "mean-pdop", "p95-adop", "worst-weighted" with ``weights=(a, b)``).
-    rho : same-rotor angle correlation (Chen eq. 19; 0.8717 measured).
-    min_visible : m, lit sensors needed at every pose (or every pose but ``1 - coverage_fraction``).
-    method : one of :data:`layoutkit.optimize.METHODS`. rng : ``np.random.Generator`` or seed.
-    fixed : candidate indices placed in advance. min_spacing : m, minimum distance between sensors.
-    time_limit : s, wall budget of the method (the relaxation itself is not interrupted); None:
-        unlimited, except ``"pipeline"`` which then stops after ``DEFAULT_PIPELINE_TIME_S`` = 100 s.
-    progress : callable ``(stage: str, fraction: float | None, best: float | None)``.
-    branch_and_bound : "auto" (pipeline, worst-case objective, finite time limit: branch-and-bound on
-        the relaxation in a second process while the search runs, and after it while the gap is above
-        1 %, for at most as long again as the run took so far and within the time limit —
-        :mod:`layoutkit.optimize.bnb`) or "off".
-    max_tilt_deg : > 0 lets every site also take its normal tilted by this angle towards
-        ``tilt_directions`` azimuths (:mod:`layoutkit.optimize.tilt`, one orientation per site). The
-        given ``visible`` applies to the untilted orientations; tilted ones are lit by the acceptance
-        cone (``half_angle_deg``) and field of view (``fov_deg``) test (exact for convex bodies, no
-        occlusion). ``selected`` then indexes the expanded candidates; ``info`` has ``site``,
-        ``tilt_deg`` and ``axes`` of the selection.
-    Returns an :class:`OptimizeResult`; infeasible requests are a status with an explanation.
-    """
-    pos = as_array(positions, "positions", (None, 3))
-    check_finite(pos, "positions")
-    N = pos.shape[0]
-    as_array(normals, "normals", (N, 3))
-    R = as_array(rotations, "rotations", (None, 3, 3))
-    P = R.shape[0]
-    t = as_array(translations, "translations", (P, 3))
-    check_finite(R, "rotations")
-    check_finite(t, "translations")
-    vis = np.asarray(visible)
-    if vis.shape != (P, N):
-        raise ValueError(f"visible: expected shape ({P}, {N}), got {vis.shape}")
-    vis = vis.astype(bool)
-    conflict = spacing_conflicts(pos, min_spacing)
-    site = None
-    if max_tilt_deg and max_tilt_deg > 0:
-        from .instances import cone_visibility
-        from .tilt import site_conflicts, tilt_orientations
-
-        nor = as_array(normals, "normals", (N, 3))
-        pos, axes, site, tilt = tilt_orientations(pos, nor, float(max_tilt_deg), int(tilt_directions))
-        vt = cone_visibility(pos[N:], axes[N:], R, t, half_angle_deg=half_angle_deg, fov_deg=fov_deg)
-        vis = np.concatenate([vis, vt], axis=1)
-        conflict = site_conflicts(site, spacing_conflicts(pos, min_spacing))
-    jac = candidate_jacobians(pos, R, t)
-    res = optimize_stations(jac, vis[:, None, :], k, objective=objective, rho=rho,
-                            min_visible=min_visible, method=method, rng=rng, fixed=fixed,
-                            conflict=conflict, coverage_fraction=coverage_fraction, weights=weights,
-                            time_limit=time_limit, progress=progress, branch_and_bound=branch_and_bound)
-    if site is not None:
-        sel = res.selected
-        res = dataclasses.replace(res, info={**res.info, "site": site[sel], "tilt_deg": tilt[sel],
-                                             "axes": axes[sel]})
-    return res
-
-
 def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_visible=4,
                       method="pipeline", rng=None, fixed=(), conflict=None, coverage_fraction=1.0,
                       weights=None, time_limit=None, progress=None, ctx_options=None,
-                      coverage="any-station", branch_and_bound="auto") -> OptimizeResult:
-    """Multi-station core of :func:`optimize_layout`.
+                      coverage="any-station", branch_and_bound="auto", cliques=()) -> OptimizeResult:
+    """Choose ``k`` of N candidates from arrays (the core of :func:`layoutkit.optimize.solve`).
 
     jac : (P, S, N, 2, 6) per-candidate angle Jacobians; visible : (P, S, N) bool.
     coverage : what "m lit" means with several stations (:mod:`layoutkit.coverage_rule`):
@@ -194,7 +125,13 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     sees m; implemented by one copy of the pose per station carrying that station's lit counts —
     worst, mean and percentiles are unchanged by the copies; ``coverage_fraction`` then counts
     (pose, station) pairs), "joint" (lit station-sensor pairs). The DOP is always the joint solve.
-    Other arguments as in optimize_layout; conflict : (N, N) bool spacing conflicts or None.
+    k, objective, weights, rho, min_visible, coverage_fraction, method, branch_and_bound : as the fields of
+    :class:`layoutkit.optimize.spec.OptimizeSpec`; rng : seed or ``np.random.Generator``; fixed : (F,)
+    candidate indices placed in advance; conflict : (N, N) bool pairs that cannot both be chosen
+    (spacing, one orientation per site) or None; time_limit : s or None; progress : callable
+    ``(stage, fraction, best)``; ctx_options : tuning knobs of :class:`layoutkit.optimize.methods.Context`;
+    cliques : index arrays of which at most one may be chosen (the orientations of one site; their pairs
+    must be in ``conflict`` too): the relaxations state them as one row each, tighter than the pairs.
     """
     from ..coverage_rule import check_rule
 
@@ -210,16 +147,16 @@ def optimize_stations(jac, visible, k, *, objective="worst-adop", rho=0.0, min_v
     if coverage == "each-station" and S > 1:
         r = _optimize_core(np.repeat(jac, S, axis=0), np.repeat(visible, S, axis=0), k, objective, rho,
                            min_visible, method, rng, fixed, conflict, coverage_fraction, weights, time_limit,
-                           progress, ctx_options, "_rows")
+                           progress, ctx_options, "_rows", cliques)
         n_lit = r.n_lit.reshape(P, S).min(axis=1) if len(r.n_lit) == P * S else r.n_lit
         return dataclasses.replace(r, adop=r.adop[::S], pdop=r.pdop[::S], n_lit=n_lit,
                                    uncoverable=np.unique(r.uncoverable // S))
     return _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fixed, conflict,
-                          coverage_fraction, weights, time_limit, progress, ctx_options, coverage)
+                          coverage_fraction, weights, time_limit, progress, ctx_options, coverage, cliques)
 
 
 def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fixed, conflict,
-                   coverage_fraction, weights, time_limit, progress, ctx_options, coverage):
+                   coverage_fraction, weights, time_limit, progress, ctx_options, coverage, cliques=()):
     t0 = time.perf_counter()
     P, S, N = jac.shape[:3]
     if coverage == "_rows":  # pose copies p*S + s of each-station: station s's lit sensors
@@ -245,7 +182,7 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
         raise ValueError(f"fixed: {len(fixed)} fixed sensors exceed k = {k}")
     n_cover = int(math.ceil(coverage_fraction * P - 1e-9))
     rng = np.random.default_rng(rng)
-    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover, lit)
+    problem = build_problem(jac, visible, rho, k, int(min_visible), obj, fixed, conflict, n_cover, lit, cliques)
     empty = np.zeros(0, int)
     nan_p = np.full(P, np.inf)
 
@@ -265,8 +202,6 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
     if not cov.feasible:
         return fail(cov.status, cov.message, cov)
     if k == N:  # one selection only (scoring an existing layout): its value is the optimum
-        from .methods import MethodOutput
-
         out = MethodOutput(np.arange(N), exact_optimum=True, info={"note": "k = N: the only selection"})
         return _finish(problem, obj, out, method, t0, t0, t0, [], P)
     if time_limit is None and method == "pipeline":
@@ -296,8 +231,6 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
         why = ("; ".join(ctx.notes) + "; ") if ctx.notes else ""
         if not cov.decided:  # the MILP's time limit: a k-cover is neither found nor ruled out
             return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout; {cov.message}", cov)
-        from .coverage import minimum_k
-
         kmin = cov.min_k if cov.min_k is not None else minimum_k(problem.lit, problem.m, n_cover, fixed, conflict)[0]
         cov = dataclasses.replace(cov, min_k=kmin)
         return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout although one "
@@ -347,9 +280,3 @@ def _finish(problem, obj, out, method, t0, t1, t2, notes, P):
             info["relaxation_z"] = np.asarray(out.relaxation.z, float)
     return OptimizeResult(sel, value, float(bound), float(gap), True, status, msg, adop, pdop, n_lit,
                           method, obj.name, how, None, empty, timings, info)
-
-
-def sweep_k(positions, normals, visible, rotations, translations, ks, **kwargs):
-    """Best layout for each k in ``ks``: a list of :class:`OptimizeResult` (DOP against sensor count)."""
-    return [optimize_layout(positions, normals, visible, rotations, translations, int(k), **kwargs)
-            for k in ks]

@@ -13,12 +13,13 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from .bnb_process import _start_bnb
+from .bnb_process import start_bnb
 from .problem import Problem
-from .relaxation import RelaxResult, relax
+from .relaxation import RelaxResult, fallback_bound, relax
+from .runcontrol import Interrupted, worker_setup
 from .search import evaluate_subsets, exhaustive, greedy, local_search, repair
 
-__all__ = ["METHODS", "MethodOutput", "Method", "register_method", "Context", "Interrupted"]
+__all__ = ["METHODS", "MethodOutput", "Method", "register_method", "Context"]
 
 
 @dataclass
@@ -131,14 +132,6 @@ def _m_greedy(problem: Problem, ctx: Context) -> MethodOutput:
     return MethodOutput(greedy(problem))
 
 
-class Interrupted(Exception):
-    """Raised by the signal handlers of :func:`layoutkit.optimize.runcontrol.interruptible`."""
-
-    def __init__(self, signame="SIGINT"):
-        super().__init__(signame)
-        self.signame = signame
-
-
 def _relax(problem: Problem, ctx: Context, share=None) -> RelaxResult:
     ctx.report("relaxation (cvxpy/Clarabel)", 0.0)
     dl = ctx.deadline
@@ -150,21 +143,6 @@ def _relax(problem: Problem, ctx: Context, share=None) -> RelaxResult:
     if r.certified_by == "none":
         ctx.notes.append("bound: none (the relaxation did not solve to status optimal within its time)")
     return r
-
-
-def worker_setup(nice=0):  # pragma: no cover - runs in forked children
-    """Signals of a forked worker: the parent decides (Ctrl-C ignored here, the parent kills this
-    process; SIGTERM ends it). ``nice`` > 0: a busy machine gives its cores to the parent's search first."""
-    import os
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    if nice:
-        try:
-            os.nice(nice)
-        except OSError:
-            pass
 
 
 def _relax_child(problem, deadline, active, conn):  # pragma: no cover - runs in the forked child
@@ -215,8 +193,6 @@ def relax_until(problem: Problem, deadline: float, active_poses=None) -> RelaxRe
 
 
 def _no_relaxation(problem: Problem, why: str, time_s: float = 0.0) -> RelaxResult:
-    from .relaxation import fallback_bound
-
     return RelaxResult(np.full(problem.N, problem.k / problem.N), float("nan"), "none", why, float(time_s),
                        fallback_bound(problem))
 
@@ -291,7 +267,7 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
     starts = []
     bnb = None
     try:
-        bnb = _start_bnb(problem, ctx)  # B&B solves its own root (:mod:`layoutkit.optimize.conic`) meanwhile
+        bnb = start_bnb(problem, ctx)  # B&B solves its own root (:mod:`layoutkit.optimize.conic`) meanwhile
         r = _relax(problem, ctx, ctx.relax_share)
         if bnb is not None:
             bnb.set_root(r)

@@ -16,7 +16,7 @@ import numpy as np
 from ..dop import dop_from_jacobian
 from .objectives import Objective
 
-__all__ = ["Problem", "build_problem", "pose_values_from_info", "exact_dop"]
+__all__ = ["Problem", "build_problem", "pose_values_from_info", "exact_dop", "conflict_pairs"]
 
 
 @dataclass(frozen=True)
@@ -25,8 +25,11 @@ class Problem:
 
     jac : (P, S, N, 2, 6) angle Jacobians; vis : (P, S, N) bool lit; rho : same-rotor correlation;
     k : sensors to choose; m : lit sensors needed per pose; fixed : (F,) indices forced in;
-    conflict : (N, N) bool or None, pairs closer than the minimum spacing; n_cover : poses that
-    must be covered (P for coverage_fraction = 1); objective : :class:`Objective`.
+    conflict : (N, N) bool or None, pairs that cannot both be chosen (closer than the minimum spacing,
+    two orientations of one site); n_cover : poses that must be covered (P for coverage_fraction = 1);
+    objective : :class:`Objective`. cliques : tuple of index arrays of which at most one may be chosen
+    (the orientations of one site: its pairs are conflicts too); the relaxations add ``sum_c z <= 1``
+    for each, which is tighter than the pairwise ``z_i + z_j <= 1`` for three or more orientations.
     Derived: U (P, N, 2S, 6), G (P, N, 6, 6), lit (P, N) bool (lit by any station).
     """
 
@@ -42,6 +45,7 @@ class Problem:
     U: np.ndarray = field(repr=False, default=None)
     G: np.ndarray = field(repr=False, default=None)
     lit: np.ndarray = field(repr=False, default=None)
+    cliques: tuple = ()
 
     @property
     def P(self) -> int:
@@ -56,7 +60,8 @@ class Problem:
         return self.jac.shape[1]
 
 
-def build_problem(jac, vis, rho, k, m, objective, fixed=(), conflict=None, n_cover=None, lit=None) -> Problem:
+def build_problem(jac, vis, rho, k, m, objective, fixed=(), conflict=None, n_cover=None, lit=None,
+                  cliques=()) -> Problem:
     """Assemble a :class:`Problem` from Jacobians ``(P, S, N, 2, 6)`` and visibility ``(P, S, N)``.
 
     lit : optional (P, N) coverage counts (bool or small ints) replacing "lit by any station"
@@ -68,8 +73,9 @@ def build_problem(jac, vis, rho, k, m, objective, fixed=(), conflict=None, n_cov
     G = np.einsum("pnci,pncj->pnij", U, U)
     lit = vis.any(axis=1) if lit is None else np.asarray(lit)
     fixed = np.unique(np.asarray(fixed, int)).astype(int)
+    cliques = tuple(np.asarray(c, int) for c in cliques if len(c) >= 2)
     return Problem(jac, vis, float(rho), int(k), int(m), fixed, conflict,
-                   P if n_cover is None else int(n_cover), objective, U, G, lit)
+                   P if n_cover is None else int(n_cover), objective, U, G, lit, cliques)
 
 
 def pose_values_from_info(A, b, rho, w, cond_max=1e12):
@@ -152,3 +158,18 @@ def exact_dop(problem: Problem, sel):
     """:class:`layoutkit.dop.DopResult` of subset ``sel`` at every pose, from the core metric."""
     sel = np.asarray(sel, int)
     return dop_from_jacobian(problem.jac[:, :, sel], problem.rho, problem.vis[:, :, sel])
+
+
+def conflict_pairs(problem: Problem):
+    """``(i, j)`` index arrays (i < j) of the conflicting pairs the relaxations must state one by one: those
+    not inside one clique of ``problem.cliques`` (whose single row ``sum_c z <= 1`` implies them)."""
+    if problem.conflict is None:
+        return np.zeros(0, int), np.zeros(0, int)
+    i, j = np.nonzero(np.triu(problem.conflict, 1))
+    if problem.cliques:
+        label = np.full(problem.N, -1)
+        for r, c in enumerate(problem.cliques):
+            label[c] = r
+        keep = (label[i] < 0) | (label[i] != label[j])
+        i, j = i[keep], j[keep]
+    return i, j

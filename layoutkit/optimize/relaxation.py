@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .problem import Problem
+from .problem import Problem, conflict_pairs
 
 __all__ = ["RelaxResult", "relax", "pose_trace_bounds", "fallback_bound"]
 
@@ -310,10 +310,11 @@ def _relax_poses(problem: Problem, poses, solver="CLARABEL", time_limit=None, us
         cons.append(z[problem.fixed] == 1)
     if problem.n_cover >= P:
         cons.append(problem.lit.astype(float) @ z >= problem.m)
-    if problem.conflict is not None:
-        i, j = np.nonzero(np.triu(problem.conflict, 1))
-        if len(i):
-            cons.append(z[i] + z[j] <= 1)
+    i, j = conflict_pairs(problem)
+    if len(i):
+        cons.append(z[i] + z[j] <= 1)
+    for c in problem.cliques:  # one orientation per site (tighter than its pairs)
+        cons.append(cp.sum(z[c]) <= 1)
     use_gls = use_rho and rho > 0
     t = cp.Variable(len(poses)) if obj.aggregate != "worst" else cp.Variable()
     Ds, cs = _whitening(problem, poses, E)

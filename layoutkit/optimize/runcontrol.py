@@ -1,11 +1,15 @@
 """Run control: Ctrl-C and SIGTERM stop an optimisation cleanly (issue 13, item 5).
 
-Inside :func:`interruptible` both signals raise :class:`layoutkit.optimize.methods.Interrupted`
-(SIGINT also without it, as KeyboardInterrupt). The pipeline catches it and returns the best layout
-found so far; :func:`layoutkit.workflows.optimize.run_optimize` then writes that layout and every
-finished k of a ``--k-range``, marked ``"interrupted"``. A signal that arrives while a C extension
-runs (a Clarabel solve, a HiGHS MILP) takes effect when that call returns — at most one conic
-solve, bounded by the solver time limit.
+Inside :func:`interruptible` both signals raise :class:`Interrupted` (SIGINT also without it, as
+KeyboardInterrupt). The pipeline catches it and returns the best layout found so far;
+:func:`layoutkit.workflows.optimize.run_optimize` then writes that layout and every finished k of a
+``--k-range``, marked ``"interrupted"``. A signal that arrives while a C extension runs (a Clarabel
+solve, a HiGHS MILP) takes effect when that call returns — at most one conic solve, bounded by the
+solver time limit. Forked workers (the relaxation child, branch-and-bound and its node server) set
+their own signals with :func:`worker_setup`.
+
+This module sits below every user of these names (``methods``, ``bnb_process``, ``dense``, the
+workflow): nothing in :mod:`layoutkit.optimize` imports upwards into it.
 """
 from __future__ import annotations
 
@@ -13,9 +17,15 @@ import contextlib
 import signal
 import threading
 
-from .methods import Interrupted
+__all__ = ["interruptible", "Interrupted", "worker_setup"]
 
-__all__ = ["interruptible", "Interrupted"]
+
+class Interrupted(Exception):
+    """Raised by the signal handlers of :func:`interruptible`; ``signame`` is "SIGINT" or "SIGTERM"."""
+
+    def __init__(self, signame="SIGINT"):
+        super().__init__(signame)
+        self.signame = signame
 
 
 @contextlib.contextmanager
@@ -43,3 +53,17 @@ def interruptible():
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def worker_setup(nice=0):  # pragma: no cover - runs in forked children
+    """Signals of a forked worker: the parent decides (Ctrl-C ignored here, the parent kills this
+    process; SIGTERM ends it). ``nice`` > 0: a busy machine gives its cores to the parent's search first."""
+    import os
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass

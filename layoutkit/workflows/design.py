@@ -1,89 +1,72 @@
 """Design-flow orchestration with files: mesh + envelope (+ layout) in, visibility summaries out.
 
-Reused by the CLI (``layoutkit mesh-info / candidates / visibility``), the optimiser and the render
-commands, and by ``studies/``. Warnings raised while loading (wrong-unit size, open mesh) are
-collected into ``DesignInputs.warnings`` so that callers can print them their own way.
+Reused by the CLI (``layoutkit mesh-info / candidates / visibility``), the render command and by
+``studies/``. A mesh with a layout and an envelope is loaded into one
+:class:`layoutkit.optimize.DesignProblem` (the layout's sensors as its candidates; visibility computed
+once). Warnings raised while loading (wrong-unit size, open mesh) are returned beside it so that
+callers can print them their own way.
 """
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["DesignInputs", "load_design_inputs", "mesh_info", "make_candidates", "visibility_summary",
+__all__ = ["load_mesh_checked", "load_design", "mesh_info", "make_candidates", "visibility_summary",
            "visibility_report"]
 
 
-@dataclass(frozen=True)
-class DesignInputs:
-    """What a design step needs, loaded and checked.
+def load_mesh_checked(mesh_path, units: str = "m", check_size: bool = True):
+    """``(mesh, warnings)``: the mesh (``units`` of the file) and the messages emitted while loading.
 
-    mesh : trimesh.Trimesh (m, body frame); envelope : Envelope or None; layout : Layout or None;
-    rotations (P, 3, 3), translations (P, 3) : body poses in the WORLD frame (empty without an
-    envelope); stations : tuple of Station; warnings : messages emitted while loading.
-    """
-
-    mesh: object
-    envelope: object = None
-    layout: object = None
-    rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
-    translations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    stations: tuple = ()
-    warnings: tuple = ()
-
-    def visibility(self, layout=None, **kw) -> np.ndarray:
-        """(P, S, n) visibility of ``layout`` (default ``self.layout``) over the envelope; kw → envelope_visibility."""
-        from ..visibility import envelope_visibility
-
-        lay = layout if layout is not None else self.layout
-        if lay is None or self.envelope is None:
-            raise ValueError("visibility: needs both a layout and an envelope")
-        return envelope_visibility(self.mesh, lay.positions, lay.normals, self.rotations, self.translations,
-                                   self.stations, **kw)
-
-
-def load_design_inputs(mesh_path, units: str = "m", envelope_path=None, layout_path=None,
-                       check_size: bool = True) -> DesignInputs:
-    """Load a mesh (``units`` of the file), optionally an envelope TOML and a layout JSON.
-
-    Raises ``ValueError`` with a file-naming message on bad input; mesh warnings are returned in
-    ``.warnings`` (and not re-emitted), except a size that says ``units`` is wrong
-    (:class:`layoutkit._validate.OddSizeWarning`), which is re-emitted when ``check_size`` (the
-    CLI stops on it unless ``--allow-odd-size``).
+    Raises ``ValueError`` with a file-naming message on bad input; mesh warnings are returned (and not
+    re-emitted), except a size that says ``units`` is wrong (:class:`layoutkit._validate.OddSizeWarning`),
+    which is re-emitted when ``check_size`` (the CLI stops on it unless ``--allow-odd-size``).
     """
     from .._validate import OddSizeWarning
-    from ..envelope import load_envelope
-    from ..layout import load_layout
     from ..mesh import load_mesh
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         mesh = load_mesh(mesh_path, units=units)
-    env = load_envelope(envelope_path) if envelope_path is not None else None
-    layout = load_layout(layout_path) if layout_path is not None else None
     odd = [w for w in caught if check_size and issubclass(w.category, OddSizeWarning)]
     for w in odd:
-        warnings.warn(w.message, stacklevel=2)
-    msgs = tuple(str(w.message) for w in caught if w not in odd)
-    if layout is not None:
-        from ..mesh import mesh_hash
+        warnings.warn(w.message, stacklevel=3)
+    return mesh, tuple(str(w.message) for w in caught if w not in odd)
 
-        want = layout.metadata.get("mesh_sha256")
+
+def load_design(mesh, units: str = "m", envelope=None, layout=None, *, check_size: bool = True,
+                half_angle_deg=60.0, max_range=None):
+    """``(problem, warnings)``: a :class:`layoutkit.optimize.DesignProblem` whose candidates are the
+    sensors of ``layout`` (path or Layout; none: no candidates) over ``envelope`` (path, Envelope or None),
+    visibility with the acceptance ``half_angle_deg`` and optional ``max_range`` (m), and the load warnings
+    (a layout made on another mesh, by its ``mesh_sha256``, is one). ``mesh``: path (``units``) or Trimesh.
+    """
+    from ..layout import Layout, load_layout
+    from ..mesh import mesh_hash
+    from ..optimize import DesignProblem
+
+    msgs = ()
+    mesh_name = str(mesh)
+    if not hasattr(mesh, "vertices"):
+        mesh, msgs = load_mesh_checked(mesh, units, check_size)
+    lay = layout if isinstance(layout, Layout) or layout is None else load_layout(layout)
+    if lay is not None:
+        want = lay.metadata.get("mesh_sha256")
         if want and want != mesh_hash(mesh):
-            msgs += (f"{layout_path}: made on a different mesh (mesh_sha256 differs from {mesh_path})",)
-    if env is None:
-        return DesignInputs(mesh, None, layout, warnings=msgs)
-    R, t = env.poses()
-    return DesignInputs(mesh, env, layout, R, t, env.stations, msgs)
+            msgs += (f"{layout}: made on a different mesh (mesh_sha256 differs from {mesh_name})",)
+    cand = lay if lay is not None else Layout(np.zeros((0, 3)), np.zeros((0, 3)), ())
+    problem = DesignProblem.load(mesh, envelope, candidates=cand, units=units, half_angle_deg=half_angle_deg,
+                                 max_range_m=max_range)
+    return problem, msgs
 
 
 def mesh_info(mesh_path, units: str = "m") -> dict:
     """``describe_mesh`` of the file plus the load warnings (``"warnings": [...]``)."""
     from ..mesh import describe_mesh
 
-    inp = load_design_inputs(mesh_path, units, check_size=False)  # reports the size warning, never stops
-    return {"file": str(mesh_path), "units": units, **describe_mesh(inp.mesh), "warnings": list(inp.warnings)}
+    mesh, msgs = load_mesh_checked(mesh_path, units, check_size=False)  # reports the size warning, never stops
+    return {"file": str(mesh_path), "units": units, **describe_mesh(mesh), "warnings": list(msgs)}
 
 
 def make_candidates(mesh_path, *, spacing, units: str = "m", keepout=(), flat_only=False, normal_filter=None,
@@ -95,12 +78,12 @@ def make_candidates(mesh_path, *, spacing, units: str = "m", keepout=(), flat_on
     from ..candidates import sample_candidates
     from ..layout import save_layout
 
-    inp = load_design_inputs(mesh_path, units)
-    lay = sample_candidates(inp.mesh, spacing=spacing, keepout=keepout, flat_only=flat_only,
+    mesh, msgs = load_mesh_checked(mesh_path, units)
+    lay = sample_candidates(mesh, spacing=spacing, keepout=keepout, flat_only=flat_only,
                             normal_filter=normal_filter, rng=np.random.default_rng(seed), max_count=max_count)
     if out is not None:
         save_layout(lay, out)
-    return lay, inp.warnings
+    return lay, msgs
 
 
 def visibility_summary(visible: np.ndarray, ids, station_ids, min_lit: int = 4) -> dict:
@@ -130,9 +113,9 @@ def visibility_summary(visible: np.ndarray, ids, station_ids, min_lit: int = 4) 
 def visibility_report(mesh_path, layout_path, envelope_path, *, units: str = "m", sensor_half_angle_deg=60.0,
                       max_range=None, min_lit: int = 4) -> dict:
     """Load mesh, layout and envelope; compute visibility over the envelope; return the summary dict."""
-    inp = load_design_inputs(mesh_path, units, envelope_path, layout_path)
-    v = inp.visibility(sensor_half_angle_deg=sensor_half_angle_deg, max_range=max_range)
-    out = visibility_summary(v, inp.layout.ids, [s.id for s in inp.stations], min_lit)
+    problem, msgs = load_design(mesh_path, units, envelope_path, layout_path, half_angle_deg=sensor_half_angle_deg,
+                                max_range=max_range)
+    out = visibility_summary(problem.visible, problem.candidates.ids, [s.id for s in problem.stations], min_lit)
     out.update(mesh=str(mesh_path), layout=str(layout_path), envelope=str(envelope_path),
-               sensor_half_angle_deg=sensor_half_angle_deg, max_range_m=max_range, warnings=list(inp.warnings))
+               sensor_half_angle_deg=sensor_half_angle_deg, max_range_m=max_range, warnings=list(msgs))
     return out

@@ -13,7 +13,6 @@ geometry has DOP inf and makes the worst case inf.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -21,53 +20,32 @@ import numpy as np
 
 from ..units import RHO_PAPER
 
-__all__ = ["envelope_set", "layout_visibility", "score_arrays", "score_layout", "write_score_report"]
+__all__ = ["FROM_LAYOUT", "score_arrays", "score_layout", "write_score_report"]
 
+#: Above this many poses ``score_layout`` streams (chunks of :data:`CHUNK_POSES`).
+STREAM_POSES = 200_000
+CHUNK_POSES = 50_000
+#: Percentile sketch of a streamed score: relative resolution 10^(1/200) - 1 = 1.2 %.
+_SKETCH = dict(lo=1e-6, hi=1e12, bins_per_decade=200)
 
-def envelope_set(envelope, count=None, seed=None):
-    """``(Envelope, R (P,3,3), t (P,3))`` of ``envelope`` (path or Envelope), optionally with another
-    pose ``count`` or ``seed`` (a held-out set of the same envelope)."""
-    from ..envelope import Envelope, load_envelope
-
-    env = envelope if isinstance(envelope, Envelope) else load_envelope(envelope)
-    ch = {}
-    if count is not None:
-        ch["count"] = int(count)
-    if seed is not None:
-        ch["seed"] = int(seed)
-    if ch:
-        env = dataclasses.replace(env, **ch)
-    R, t = env.poses()
-    return env, R, t
-
-
-def layout_visibility(mesh, positions, normals, R, t, stations, half_angle_deg=60.0):
-    """``(P, S, n)`` bool visibility; without a mesh: acceptance cone and field of view only
-    (exact for a convex body, no occlusion)."""
-    from ..visibility import envelope_visibility
-
-    if mesh is None:
-        return envelope_visibility(None, positions, normals, R, t, stations, sensor_half_angle_deg=half_angle_deg,
-                                   occlusion=False, surface_offset=0.0)
-    return envelope_visibility(mesh, positions, normals, R, t, stations, sensor_half_angle_deg=half_angle_deg)
-
-
-def _pct(x, q):
-    return float(np.percentile(x, q)) if len(x) else float("nan")
+#: ``score_layout(mesh=FROM_LAYOUT)``: the mesh named in the layout's provenance (none if it names none)
+FROM_LAYOUT = "from-layout"
 
 
 def score_arrays(positions, vis, R, t, stations, *, rho, min_visible=4, coverage="any-station", ids=None):
     """Score from arrays: positions (n, 3) m; vis (P, S, n) bool; R, t world poses; stations.
 
     Returns a JSON-able dict (see :func:`score_layout`) plus ``_adop``, ``_pdop``, ``_covered`` arrays.
+    The statistics are :func:`layoutkit.optimize.stats.pose_stats` over the covered poses.
     """
     from ..coverage_rule import covered, layout_counts
     from ..dop_batch import batch_dop
+    from ..optimize.stats import pose_stats
 
     d = batch_dop(positions, R, t, rho=rho, visible=vis, stations=stations)
     counts = layout_counts(vis, coverage)  # (P, R)
     cov = covered(counts, min_visible)
-    a, p = d.adop[cov], d.pdop[cov]
+    st = pose_stats(d.adop, d.pdop, cov)
     n_sing = int(np.sum(cov & (d.status != 0)))
     P, S, n = vis.shape
     ids = list(ids) if ids is not None else [f"S{i + 1:02d}" for i in range(n)]
@@ -77,15 +55,13 @@ def score_arrays(positions, vis, R, t, stations, *, rho, min_visible=4, coverage
               "lit_fraction_covered_poses": float(vis[cov][:, :, i].any(axis=1).mean()) if cov.any() else 0.0}
              for i in range(n)]
     ok = bool(cov.any())
+    nan = float("nan")
     out = {
         "poses": int(P), "covered_poses": int(cov.sum()), "coverage_fraction": float(cov.mean()),
         "coverage_rule": coverage, "min_visible": int(min_visible), "rho": float(rho), "sensors": int(n),
         "stations": st_ids,
-        "worst_adop": float(np.max(a)) if ok else float("nan"),
-        "median_adop": _pct(a, 50), "p95_adop": _pct(a, 95), "p99_adop": _pct(a, 99),
-        "mean_adop": float(np.mean(a)) if ok and np.all(np.isfinite(a)) else (float("inf") if ok else float("nan")),
-        "worst_pdop": float(np.max(p)) if ok else float("nan"),
-        "median_pdop": _pct(p, 50), "p95_pdop": _pct(p, 95),
+        **{k: (st[k] if ok else nan) for k in ("worst_adop", "median_adop", "p95_adop", "p99_adop", "mean_adop",
+                                               "worst_pdop", "median_pdop", "p95_pdop")},
         "singular_covered_poses": n_sing,
         "uncovered_pose_indices": np.flatnonzero(~cov)[:200].tolist(),
         "lit_count_min": int(counts.min()) if P else 0,
@@ -101,48 +77,99 @@ def score_arrays(positions, vis, R, t, stations, *, rho, min_visible=4, coverage
     return out
 
 
-def score_layout(layout, envelope, *, mesh=None, units="m", rho=RHO_PAPER, half_angle_deg=60.0,
-                 min_visible=4, coverage="any-station", poses=None, seed=None, compare=None,
-                 report=None):
+def _resolve(lay, where, envelope, mesh, units, settings):
+    """Envelope, mesh (+ units) and settings: explicit arguments first, then the layout's own record
+    (:func:`layoutkit.optimize.design.layout_sources`), then the defaults. Returns
+    ``(envelope, mesh, units, settings, sources, recorded mesh SHA-256)``; ``ValueError`` naming the layout
+    when it is needed and says nothing, or when its mesh is missing."""
+    from ..optimize.design import layout_sources
+
+    src = layout_sources(lay, where)
+    spec = src["spec"] or {}
+    sources = {"envelope": "argument" if envelope is not None else "layout provenance"}
+    if envelope is None:
+        if src["envelope"] is None:
+            raise ValueError(f"{where}: no --envelope given and the layout records none (only layouts written by "
+                             "`layoutkit optimize` do); give --envelope")
+        envelope = src["envelope"]
+    if mesh == FROM_LAYOUT:
+        mesh, units = src["mesh"], src["units"] if units is None else units
+        sources["mesh"] = "layout provenance" if mesh is not None else "none"
+        if mesh is not None and not Path(mesh).is_file():
+            raise ValueError(f"{where}: its mesh {mesh} (provenance) is not there; give --mesh (or move it back)")
+    else:
+        sources["mesh"] = "argument" if mesh is not None else "none"
+    defaults = {"rho": RHO_PAPER, "half_angle_deg": 60.0, "min_visible": 4, "coverage": "any-station"}
+    out = {}
+    for k, v in settings.items():
+        rec = src["half_angle_deg"] if k == "half_angle_deg" and src["half_angle_deg"] is not None else spec.get(k)
+        out[k] = v if v is not None else (rec if rec is not None else defaults[k])
+        sources[k] = "argument" if v is not None else ("layout spec" if rec is not None else "default")
+    return envelope, mesh, units or "m", out, sources, src["mesh_sha256"]
+
+
+def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half_angle_deg=None, min_visible=None,
+                 coverage=None, poses=None, seed=None, compare=None, report=None, progress=None):
     """Score ``layout`` (path or Layout) over ``envelope`` (path or Envelope).
 
-    mesh : optional mesh path / Trimesh for occlusion (``units`` of the file); poses, seed :
-    override the envelope's pose count / seed (e.g. a dense or held-out set). compare : a second
-    layout scored over the same poses (``result["compare"]``). report : folder for plots + JSON.
-    Returns a JSON-able dict with at least worst_adop, median_adop, p95_adop (deg/rad), worst_pdop
-    (m/rad), coverage_fraction and poses.
+    A layout written by ``layoutkit optimize`` records its envelope, mesh and settings: ``envelope=None``
+    takes the recorded envelope, ``mesh=FROM_LAYOUT`` the recorded mesh (checked against its SHA-256), and
+    ``rho``, ``half_angle_deg``, ``min_visible``, ``coverage`` left at None the recorded values (else
+    0.8717, 60°, 4, any-station). ``result["sources"]`` says where each came from.
+    mesh : optional mesh path / Trimesh for occlusion (``units`` of the file; None: acceptance cone and
+    field of view only); poses, seed : override the envelope's pose count / seed (e.g. a dense or held-out
+    set). compare : a second layout scored over the same poses (``result["compare"]``). report : folder
+    for plots + JSON. Returns a JSON-able dict with at least worst_adop, median_adop, p95_adop (deg/rad),
+    worst_pdop (m/rad), coverage_fraction and poses. More than :data:`STREAM_POSES` poses are drawn and
+    scored in chunks (:func:`_score_streamed`: memory flat, quantiles from a log histogram, the report's
+    plots from the first chunk); ``progress(n)`` is told every chunk's pose count.
     """
     from ..coverage_rule import check_rule
+    from ..envelope import envelope_set
     from ..layout import Layout, load_layout
-    from ..mesh import load_mesh
+    from ..mesh import load_mesh, mesh_hash
+    from ..optimize import DesignProblem
 
-    check_rule(coverage)
     lay = layout if isinstance(layout, Layout) else load_layout(layout)
-    if mesh is not None and isinstance(mesh, (str, Path)):
-        mesh_name = str(mesh)
+    where = str(layout) if isinstance(layout, (str, Path)) else "layout"
+    envelope, mesh, units, st, sources, want_hash = _resolve(
+        lay, where, envelope, mesh, units,
+        {"rho": rho, "half_angle_deg": half_angle_deg, "min_visible": min_visible, "coverage": coverage})
+    check_rule(st["coverage"])
+    mesh_name = str(mesh) if isinstance(mesh, (str, Path)) else (None if mesh is None else "(in memory)")
+    if isinstance(mesh, (str, Path)):
         mesh = load_mesh(mesh, units)
+        if sources["mesh"] == "layout provenance" and want_hash and mesh_hash(mesh) != want_hash:
+            raise ValueError(f"{where}: its mesh {mesh_name} changed since the layout was made (SHA-256 differs); "
+                             "give --mesh explicitly to score on it anyway")
+    if poses is not None and int(poses) > STREAM_POSES:  # memory flat for any pose count
+        env = envelope_set(envelope, 1, seed)[0]
+        res, other, first = _score_streamed(lay, env, int(poses), mesh, st, compare, progress)
+        pb_R, pb_t = first
     else:
-        mesh_name = None if mesh is None else "(in memory)"
-    env, R, t = envelope_set(envelope, poses, seed)
+        env, _, _ = envelope_set(envelope, poses, seed)
+        res = other = None
 
     def one(L):
-        vis = layout_visibility(mesh, L.positions, L.normals, R, t, env.stations, half_angle_deg)
-        return score_arrays(L.positions, vis, R, t, env.stations, rho=rho, min_visible=min_visible,
-                            coverage=coverage, ids=L.ids)
+        pb = DesignProblem.load(mesh, env, candidates=L, half_angle_deg=st["half_angle_deg"])
+        return pb, score_arrays(L.positions, pb.visible, pb.rotations, pb.translations, pb.stations, rho=st["rho"],
+                                min_visible=st["min_visible"], coverage=st["coverage"], ids=L.ids)
 
-    res = one(lay)
+    if res is None:
+        pb, res = one(lay)
+        pb_R, pb_t = pb.rotations, pb.translations
     res.update({"layout": str(layout) if isinstance(layout, (str, Path)) else "(in memory)",
                 "envelope": str(envelope) if isinstance(envelope, (str, Path)) else env.name,
-                "envelope_seed": env.seed, "half_angle_deg": float(half_angle_deg),
+                "envelope_seed": env.seed, "half_angle_deg": float(st["half_angle_deg"]),
                 "occlusion": "mesh" if mesh is not None else "none (no mesh: acceptance cone and field of view only)",
-                "mesh": mesh_name})
-    other = None
+                "mesh": mesh_name, "sources": sources})
     if compare is not None:
-        oth = compare if isinstance(compare, Layout) else load_layout(compare)
-        other = one(oth)
+        if other is None:
+            oth = compare if isinstance(compare, Layout) else load_layout(compare)
+            other = one(oth)[1]
         other["layout"] = str(compare) if isinstance(compare, (str, Path)) else "(in memory)"
     if report is not None:
-        res["report"] = write_score_report(report, res, other, R, t, env)
+        res["report"] = write_score_report(report, res, other, pb_R, pb_t, env)
     if other is not None:
         res["compare"] = {k: v for k, v in other.items() if not k.startswith("_")}
     return res
@@ -211,3 +238,105 @@ def write_score_report(report_dir, res, other, R, t, env):
     atomic_write_text(d / "score.json", json.dumps(to_jsonable(out), indent=2) + "\n")
     files.append("score.json")
     return {"dir": str(d), "files": files}
+
+
+class _Stream:
+    """Running score of one layout over pose chunks (exact counts, max, mean; sketched quantiles)."""
+
+    def __init__(self, n_sensors, stations):
+        from ..parallel.sketch import LogHistogram, Moments
+
+        self.hist = {q: LogHistogram(**_SKETCH) for q in ("adop", "pdop")}
+        self.mom = {q: Moments() for q in ("adop", "pdop")}
+        self.P = self.covered = self.singular = 0
+        self.lit_min = None
+        self.lit_any = np.zeros(n_sensors)
+        self.lit_cov = np.zeros(n_sensors)
+        self.lit_st = np.zeros((len(stations), n_sensors))
+        self.uncovered = []
+
+    def add(self, r, vis):
+        cov = r["_covered"]
+        for q in ("adop", "pdop"):
+            x = r[f"_{q}"][cov]
+            self.hist[q].add(x)
+            self.mom[q].add(x)
+        if self.uncovered is not None and len(self.uncovered) < 200:
+            self.uncovered += (self.P + np.flatnonzero(~cov)).tolist()[:200 - len(self.uncovered)]
+        self.P += len(cov)
+        self.covered += int(cov.sum())
+        self.singular += int(r["singular_covered_poses"])
+        self.lit_min = r["lit_count_min"] if self.lit_min is None else min(self.lit_min, r["lit_count_min"])
+        self.lit_any += vis.any(axis=1).sum(0)
+        self.lit_cov += vis[cov].any(axis=1).sum(0)
+        self.lit_st += vis.sum(0)
+
+    def result(self, first: dict, stations) -> dict:
+        out = dict(first)
+        ok = self.covered > 0
+        nan = float("nan")
+        for q in ("adop", "pdop"):
+            h, m = self.hist[q], self.mom[q]
+            out.update({f"worst_{q}": m.max if ok else nan, f"mean_{q}": m.mean if ok else nan,
+                        f"median_{q}": h.quantile(0.5) if ok else nan, f"p95_{q}": h.quantile(0.95) if ok else nan})
+            if q == "adop":
+                out["p99_adop"] = h.quantile(0.99) if ok else nan
+            if m.nonfinite:  # inf DOP (singular) among the covered poses: the worst is inf
+                out[f"worst_{q}"] = float("inf")
+        ids = [u["id"] for u in first["per_sensor"]]
+        out["per_sensor"] = [{"id": ids[i], "lit_fraction": float(self.lit_any[i] / self.P),
+                              "lit_fraction_per_station": {s.id: float(self.lit_st[k, i] / self.P)
+                                                           for k, s in enumerate(stations)},
+                              "lit_fraction_covered_poses": float(self.lit_cov[i] / self.covered) if ok else 0.0}
+                             for i in range(len(ids))]
+        out.update({"poses": self.P, "covered_poses": self.covered, "coverage_fraction": self.covered / self.P,
+                    "singular_covered_poses": self.singular, "uncovered_pose_indices": self.uncovered,
+                    "lit_count_min": int(self.lit_min), "success": ok, "status": "ok" if ok else "no_coverage",
+                    "message": (f"{self.covered}/{self.P} poses covered ({out['coverage_rule']}, >= "
+                                f"{out['min_visible']} lit)" if ok else
+                                f"no pose of {self.P} has {out['min_visible']} lit sensors by the "
+                                f"{out['coverage_rule']} rule")})
+        return out
+
+
+def _score_streamed(lay, env, poses: int, mesh, st: dict, compare, progress):
+    """Score ``poses`` envelope poses in chunks of :data:`CHUNK_POSES` (memory flat for any count).
+
+    Chunk k draws its poses with the seed ``SeedSequence([env.seed, k])`` (a streamed set is the same
+    for any machine, not the one-shot draw of the same count). Counts, worst and mean are exact; the
+    median / p95 / p99 come from a log histogram (``result["streamed"]`` gives its resolution). The
+    ``_adop``/``_pdop``/``_covered`` arrays (report plots) are the first chunk's. Returns
+    ``(result, compare result or None, (R, t) of the first chunk)``."""
+    import dataclasses
+
+    from ..layout import Layout, load_layout
+    from ..optimize import DesignProblem
+
+    lays = [lay] + ([compare if isinstance(compare, Layout) else load_layout(compare)] if compare is not None else [])
+    streams, firsts, first_pose = None, None, None
+    done = k = 0
+    while done < poses:
+        n = min(CHUNK_POSES, poses - done)
+        seed = int(np.random.SeedSequence([int(env.seed), k]).generate_state(1)[0])
+        ck = dataclasses.replace(env, count=n, seed=seed)
+        res = []
+        for L in lays:
+            pb = DesignProblem.load(mesh, ck, candidates=L, half_angle_deg=st["half_angle_deg"])
+            r = score_arrays(L.positions, pb.visible, pb.rotations, pb.translations, pb.stations, rho=st["rho"],
+                             min_visible=st["min_visible"], coverage=st["coverage"], ids=L.ids)
+            res.append((r, pb.visible))
+        if streams is None:
+            streams = [_Stream(len(L.ids), pb.stations) for L in lays]
+            firsts = [r for r, _ in res]
+            first_pose = (pb.rotations, pb.translations)
+        for sm, (r, vis) in zip(streams, res):
+            sm.add(r, vis)
+        done += n
+        k += 1
+        if progress is not None:
+            progress(n)
+    sketch = {"chunks": k, "chunk_poses": CHUNK_POSES, "quantiles": "log histogram",
+              "relative_resolution": 10 ** (1 / _SKETCH["bins_per_decade"]) - 1,
+              "plots": f"the first {len(firsts[0]['_covered'])} poses"}
+    out = [sm.result(f, pb.stations) | {"streamed": sketch} for sm, f in zip(streams, firsts)]
+    return out[0], (out[1] if len(out) > 1 else None), first_pose

@@ -5,11 +5,12 @@
 1. cells already in ``out_dir/cells/<cell-id>.json`` with the same ``input_hash`` and a status other
    than ``error`` are skipped (resume); the others are queued;
 2. one :func:`prepare_task` per distinct problem (mesh × units × envelope × candidates/spacing ×
-   half-angle × seed) loads the mesh and computes visibility ONCE, on a worker; what it returns is
-   arrays only — candidate positions/normals/ids, poses, stations, the (P, S, N) visibility — and
-   Dask moves those to the cells that need them (no cell re-reads a mesh);
-3. each :func:`cell_task` computes the Jacobians from those arrays and runs
-   :func:`layoutkit.optimize.optimize_stations` (what ``layoutkit optimize`` runs);
+   half-angle × tilt × seed) loads the mesh and computes visibility ONCE, on a worker: a
+   :class:`layoutkit.optimize.DesignProblem`, which Dask moves to the cells that need it (no cell
+   re-reads a mesh);
+3. each :func:`cell_task` runs :func:`layoutkit.optimize.solve` on it with the cell's
+   :class:`layoutkit.optimize.OptimizeSpec` (what ``layoutkit optimize`` runs; the Jacobians are
+   computed on first use, in the cell);
 4. as each cell finishes the client writes ``cells/<id>.json`` (and ``cells/<id>.layout.json`` for
    a feasible layout) atomically; a cell that raised records ``status = "error"`` and its message
    and the sweep goes on;
@@ -20,7 +21,6 @@
 from __future__ import annotations
 
 import csv
-import io
 import json
 import math
 import time
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+from ..io.atomic import atomic_write, atomic_write_text
 from .sweep_config import PREP_KEYS, SweepConfig, load_sweep
 
 __all__ = ["run_sweep", "prepare_task", "cell_task", "read_cells", "SUMMARY_COLUMNS"]
@@ -39,99 +39,67 @@ SUMMARY_COLUMNS = ("status", "value", "bound", "gap", "wall_s", "worst_adop_deg_
                    "worst_pdop_m_per_rad", "certified_by", "cell_id")
 
 
-def prepare_task(opts: dict) -> dict:
-    """Worker task: load mesh, candidates, envelope; visibility. Returns arrays (and small metadata).
+def prepare_task(opts: dict):
+    """Worker task: load mesh, candidates, envelope and visibility once: a
+    :class:`layoutkit.optimize.DesignProblem` (its mesh, arrays and provenance; Dask moves it to the cells).
 
-    opts : the cell options (only :data:`layoutkit.workflows.sweep_config.PREP_KEYS` are used). Keys returned:
-    positions (N, 3) m, normals (N, 3), ids (N,) str, rotations (P, 3, 3), translations (P, 3) m
-    (body in the world frame), stations (tuple of Station), visible (P, S, N) bool, mesh_sha256,
-    warnings (list of str), prep_s.
+    opts : the cell options (only :data:`layoutkit.workflows.sweep_config.PREP_KEYS` are used). Warnings
+    raised while loading (other than a refused odd size) are in ``problem.provenance["warnings"]``.
     """
     from ..candidates import parse_keepout
-    from ..mesh import MeshUnitsWarning, load_mesh, mesh_hash
-    from .optimize import prepare_problem
+    from ..mesh import MeshUnitsWarning
+    from ..optimize import DesignProblem
 
-    t0 = time.perf_counter()
-    notes = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         if not opts.get("allow_odd_size"):
             warnings.simplefilter("error", MeshUnitsWarning)
-        mesh = load_mesh(opts["mesh"], opts.get("units", "m"))
         keep = [parse_keepout("box:" + ",".join(b.split())) for b in opts.get("keepout_box", ())]
-        kw = {}
-        if opts.get("max_tilt_deg") is not None:
-            kw["max_tilt_deg"] = opts["max_tilt_deg"]
         sp = opts.get("spacing_mm")
-        prep = prepare_problem(mesh, opts["envelope"], candidates=opts.get("candidates"),
-                               spacing=None if sp is None else sp * 1e-3, keepout=keep,
-                               units=opts.get("units", "m"), sensor_half_angle_deg=opts["half_angle_deg"],
-                               seed=opts["seed"], max_candidates=opts.get("max_candidates"), **kw)
-        notes += [str(w.message) for w in caught]
-    cand = prep["candidates"]
-    return {"positions": np.asarray(cand.positions), "normals": np.asarray(cand.normals),
-            "ids": tuple(cand.ids), "rotations": np.asarray(prep["rotations"]),
-            "translations": np.asarray(prep["translations"]), "stations": tuple(prep["stations"]),
-            "visible": np.asarray(prep["visible"], bool), "mesh_sha256": mesh_hash(mesh),
-            "site": None if prep.get("site") is None else np.asarray(prep["site"]),
-            "warnings": notes, "prep_s": time.perf_counter() - t0}
+        problem = DesignProblem.load(opts["mesh"], opts["envelope"], candidates=opts.get("candidates"),
+                                     spacing=None if sp is None else sp * 1e-3, keepout=keep,
+                                     units=opts.get("units", "m"), half_angle_deg=opts["half_angle_deg"],
+                                     seed=opts["seed"], max_candidates=opts.get("max_candidates"),
+                                     max_tilt_deg=opts.get("max_tilt_deg") or 0.0)
+    problem.provenance["warnings"] = [str(w.message) for w in caught]
+    return problem
 
 
-def cell_task(prep: dict, opts: dict) -> dict:
-    """Worker task: one optimisation on a prepared problem (arrays from :func:`prepare_task`).
+def cell_task(problem, opts: dict) -> dict:
+    """Worker task: one optimisation on a prepared problem (:func:`prepare_task`) with the cell's spec
+    (:func:`layoutkit.workflows.sweep_config.cell_spec`).
 
     Returns a JSON-able dict: status, success, message, value, bound, gap, certified_by, min_k,
     selected_ids, stats, wall_s (s, this optimisation only), layout (layout JSON dict or None).
     """
     from ..io.jsonfile import to_jsonable
-    from ..layout import Layout
-    from ..optimize import candidate_jacobians
+    from ..optimize import solve
     from ..parallel.scheduler import allow_child_processes
+    from .sweep_config import cell_spec
 
     t0 = time.perf_counter()
-    pos, nor, ids = prep["positions"], prep["normals"], prep["ids"]
-    idmap = {c: i for i, c in enumerate(ids)}
-    missing = [f for f in opts.get("fixed", ()) if f not in idmap]
-    if missing:
-        raise ValueError(f"fixed: unknown candidate id(s) {missing}; ids look like {ids[0]!r}")
-    jac = candidate_jacobians(pos, prep["rotations"], prep["translations"], prep["stations"])
+    spec = cell_spec(opts)
+    ids = problem.candidates.ids
     with allow_child_processes():  # the relaxation may run in a forked child (time limit)
-        res = _optimize(jac, prep, opts, [idmap[f] for f in opts.get("fixed", ())], pos)
+        res = solve(problem, spec)
     wall = time.perf_counter() - t0
     sel = [int(i) for i in res.selected]
     layout = None
     if res.success:
-        layout = Layout(pos[sel], nor[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
-                        {"mesh_sha256": prep["mesh_sha256"], "objective": res.objective, "rho": opts["rho"],
-                         "value": res.value, "bound": res.bound, "gap": res.gap,
-                         "certified_by": res.certified_by, "method": opts["method"],
-                         "min_visible": opts["min_visible"], "candidate_ids": [ids[i] for i in sel],
-                         "envelope": opts["envelope"]},
-                        tuple({"candidate": ids[i]} for i in sel)).to_dict()
+        layout = problem.layout(sel, {"mesh_sha256": problem.provenance.get("mesh_sha256"),
+                                      "objective": res.objective, "rho": opts["rho"], "value": res.value,
+                                      "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
+                                      "method": opts["method"], "min_visible": opts["min_visible"],
+                                      "candidate_ids": [ids[i] for i in sel], "envelope": opts["envelope"],
+                                      "spec": spec.to_dict(), "provenance": problem.provenance}).to_dict()
     return to_jsonable({
         "status": res.status, "success": bool(res.success), "message": res.message,
         "value": res.value, "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
         "min_k": res.min_k, "selected_ids": [ids[i] for i in sel],
         "stats": res.stats() if res.success else None, "candidates": len(ids),
-        "poses": int(len(prep["rotations"])), "wall_s": wall, "timings_s": res.timings,
-        "prepare_warnings": prep.get("warnings", []), "layout": layout,
+        "poses": problem.P, "wall_s": wall, "timings_s": res.timings,
+        "prepare_warnings": problem.provenance.get("warnings", []), "layout": layout,
     })
-
-
-def _optimize(jac, prep, opts, fixed, pos):
-    from ..optimize import optimize_stations, spacing_conflicts
-
-    conflict = spacing_conflicts(pos, opts["min_spacing_mm"] * 1e-3)
-    if opts.get("max_tilt_deg") and prep.get("site") is not None:  # one orientation per site
-        from ..optimize.tilt import site_conflicts
-
-        conflict = site_conflicts(prep["site"], conflict)
-    return optimize_stations(
-        jac, prep["visible"], opts["k"], objective=opts["objective"], rho=opts["rho"],
-        min_visible=opts["min_visible"], method=opts["method"], rng=opts["seed"], fixed=fixed,
-        conflict=conflict, coverage_fraction=opts["coverage_fraction"], coverage=opts["coverage"],
-        weights=opts.get("weights"), time_limit=opts.get("time_limit_s"),
-        branch_and_bound="off")  # a cell must be reproducible (schedulers, resumes); B&B's bound depends on timing
 
 
 def _cell_path(cells_dir: Path, cell_id: str) -> Path:
@@ -286,24 +254,80 @@ def _pareto(rows) -> list[dict]:
     return front
 
 
-def _savefig(fig, path: Path) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    atomic_write_bytes(path, buf.getvalue())
+def _objective_label(cfg) -> str:
+    from ..optimize.objectives import objective_unit
+
+    names = sorted({str(dict(c.options).get("objective")) for c in cfg.cells})
+    if len(names) == 1:
+        unit = objective_unit(names[0])
+        return f"{names[0]} ({unit})" if unit else names[0]
+    return "objective value (ADOP deg/rad, PDOP m/rad)"
 
 
 def _plots(out: Path, cfg: SweepConfig, rows, front, echo) -> list[str]:
-    """objective_vs_axes.png (one panel per axis) and pareto_worst_adop_vs_k.png."""
+    """objective_vs_axes.png (one panel per axis; cells without a layout drawn as red crosses on top)
+    and pareto_worst_adop_vs_k.png."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..io.figures import save_figure
+
     ok = [r for r in rows if r["status"] in ("ok", "optimal") and r["value"] is not None]
+    failed = [r for r in rows if r not in ok]
     files = []
     if not ok:
         echo("note: no feasible cell; no plots")
         return files
+    names = cfg.axis_names or ("k",)
+    fig, axs = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.8), squeeze=False)
+    top = max(r["value"] for r in ok) * 2.0
+    for ax, name in zip(axs[0], names):
+        vals = [r.get(name, r["k"]) for r in ok + failed]
+        numeric = all(isinstance(v, (int, float)) for v in vals)
+        levels = sorted(set(vals)) if numeric else list(dict.fromkeys(vals))
+        x_all = np.array([v if numeric else levels.index(v) for v in vals], float)
+        x, xf = x_all[:len(ok)], x_all[len(ok):]
+        y = np.array([r["value"] for r in ok])
+        ax.scatter(x, y, s=18, alpha=0.7, label="cells")
+        lx = np.array([lv if numeric else i for i, lv in enumerate(levels)], float)
+        best = [y[x == v].min() if np.any(x == v) else np.nan for v in lx]
+        ax.plot(lx, best, "k.-", lw=1, label="best at this value")
+        if len(xf):
+            ax.scatter(xf, np.full(len(xf), top), marker="x", s=40, c="C3", label="infeasible / failed (no value)")
+        if not numeric:
+            ax.set_xticks(lx, [Path(str(v)).stem for v in levels], rotation=20)
+        ax.set_xlabel(name)
+        ax.set_ylabel(_objective_label(cfg))
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axs[0][0].legend(fontsize=8)
+    fig.suptitle(f"sweep {cfg.name}: objective of each cell against each axis")
+    fig.tight_layout()
+    save_figure(fig, out / "objective_vs_axes.png",
+                caption=f"{len(ok)} cells with a layout (dots; black: the best at each axis value)"
+                        + (f", {len(failed)} without one (red crosses drawn above the rest: infeasible or failed, "
+                           "see summary.csv)" if failed else "") + "; log scale.")
+    files.append("objective_vs_axes.png")
+    pts = [(r["k"], r["worst_adop_deg_per_rad"]) for r in ok if r["worst_adop_deg_per_rad"] is not None]
+    if pts:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.scatter(*zip(*pts), s=18, c="0.6", label="cells")
+        ax.plot([p["k"] for p in front], [p["worst_adop_deg_per_rad"] for p in front], "o-", c="C3",
+                label="Pareto front")
+        ax.set_xlabel("sensors k")
+        ax.set_ylabel("worst ADOP over the envelope (deg/rad)")
+        ax.set_yscale("log")
+        ax.set_title(f"sweep {cfg.name}: worst ADOP against the sensor count")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        save_figure(fig, out / "pareto_worst_adop_vs_k.png",
+                    caption="Worst ADOP over the envelope of every cell with a layout (grey) and the cells no other "
+                            "cell beats with as few sensors (red).")
+        files.append("pareto_worst_adop_vs_k.png")
+    return files
     names = cfg.axis_names or ("k",)
     fig, axs = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.8), squeeze=False)
     for ax, name in zip(axs[0], names):

@@ -14,7 +14,7 @@ A sweep file is TOML (docs/distributed.md)::
     half_angle_deg = [55.0, 65.0]
 
 Every ``layoutkit optimize`` option may appear in ``[base]`` under its flag name without dashes
-(:data:`OPTIONS`); those marked sweepable also in ``[axes]`` as a list. The cells are the Cartesian
+(:func:`options`; the optimisation settings are those of :class:`layoutkit.optimize.OptimizeSpec`); those marked sweepable also in ``[axes]`` as a list. The cells are the Cartesian
 product of the axes, in file order (the first axis varies slowest). A key in both tables is an
 error, and so is any unknown key: the message names the file and the key.
 
@@ -25,6 +25,7 @@ still apply.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import json
@@ -36,9 +37,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .._validate import read_structured
-from ..units import LENGTH_UNIT_NAMES, RHO_PAPER
+from ..units import LENGTH_UNIT_NAMES
 
-__all__ = ["OPTIONS", "SweepConfig", "Cell", "load_sweep", "parse_sweep", "tilt_supported"]
+__all__ = ["options", "defaults", "SweepConfig", "Cell", "load_sweep", "parse_sweep", "cell_spec"]
 
 _TOP = {"name", "description", "base", "axes"}
 
@@ -53,16 +54,13 @@ def _int(lo=None):
     return conv
 
 
-def _float(lo=None, hi=None, lo_open=False, hi_open=False):
+def _float(lo=None, lo_open=False):
     def conv(v):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise ValueError(f"expected a number, got {v!r}")
         v = float(v)
-        bad = ((lo is not None and (v < lo or (lo_open and v == lo)))
-               or (hi is not None and (v > hi or (hi_open and v == hi))))
-        if bad:
-            rng = f"{'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-            raise ValueError(f"expected a number in {rng}, got {v}")
+        if lo is not None and (v < lo or (lo_open and v == lo)):
+            raise ValueError(f"expected a number {'>' if lo_open else '>='} {lo}, got {v}")
         return v
     return conv
 
@@ -97,79 +95,103 @@ def _str_list(v):
     return tuple(v)
 
 
-def _weights(v):
-    if not isinstance(v, list) or len(v) != 2:
-        raise ValueError(f"expected [a, b] (weights of ADOP^2 and PDOP^2), got {v!r}")
-    return tuple(_float(0.0)(x) for x in v)
-
-
-def _method(v):
-    from ..optimize import METHODS  # the method registry
-
-    return _str(tuple(sorted(METHODS)))(v)
-
-
-def _objective(v):
-    from ..optimize import parse_objective
-
-    v = _str()(v)
-    try:
-        parse_objective(v, (1.0, 1.0) if v.endswith("weighted") else None)
-    except ValueError as exc:
-        raise ValueError(str(exc)) from None
-    return v
-
-
 @dataclass(frozen=True)
 class _Opt:
     convert: Callable[[Any], Any]
     sweepable: bool = True
     is_path: bool = False
+    #: the :class:`layoutkit.optimize.OptimizeSpec` field and the scale from this option's unit to it
+    spec_field: "str | None" = None
+    scale: float = 1.0
 
 
-#: Every option of a sweep cell: ``name -> (converter, may be an axis, is a path)``.
-OPTIONS: dict[str, _Opt] = {
+def _spec_converter(name, scale):
+    """Converter of a sweep value of spec field ``name`` (unit ``1/scale`` of it): the spec's own check."""
+    from ..optimize.spec import check_field
+
+    def conv(v):
+        if isinstance(v, list):
+            v = tuple(v)
+        if scale != 1.0 and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ValueError(f"expected a number, got {v!r}")
+        try:
+            out = check_field(name, v * scale if scale != 1.0 else v)
+        except ValueError as exc:
+            raise ValueError(str(exc).removeprefix(f"{name}: ")) from None
+        return float(v) if scale != 1.0 else out
+    return conv
+
+
+def _spec_options() -> dict:
+    """The sweep options that are :class:`OptimizeSpec` fields: the spec's names (the CLI's unit where the
+    edge name says another, e.g. ``min_spacing_mm``), its converters and its defaults."""
+    from ..optimize.spec import SPEC_OPTIONS
+
+    out = {}
+    for name, so in SPEC_OPTIONS.items():
+        if not so.sweep:
+            continue
+        edge = so.edge or name
+        out[edge] = _Opt(_spec_converter(name, so.scale), sweepable=name not in ("fixed",), spec_field=name,
+                         scale=so.scale)
+    return out
+
+
+def _spec_defaults() -> dict:
+    """Defaults of the spec fields a sweep may set, in the sweep's units (None defaults are left out)."""
+    import dataclasses
+
+    from ..optimize.spec import SPEC_OPTIONS, OptimizeSpec
+
+    out = {}
+    for f in dataclasses.fields(OptimizeSpec):
+        so = SPEC_OPTIONS[f.name]
+        if not so.sweep or f.default is dataclasses.MISSING or f.default is None:
+            continue
+        out[so.edge or f.name] = f.default / so.scale if so.scale != 1.0 else f.default
+    return out
+
+
+#: The options that say how the problem is loaded (:meth:`layoutkit.optimize.DesignProblem.load`).
+_LOAD_OPTIONS: dict[str, _Opt] = {
     "mesh": _Opt(_path, True, True),
     "envelope": _Opt(_path, True, True),
     "candidates": _Opt(_path, True, True),
     "spacing_mm": _Opt(_float(0.0, lo_open=True)),
     "max_candidates": _Opt(_int(1)),
     "keepout_box": _Opt(_str_list, False),
-    "fixed": _Opt(_str_list, False),
     "units": _Opt(_str(LENGTH_UNIT_NAMES), False),
     "allow_odd_size": _Opt(_bool, False),
-    "k": _Opt(_int(1)),
-    "objective": _Opt(_objective),
-    "weights": _Opt(_weights),
-    "rho": _Opt(_float(0.0, 1.0, hi_open=True)),
-    "method": _Opt(_method),
-    "min_visible": _Opt(_int(1)),
-    "coverage_fraction": _Opt(_float(0.0, 1.0, lo_open=True)),
-    "coverage": _Opt(_str(("any-station", "each-station", "joint"))),
-    "min_spacing_mm": _Opt(_float(0.0)),
-    "half_angle_deg": _Opt(_float(0.0, 90.0, lo_open=True)),
-    "max_tilt_deg": _Opt(_float(0.0, 90.0)),
-    "time_limit_s": _Opt(_float(0.0, lo_open=True)),
-    "seed": _Opt(_int()),
 }
 
-#: Defaults of ``layoutkit optimize`` for options a sweep leaves out.
-DEFAULTS = {"objective": "worst-adop", "rho": RHO_PAPER, "method": "pipeline", "min_visible": 4,
-            "coverage_fraction": 1.0, "coverage": "any-station", "min_spacing_mm": 0.0, "half_angle_deg": 60.0, "seed": 0,
-            "units": "m", "keepout_box": (), "fixed": (), "allow_odd_size": False}
+
+@functools.cache
+def options() -> dict:
+    """Every option of a sweep cell: ``name -> _Opt(converter, may be an axis, is a path, spec field)``;
+    the optimisation settings are the fields of :data:`layoutkit.optimize.spec.SPEC_OPTIONS` (built on
+    first use: importing this module stays cheap)."""
+    return {**_LOAD_OPTIONS, **_spec_options()}
+
+
+@functools.cache
+def defaults() -> dict:
+    """Defaults of the options a sweep leaves out: the spec's own (:class:`layoutkit.optimize.OptimizeSpec`)
+    and the neutral loading choices (metres, no keep-out, odd sizes refused)."""
+    return {**_spec_defaults(), "units": "m", "keepout_box": (), "allow_odd_size": False}
 
 #: Options that change the prepared problem (mesh, candidates, visibility); the others only the search.
 PREP_KEYS = ("mesh", "units", "allow_odd_size", "envelope", "candidates", "spacing_mm", "max_candidates",
              "keepout_box", "half_angle_deg", "max_tilt_deg", "seed")
 
 
-def tilt_supported() -> bool:
-    """Whether the optimiser on this install takes a sensor-tilt limit (``max_tilt_deg``)."""
-    import inspect
+def cell_spec(opts: dict):
+    """The :class:`layoutkit.optimize.OptimizeSpec` of a cell's options (branch-and-bound off: a cell must
+    be reproducible across schedulers and resumes, and B&B's bound depends on timing)."""
+    from ..optimize import OptimizeSpec
 
-    from .optimize import prepare_problem
-
-    return "max_tilt_deg" in inspect.signature(prepare_problem).parameters
+    kw = {o.spec_field: opts[name] * o.scale if o.scale != 1.0 else opts[name]
+          for name, o in options().items() if o.spec_field is not None and opts.get(name) is not None}
+    return OptimizeSpec(**kw, branch_and_bound="off")
 
 
 @dataclass(frozen=True)
@@ -223,6 +245,7 @@ def parse_sweep(d: dict, path) -> SweepConfig:
     """Validate the dict of a sweep file read from ``path`` (paths resolve against its folder)."""
     path = Path(path)
     where = str(path)
+    OPTIONS, DEFAULTS = options(), defaults()
 
     def err(key, msg):
         return ValueError(f"{where}: {key}: {msg}")
@@ -261,10 +284,6 @@ def parse_sweep(d: dict, path) -> SweepConfig:
         if len(set(map(repr, conv))) != len(conv):
             raise err(f"axes.{k}", f"repeated values in {vals!r}")
         axes.append((k, tuple(conv)))
-    if "max_tilt_deg" in base or any(a == "max_tilt_deg" for a, _ in axes):
-        if not tilt_supported():
-            raise err("max_tilt_deg", "sensor tilt is not in this version of the optimiser yet "
-                                      "(`layoutkit optimize` has no --max-tilt-deg); remove it")
     for req in ("mesh", "envelope", "k"):
         if req not in base and all(a != req for a, _ in axes):
             raise err(req, "required (in [base] or [axes])")
@@ -295,6 +314,7 @@ def parse_sweep(d: dict, path) -> SweepConfig:
                 o[k] = resolve(o[k])
         if o["objective"].endswith("weighted") and "weights" not in o:
             raise err("weights", f"objective {o['objective']!r} needs weights = [a, b]")
+
         hashed = {k: ({"sha256": fhash(v)} if OPTIONS[k].is_path else v) for k, v in o.items()}
         h = hashlib.sha256(json.dumps(hashed, sort_keys=True, default=list).encode()).hexdigest()
         ax = tuple(zip(names, combo))
@@ -308,6 +328,7 @@ def parse_sweep(d: dict, path) -> SweepConfig:
 
 def _cell_id(axes: tuple) -> str:
     """``k12_half_angle_deg55-<8 hex>``: readable axis values (file stems for paths) + a hash of them."""
+    OPTIONS = options()
     if not axes:
         return "base"
     parts = []

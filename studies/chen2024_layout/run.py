@@ -25,12 +25,26 @@ import numpy as np
 from layoutkit.io.jsonfile import to_jsonable
 from layoutkit.envelope import load_envelope
 from layoutkit.units import RHO_PAPER, SIGMA_THETA_PAPER
-from layoutkit.optimize import optimize_stations
+from layoutkit.optimize import DesignProblem, OptimizeSpec, solve
+from layoutkit.optimize.stats import nested_stats, pose_stats
 from layoutkit.shapes import chen_target
-from layoutkit.workflows.optimize import evaluate_layout, prepare_problem
 
 HERE = Path(__file__).parent
 REPO = HERE.parents[1]
+
+
+def evaluate_layout(mesh, env, layout, min_visible=4):
+    """Exact per-pose ADOP/PDOP of a layout over ``env`` (its visibility computed once, by the problem
+    whose candidates are the layout's sensors): adop (P,), pdop (P,), n_lit (P,) and statistics over
+    the poses with ``min_visible`` lit (:func:`layoutkit.optimize.stats.pose_stats`)."""
+    from layoutkit.dop import dop_from_jacobian
+
+    pb = DesignProblem.load(mesh, env, candidates=layout)
+    d = dop_from_jacobian(pb.jac, RHO_PAPER, pb.visible)
+    n_lit = pb.visible.any(axis=1).sum(axis=1)
+    ok = (n_lit >= min_visible) & np.isfinite(d.adop) & np.isfinite(d.pdop)
+    return {"adop": np.asarray(d.adop), "pdop": np.asarray(d.pdop), "n_lit": n_lit,
+            "stats": nested_stats(pose_stats(d.adop, d.pdop, ok))}
 
 
 def main():
@@ -43,30 +57,30 @@ def main():
     if a.quick:
         env = dataclasses.replace(env, count=100)
     spacing = 0.008 if a.quick else 0.006
-    prep = prepare_problem(mesh, env, spacing=spacing, seed=0)
-    cand = prep["candidates"]
-    res = optimize_stations(prep["jac"], prep["visible"], 12, objective="worst-adop", rho=RHO_PAPER,
-                            min_visible=4, rng=0, time_limit=60 if a.quick else 110)
+    prep = DesignProblem.load(mesh, env, spacing=spacing, seed=0)
+    cand = prep.candidates
+    spec = OptimizeSpec(k=12, objective="worst-adop", rho=RHO_PAPER, min_visible=4, seed=0,
+                        time_limit_s=60 if a.quick else 110)
+    res = solve(prep, spec)
     print(res.message)
     # second variant: like the paper-like layout, allow 4 % of the poses to have fewer than 4 lit
-    res96 = optimize_stations(prep["jac"], prep["visible"], 12, objective="worst-adop", rho=RHO_PAPER,
-                              min_visible=4, rng=0, coverage_fraction=0.96, time_limit=60 if a.quick else 110)
+    res96 = solve(prep, spec.replace(coverage_fraction=0.96))
     print(res96.message)
     opt_pos, opt_nor = cand.positions[res.selected], cand.normals[res.selected]
-    held = prepare_problem(mesh, dataclasses.replace(env, seed=env.seed + 1), candidates=cand)
-    out = {"candidates": cand.n, "poses": int(len(prep["rotations"])), "spacing_m": spacing,
+    held_env = dataclasses.replace(env, seed=env.seed + 1)
+    out = {"candidates": cand.n, "poses": prep.P, "spacing_m": spacing,
            "rho": RHO_PAPER, "sigma_theta_rad": SIGMA_THETA_PAPER, "objective": res.objective,
            "optimiser": {"value": res.value, "bound": res.bound, "gap": res.gap, "certified_by": res.certified_by,
                          "time_s": res.timings["total_s"], "selected": [cand.ids[i] for i in res.selected]},
            "layouts": {}}
     evals = {}
-    layouts = {"paper-like": (paper.positions, paper.normals), "optimised": (opt_pos, opt_nor),
-               "optimised-96%": (cand.positions[res96.selected], cand.normals[res96.selected])}
+    layouts = {"paper-like": paper, "optimised": cand.subset(res.selected),
+               "optimised-96%": cand.subset(res96.selected)}
     out["optimiser_96"] = {"value": res96.value, "bound": res96.bound, "gap": res96.gap,
                            "certified_by": res96.certified_by, "time_s": res96.timings["total_s"]}
-    for name, (pos, nor) in layouts.items():
-        for env_name, pr in (("design", prep), ("held-out", held)):
-            e = evaluate_layout(pr, pos, nor, RHO_PAPER)
+    for name, lay in layouts.items():
+        for env_name, ev in (("design", env), ("held-out", held_env)):
+            e = evaluate_layout(mesh, ev, lay)
             evals[name, env_name] = e
             out["layouts"].setdefault(name, {})[env_name] = e["stats"]
     out["optimised_positions_m"] = opt_pos

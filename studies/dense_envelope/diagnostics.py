@@ -13,7 +13,7 @@ the committed dense-loop layout) the nearest poses of that dense set by station 
 angle, range, lit sensors, ADOP and ADOP × 3 m / range (the range-dominance check). ``rays`` (session 21): every
 layout of the given study results (default the committed results.json) on the 2,000 held-out poses and on their
 *rays* — each held-out attitude and bearing over the whole 1–3 m range, by
-:func:`layoutkit.workflows.dense.range_sweep_poses` (both ends and both sides of every half-angle crossing of the
+:func:`layoutkit.optimize.poses.range_sweep_poses` (both ends and both sides of every half-angle crossing of the
 layout's sensors: the worst case along each ray) — and on the rays of the 10,000 dense poses; writes ``rays.json``.
 ``fresh`` (session 22): every layout of one study results file (its device, tilt included) on five more fresh
 2,000-pose sets of the envelope (seeds envelope seed + 100 … + 104, never used by any optimiser) and one fresh
@@ -38,25 +38,24 @@ RHO, K, M = 0.8717, 24, 4
 def _setup(n_cov):
     from run import device, envelope
 
-    from layoutkit.workflows.optimize import prepare_problem
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize import DesignProblem
+    from layoutkit.envelope import envelope_set
 
     hull, cand = device(0.010)
     env = envelope(200, 13)
-    prep = prepare_problem(hull, env, candidates=cand)
+    prep = DesignProblem.load(hull, env, candidates=cand)
     _, Rd, td = envelope_set(env, count=10000, seed=env.seed + 1)
     _, Rc, tc = envelope_set(env, count=int(n_cov), seed=env.seed + 3)
     _, Rh, th = envelope_set(env, count=2000, seed=env.seed + 2)
-    R = np.concatenate([prep["rotations"], Rd, Rc])
-    t = np.concatenate([prep["translations"], td, tc])
+    R = np.concatenate([prep.rotations, Rd, Rc])
+    t = np.concatenate([prep.translations, td, tc])
     return hull, cand, prep, R, t, Rh, th
 
 
 def _worst(prep, sel, R, t):
     """A layout's worst ADOP over poses ``R, t`` (∞ if any has < 4 lit), over the tracked ones, and the counts."""
-    from layoutkit.workflows.dense import evaluate_selection
 
-    a, _, cov = evaluate_selection(prep, sel, R, t, RHO, M, "any-station")
+    a, _, cov = prep.evaluate(sel, R, t, rho=RHO, min_visible=M, coverage="any-station")
     return {"poses": int(len(a)), "untracked": int((~cov).sum()),
             "worst_adop": float(a.max()) if cov.all() else float("inf"),
             "worst_adop_over_tracked": float(a[cov].max())}
@@ -71,22 +70,21 @@ def polish_all(args):
     from layoutkit.coverage_rule import covered, layout_counts
     from layoutkit.optimize import candidate_jacobians, optimize_stations
     from layoutkit.visibility import envelope_visibility
-    from layoutkit.workflows.dense import evaluate_selection
 
     hull, cand, prep, R, t, Rh, th = _setup(args.coverage_poses)
-    vis = envelope_visibility(hull, cand.positions, cand.normals, R, t, prep["stations"], sensor_half_angle_deg=60.0)
+    vis = envelope_visibility(hull, cand.positions, cand.normals, R, t, prep.stations, sensor_half_angle_deg=60.0)
     ok = covered(layout_counts(vis, "any-station"), M)
     R, t, vis = R[ok], t[ok], vis[ok]
     sel0 = _committed()
     t0 = time.perf_counter()
-    res = optimize_stations(candidate_jacobians(cand.positions, R, t, prep["stations"]), vis, K, rng=0,
+    res = optimize_stations(candidate_jacobians(cand.positions, R, t, prep.stations), vis, K, rng=0,
                             time_limit=args.time_limit_s, objective="worst-adop", rho=RHO, min_visible=M,
                             branch_and_bound="off", method="polish",
                             ctx_options={"warm_start": sel0, "patience": 6, "two_swap": True})
     out = {"working_poses": int(len(R)), "time_s": time.perf_counter() - t0, "message": res.message}
     for lab, sel in (("start", sel0), ("polished", res.selected)):
-        a, _, cov = evaluate_selection(prep, sel, R, t, RHO, M, "any-station")
-        ah, _, ch = evaluate_selection(prep, sel, Rh, th, RHO, M, "any-station")
+        a, _, cov = prep.evaluate(sel, R, t, rho=RHO, min_visible=M, coverage="any-station")
+        ah, _, ch = prep.evaluate(sel, Rh, th, rho=RHO, min_visible=M, coverage="any-station")
         out[lab] = {"working_worst": float(a[cov].max()) if cov.all() else float("inf"),
                     "heldout_worst": float(ah[ch].max()) if ch.all() else float("inf"),
                     "selected": [int(x) for x in sel]}
@@ -98,14 +96,14 @@ def polish_all(args):
 
 
 def pockets(args):
-    from layoutkit.workflows.dense import evaluate_selection, pose_descriptors
-    from layoutkit.workflows.score import layout_visibility
+    from layoutkit.optimize.poses import pose_descriptors
+    from layoutkit.optimize.design import layout_visibility
 
     hull, cand, prep, R, t, Rh, th = _setup(args.coverage_poses)
-    st = prep["stations"]
+    st = prep.stations
     sel = np.array(json.loads(Path(args.layout).read_text())["selected"]) if args.layout else _committed()
-    a, _, _ = evaluate_selection(prep, sel, Rh, th, RHO, M, "any-station")
-    aw, _, _ = evaluate_selection(prep, sel, R, t, RHO, M, "any-station")
+    a, _, _ = prep.evaluate(sel, Rh, th, rho=RHO, min_visible=M, coverage="any-station")
+    aw, _, _ = prep.evaluate(sel, R, t, rho=RHO, min_visible=M, coverage="any-station")
     dh, dw = pose_descriptors(Rh, th, st)[:, :3], pose_descriptors(R, t, st)[:, :3]
     rh = np.linalg.norm(th - st[0].translation, axis=1)
     rw = np.linalg.norm(t - st[0].translation, axis=1)
@@ -121,11 +119,11 @@ def pockets(args):
 
 
 def rays(args):
-    from layoutkit.workflows.dense import range_sweep_poses
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize.poses import range_sweep_poses
+    from layoutkit.envelope import envelope_set
 
     hull, cand, prep, R, t, Rh, th = _setup(1)
-    env = prep["envelope"]
+    env = prep.envelope
     _, Rd, td = envelope_set(env, count=10000, seed=env.seed + 1)
 
     def worst(sel, R_, t_, sweep):
@@ -150,15 +148,15 @@ def rays(args):
 def fresh(args):
     from run import device, envelope
 
-    from layoutkit.workflows.optimize import prepare_problem
-    from layoutkit.workflows.score import envelope_set
+    from layoutkit.optimize import DesignProblem
+    from layoutkit.envelope import envelope_set
 
     path = Path((args.results or [str(HERE / "results.json")])[0])
     res = json.loads(path.read_text())
     dev = res["device"]
     hull, cand = device(dev["spacing_mm"] * 1e-3)
     env = envelope(200, 13)
-    prep = prepare_problem(hull, env, candidates=cand, max_tilt_deg=dev.get("max_tilt_deg", 0.0),
+    prep = DesignProblem.load(hull, env, candidates=cand, max_tilt_deg=dev.get("max_tilt_deg", 0.0),
                            tilt_toward=dev.get("tilt_toward"))
     sets = [(f"seed+{d}", 2000, env.seed + d) for d in range(100, 105)] + [("seed+200", 20000, env.seed + 200)]
     out = {"results": str(path), "sets": {lab: {"poses": n, "seed": sd} for lab, n, sd in sets}, "layouts": {}}

@@ -18,7 +18,7 @@ Layouts compared on 2,000 held-out poses (envelope seed + 2, never seen by any o
   layout of the first version of this study (even spread over the visor, not weighted to the rim);
 - optimised on the 200 design poses only (half the dense loop's budget; more time only fits the 200
   poses better);
-- optimised by the dense loop (:mod:`layoutkit.workflows.dense`: 10⁴ dense poses, seed + 1, for the DOP;
+- optimised by the dense loop (:mod:`layoutkit.optimize.dense`: 10⁴ dense poses, seed + 1, for the DOP;
   4·10⁴ more, seed + 3, for coverage only — coverage must hold on a set much denser than the held-out
   set, or a held-out pose between dense poses can lose its 4th lit sensor).
 Statistics: worst ADOP over ALL held-out poses with an untracked pose (< 4 lit) counted as
@@ -159,13 +159,14 @@ def main():
     import cvxpy  # noqa: F401
 
     from layoutkit.coverage_rule import covered, layout_counts
-    from layoutkit.optimize import candidate_jacobians, optimize_stations, parse_objective
+    from layoutkit.envelope import envelope_set
+    from layoutkit.optimize import (DenseSpec, DesignProblem, OptimizeSpec, candidate_jacobians, optimize_stations,
+                                    parse_objective, solve)
+    from layoutkit.optimize.poses import range_sweep_poses
+    from layoutkit.optimize.design import layout_visibility
     from layoutkit.optimize.problem import build_problem
     from layoutkit.optimize.relaxation import pose_relaxation_bounds, relax
     from layoutkit.visibility import envelope_visibility
-    from layoutkit.workflows.dense import dense_optimize, evaluate_selection, range_sweep_poses
-    from layoutkit.workflows.optimize import prepare_problem
-    from layoutkit.workflows.score import envelope_set, layout_visibility
 
     t_start = time.perf_counter()
     out = Path(args.out)
@@ -174,9 +175,9 @@ def main():
     env = envelope(200, 13)
     toward = (args.tilt_toward if args.tilt_toward in (None, "station")
               else [float(x) for x in args.tilt_toward.split(",")])
-    prep = prepare_problem(hull, env, candidates=cand, max_tilt_deg=args.max_tilt_deg, tilt_toward=toward)
+    prep = DesignProblem.load(hull, env, candidates=cand, max_tilt_deg=args.max_tilt_deg, tilt_toward=toward)
     plain = cand  # the surface sites (the hand layouts' choices); tilted candidates follow them in prep
-    cand = prep["candidates"]  # its first plain.n candidates are the plain sites, in order
+    cand = prep.candidates  # its first plain.n candidates are the plain sites, in order
     N, k, rho, m = cand.n, args.k, 0.8717, 4
     _, Rh, th = envelope_set(env, count=2000, seed=env.seed + 2)
     res = {"device": {"candidates": N, "k": k, "spacing_mm": args.spacing_mm,
@@ -197,27 +198,27 @@ def main():
         for name in list(sets):
             sets[f"{name}, tilted {args.max_tilt_deg:g}° towards"] = np.array(
                 sorted(idx.get(f"{plain.ids[i]}~t1", i) for i in sets[name]))
-    kw = dict(objective="worst-adop", rho=rho, min_visible=args.design_min_visible or m)
-    res["device"]["design_min_visible"] = kw["min_visible"]
-    if args.max_tilt_deg > 0:  # one orientation per site
-        from layoutkit.optimize.tilt import site_conflicts
-
-        kw["conflict"] = site_conflicts(prep["site"])
+    T = args.time_limit_s
+    # one orientation per site when tilted (the problem's conflicts)
+    spec = OptimizeSpec(k=k, objective="worst-adop", rho=rho, min_visible=args.design_min_visible or m, seed=0,
+                        max_tilt_deg=args.max_tilt_deg, tilt_toward=toward if args.max_tilt_deg > 0 else None)
+    kw = dict(objective="worst-adop", rho=rho, min_visible=spec.min_visible, conflict=prep.conflicts())
+    res["device"]["design_min_visible"] = spec.min_visible
+    if args.max_tilt_deg > 0:
         res["device"].update(max_tilt_deg=args.max_tilt_deg, tilt_toward=toward, oriented_candidates=N,
                              sites=plain.n)
-    T = args.time_limit_s
     t0 = time.perf_counter()
-    r_design = optimize_stations(prep["jac"], prep["visible"], k, rng=0,
-                                 time_limit=args.design_time_limit_s or min(180.0, T / 2), **kw)
+    r_design = solve(prep, spec.replace(time_limit_s=args.design_time_limit_s or min(180.0, T / 2)))
     t_design = time.perf_counter() - t0
     print("design-only:", r_design.message, flush=True)
     if r_design.success:
         sets["optimised on the 200 design poses"] = r_design.selected
     t0 = time.perf_counter()
-    r_dense, info = dense_optimize(prep, k, kw, dense_poses=args.dense_poses, coverage_poses=args.coverage_poses,
-                                   join_above=args.join_above, coverage_dop=args.coverage_dop, far_range=args.far_range,
-                                   range_sweep=args.range_sweep, max_working=args.max_working, time_limit=T,
-                                   echo=print)
+    dense = DenseSpec(poses=args.dense_poses, coverage_poses=args.coverage_poses, join_above=args.join_above,
+                      coverage_dop=args.coverage_dop, far_range=args.far_range, range_sweep=args.range_sweep,
+                      max_working=args.max_working)
+    r_dense = solve(prep, spec.replace(time_limit_s=T, dense=dense), echo=print)
+    info = r_dense.info["dense"]
     t_dense = time.perf_counter() - t0
     print("dense:", r_dense.message, flush=True)
     DENSE = "optimised by the dense loop"
@@ -227,11 +228,11 @@ def main():
 
     per = {}
     for name, sel in sets.items():
-        row = {"sensors": [int(x) for x in sel], "tilted_sensors": int((prep["tilt_deg"][sel] > 0).sum())}
-        for lab, R, t in (("design", prep["rotations"], prep["translations"]), ("working", Rw, tw),
-                          ("dense", np.concatenate([prep["rotations"], Rd]), np.concatenate([prep["translations"], td])),
+        row = {"sensors": [int(x) for x in sel], "tilted_sensors": int((prep.tilt_deg[sel] > 0).sum())}
+        for lab, R, t in (("design", prep.rotations, prep.translations), ("working", Rw, tw),
+                          ("dense", np.concatenate([prep.rotations, Rd]), np.concatenate([prep.translations, td])),
                           ("heldout", Rh, th)):
-            a, p, cov = evaluate_selection(prep, sel, R, t, rho, m, "any-station")
+            a, p, cov = prep.evaluate(sel, R, t, rho=rho, min_visible=m, coverage="any-station")
             x = a[cov]
             row[lab] = {"poses": int(len(a)), "covered_fraction": float(cov.mean()),
                         "worst_adop": float(x.max()) if cov.all() else math.inf,
@@ -243,7 +244,7 @@ def main():
                 per[name] = (a, cov)
         # the held-out rays: each held-out pose's attitude and bearing over the whole 1–3 m range (its swept poses)
         Rs, ts, _ = range_sweep_poses(env, Rh, th, cand.positions[sel], cand.normals[sel], 60.0)
-        a, p, cov = evaluate_selection(prep, sel, Rs, ts, rho, m, "any-station")
+        a, p, cov = prep.evaluate(sel, Rs, ts, rho=rho, min_visible=m, coverage="any-station")
         row["heldout_rays"] = {"poses": int(len(a)), "covered_fraction": float(cov.mean()),
                                "worst_adop": float(a.max()) if cov.all() else math.inf,
                                "worst_adop_over_tracked": float(a[cov].max()) if cov.any() else None}
@@ -319,11 +320,13 @@ def main():
               {"id": "B", "position_m": [0.5, 0.0, 0.0], "look_at_m": [0.0, 0.0, 2.0]}]
         env2 = envelope(200, 21, st)
         cand = plain  # two stations: surface normals only
-        kw = {x: v for x, v in kw.items() if x != "conflict"}
-        prep2 = prepare_problem(hull, env2, candidates=cand)
+        prep2 = DesignProblem.load(hull, env2, candidates=cand)
         T2 = min(T, 90.0)
-        r2, info2 = dense_optimize(prep2, k, kw, dense_poses=args.dense_poses, coverage="each-station",
-                                   time_limit=T2, echo=print)
+        spec2 = OptimizeSpec(k=k, objective="worst-adop", rho=rho, min_visible=spec.min_visible, seed=0,
+                             coverage="each-station", time_limit_s=T2, dense=DenseSpec(poses=args.dense_poses,
+                                                                                       coverage_poses=0))
+        r2 = solve(prep2, spec2, echo=print)
+        info2 = r2.info.get("dense", {})
         _, R2, t2 = envelope_set(env2, count=args.dense_poses, seed=env2.seed + 1)
         two = {"status": r2.status, "message": r2.message, "time_limit_s": T2}
         if r2.success:
@@ -332,8 +335,7 @@ def main():
             # independent count: a plain loop over poses and stations
             no_fix = sum(1 for q in range(len(R2)) if not any(int(vis2[q, s].sum()) >= 4 for s in range(2)))
             any_cov = covered(layout_counts(vis2, "any-station"), 4)
-            r2a, _ = dense_optimize(prep2, k, kw, dense_poses=args.dense_poses, coverage="any-station",
-                                    time_limit=T2 / 2)
+            r2a = solve(prep2, spec2.replace(coverage="any-station", time_limit_s=T2 / 2))
             vis2a = layout_visibility(hull, cand.positions[r2a.selected], cand.normals[r2a.selected], R2, t2,
                                       env2.stations, 60.0)
             no_fix_any = sum(1 for q in range(len(R2)) if not any(int(vis2a[q, s].sum()) >= 4 for s in range(2)))
