@@ -272,7 +272,9 @@ def study_zhai(quick, seed, out_dir, as_json, json_out):
 def study_bitcraze(data_dir, out_dir, as_json, scheduler, workers):
     """The Crazyflie Lighthouse dataset's own metrics — jitter (static) and error vs motion capture after
     temporal (offset + rate) and rigid (Arun) alignment (moving) — for the firmware's estimates in each
-    log (crossing beam, EKF) and for ours (per-station, joint, filter: `replay LOG`), side by side.
+    log (crossing beam, EKF) and for ours (per-station, joint, filter: `replay LOG`), side by side; the
+    stations of each set-up refined once from its static logs (OUT/stations/<set-up>.json) and used
+    for all its logs.
 
     One Dask task per log and method (default: a LocalCluster on this machine); says which files it
     could not use and why."""
@@ -282,7 +284,7 @@ def study_bitcraze(data_dir, out_dir, as_json, scheduler, workers):
     quiet = as_json
     call_or_fail(usable_logs, data_dir)       # a folder without any usable log fails before a cluster starts
     with executor_from_flags(scheduler, workers, quiet=quiet) as ex:
-        res = call_or_fail(run_study, data_dir, executor=ex,
+        res = call_or_fail(run_study, data_dir, executor=ex, work_dir=out_dir,
                            progress=None if quiet else (lambda msg: click.echo(msg, err=True)))
     paths = write_outputs(res, out_dir)
     if emit_json({"sets": res["sets"], "skipped": res["skipped"], "outputs": paths}, as_json, None):

@@ -13,8 +13,15 @@ Methods, per log:
   ``fixedFrequency``, 100 Hz);
 - ``ours_joint``, ``ours_per_station`` (one stream per station, in the world frame) and ``ours_filter``
   (``--filter ekf``): :func:`layoutkit.workflows.live.replay_capture` on the log itself (the same
-  workflow as ``layoutkit replay LOG --system-config YAML``, so the replay's improvements show up
-  here), "ok" poses only.
+  workflow as ``layoutkit replay LOG --system-config YAML --stations STATIONS``, so the replay's
+  improvements show up here), "ok" poses only;
+- station set-ups: the logs whose ``system-config.yaml`` is the same file (same kind, same bytes) are
+  one set-up; its static (jitter) logs refine the stations once (``replay STATIC0 --refine-stations
+  --refine-from STATIC1 ...``, :func:`refine_setup`: poses only, bundle-adjusted on the windows at
+  rest) and, when the refinement is applied, every log of the set-up is replayed with those stations
+  (the system config's calibration kept); ``ours_joint_config`` is the joint solve on the system
+  config's own stations, for comparison. The moving logs are not used by the refinement: their error
+  vs motion capture is a held-out check of it.
 
 Metrics (the dataset's README and scripts ``compute_jitter.py``, ``temporal_alignment.py``,
 ``rigid_transform.py``, read to follow them):
@@ -54,12 +61,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["METHODS", "LogItem", "discover", "usable_logs", "read_mocap", "jitter", "coverage", "align_to_mocap", "firmware_series",
-           "replay_positions", "evaluate_log", "run_study", "write_outputs", "DECK_LAYOUT"]
+__all__ = ["METHODS", "LogItem", "discover", "usable_logs", "setups", "refine_setup", "read_mocap", "jitter", "coverage",
+           "align_to_mocap", "firmware_series", "replay_positions", "evaluate_log", "run_study", "write_outputs",
+           "DECK_LAYOUT"]
 
 DECK_LAYOUT = Path(__file__).resolve().parents[2] / "models" / "crazyflie_lighthouse_deck.layout.json"
 #: our methods (replays) and the firmware's
-METHODS = ("fw_crossing_beam", "fw_ekf", "ours_per_station", "ours_joint", "ours_filter")
+METHODS = ("fw_crossing_beam", "fw_ekf", "ours_per_station", "ours_joint", "ours_joint_config", "ours_filter")
+#: the replay tasks of a log: "joint-config" (the system config's stations) runs only where a set-up's
+#: refinement was applied (elsewhere it is "joint")
+TASKS = ("decode", "per-station", "joint", "joint-config", "filter")
 _SET = re.compile(r"^(lh1|lh2)_(crossingBeam|kalman)_(jitter|move|flight)\d*$")
 _MOCAP_MAX_GAP_S = 0.02
 
@@ -124,6 +135,75 @@ def usable_logs(data_dir) -> tuple[list, list]:
         raise ValueError(f"{data_dir}: no usable Lighthouse log (skipped: "
                          f"{'; '.join(s['file'] + ': ' + s['reason'] for s in skipped) or 'nothing found'})")
     return items, skipped
+
+
+def setups(items) -> dict:
+    """The station set-ups of ``items``: logs of the same kind whose system config is the same file
+    content. Returns ``{key: {"kind", "system_config" (the first set's path), "sets", "logs" (names),
+    "static" (the static logs' paths, in order)}}``, key ``<kind>_<md5 of the YAML, 8 hex>``."""
+    import hashlib
+
+    out: dict = {}
+    digests: dict = {}
+    for it in items:
+        if it.system_config not in digests:
+            digests[it.system_config] = hashlib.md5(Path(it.system_config).read_bytes()).hexdigest()[:8]
+        key = f"{it.kind}_{digests[it.system_config]}"
+        g = out.setdefault(key, {"kind": it.kind, "system_config": it.system_config, "sets": [], "logs": [],
+                                 "static": []})
+        if it.set not in g["sets"]:
+            g["sets"].append(it.set)
+        g["logs"].append(it.name)
+        if it.scenario == "jitter":
+            g["static"].append(it.log)
+    return out
+
+
+def _setup_key(groups: dict, item: "LogItem") -> str:
+    return next(k for k, g in groups.items() if item.name in g["logs"])
+
+
+def _no_refinement(logs, why: str) -> dict:
+    return {"status": "no_data", "applied": False, "stations_file": None, "logs": [str(x) for x in logs], "report": {},
+            "seconds": 0.0, "message": f"{why}: the system config's stations are used"}
+
+
+def refine_setup(static_logs, system_config, stations_out, layout=DECK_LAYOUT) -> dict:
+    """The stations of one set-up refined once from its static logs: ``replay STATIC0 --system-config
+    YAML --solve joint --refine-stations --refine-from STATIC1 ...`` (poses only,
+    :func:`layoutkit.live.refine.refine_stations`). Writes ``stations_out`` (stations JSON) when the
+    refinement is applied. Returns ``{"status", "applied", "stations_file" (or None), "logs" (the
+    static logs used), "report" (the refinement's, without per-parameter detail), "seconds",
+    "message"}``; a replay that fails is ``status "failed"`` with its message, never an exception."""
+    import contextlib
+    import tempfile
+
+    from ..io.stations import read_stations, write_stations
+    from ..live.pipeline import LiveConfig
+    from ..workflows.live import replay_capture
+
+    t0 = time.perf_counter()
+    static_logs = [str(x) for x in static_logs]
+    out = _no_refinement(static_logs, "no static log in this set-up")
+    if not static_logs:
+        return out
+    with tempfile.TemporaryDirectory() as tmp, contextlib.redirect_stderr(io.StringIO()):
+        try:
+            summary = replay_capture(static_logs[0], str(layout), system_config=system_config, solve="joint",
+                                     options=LiveConfig(), json_out=_PoseLines(), report_dir=tmp,
+                                     refine_stations=True, refine_from=static_logs[1:])
+        except ValueError as exc:
+            return dict(out, status="failed", message=str(exc), seconds=time.perf_counter() - t0)
+        rep = dict(summary.get("station_refinement") or {})
+        f = rep.pop("file", None)
+        if rep.get("applied") and f:
+            write_stations(stations_out, read_stations(f))
+            out["stations_file"] = str(stations_out)
+    for st in rep.get("stations") or ():
+        st.pop("calibration_fitted", None)
+    out.update(status=rep.get("status") or "failed", applied=bool(rep.get("applied") and out["stations_file"]),
+               report=rep, message=rep.get("message", ""), seconds=time.perf_counter() - t0)
+    return out
 
 
 # ----------------------------------------------------------------------------------- metrics
@@ -316,9 +396,10 @@ class _PoseLines(io.TextIOBase):
         return len(s)
 
 
-def replay_positions(log, system_config, method: str, layout=DECK_LAYOUT) -> dict:
+def replay_positions(log, system_config, method: str, layout=DECK_LAYOUT, stations=None) -> dict:
     """Our ok positions of one log by ``method`` ("per-station", "joint", "filter"): the replay
-    workflow on the log itself (:func:`layoutkit.workflows.live.replay_capture`, streamed).
+    workflow on the log itself (:func:`layoutkit.workflows.live.replay_capture`, streamed);
+    stations : a stations JSON used instead of the system config's poses (its calibration kept).
     Returns ``{"t" (N,), "p" (N, 3), "station" (N,) str, "lines", "statuses", "seconds" (wall),
     "decoder" (the summary's decode counts), "message"}``."""
     import contextlib
@@ -340,7 +421,7 @@ def replay_positions(log, system_config, method: str, layout=DECK_LAYOUT) -> dic
     with contextlib.redirect_stderr(io.StringIO()):
         try:
             summary = replay_capture(log, str(layout), system_config=system_config, solve=solve, options=cfg,
-                                     json_out=sink)
+                                     json_out=sink, stations=stations)
         except ValueError as exc:
             msg = str(exc)
     dec = (summary or {}).get("decoder") or (summary or {}).get("decode") or {}
@@ -372,15 +453,19 @@ def decode_check(log) -> dict:
     return {"status": "ok", **out}
 
 
-def evaluate_log(item: LogItem, method: str) -> dict:
-    """One task: our replay of ``item`` by ``method`` (see :func:`replay_positions`), as plain arrays;
-    method "decode": :func:`decode_check` instead."""
+def evaluate_log(item: LogItem, method: str, stations=None) -> dict:
+    """One task: our replay of ``item`` by ``method`` (see :func:`replay_positions`; "joint-config":
+    the joint solve on the system config's stations, ``stations`` ignored), as plain arrays; method
+    "decode": :func:`decode_check` instead."""
     t0 = time.perf_counter()
     if method == "decode":
         check = decode_check(item.log) if item.kind == "lh2" else {"status": "no_data", "message": "an LH1 log"}
         return {"log": item.name, "method": method, "check": check, "t": np.zeros(0),
                 "seconds": time.perf_counter() - t0}
-    r = replay_positions(item.log, item.system_config, method)
+    if method == "joint-config":
+        r = replay_positions(item.log, item.system_config, "joint")
+    else:
+        r = replay_positions(item.log, item.system_config, method, stations=stations)
     r["log"] = item.name
     r["method"] = method
     return r
@@ -448,19 +533,60 @@ def _log_metrics(item: LogItem, fw: dict, ours: dict, mocap) -> dict:
     return res
 
 
-def run_study(data_dir, *, executor=None, progress=None, methods=("decode", "per-station", "joint", "filter")) -> dict:
-    """Every usable log of ``data_dir``: our replays as executor tasks, the firmware's estimates and the
-    metrics here. Returns ``{"logs": [per-log metrics], "skipped": [...], "sets": {set: summary}}``."""
+def run_study(data_dir, *, executor=None, progress=None, methods=TASKS, refine: bool = True, work_dir=None) -> dict:
+    """Every usable log of ``data_dir``: the stations refined once per set-up from its static logs
+    (:func:`refine_setup`, when ``refine``), then our replays as executor tasks (with the refined
+    stations where applied), the firmware's estimates and the metrics here. work_dir : where the
+    refined stations files go (``stations/<set-up>.json``; default a temporary folder). Returns
+    ``{"logs": [per-log metrics], "skipped": [...], "sets": {set: summary}, "setups": {key: set-up and its
+    refinement}}``."""
+    import contextlib
+    import tempfile
+
     from ..parallel import SYNCHRONOUS, open_executor
 
     items, skipped = usable_logs(data_dir)
-    import contextlib
-
+    groups = setups(items)
     with contextlib.ExitStack() as stack:
         ex = executor if executor is not None else stack.enter_context(open_executor(SYNCHRONOUS))
-        handles = {ex.submit(evaluate_log, it, m, key=f"{it.name}:{m}"): (k, m)
-                   for k, it in enumerate(items) for m in methods}
+        work = Path(work_dir) if work_dir is not None else Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        (work / "stations").mkdir(parents=True, exist_ok=True)
+        # 1. one refinement per set-up (its static logs), beside the decoding checks
+        first = {ex.submit(refine_setup, g["static"], g["system_config"], work / "stations" / f"{key}.json",
+                           key=f"refine:{key}"): ("refine", key)
+                 for key, g in groups.items() if refine and g["static"]}
+        if "decode" in methods:
+            first.update({ex.submit(evaluate_log, it, "decode", key=f"{it.name}:decode"): ("decode", k)
+                          for k, it in enumerate(items)})
         ours: dict = {k: {} for k in range(len(items))}
+        for g in groups.values():
+            g["refinement"] = _no_refinement(g["static"], "no static log in this set-up" if refine else "not asked")
+        for h, ok, value in ex.completed(list(first)):
+            what, k = first[h]
+            if what == "refine":
+                groups[k]["refinement"] = value if ok else dict(
+                    _no_refinement(groups[k]["static"], f"task failed: {value!r}"), status="failed")
+                if progress is not None:
+                    r = groups[k]["refinement"]
+                    progress(f"set-up {k}: stations refinement {r['status']}"
+                             f"{' (applied)' if r['applied'] else ''} in {r['seconds']:.1f} s")
+                continue
+            if not ok:
+                value = {"check": {"status": "failed", "message": f"task failed: {value!r}"}, "t": np.zeros(0),
+                         "seconds": float("nan")}
+            ours[k]["decode"] = value
+            if progress is not None:
+                progress(f"{items[k].name} decode: {value.get('check', {}).get('status', 'failed')} "
+                         f"in {value['seconds']:.1f} s")
+        # 2. the replays, with the set-up's stations
+        handles = {}
+        for k, it in enumerate(items):
+            ref = groups[_setup_key(groups, it)]["refinement"]
+            st = ref["stations_file"] if ref.get("applied") else None
+            for m in methods:
+                if m == "decode" or (m == "joint-config" and st is None):
+                    continue
+                handles[ex.submit(evaluate_log, it, m, st, key=f"{it.name}:{m}")] = (k, m)
         for h, ok, value in ex.completed(list(handles)):
             k, m = handles[h]
             if not ok:
@@ -469,8 +595,7 @@ def run_study(data_dir, *, executor=None, progress=None, methods=("decode", "per
                          "statuses": {}, "seconds": float("nan"), "message": f"task failed: {value!r}"}
             ours[k][m] = value
             if progress is not None:
-                what = (value.get("check", {}).get("status", "failed") if m == "decode" else f"{len(value['t'])} poses")
-                progress(f"{items[k].name} {m}: {what} in {value['seconds']:.1f} s")
+                progress(f"{items[k].name} {m}: {len(value['t'])} poses in {value['seconds']:.1f} s")
     logs = []
     for k, it in enumerate(items):
         try:
@@ -487,7 +612,9 @@ def run_study(data_dir, *, executor=None, progress=None, methods=("decode", "per
         logs.append(_log_metrics(it, fw, ours[k], mocap))
     if not logs:
         raise ValueError(f"{data_dir}: no log could be read ({'; '.join(s['file'] + ': ' + s['reason'] for s in skipped)})")
-    return {"logs": logs, "skipped": skipped, "sets": _set_summaries(logs)}
+    for g in groups.values():
+        g["logs_used"] = [lg["log"] for lg in logs if lg["log"] in g["logs"]]
+    return {"logs": logs, "skipped": skipped, "sets": _set_summaries(logs), "setups": groups}
 
 
 def read_mocap(path) -> np.ndarray:
@@ -517,8 +644,11 @@ def _set_summaries(logs) -> dict:
             s["mocap_jitter_m"].append(lg["mocap_jitter_m"])
         for label, m in lg["methods"].items():
             d = s["methods"].setdefault(label, {"logs": 0, "per_s": [], "coverage": [], "jitter": [], "rms": [],
-                                                "errors": []})
+                                                "errors": [], "per_log": {}})
             d["logs"] += 1
+            a = m.get("alignment") or {}
+            d["per_log"][lg["log"]] = {"per_s": m["per_s"], "jitter_m": m["jitter_m"],
+                                       "rms_m": a.get("rms_m") if a.get("status") == "ok" else None}
             d["per_s"].append(m["per_s"])
             if m["coverage_100ms"] is not None:
                 d["coverage"].append(m["coverage_100ms"])
@@ -543,14 +673,14 @@ def _set_summaries(logs) -> dict:
                 "error_rms_m": float(np.sqrt(np.mean(e ** 2))) if e.size else None,
                 "error_mean_m": float(e.mean()) if e.size else None,
                 "error_rms_per_log_median_m": med(d["rms"]), "error_rms_per_log_m": [float(v) for v in d["rms"]],
-                "aligned_samples": int(e.size)}
+                "aligned_samples": int(e.size), "per_log": d["per_log"]}
     return out
 
 
 # ----------------------------------------------------------------------------------- outputs
 _LABELS = {"fw_crossing_beam": "firmware crossing beam", "fw_ekf": "firmware EKF", "ours_joint": "ours joint",
            "ours_joint_two_stations": "ours joint, every two-station window incl. high_residual (diagnostic, not ok)",
-           "ours_filter": "ours filter (EKF)"}
+           "ours_filter": "ours filter (EKF)", "ours_joint_config": "ours joint, system config stations (not refined)"}
 
 
 def _label(k: str) -> str:
@@ -570,14 +700,19 @@ def _table(res) -> str:
              "capture after temporal (offset + rate) and rigid (Arun) alignment, RMS over every aligned sample "
              "of the set (moving sets; per-log RMS median in brackets). Coverage = share of the 100 ms "
              "intervals between markers on and off with an ok estimate (median over the logs, minimum). "
-             "Ours: \"ok\" poses of `layoutkit replay LOG --system-config YAML` as of this run.", ""]
+             "Ours: \"ok\" poses of `layoutkit replay LOG --system-config YAML --stations STATIONS` as of this run, "
+             "STATIONS = the set-up's stations refined once from its static logs (section \"Station set-ups\"; "
+             "the system config's calibration kept) wherever that refinement was applied, for every log of the "
+             "set-up; \"ours joint, system config stations\" = the same joint solve on the system config's own "
+             "station poses. The moving logs take no part in the refinement.", ""]
     for name, s in sorted(res["sets"].items()):
         static = s["scenario"] == "jitter"
         floor = f"; the motion capture's own jitter {_mm(s['mocap_jitter_m'])} mm" if static and s["mocap_jitter_m"] else ""
         lines += [f"## {name} ({s['logs']} log(s){floor})", ""]
+        names = sorted({lg for m in s["methods"].values() for lg in m["per_log"]})
         if static:
-            lines += ["| method | logs | estimates/s | coverage (min) | jitter median mm | jitter per log mm |",
-                      "|---|---|---|---|---|---|"]
+            lines += ["| method | logs | estimates/s | coverage (min) | jitter median mm | jitter mm (estimates/s) per log: "
+                      + ", ".join(n.rsplit("/", 1)[-1] for n in names) + " |", "|---|---|---|---|---|---|"]
         else:
             lines += ["| method | logs | estimates/s | coverage (min) | error RMS mm (per-log median) | error mean mm "
                       "| aligned samples |", "|---|---|---|---|---|---|---|"]
@@ -586,7 +721,8 @@ def _table(res) -> str:
                    f"{100 * m['coverage_median']:.0f} % ({100 * m['coverage_min']:.0f} %)")
             per = "–" if m["per_s_median"] is None else f"{m['per_s_median']:.1f}"
             if static:
-                pl = ", ".join(_mm(v) for v in m["jitter_per_log_m"])
+                pl = ", ".join("–" if n not in m["per_log"] else
+                               f"{_mm(m['per_log'][n]['jitter_m'])} ({m['per_log'][n]['per_s']:.1f})" for n in names)
                 lines.append(f"| {_label(label)} | {m['logs']} | {per} | {cov} | {_mm(m['jitter_median_m'])} | {pl} |")
             else:
                 lines.append(f"| {_label(label)} | {m['logs']} | {per} | {cov} | {_mm(m['error_rms_m'])} "
@@ -600,6 +736,8 @@ def _table(res) -> str:
                 lines.append(f"- {_label(label)}: no estimate in most logs of this set{why}.")
         if any(not m["per_s_median"] for m in s["methods"].values()):
             lines.append("")
+    lines += _alignment_table(res)
+    lines += _setups_table(res)
     dec = [(lg["log"], lg["decode"]) for lg in res["logs"] if (lg.get("decode") or {}).get("status") == "ok"]
     if dec:
         lines += ["## Decoding check: our angles vs the firmware's lhAngle in the same log", "",
@@ -619,6 +757,56 @@ def _table(res) -> str:
     if res["skipped"]:
         lines += ["## Not used", ""] + [f"- `{s['file']}`: {s['reason']}" for s in res["skipped"]] + [""]
     return "\n".join(lines)
+
+
+def _alignment_table(res) -> list:
+    """Per moving log and method: the alignment found and its residuals."""
+    rows = []
+    for lg in res["logs"]:
+        for label, m in sorted((lg.get("methods") or {}).items(), key=lambda kv: (not kv[0].startswith("fw"), kv[0])):
+            a = m.get("alignment") or {}
+            if a.get("status") != "ok":
+                continue
+            rows.append(f"| {lg['log']} | {_label(label)} | {a['samples']} | {_mm(a['rms_m'])} | {_mm(a['mean_m'])} | "
+                        f"{_mm(a['median_m'])} | {_mm(a['max_m'])} | {a['start_ms']:+.0f} / {a['end_ms']:+.0f} | "
+                        f"{(a['rate'] - 1) * 1e6:+.0f} | {a['rotation_deg']:.2f} |")
+    if not rows:
+        return []
+    return ["## Per moving log: the alignment and its residuals", "",
+            "Each method aligned on its own (temporal: the markers' on / off times moved by the offsets found; rate "
+            "= motion capture seconds per log second; rigid: Arun's rotation and translation); residuals = the "
+            "Euclidean errors of the aligned estimates used.", "",
+            "| log | method | samples | RMS mm | mean mm | median mm | max mm | start / end offset ms | rate - 1 ppm "
+            "| rotation deg |", "|---|---|---|---|---|---|---|---|---|---|", *rows, ""]
+
+
+def _setups_table(res) -> list:
+    """The station set-ups and their refinement."""
+    ups = res.get("setups") or {}
+    if not ups:
+        return []
+    lines = ["## Station set-ups", "",
+             "Logs whose system-config.yaml is the same file are one set-up. Its static logs refine the stations once "
+             "(`layoutkit replay STATIC0 --system-config YAML --solve joint --refine-stations --refine-from STATIC1 "
+             "... --report R` → R/stations_refined.json: poses only, the first station held as the world frame); "
+             "when applied, every log of the set-up is replayed with `--stations` those.", "",
+             "| set-up | sets | static logs used | status | applied | residual scale before → after (sigma) | "
+             "stations moved mm / rotated deg | seconds |", "|---|---|---|---|---|---|---|---|"]
+    notes = []
+    for key, g in sorted(ups.items()):
+        r = g.get("refinement") or {}
+        rep = r.get("report") or {}
+        b, a = rep.get("residual_scale_before"), rep.get("residual_scale_after")
+        scale = "–" if b is None or a is None else f"{b:.2f} → {a:.2f}"
+        moved = "; ".join(f"{st['id']}: {1e3 * st['moved_norm_m']:.1f} / {st['rotated_deg']:.2f}"
+                          for st in rep.get("stations") or ()) or "–"
+        sec = r.get("seconds")
+        lines.append(f"| {key} | {', '.join(g['sets'])} | {len(r.get('logs') or ())} | {r.get('status', '–')} | "
+                     f"{'yes' if r.get('applied') else 'no'} | {scale} | {moved} | "
+                     f"{'–' if sec is None or not np.isfinite(sec) else f'{sec:.0f}'} |")
+        if r.get("message"):
+            notes.append(f"- {key}: {r['message']}")
+    return lines + [""] + notes + ([""] if notes else [])
 
 
 def _figures(res, out: Path) -> list:
@@ -685,7 +873,7 @@ def write_outputs(res: dict, out_dir) -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     figs = _figures(res, out)
-    slim = {"sets": res["sets"], "skipped": res["skipped"], "logs": []}
+    slim = {"sets": res["sets"], "skipped": res["skipped"], "setups": res.get("setups") or {}, "logs": []}
     for lg in res["logs"]:
         d = dict(lg, methods={})
         for k, m in lg["methods"].items():
