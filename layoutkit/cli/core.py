@@ -287,7 +287,7 @@ def study_bitcraze(data_dir, out_dir, as_json, scheduler, workers):
         res = call_or_fail(run_study, data_dir, executor=ex, work_dir=out_dir,
                            progress=None if quiet else (lambda msg: click.echo(msg, err=True)))
     paths = write_outputs(res, out_dir)
-    if emit_json({"sets": res["sets"], "skipped": res["skipped"], "outputs": paths}, as_json, None):
+    if emit_json({"sets": res["sets"], "setups": res["setups"], "skipped": res["skipped"], "outputs": paths}, as_json, None):
         return
     click.echo(open(paths["table"], encoding="utf-8").read())
     click.echo(f"wrote {paths['table']}, {paths['results']} and {len(paths['figures'])} figure(s)")
