@@ -612,8 +612,13 @@ def run_study(data_dir, *, executor=None, progress=None, methods=TASKS, refine: 
         logs.append(_log_metrics(it, fw, ours[k], mocap))
     if not logs:
         raise ValueError(f"{data_dir}: no log could be read ({'; '.join(s['file'] + ': ' + s['reason'] for s in skipped)})")
+    names = {it.log: it.name for it in items}
     for g in groups.values():
         g["logs_used"] = [lg["log"] for lg in logs if lg["log"] in g["logs"]]
+        g["static"] = [names.get(x, x) for x in g["static"]]
+        g["system_config"] = str(Path(g["system_config"]).relative_to(Path(data_dir))) if Path(
+            g["system_config"]).is_relative_to(Path(data_dir)) else g["system_config"]
+        g["refinement"]["logs"] = [names.get(x, x) for x in g["refinement"].get("logs") or ()]
     return {"logs": logs, "skipped": skipped, "sets": _set_summaries(logs), "setups": groups}
 
 
