@@ -214,7 +214,7 @@ def test_cli_calibrate_then_joint_solve(tmp_path, rng):
                                   "--sigma-arcsec", str(cap["sigma"] / 4.84813681109536e-06), "--json",
                                   "--offset-prior-mm", "0.01"])
     assert r.exit_code == 0, r.output
-    rep = json.loads(r.output)
+    rep = json.loads(r.stdout)
     for f in ("stations.json", "layout.json", "report.json", "residuals.png"):
         assert (out / f).exists()
     med = rep["median_sample_residual_rms_rad"]
@@ -225,7 +225,7 @@ def test_cli_calibrate_then_joint_solve(tmp_path, rng):
                                   "--stations", str(out / "stations.json"), "--solve", "joint", "--json",
                                   "--out", str(tmp_path / "poses.csv")])
     assert r.exit_code == 0, r.output
-    summ = json.loads(r.output)
+    summ = json.loads(r.stdout)
     assert summ["mode"] == "joint" and summ["poses"] == 80
     from layoutkit.io.poses import read_poses
 

@@ -185,7 +185,7 @@ def test_import_decode_angles_equal_simulator(session):
     d, log, alpha, starts, off, _, _ = session
     r = CliRunner().invoke(main, ["import", "cfusdlog", str(log), "--out", str(d / "imp"), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["uart_frames"] == alpha.shape[0] * 8
     cap = d / "imp" / "capture.bin"
     sc = read_sidecar(cap)
@@ -268,7 +268,7 @@ def test_import_with_system_config_and_replay(session, tmp_path):
     r = CliRunner().invoke(main, ["import", "cfusdlog", str(log), "--out", str(imp), "--system-config", str(yml),
                                   "--json"])
     assert r.exit_code == 0, r.output
-    assert json.loads(r.output)["stations"] == 1 and len(read_sidecar(imp / "capture.bin").stations) == 1
+    assert json.loads(r.stdout)["stations"] == 1 and len(read_sidecar(imp / "capture.bin").stations) == 1
     r = CliRunner().invoke(main, ["replay", str(imp / "capture.bin"), "--layout", DECK, "--json-lines",
                                   "--system-config", str(yml)])
     assert r.exit_code == 0, r.output[-1500:]

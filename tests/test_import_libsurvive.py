@@ -28,7 +28,7 @@ def lh1(libsurvive_dir, tmp_path_factory):
     r = CliRunner().invoke(main, ["import", "libsurvive", str(libsurvive_dir / "lh1_test_cal_first4s.rec.gz"),
                                   "--out", str(out), "--json"])
     assert r.exit_code == 0, r.output
-    return out, json.loads(r.output)
+    return out, json.loads(r.stdout)
 
 
 def _solve(d, dev, *extra):
@@ -65,7 +65,7 @@ def test_lh1_solve_real_residuals(lh1, dev):
     d, _ = lh1
     r = _solve(d, dev)
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     assert out["frames_with_4_lit_solved"] == out["frames_with_4_lit"] > 150
     assert 3e-5 < out["residual_rms_median"] < 3e-4
     res = [row for row in out["sensor_residuals"] if row["n_x"]]
@@ -123,11 +123,11 @@ def test_lh2_import_and_solve(libsurvive_dir, tmp_path):
     r = CliRunner().invoke(main, ["import", "libsurvive", str(libsurvive_dir / "lh2_test_cal_first4s.rec.gz"),
                                   "--out", str(out), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["devices"]["T20"]["frames_per_station"] == {"0": 170, "1": 145} or s["devices"]["T20"]["frames"] > 250
     r = _solve(out, "T20", "--stations", str(out / "stations.json"), "--static", "--solve", "per-station")
     assert r.exit_code == 0, r.output
-    o = json.loads(r.output)
+    o = json.loads(r.stdout)
     assert o["frames_with_4_lit_solved"] == o["frames_with_4_lit"] > 250
     assert o["residual_rms_median"] < 3e-4
     assert o["world_between_stations"]["translation_m"] < 0.15
@@ -140,7 +140,7 @@ def test_static_hmd_scatter_vs_dop(lh1):
     """The static HMD: sigma and rho estimated from the angles; with the same lit set the measured
     pose scatter is within a factor 3 of the DOP prediction (Chen eqs. 18-24)."""
     d, _ = lh1
-    o = json.loads(_solve(d, "HMD", "--static").output)
+    o = json.loads(_solve(d, "HMD", "--static").stdout)
     for st in o["static"].values():
         assert 1e-5 < st["sigma_rad"] < 1e-4 and 0.0 <= st["rho_used"] < 1.0
         m = st["same_lit_set"]
@@ -156,7 +156,7 @@ def test_truncated_gz_imports_what_is_there(libsurvive_dir, tmp_path):
     shutil.copy(libsurvive_dir / "lh2_test_cal_first4s.rec.gz.json", str(cut) + ".json")
     r = CliRunner().invoke(main, ["import", "libsurvive", str(cut), "--out", str(tmp_path / "o"), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["truncated"] and "truncated" in s["ended"] and "complete line(s)" in s["ended"]
     fr = read_frame_table(tmp_path / "o" / "T20" / "frames.csv")
     assert 50 < fr.n_frames < 250 and np.isfinite(fr.t).all()
@@ -182,11 +182,11 @@ def test_calibrated_solve_lowers_residuals_and_joins_stations(lh1, tmp_path):
 
     d, _ = lh1
     st = ["--stations", str(d / "stations.json"), "--solve", "per-station"]
-    raw = json.loads(_solve(d, "HMD", *st, "--ignore-calibration").output)
+    raw = json.loads(_solve(d, "HMD", *st, "--ignore-calibration").stdout)
     r = _solve(d, "HMD", *st, "--out", str(tmp_path / "p.csv"))
     assert r.exit_code == 0, r.output
-    cal = json.loads(r.output)
-    assert json.loads(_solve(d, "HMD", *st, "--calibrated").output)["residual_rms_median"] == cal["residual_rms_median"]
+    cal = json.loads(r.stdout)
+    assert json.loads(_solve(d, "HMD", *st, "--calibrated").stdout)["residual_rms_median"] == cal["residual_rms_median"]
     assert raw["calibrated_stations"] == [] and cal["calibrated_stations"] == [0, 1]
     assert cal["solved"] >= raw["solved"] - 1
     rm, cm = raw["residual_rms_median_per_station"], cal["residual_rms_median_per_station"]

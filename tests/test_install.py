@@ -14,6 +14,7 @@ configured indexes; marked ``install``, run by ``make test-install`` only).
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -95,6 +96,9 @@ def _run_demo_outside(python: Path, work: Path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert (work / "demo" / "optimize" / "layout.json").is_file()
     assert (work / "demo" / "chen2024").is_dir()
+    # the shipped hand layout is found from the wheel too and compared over the same poses
+    versus = json.loads((work / "demo" / "optimize" / "report" / "versus_shipped.json").read_text())
+    assert versus["other"]["layout"].endswith("chen_target.layout.json") and "against the shipped" in r.stdout
 
 
 @pytest.fixture(scope="module")

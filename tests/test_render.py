@@ -189,7 +189,7 @@ def test_cli_render_writes_every_picture(tmp_path):
         "--views", "iso", "--quality-map", "--grid-deg", "20", "--roll-samples", "2", "--rho", "0.8717",
         "--station-view-pose", "envelope:3", "--json"])
     assert res.exit_code == 0, res.output
-    out = json.loads(res.output)
+    out = json.loads(res.stdout)
     names = [Path(p).name for p in out["paths"]]
     assert names == ["chen_target_iso.png", "chen_target_quality_map.png", "chen_target_station_view.png"]
     for p in out["paths"]:

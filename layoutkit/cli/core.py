@@ -313,6 +313,8 @@ def demo_cmd(out_dir, seed):
         click.echo("== layoutkit optimize on the Chen target (bundled model) ==")
         summ = run_demo(out / "optimize", quick=True, seed=seed)
         click.echo(f"{summ['message']}\nlayout {out / 'optimize' / 'layout.json'}, report {out / 'optimize' / 'report'}")
+        if summ.get("versus_shipped"):
+            click.echo(f"against the shipped hand layout, same poses: {summ['versus_shipped']['message']}")
     from ..studies.chen2024 import StudyConfig, run_chen2024, write_outputs
 
     click.echo("== reduced Chen (2024) precision study ==")
