@@ -145,7 +145,7 @@ def test_cli_json_and_bad_folder(dataset, tmp_path):
     r = CliRunner().invoke(main, ["study", "bitcraze-dataset", "--data", str(root), "--out", str(tmp_path / "o"),
                                   "--json", "--scheduler", "synchronous"])
     assert r.exit_code == 0, r.output[-2000:]
-    doc = json.loads(r.output)
+    doc = json.loads(r.stdout)
     assert set(doc["sets"]) == {"lh2_crossingBeam_jitter", "lh2_kalman_move"}
     assert {"ours_joint", "ours_filter", "ours_per_station_0"} <= set(doc["sets"]["lh2_kalman_move"]["methods"])
     assert (tmp_path / "o" / "table.md").is_file()
@@ -171,7 +171,7 @@ def test_bad_files_in_the_folder_are_listed_not_fatal(dataset, tmp_path):
     r = CliRunner().invoke(main, ["study", "bitcraze-dataset", "--data", str(bad), "--out", str(tmp_path / "o"),
                                   "--json", "--scheduler", "synchronous"])
     assert r.exit_code == 0, r.output[-2000:]
-    doc = json.loads(r.output)
+    doc = json.loads(r.stdout)
     why = {s["file"]: s["reason"] for s in doc["skipped"]}
     assert "not a Crazyflie microSD log" in why["lh2_crossingBeam_jitter/log00"]
     assert "not a NumPy .npy array" in why["lh2_kalman_move/mocap00.npy"]
