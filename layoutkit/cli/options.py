@@ -31,7 +31,7 @@ from ..units import ARCSEC, LENGTH_UNIT_NAMES, LENGTH_UNITS, RHO_PAPER, SIGMA_TH
 __all__ = [
     "option", "explicit", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
-    "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "allow_odd_size_option",
+    "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "refine_stations_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options", "camera_model_option", "corner_sigma_option",
@@ -355,6 +355,26 @@ def length_mm_option(flag: str, dest: str, *, default: float | None = None, requ
                   show_default=default is not None, required=required, callback=to_m, help=help)
 
 
+def refine_stations_option(f):
+    """``--refine-stations``, ``--refine-from CAPTURE`` (repeatable) and ``--refine-calibration``:
+    estimate the stations from the capture (and more captures of the same set-up) before solving
+    (replay). The command receives ``refine_stations``, ``refine_from`` (a tuple of paths) and
+    ``refine_calibration``."""
+    f = click.option("--refine-calibration", is_flag=True,
+                     help="With --refine-stations: also the observable calibration terms (on the Bitcraze dataset "
+                          "they trade off against the station poses: 17 vs 9 mm RMS on a moving log, docs/live.md).")(f)
+    f = click.option("--refine-from", "refine_from", multiple=True, type=click.Path(dir_okay=False),
+                     help="Another capture of the same station set-up whose slow windows join --refine-stations "
+                          "(repeatable; e.g. the static captures of a session for a moving one).")(f)
+    return click.option("--refine-stations", is_flag=True,
+                        help="Estimate the station poses (with --refine-calibration also the observable calibration "
+                             "terms) from the capture's slow "
+                             "windows seen by every station before solving; solve with them when they explain the "
+                             "angles better; report how far each station moved, its 1-sigma, and whether the data "
+                             "contradict the given set-up (summary 'station_refinement'; stations_refined.json in "
+                             "--report for later --stations).")(f)
+
+
 def allow_odd_size_option(f=None):
     """``--allow-odd-size``: go on although the size of a mesh/layout says its ``--units`` are wrong."""
     deco = click.option("--allow-odd-size", is_flag=True,
@@ -423,17 +443,17 @@ def filter_options(f):
     """``--filter ekf|none`` and the filter's tuning flags (SI units; docs/filter.md).
 
     The command receives ``filter_settings``: None for ``--filter none``, else a dict of
-    :class:`layoutkit.filter.EkfConfig` keywords (``psd_rot`` rad²/s³, ``psd_pos`` m²/s³,
+    :class:`layoutkit.filter.EkfConfig` keywords (``motion``, ``psd_rot`` rad²/s³, ``psd_pos`` m²/s³,
     ``gate_angle_p``, ``gate_sweep_p``, ``zupt``, ``constant_acceleration``, ``hit_timing``,
     ``model``) — the command adds sigma / rho from its own noise options.
     """
     import functools
 
     @functools.wraps(f)
-    def wrapper(*args, filter_name, filter_psd_rot, filter_psd_pos, filter_gate_p, filter_zupt, filter_ca,
-                filter_hit_timing, filter_model, **kwargs):
+    def wrapper(*args, filter_name, filter_motion, filter_psd_rot, filter_psd_pos, filter_gate_p, filter_zupt,
+                filter_ca, filter_hit_timing, filter_model, **kwargs):
         kwargs["filter_settings"] = None if filter_name == "none" else {
-            "psd_rot": filter_psd_rot, "psd_pos": filter_psd_pos, "gate_angle_p": filter_gate_p,
+            "motion": filter_motion, "psd_rot": filter_psd_rot, "psd_pos": filter_psd_pos, "gate_angle_p": filter_gate_p,
             "gate_sweep_p": filter_gate_p, "zupt": filter_zupt, "constant_acceleration": filter_ca,
             "hit_timing": filter_hit_timing, "model": filter_model}
         return f(*args, **kwargs)
@@ -442,10 +462,18 @@ def filter_options(f):
         click.option("--filter", "filter_name", type=click.Choice(FILTER_CHOICES), default="none", show_default=True,
                      help="ekf: per-sweep error-state Kalman filter (one pose per sweep, with covariance); "
                           "none: frame-by-frame PnP only."),
+        click.option("--filter-motion", "filter_motion", type=click.Choice(("adaptive", "fixed")), default="adaptive",
+                     show_default=True,
+                     help="Filter: adaptive = a bank of constant-velocity models from a resting to a swung or flown "
+                          "body, mixed by their likelihoods (the process noise follows the motion, nothing to tune); "
+                          "fixed = one model with --filter-psd-rot / --filter-psd-pos (needed by --filter-zupt, "
+                          "--filter-ca)."),
         click.option("--filter-psd-rot", "filter_psd_rot", type=click.FloatRange(min=0.0), default=1e-6,
-                     show_default=True, help="Filter: PSD of the white angular acceleration, rad^2/s^3."),
+                     show_default=True, help="Filter (--filter-motion fixed): PSD of the white angular acceleration, "
+                                             "rad^2/s^3."),
         click.option("--filter-psd-pos", "filter_psd_pos", type=click.FloatRange(min=0.0), default=1e-6,
-                     show_default=True, help="Filter: PSD of the white linear acceleration, m^2/s^3."),
+                     show_default=True, help="Filter (--filter-motion fixed): PSD of the white linear acceleration, "
+                                             "m^2/s^3."),
         click.option("--filter-gate-p", "filter_gate_p", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True),
                      default=1e-4, show_default=True,
                      help="Filter: false-rejection probability of the chi^2 outlier gates (per angle, per sweep)."),

@@ -237,7 +237,6 @@ def cfusdlog_capture(log, ul=None) -> tuple[bytes, "object"]:
     ``log``). ValueError naming the file when it has no ``lhUartFrame`` events."""
     from ..importers.cfusdlog import read_cfusdlog
     from ..io.sidecar import CaptureSidecar
-    from ..io.systemconfig import DECK_CLOCK_HZ
 
     log = Path(log)
     ul = read_cfusdlog(log) if ul is None else ul
