@@ -242,3 +242,4 @@ def test_stations_refined_once_per_setup_from_its_static_logs(tmp_path):
     paths = write_outputs(res, tmp_path / "out")
     table = open(paths["table"]).read()
     assert "## Station set-ups" in table and f"| {key} |" in table and "system config stations" in table
+    assert str(root) not in open(paths["results"]).read()           # logs named relative to the data folder

@@ -43,8 +43,8 @@ Metrics (the dataset's README and scripts ``compute_jitter.py``, ``temporal_alig
 - **coverage** = the share of the log's 100 ms intervals (markers on → off) with an estimate, and
   estimates per second.
 
-Length (~650 lines): one study — discovery, the dataset's metrics and alignment, the tasks and its
-table and figures — read together, as ``studies/chen2024.py``.
+Length (~900 lines): one study — discovery, the set-ups' station refinement, the dataset's metrics and
+alignment, the tasks and its table and figures — read together, as ``studies/chen2024.py``.
 
 Logs run as tasks on the executor (:func:`layoutkit.parallel.open_executor`), one per log and
 method; each task streams its replay's JSON lines and keeps only the ok positions. Figures: the
@@ -619,6 +619,9 @@ def run_study(data_dir, *, executor=None, progress=None, methods=TASKS, refine: 
         g["system_config"] = str(Path(g["system_config"]).relative_to(Path(data_dir))) if Path(
             g["system_config"]).is_relative_to(Path(data_dir)) else g["system_config"]
         g["refinement"]["logs"] = [names.get(x, x) for x in g["refinement"].get("logs") or ()]
+        rep = g["refinement"].get("report") or {}
+        if "refined_from" in rep:
+            rep["refined_from"] = [names.get(x, x) for x in rep["refined_from"]]
     return {"logs": logs, "skipped": skipped, "sets": _set_summaries(logs), "setups": groups}
 
 
