@@ -53,7 +53,9 @@ ROWS = {
     "validate": ("{layout} --envelope {envelope} --frames 200 --scheduler synchronous --json", ["envelope"]),
     "sweep": ("{sweep} --out-dir {tmp}/sw --scheduler synchronous --json", ["sweep"]),
 }
-NOT_FILE_COMMANDS = {"demo", "live", "study chen2024", "study zhai2014"}  # no input file (live: a port)
+# no input file (live: a port; study bitcraze-dataset: a folder — its bad files are listed as not used,
+# tests/test_study_bitcraze_dataset.py::test_bad_files_in_the_folder_are_listed_not_fatal)
+NOT_FILE_COMMANDS = {"demo", "live", "study chen2024", "study zhai2014", "study bitcraze-dataset"}
 
 
 def _commands(cmd=main, path=()):

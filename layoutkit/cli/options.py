@@ -319,6 +319,12 @@ def out_dir_option(f=None, *, required: bool = True, help: str = "Output folder.
     return deco(f) if f is not None else deco
 
 
+def data_dir_option(f=None, *, help: str = "Input data folder."):
+    """``--data DIR``: an existing input data folder (e.g. a public dataset). The command receives ``data_dir``."""
+    deco = click.option("--data", "data_dir", type=click.Path(exists=True, file_okay=False), required=True, help=help)
+    return deco(f) if f is not None else deco
+
+
 def report_option(f=None, *, help: str = "Write a report folder (JSON + plots) here."):
     """``--report DIR``: a report folder. The command receives ``report_dir``."""
     deco = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, help=help)
