@@ -120,8 +120,17 @@ def _child(conn, args):
         conn.send((-1, "", f"{type(exc).__name__}: {exc}"))
 
 
+def _context():
+    """A fork server that has imported the CLI but never run a compiled kernel: forking the test
+    process itself aborts ("fork() called from a process already using GNU OpenMP") once an earlier
+    test in it ran numba's parallel PnP kernel."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["layoutkit.cli", __name__])
+    return ctx
+
+
 def _invoke(args, timeout=90.0):
-    ctx = mp.get_context("fork")
+    ctx = _context()
     a, b = ctx.Pipe(duplex=False)
     p = ctx.Process(target=_child, args=(b, args))
     p.start()

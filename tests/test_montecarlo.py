@@ -121,3 +121,17 @@ def test_validate_without_coverage_says_so(tmp_path):
     r = CliRunner().invoke(main, ["validate", str(LAYOUT), "--envelope", str(env), "--frames", "100",
                                   "--scheduler", "synchronous"])
     assert r.exit_code == 1 and "no_coverage" in r.output
+
+
+def test_localcluster_workers_import_trimesh_before_any_task():
+    """A sweep's Ctrl-C test printed a worker traceback: "cannot import name 'Trimesh' from partially
+    initialized module" — a worker unpickled a Trimesh from another worker while its task thread
+    was still importing trimesh. Every worker of a real LocalCluster now has the shared modules
+    imported by the time the client can run anything there (checked in the worker processes)."""
+    import sys
+
+    from layoutkit.parallel.scheduler import WARM_IMPORTS, open_executor
+
+    with open_executor(workers=2) as ex:
+        got = ex.client.run(lambda mods=WARM_IMPORTS: [m in sys.modules for m in mods])
+    assert len(got) == 2 and all(all(v) for v in got.values()), got

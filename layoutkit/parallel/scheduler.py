@@ -245,6 +245,29 @@ def allow_child_processes():
             cfg["daemon"] = was
 
 
+#: modules whose objects travel between workers (a DesignProblem holds a trimesh.Trimesh)
+WARM_IMPORTS = ("numpy", "scipy.sparse", "trimesh", "layoutkit.optimize", "layoutkit.envelope")
+
+
+def _warm_imports_plugin():
+    """A worker plugin importing :data:`WARM_IMPORTS` when a worker starts (every worker, later ones
+    too). Without it a worker could unpickle a Trimesh fetched from another worker on its comm thread
+    while its task thread was still importing trimesh: Python then hands out the half-imported package
+    ("cannot import name 'Trimesh' from partially initialized module"), seen on a loaded machine."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class WarmImports(WorkerPlugin):
+        name = "layoutkit-warm-imports"
+
+        def setup(self, worker):
+            import importlib
+
+            for mod in WARM_IMPORTS:
+                importlib.import_module(mod)
+
+    return WarmImports()
+
+
 def _identity(x):
     return x
 
@@ -281,6 +304,7 @@ def open_executor(scheduler: str | None = None, workers: int | None = None):
             cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                    silence_logs=logging.ERROR)
         client = Client(cluster)
+        client.register_plugin(_warm_imports_plugin())
         try:
             yield DistributedExecutor(client, "local", cluster)
         finally:
@@ -299,6 +323,7 @@ def open_executor(scheduler: str | None = None, workers: int | None = None):
     except (OSError, TimeoutError) as exc:
         raise ValueError(f"--scheduler {scheduler}: no Dask scheduler answers there ({exc})") from None
     try:
+        client.register_plugin(_warm_imports_plugin())
         yield DistributedExecutor(client, "cluster")
     finally:
         with contextlib.suppress(Exception):
