@@ -140,7 +140,7 @@ def test_layout_alone_finds_mesh_envelope_and_settings(tmp_path, small_envelope)
     out = tmp_path / "lay.json"
     r = CliRunner().invoke(main, ["optimize", MESH, "-k", "10", "--envelope", small_envelope, "--out", str(out),
                                   "--spacing-mm", "14", "--method", "greedy", "--half-angle-deg", "55", "--rho", "0.5",
-                                  "--no-render", "--json"])
+                                  "--no-render", "--json", "--dense-poses", "0"])
     assert r.exit_code == 0, r.output
     lay = json.loads(out.read_text())
     assert lay["spec"]["half_angle_deg"] == 55.0 and lay["provenance"]["mesh"] == str(Path(MESH).resolve())
@@ -152,7 +152,7 @@ def test_layout_alone_finds_mesh_envelope_and_settings(tmp_path, small_envelope)
     for key in ("worst_adop", "median_adop", "worst_pdop", "coverage_fraction", "poses"):
         assert a[key] == full[key], key
     assert a["sources"]["envelope"] == "layout provenance" and a["sources"]["rho"] == "layout spec"
-    assert a["worst_adop"] == pytest.approx(json.loads(r.output)["value"], rel=1e-9)  # what optimize reported
+    assert a["worst_adop"] == pytest.approx(json.loads(r.stdout)["value"], rel=1e-9)  # what optimize reported
     moved = dict(lay, provenance={**lay["provenance"], "mesh_sha256": "0" * 64})
     bad = tmp_path / "moved.json"
     bad.write_text(json.dumps(moved))
