@@ -144,3 +144,22 @@ def test_tilted_sensors_are_drawn_along_their_axis_with_the_surface_normal_besid
         far = pts[np.argmax(np.linalg.norm(pts - base, axis=1))] - base
         assert np.degrees(np.arccos(far @ d / np.linalg.norm(far))) < 6.0  # the tip lies along the direction
     assert tilt_glyphs(P, axis, [0.0, 0.0], n, 0.05) is None
+
+
+def test_spare_lit_margin_holds_on_the_working_set_and_is_stated(chen):
+    """DenseSpec(spare_lit=1): every working pose of the result keeps >= 5 lit (recounted from the problem's
+    visibility at those poses), the held-out estimate still counts coverage with 4, and the certificate says
+    its bound is over the layouts keeping 5 lit (a restricted class)."""
+    from layoutkit.optimize import DenseSpec
+    from layoutkit.optimize.certificate import certificate
+
+    spec = OptimizeSpec(k=12, rho=RHO, method="polish", seed=0,
+                        dense=DenseSpec(poses=300, coverage_poses=0, rounds=2, spare_lit=1))
+    res = solve(chen, spec, tuning={"patience": 1, "two_swap": False})
+    assert res.success
+    d = res.info["dense"]
+    vis = chen.visibility_at(res.selected, d["working_rotations"], d["working_translations"])
+    assert vis.any(axis=1).sum(axis=1).min() >= 5
+    h = heldout_estimate(chen, res.selected, rho=RHO, draws=1, poses_per_draw=300)
+    assert h["min_visible"] == 4
+    assert ">= 5 lit" in certificate(chen, spec, res, h)["candidate_set"]

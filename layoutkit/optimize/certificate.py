@@ -91,6 +91,9 @@ def certificate(problem, spec, res, heldout=None) -> dict:
     loose = bound is None or gap is None or gap > LOOSE_GAP
     why = _why(problem, spec, res, bound, gap, value, dense, heldout, struct) if loose else ""
     cand = _describe_candidates(problem)
+    spare = spec.dense.spare_lit if spec.dense is not None else 0
+    if spare:  # the loop's coverage rows ask for more: the bound is over the layouts that keep that many lit
+        cand += f" (layouts keeping >= {spec.min_visible + spare} lit at every pose of the loop, its margin)"
     if bound is None:
         statement = f"no certified bound ({res.message.split('bound: none')[-1].strip(' ();') or res.certified_by})"
     else:

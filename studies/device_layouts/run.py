@@ -101,8 +101,8 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
     from layoutkit.workflows.optimize import run_optimize
 
     dense = DenseSpec(poses=args.dense_poses, coverage_poses=args.coverage_poses, seed_poses=args.seed_poses,
-                      coverage_dop=args.coverage_dop)
-    spec = OptimizeSpec(k=dev.layout.n, rho=RHO, min_visible=args.design_min_visible or M, seed=args.seed,
+                      coverage_dop=args.coverage_dop, spare_lit=args.spare_lit)
+    spec = OptimizeSpec(k=dev.layout.n, rho=RHO, min_visible=M, seed=args.seed,
                         time_limit_s=args.time_limit_s, method=args.method, dense=dense,
                         max_tilt_deg=args.max_tilt_deg if tilt else 0.0, tilt_toward="station" if tilt else None)
     problem = DesignProblem.for_spec(str(folder / "hull.stl"), str(folder / "env.toml"), spec,
@@ -181,7 +181,9 @@ def main():
     ap.add_argument("--coverage-poses", type=int, default=None)
     ap.add_argument("--seed-poses", default=0, type=lambda v: v if v == "all" else int(v))
     ap.add_argument("--coverage-dop", action="store_true")
-    ap.add_argument("--design-min-visible", type=int, default=None)
+    ap.add_argument("--spare-lit", type=int, default=0,
+                    help="lit sensors the dense loop requires beyond 4 (a margin; scoring still counts 4)")
+    ap.add_argument("--tag", default="", help="suffix of the stage names (normals<tag>, tilt<tag>): variants")
     ap.add_argument("--max-tilt-deg", type=float, default=25.0)
     ap.add_argument("--method", default="pipeline")
     ap.add_argument("--seed", type=int, default=0)
@@ -202,12 +204,12 @@ def main():
                                       lambda: stage_newcomer(dev, folder))
         for stage, tilt in (("normals", False), ("tilt", True)):
             if stage in args.stage:
-                row[stage] = _cached(folder / f"{stage}.json", stage in args.force,
-                                     lambda: stage_optimise(dev, folder, stage, args, tilt))
+                name = stage + args.tag
+                row[name] = _cached(folder / f"{name}.json", stage in args.force,
+                                    lambda: stage_optimise(dev, folder, name, args, tilt))
         if "score" in args.stage:
             layouts = {"shipped": folder / "shipped.json"}
-            layouts.update({k: folder / f"{k}.layout.json" for k in ("newcomer", "normals", "tilt")
-                            if (folder / f"{k}.layout.json").exists()})
+            layouts.update({p.name.removesuffix(".layout.json"): p for p in sorted(folder.glob("*.layout.json"))})
             sc = stage_score(dev, folder, env, layouts)
             _figures(dev, folder, sc, layouts)
             for part in ("self_occlusion", "no_occlusion", "recording_setup"):
