@@ -202,6 +202,9 @@ def _print_summary(s):
             click.echo(f"  branch-and-bound: {b['nodes']} node relaxations, bound {b['root_bound']:.5g} (relaxation)"
                        f" -> {b['bound']:.5g}")
     h = s.get("heldout")
+    if h and h["uncovered"]:
+        click.secho(f"  warning: {h['uncovered']} of {h['poses']} fresh poses have fewer than {s['min_visible']} lit "
+                    "sensors (the value is over the covered ones)", fg="yellow")
     if h:
         click.echo(f"  held-out ({h['poses']} fresh poses, {len(h['draws'])} draws): worst ADOP {h['worst_adop']:.5g}, "
                    f"p99 {h['p99_adop']:.5g}, covered {100 * h['covered_fraction']:.2f} % "

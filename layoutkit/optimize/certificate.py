@@ -128,7 +128,10 @@ def _why(problem, spec, res, bound, gap, value, dense, heldout, struct) -> str:
                      f"{search:.2f}× the bound (×{search:.2f} of the gap is relaxation plus search)")
     else:
         parts.append(f"layout / bound on the working set = {search:.2f} (relaxation plus search)")
-    if general > 1.0 + 1e-9:
+    if not math.isfinite(value):
+        parts.append("the layout leaves some poses of that set with fewer than the required lit sensors (a coverage "
+                     "failure, not a DOP): its worst there is unbounded")
+    elif general > 1.0 + 1e-9:
         parts.append(f"the layout's worst moved from the poses it was tuned on ({work_val:.5g}) to poses it never "
                      f"saw ({value:.5g}): ×{general:.2f} of the gap is generalisation, which no bound over the "
                      "working set can close")

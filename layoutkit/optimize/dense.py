@@ -103,7 +103,9 @@ def default_dense(envelope, time_limit_s=None):
     Its budget is the time limit (default :data:`DEFAULT_DENSE_TIME_S`); its size grows with the budget —
     10 dense poses per second of budget, between 2,000 and 10,000 (the round-0 relaxation and search over
     the working set must fit the budget; the working set is capped by memory anyway,
-    :func:`working_capacity`) — with 4 × as many coverage-only poses. A trajectory envelope is a fixed
+    :func:`working_capacity`) — with 4 × as many coverage-only poses. The envelope's own poses are the seed of
+    the working set (``seed_poses=0``: round 0 is the pipeline on them, its relaxation finishes and certifies
+    a bound; the rounds after it add the violators of the dense set). A trajectory envelope is a fixed
     pose list (no fresh poses to draw): no dense loop, and the note says so.
     """
     from .spec import DenseSpec
@@ -112,7 +114,7 @@ def default_dense(envelope, time_limit_s=None):
     if envelope is None or envelope.attitude == "trajectory":
         return None, time_limit_s, "a trajectory envelope is a fixed pose list: optimised over its poses only"
     n = int(min(10000, max(2000, round(10.0 * T))))
-    return DenseSpec(poses=n), T, f"dense loop by default: {n} dense poses, {T:g} s budget"
+    return DenseSpec(poses=n, seed_poses=0), T, f"dense loop by default: {n} dense poses, {T:g} s budget"
 
 
 def dense_solve(problem, spec, kw, *, echo=None):
