@@ -45,7 +45,9 @@ class KeepOutBox:
         lo = tuple(float(x) for x in self.lower)
         hi = tuple(float(x) for x in self.upper)
         if len(lo) != 3 or len(hi) != 3 or any(a > b for a, b in zip(lo, hi)):
-            raise ValueError(f"keep-out box: expected lower <= upper, 3 numbers each, got {lo} and {hi}")
+            bad = [f"{'xyz'[i]} {a:g} > {b:g}" for i, (a, b) in enumerate(zip(lo, hi)) if a > b]
+            raise ValueError(f"keep-out box: the first corner must be the lower one (x0 <= x1, y0 <= y1, z0 <= z1), "
+                             f"got {', '.join(bad) or 'not 3 numbers each'} (m)")
         object.__setattr__(self, "lower", lo)
         object.__setattr__(self, "upper", hi)
 
@@ -91,17 +93,22 @@ def parse_keepout(spec: str, length_scale: float = 1e-3) -> KeepOut:
     ``cone:dx,dy,dz,HALF_ANGLE_DEG``.
     """
     kind, _, arg = spec.partition(":")
+    if kind == "part" and arg:
+        return KeepOutPart(arg)
     try:
-        if kind == "part" and arg:
-            return KeepOutPart(arg)
         vals = [float(x) for x in arg.split(",")]
+    except ValueError:
+        vals = []
+    if not all(np.isfinite(vals)):
+        raise ValueError(f"keep-out {spec!r}: NaN or infinite value")
+    try:  # the right shape: the object's own checks say what is wrong with the numbers
         if kind == "box" and len(vals) == 6:
             v = np.asarray(vals) * length_scale
             return KeepOutBox(tuple(v[:3]), tuple(v[3:]))
         if kind == "cone" and len(vals) == 4:
             return KeepOutCone(tuple(vals[:3]), vals[3])
-    except ValueError:
-        pass
+    except ValueError as exc:
+        raise ValueError(f"keep-out {spec!r}: {exc}") from None
     raise ValueError(f"keep-out {spec!r}: expected box:x0,y0,z0,x1,y1,z1 | part:NAME | cone:dx,dy,dz,half_angle_deg")
 
 

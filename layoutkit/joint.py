@@ -30,14 +30,16 @@ from .lighthouse import Station, lh2_to_lh1_angles, measure_jacobian, undistort
 from .pnp_lh1 import solve_pnp_lh1
 from .pnp_result import PnPResult, concat_results
 from .status import AMBIGUOUS as STATUS_AMBIGUOUS, BEHIND as STATUS_BEHIND, DEGENERATE as STATUS_DEGENERATE
+from .status import LOW_REDUNDANCY as STATUS_LOW_REDUNDANCY, MIN_ANGLES, MIN_REDUNDANCY
 from .status import NOT_CONVERGED as STATUS_NOT_CONVERGED, OK as STATUS_OK, TOO_FEW_LIT as STATUS_TOO_FEW
 
 __all__ = ["solve_joint", "model_angles_jacobian", "group_windows", "window_angles", "ray_midpoints",
            "firmware_corrected_angles", "crossing_beam_positions", "MIN_ANGLES", "DEFAULT_CHUNK",
            "WINDOW_S"]
 
-#: Fewest angles for a pose (6 unknowns); fewer gives ``STATUS_TOO_FEW``.
-MIN_ANGLES = 6
+# MIN_ANGLES (6, the unknowns): fewest angles for a pose, fewer gives ``STATUS_TOO_FEW``; a pose
+# from fewer than MIN_ANGLES + MIN_REDUNDANCY angles over all stations is ``STATUS_LOW_REDUNDANCY``
+# (the redundancy rule of :mod:`layoutkit.status`).
 DEFAULT_CHUNK = 2048
 _RTOL = 1e-8      # converged when an accepted step lowers the cost by less than this fraction
 _ATOL = 1e-26     # ... or by less than this (rad², per angle)
@@ -114,8 +116,8 @@ def _start(P, ang, mask, stations):
             a = lh2_to_lh1_angles(a)
         lit = np.all(np.isfinite(a), -1)
         r = solve_pnp_lh1(P, a, lit)
-        # an ambiguous single-station pose is still a start: the joint fit over stations decides
-        ok = r.success | (r.status == STATUS_NOT_CONVERGED) | (r.status == STATUS_AMBIGUOUS)
+        # an ambiguous or low-redundancy single-station pose is still a start: the joint fit decides
+        ok = r.success | np.isin(r.status, (STATUS_NOT_CONVERGED, STATUS_AMBIGUOUS, STATUS_LOW_REDUNDANCY))
         Rw = np.einsum("ij,fjk->fik", st.rotation, np.where(ok[:, None, None], r.rotation, np.eye(3)))
         tw = np.where(ok[:, None], r.translation, 0.0) @ st.rotation.T + st.translation
         out.append((Rw, tw, ok))
@@ -188,9 +190,11 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
     dt, velocity : optional motion compensation (see :func:`model_angles_jacobian`; dt (F, S) or
         (F, S, 2) per axis).
     Returns a :class:`layoutkit.pnp_result.PnPResult` (world frame; ``residual_rms`` over the used angles).
-    Frames with fewer than :data:`MIN_ANGLES` usable angles (or no station start) get
+    Frames with fewer than ``MIN_ANGLES`` (6) usable angles (or no station start) get
     ``STATUS_TOO_FEW``; singular normal equations ``STATUS_DEGENERATE``; a used point behind its
-    station ``STATUS_BEHIND``. Never raises on bad angle values.
+    station ``STATUS_BEHIND``; a converged pose from fewer than ``MIN_ANGLES + MIN_REDUNDANCY`` (8)
+    angles over all stations ``STATUS_LOW_REDUNDANCY`` (pose returned, not ok). Never raises on
+    bad angle values.
     """
     stations = list(stations)
     S = len(stations)
@@ -270,8 +274,10 @@ def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> Pn
         singular = w[:, 0] <= 1e-12 * w[:, -1]
         used = np.any(mk, -1)                                    # (f, S, n)
         behind = np.any(used & (ps[..., 2] <= 0), axis=(1, 2))
+        low = m[go] < MIN_ANGLES + MIN_REDUNDANCY                # cannot check itself
         st = np.where(singular, STATUS_DEGENERATE,
-                      np.where(behind, STATUS_BEHIND, np.where(done, STATUS_OK, STATUS_NOT_CONVERGED)))
+                      np.where(behind, STATUS_BEHIND, np.where(~done, STATUS_NOT_CONVERGED,
+                                                               np.where(low, STATUS_LOW_REDUNDANCY, STATUS_OK))))
         status[go] = st
         R[go], t[go] = Rg, tg
         res[go] = np.sqrt(cost / m[go])

@@ -13,17 +13,17 @@ import numpy as np
 
 from .joint import solve_joint
 from .lighthouse import Station
-from .pnp_lh1 import (AMBIGUITY_LR, DEFAULT_CHUNK, MIN_ANGLES, MIN_SENSORS, MIN_START_SENSORS, PNP_SOLVERS,
-                      STATUS_AMBIGUOUS, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_INVALID_ANGLE, STATUS_NAMES,
-                      STATUS_NO_START, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_TOO_FEW, PnPSolver, solve_pnp_lh1,
-                      solve_pnp_lm)
+from .pnp_lh1 import (AMBIGUITY_LR, DEFAULT_CHUNK, MIN_ANGLES, MIN_REDUNDANCY, MIN_SENSORS, MIN_START_SENSORS,
+                      PNP_SOLVERS, STATUS_AMBIGUOUS, STATUS_BEHIND, STATUS_DEGENERATE, STATUS_INVALID_ANGLE,
+                      STATUS_LOW_REDUNDANCY, STATUS_NAMES, STATUS_NO_START, STATUS_NOT_CONVERGED, STATUS_OK,
+                      STATUS_TOO_FEW, PnPSolver, solve_pnp_lh1, solve_pnp_lm)
 from .pnp_result import PnPResult
 from .units import RHO_PAPER, SIGMA_THETA_PAPER
 
 __all__ = [
     "PnPResult", "PnPSolver", "PNP_SOLVERS", "STATUS_OK", "STATUS_TOO_FEW", "STATUS_DEGENERATE",
     "STATUS_NOT_CONVERGED", "STATUS_BEHIND", "STATUS_AMBIGUOUS", "STATUS_INVALID_ANGLE", "STATUS_NO_START",
-    "STATUS_NAMES", "MIN_ANGLES", "MIN_SENSORS", "MIN_START_SENSORS", "DEFAULT_CHUNK", "AMBIGUITY_LR",
+    "STATUS_LOW_REDUNDANCY", "STATUS_NAMES", "MIN_ANGLES", "MIN_REDUNDANCY", "MIN_SENSORS", "MIN_START_SENSORS", "DEFAULT_CHUNK", "AMBIGUITY_LR",
     "solve_pnp", "solve_pnp_lm",
 ]
 
@@ -64,7 +64,9 @@ def solve_pnp(points_body, angles, visible=None, *, initial=None, max_iterations
         :class:`PnPResult` with a leading frame axis F (F = 1 for (n, 2) angles): ``rotation``
         (F, 3, 3) and ``translation`` (F, 3) m in the station frame (NaN where no pose), ``status``
         (F,) codes of :mod:`layoutkit.status` (below the minimum rule of :data:`MIN_ANGLES` angles
-        from :data:`MIN_SENSORS` sensors: :data:`STATUS_TOO_FEW`), ``success`` (F,) bool,
+        from :data:`MIN_SENSORS` sensors: :data:`STATUS_TOO_FEW`; solved from fewer than
+        ``MIN_ANGLES + MIN_REDUNDANCY`` = 8 angles, so unable to check itself:
+        :data:`STATUS_LOW_REDUNDANCY`, pose returned), ``success`` (F,) bool,
         ``residual_rms`` (F,) rad, ``iterations`` (F,). Degenerate input (too few or collinear
         sensors, NaN) gives a status, not an exception; inconsistent shapes raise ``ValueError``.
 

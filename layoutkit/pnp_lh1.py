@@ -41,6 +41,7 @@ Status codes (``PnPResult.status``) are listed in :data:`STATUS_NAMES`.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -62,8 +63,10 @@ __all__ = [
     "STATUS_AMBIGUOUS",
     "STATUS_INVALID_ANGLE",
     "STATUS_NO_START",
+    "STATUS_LOW_REDUNDANCY",
     "STATUS_NAMES",
     "MIN_ANGLES",
+    "MIN_REDUNDANCY",
     "MIN_SENSORS",
     "MIN_START_SENSORS",
     "DEFAULT_CHUNK",
@@ -77,8 +80,11 @@ __all__ = [
 #: rotation about the line through them is free). A sensor seen on one axis only contributes its
 #: one angle. The cold starts (POSIT, IPPE) need 4 sensors seen on both axes; a frame that meets
 #: the rule with fewer such sensors is solved from ``initial`` (e.g. a neighbouring frame's pose)
-#: or gets STATUS_NO_START. Collinear sensors give STATUS_DEGENERATE.
-MIN_ANGLES = 6
+#: or gets STATUS_NO_START. Collinear sensors give STATUS_DEGENERATE. A solved frame with fewer
+#: than MIN_ANGLES + MIN_REDUNDANCY seen angles cannot check itself: STATUS_LOW_REDUNDANCY
+#: (the redundancy rule of :mod:`layoutkit.status`; pose returned, not ok).
+MIN_ANGLES = _status.MIN_ANGLES
+MIN_REDUNDANCY = _status.MIN_REDUNDANCY
 MIN_SENSORS = 3
 MIN_START_SENSORS = 4
 
@@ -90,10 +96,11 @@ STATUS_BEHIND = _status.BEHIND                # best pose puts a lit sensor at z
 STATUS_AMBIGUOUS = _status.AMBIGUOUS          # two distinct poses fit the angles equally well at the noise level
 STATUS_INVALID_ANGLE = _status.INVALID_ANGLE  # a seen angle is infinite or outside (0, pi) rad: garbage or wrong units
 STATUS_NO_START = _status.NO_START            # meets the rule, but < 4 sensors seen on both axes and no initial pose
+STATUS_LOW_REDUNDANCY = _status.LOW_REDUNDANCY  # solved from 6 or 7 seen angles: cannot check itself
 #: PnP statuses: codes of the one table (:mod:`layoutkit.status`) → description.
 STATUS_NAMES = {c: _status.DESCRIPTIONS[c] for c in (STATUS_OK, STATUS_TOO_FEW, STATUS_DEGENERATE, STATUS_NOT_CONVERGED,
                                                       STATUS_BEHIND, STATUS_AMBIGUOUS, STATUS_INVALID_ANGLE,
-                                                      STATUS_NO_START)}
+                                                      STATUS_NO_START, STATUS_LOW_REDUNDANCY)}
 
 DEFAULT_CHUNK = 4096
 #: Lit sets with sqrt(lambda_min / lambda_max) of their centred body points below this get the two
@@ -859,6 +866,16 @@ def _with_status(r: PnPResult, where, status: int) -> PnPResult:
     return PnPResult(R, t, st == STATUS_OK, st, res, np.where(where, 0, r.iterations), **alts)
 
 
+def _with_redundancy(r: PnPResult, n_angles) -> PnPResult:
+    """``r`` with its ok frames that have fewer than ``MIN_ANGLES + MIN_REDUNDANCY`` seen angles
+    (``n_angles`` (F,)) set to :data:`STATUS_LOW_REDUNDANCY`, pose and residual kept."""
+    low = (np.asarray(r.status) == STATUS_OK) & (np.asarray(n_angles) < MIN_ANGLES + MIN_REDUNDANCY)
+    if not low.any():
+        return r
+    st = np.where(low, STATUS_LOW_REDUNDANCY, r.status)
+    return replace(r, status=st, success=st == STATUS_OK)
+
+
 #: Registry of batched PnP solvers (the names the CLI offers).
 PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_lm}
 
@@ -919,7 +936,7 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
             if P.ndim == 3:
                 lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
-            r = solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho)
+            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), lit.sum((1, 2)))
             if invalid.any():
                 r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
             parts.append(r)

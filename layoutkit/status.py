@@ -25,6 +25,12 @@ code  name             meaning
 8     high_residual    solved, but the angle residual is far above the noise (live pipeline)
 9     jump             solved, but inconsistent with the recent track (live continuity gate)
 10    solver_failed    the solver gave no usable pose (live pipeline; PnP's own code is 2–7)
+11    low_redundancy   solved, but with too little redundancy to check itself: fewer than
+                       ``MIN_ANGLES + MIN_REDUNDANCY`` = 8 seen angles for the 6 pose unknowns.
+                       With 6 angles (e.g. 3 sensors) the pose fits any angles exactly, so an error
+                       in one angle moves it and leaves no residual; with 7 an error shows in the
+                       one residual degree of freedom but every angle's standardised residual is
+                       the same, so it cannot be located (Baarda). The pose is returned, not ok.
 ====  ===============  ==========================================================================
 
 Single results use names: the optimiser (``"optimal"``, ``"ok"``, ``"infeasible"``,
@@ -38,7 +44,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["OK", "TOO_FEW_LIT", "DEGENERATE", "NOT_CONVERGED", "BEHIND", "AMBIGUOUS", "INVALID_ANGLE", "NO_START",
-           "HIGH_RESIDUAL", "JUMP", "SOLVER_FAILED", "NAMES", "CODES", "DESCRIPTIONS", "summarize"]
+           "HIGH_RESIDUAL", "JUMP", "SOLVER_FAILED", "LOW_REDUNDANCY", "MIN_ANGLES", "MIN_REDUNDANCY",
+           "NAMES", "CODES", "DESCRIPTIONS", "summarize"]
 
 OK = 0
 TOO_FEW_LIT = 1
@@ -51,11 +58,21 @@ NO_START = 7
 HIGH_RESIDUAL = 8
 JUMP = 9
 SOLVER_FAILED = 10
+LOW_REDUNDANCY = 11
+
+#: The redundancy rule (docs/pnp.md "Redundancy"): a rigid pose has 6 unknowns, so it needs
+#: MIN_ANGLES = 6 seen angles (fewer: ``too_few_lit``), and MIN_REDUNDANCY = 2 more angles to check
+#: itself — to detect an error in one angle (redundancy 1) and to be able to tell which angle it is
+#: (redundancy 2, the least at which that is possible; whether it succeeds depends on the geometry).
+#: A solved pose with 6 or 7 seen angles (over all stations of a joint solve) is ``low_redundancy``.
+MIN_ANGLES = 6
+MIN_REDUNDANCY = 2
 
 #: Pose status code → name (JSON lines, reports).
 NAMES = {OK: "ok", TOO_FEW_LIT: "too_few_lit", DEGENERATE: "degenerate", NOT_CONVERGED: "not_converged",
          BEHIND: "behind", AMBIGUOUS: "ambiguous", INVALID_ANGLE: "invalid_angle", NO_START: "no_start",
-         HIGH_RESIDUAL: "high_residual", JUMP: "jump", SOLVER_FAILED: "solver_failed"}
+         HIGH_RESIDUAL: "high_residual", JUMP: "jump", SOLVER_FAILED: "solver_failed",
+         LOW_REDUNDANCY: "low_redundancy"}
 #: Name → code.
 CODES = {v: k for k, v in NAMES.items()}
 #: Code → one-line description (messages).
@@ -71,6 +88,7 @@ DESCRIPTIONS = {
     HIGH_RESIDUAL: "angle residual far above the noise",
     JUMP: "inconsistent with the recent track",
     SOLVER_FAILED: "no usable pose from the solver",
+    LOW_REDUNDANCY: "low redundancy (fewer than 8 seen angles for 6 unknowns: the pose cannot check itself)",
 }
 
 

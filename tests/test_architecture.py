@@ -48,7 +48,6 @@ SHARED_PRIVATE = {"_validate"}  # the boundary-check helper everyone may use
 #: Import cycles being removed on other branches (issue 24 item 2): module set → owner. Each one is
 #: a strict xfail below, so it turns into a failure (to drop the entry) the day the cycle is gone.
 KNOWN_CYCLES = {
-    frozenset({"layoutkit.live.pipeline", "layoutkit.live.joint_stream"}): "helper 'live' (branch live)",
 }
 LONG_MODULE = 600       # lines; a longer module states why, with its length
 STATED_LENGTH_TOL = 0.15  # the stated length may be off by this fraction (else it is stale)

@@ -46,6 +46,8 @@ ROWS = {
     "import cfusdlog": ("{truth} --out {tmp}/cf", ["truth"]),
     "calibrate": ("{frames_st} --layout {layout} --stations {stations} --out-dir {tmp}/cal", ["frames_st", "stations"]),
     "camera-attitude": ("{corners} --focal-length-px 2133.3 --json", ["corners"]),
+    "camera calibrate": ("{photo} {photo2} {photo3} --inner 9x6 --square-mm 25 --out {tmp}/cam.yml --json", ["photo"]),
+    "camera attitude": ("{photo} --camera {camera_yml} --detect chessboard --no-picture --json", ["photo", "camera_yml"]),
     "validate": ("{layout} --envelope {envelope} --frames 200 --scheduler synchronous --json", ["envelope"]),
     "sweep": ("{sweep} --out-dir {tmp}/sw --scheduler synchronous --json", ["sweep"]),
 }
@@ -92,6 +94,8 @@ def files(tmp_path_factory):
                           "--out", str(d / "fs.csv")])
     assert res.exit_code == 0, res.output
     f["frames_st"] = d / "fs.csv"
+    f["photo"], f["photo2"], f["photo3"] = (DATA / "camera" / n for n in ("left01.jpg", "left03.jpg", "left04.jpg"))
+    f["camera_yml"] = DATA / "camera" / "left_intrinsics.yml"
     f["corners"] = d / "corners.csv"
     f["corners"].write_text("t,x1,y1,x2,y2,x3,y3,x4,y4\n0,100,100,200,100,200,200,100,200\n")
     sweep = d / "sweep.toml"

@@ -65,6 +65,7 @@ REGISTRIES = {
     "layoutkit.optimize:METHODS": ("layoutkit.optimize", "METHODS"),
     "layoutkit.camera.rectangle:RECTANGLE_SOLVERS": ("layoutkit.camera", "RECTANGLE_SOLVERS"),
     "layoutkit.pnp:PNP_SOLVERS": ("layoutkit.pnp", "PNP_SOLVERS"),
+    "layoutkit.camera.calibration:DISTORTION_MODELS": ("layoutkit.camera.calibration", "DISTORTION_MODELS"),
 }
 # flags whose choices name pluggable algorithms or protocols: they must come from a registry
 REGISTRY_FLAGS = {"--method", "--solver", "--protocol", "--camera-method", "--rectangle-method"}

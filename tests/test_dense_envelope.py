@@ -96,6 +96,7 @@ def test_dense_loop_holds_better_on_heldout_than_design_only(run):
     assert info["dense_value"] == pytest.approx(a.max(), rel=1e-7)
 
 
+@pytest.mark.slow
 def test_working_set_holds_the_worst_violators(run):
     """After round 0 the working set gains exactly the 24 worst dense poses of round 0's layout that
     exceed its working-set value by more than tol (min_sep = 0, every dense pose coverable here),

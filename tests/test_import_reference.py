@@ -9,7 +9,7 @@ from layoutkit.io.poses import read_poses
 
 def test_position_only_csv_and_npy(tmp_path):
     t = 2712.0 + np.arange(50) / 100.0  # a mocap clock 45 min from anything else
-    p = np.column_stack([np.sin(t), np.cos(t), 0.1 * t])
+    p = np.column_stack([np.sin(t), np.cos(t), 0.1 * (t - t[0])])  # metres: a mocap volume is a room
     csvf = tmp_path / "mocap.csv"
     csvf.write_text("t,x,y,z\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([t, p * 1e3])))
     out = tmp_path / "ref.csv"

@@ -109,6 +109,7 @@ def lent_venv(wheel, tmp_path_factory):
     return python
 
 
+@pytest.mark.slow
 def test_wheel_carries_the_models(lent_venv, tmp_path):
     _check_models_from_install(lent_venv, tmp_path)
 

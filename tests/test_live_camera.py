@@ -222,6 +222,7 @@ def test_live_session_with_both_streams(bench, tmp_path):
         assert again[k] == pytest.approx(live[k], rel=1e-5, abs=1e-12), k
 
 
+@pytest.mark.slow
 def test_camera_reader_counts_a_stall_and_a_stop(bench, tmp_path):
     """A camera that stalls (a 1.5 s gap in its timing) and then stops early: the reader keeps every
     frame raw, counts the stall, ends by itself, and its solves match the replay of the same frames."""
@@ -251,6 +252,7 @@ def test_camera_reader_counts_a_stall_and_a_stop(bench, tmp_path):
     assert reader.processor.frames.status == ref.status
 
 
+@pytest.mark.slow
 def test_live_running_disagreement_equals_the_batch_crosscheck(bench):
     """The dashboard's running disagreement (LiveCrossCheck, fed in pieces) equals the batch
     camera_crosscheck with the same clock, alignment and variance factor (independent code path)."""

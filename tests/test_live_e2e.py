@@ -86,6 +86,7 @@ def test_json_lines_contract(sim):
     assert len(lines[0]["rotvec"]) == 3 and len(lines[0]["translation"]) == 3
 
 
+@pytest.mark.slow
 def test_report_and_mocap_reference(sim, tmp_path):
     """--reference: a motion-capture CSV made from TRUTH with a known clock offset, frames and mm
     units; the estimated offset is recovered and the errors equal those against TRUTH (5 %).

@@ -12,6 +12,7 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -72,3 +73,138 @@ def test_envelope_range_in_millimetres_is_refused_naming_file_and_unit(tmp_path,
                                "reaches (<= 30 m): the numbers are probably millimetres (3 m?)"), r.output
     ok = _run(["score", LAYOUT, "--envelope", p, "--json", "--allow-odd-size"])
     assert ok.exit_code == 0 and "warning:" in ok.output  # let through on request, still said
+
+
+def test_import_reference_names_the_dropped_rows_and_refuses_millimetres(tmp_path):
+    """A NaN row was dropped without saying which, and a mocap file in mm was taken as metres."""
+    p = tmp_path / "ref.csv"
+    p.write_text("t,x,y,z,qx,qy,qz,qw\n0.0,1.0,2.0,1.5,0,0,0,1\n0.1,1.0,nan,1.5,0,0,0,1\n0.2,1.0,2.0,1.5,0,0,0,1\n")
+    r = _run(["import", "reference", p, "--out", tmp_path / "o.csv"])
+    assert r.exit_code == 0 and f"note: 1 row(s) of {p} left out: a time or value is NaN or empty (line 3)" in r.output
+    mm = tmp_path / "mm.csv"
+    mm.write_text(p.read_text().replace("1.0,2.0,1.5", "1000.0,2000.0,1500.0").replace("1.0,nan,1.5", "1000,2001,1500"))
+    r = _run(["import", "reference", mm, "--out", tmp_path / "o2.csv"])
+    assert r.exit_code == 2 and r.output.startswith(f"error: {mm}: positions: 2693 m is farther than any lighthouse "
+                                                    "reaches"), r.output
+    assert "millimetres" in r.output and not (tmp_path / "o2.csv").exists()
+    ok = _run(["import", "reference", mm, "--out", tmp_path / "o3.csv", "--units", "mm", "--json"])
+    assert ok.exit_code == 0 and json.loads(ok.stdout)["rows"] == 3
+
+
+def test_frame_table_in_degrees_is_refused_naming_column_and_line(tmp_path):
+    """Every frame came back 'invalid angle' with no column named; now the file is refused once."""
+    import csv
+    import math
+
+    f = tmp_path / "f.csv"
+    assert _run(["simulate", "--layout", LAYOUT, "--frames", 5, "--out", f]).exit_code == 0
+    rows = list(csv.reader(f.open()))
+    deg = tmp_path / "deg.csv"
+    with deg.open("w", newline="") as fh:
+        csv.writer(fh).writerows([rows[0]] + [[str(math.degrees(float(v))) if c.startswith("th_") and v else v
+                                               for c, v in zip(rows[0], r)] for r in rows[1:]])
+    r = _run(["solve", deg, "--layout", LAYOUT])
+    assert r.exit_code == 2 and r.output.startswith(f"error: {deg}: line 2, column th_"), r.output
+    assert "frame tables hold radians; these look like degrees" in r.output
+    assert _run(["solve", f, "--layout", LAYOUT]).exit_code == 0
+
+
+def test_replay_with_another_layouts_capture_says_so(tmp_path):
+    """A 12-sensor capture replayed with the 4-sensor deck layout said only 'another --protocol?'."""
+    cap = tmp_path / "c.lkcap"
+    assert _run(["fake-fpga", "--layout", LAYOUT, "--out", cap, "--duration", 0.3]).exit_code == 0
+    (tmp_path / "c.lkcap.json").unlink()  # no sidecar: the layout given is the one used
+    r = _run(["replay", cap, "--layout", REPO / "models" / "crazyflie_lighthouse_deck.layout.json"])
+    assert r.exit_code == 2 and "frames of 12 sensors, the layout has 4 (another layout's capture?)" in r.output
+
+
+def test_sweep_plot_names_the_objective_unit_and_shows_cells_without_a_layout(tmp_path, small_envelope):
+    """The sweep plot's y axis said only 'objective' and infeasible cells were not drawn at all."""
+    import matplotlib.figure
+
+    from layoutkit.workflows.sweep import _plots
+    from layoutkit.workflows.sweep_config import parse_sweep
+
+    cfg = parse_sweep({"base": {"mesh": str(REPO / "models" / "chen_target.stl"), "envelope": small_envelope,
+                                "objective": "worst-pdop"}, "axes": {"k": [4, 8, 10]}}, tmp_path / "s.toml")
+    rows = [{"k": 4, "status": "infeasible", "value": None, "worst_adop_deg_per_rad": None},
+            {"k": 8, "status": "ok", "value": 40.0, "worst_adop_deg_per_rad": 3000.0},
+            {"k": 10, "status": "ok", "value": 30.0, "worst_adop_deg_per_rad": 2000.0}]
+    seen = []
+    orig = matplotlib.figure.Figure.savefig
+
+    def spy(self, *a, **k):
+        seen.append(self)
+        return orig(self, *a, **k)
+
+    matplotlib.figure.Figure.savefig = spy
+    try:
+        files = _plots(tmp_path, cfg, rows, rows[1:], print)
+    finally:
+        matplotlib.figure.Figure.savefig = orig
+    assert files == ["objective_vs_axes.png", "pareto_worst_adop_vs_k.png"]
+    ax = seen[0].axes[0]
+    assert ax.get_ylabel() == "worst-pdop (m/rad)"
+    crosses = [c for c in ax.collections if c.get_label().startswith("infeasible")]
+    assert len(crosses) == 1 and crosses[0].get_offsets()[:, 0].tolist() == [4.0]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--candidates", "{c}", "--spacing-mm", "8"], "--candidates and --spacing-mm cannot be used together"),
+    (["--weights", "1,1"], "--weights is for the *-weighted objectives; --objective worst-adop would ignore it"),
+    (["--spacing-mm", "10", "--keepout-box", "10,10,10,0,0,0"],
+     "the first corner must be the lower one (x0 <= x1, y0 <= y1, z0 <= z1), got x 0.01 > 0"),
+])
+def test_optimize_refuses_contradicting_flags(tmp_path, small_envelope, extra, message):
+    """Accepted silently before (--candidates won over --spacing-mm, --weights was ignored); an
+    inverted keep-out box said 'the format is wrong'."""
+    c = tmp_path / "c.json"
+    assert _run(["candidates", REPO / "models" / "chen_target.stl", "--spacing-mm", "20", "--out", c]).exit_code == 0
+    r = _run(["optimize", REPO / "models" / "chen_target.stl", "--sensors", 8, "--envelope", small_envelope,
+              "--out", tmp_path / "l.json", *[x.format(c=c) for x in extra]])
+    assert r.exit_code == 2 and "error:" in r.output and message in r.output, r.output
+    assert not (tmp_path / "l.json").exists()
+
+
+def test_score_streams_many_poses_and_agrees_with_the_exact_statistics(monkeypatch, small_envelope):
+    """``score --poses 100000000`` grew to 5.8 GB with no output: above STREAM_POSES the poses are
+    drawn and scored chunk by chunk. Checked against the exact statistics of the same poses (the
+    chunks redrawn with their documented seeds, scored in one piece): counts and worst exact, the
+    sketched median / p95 / p99 within the histogram's resolution."""
+    import dataclasses
+
+    import layoutkit.workflows.score as sc
+    from layoutkit.envelope import load_envelope
+    from layoutkit.layout import load_layout
+    from layoutkit.optimize import DesignProblem
+
+    monkeypatch.setattr(sc, "STREAM_POSES", 500)
+    monkeypatch.setattr(sc, "CHUNK_POSES", 300)
+    seen = []
+    res = sc.score_layout(LAYOUT, small_envelope, poses=1000, rho=0.8717, progress=seen.append)
+    assert seen == [300, 300, 300, 100] and res["streamed"]["chunks"] == 4 and res["poses"] == 1000
+    env = load_envelope(small_envelope)
+    R, t = [], []
+    for k, n in enumerate(seen):
+        seed = int(np.random.SeedSequence([env.seed, k]).generate_state(1)[0])
+        r, tt = dataclasses.replace(env, count=n, seed=seed).poses()
+        R.append(r)
+        t.append(tt)
+    lay = load_layout(LAYOUT)
+    whole = dataclasses.replace(env, count=1000)
+    pb = DesignProblem.load(None, whole, candidates=lay, half_angle_deg=60.0)
+    # the same poses: replace the problem's poses by the concatenated chunks
+    from layoutkit.visibility import facing_mask
+
+    R, t = np.concatenate(R), np.concatenate(t)
+    st = pb.stations[0]
+    vis = facing_mask(lay.positions, lay.normals, *st.world_to_station(R, t), half_angle_deg=60.0,
+                      fov_deg=st.fov_deg)[:, None, :]
+    exact = sc.score_arrays(lay.positions, vis, R, t, pb.stations, rho=0.8717)
+    assert res["covered_poses"] == exact["covered_poses"] and res["lit_count_min"] == exact["lit_count_min"]
+    assert res["worst_adop"] == pytest.approx(exact["worst_adop"], rel=1e-12)
+    assert res["worst_pdop"] == pytest.approx(exact["worst_pdop"], rel=1e-12)
+    tol = res["streamed"]["relative_resolution"]
+    for k in ("median_adop", "p95_adop", "p99_adop", "median_pdop", "p95_pdop"):
+        assert abs(res[k] / exact[k] - 1) <= tol, (k, res[k], exact[k])
+    assert [u["lit_fraction"] for u in res["per_sensor"]] == pytest.approx([u["lit_fraction"] for u in exact["per_sensor"]])

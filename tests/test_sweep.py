@@ -58,6 +58,7 @@ def _cells(out):
 KEYS = ("status", "value", "bound", "gap", "selected_ids", "certified_by", "input_hash")
 
 
+@pytest.mark.slow
 def test_localcluster_and_synchronous_give_identical_cells(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope)
     r = CliRunner()
@@ -107,6 +108,7 @@ def test_sweep_file_errors_name_file_and_key(tmp_path, small_envelope):
         load_sweep(sweep)
 
 
+@pytest.mark.slow
 def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes="k = [5, 400]\nmethod = [\"greedy\"]\n")
     r = CliRunner().invoke(main, ["sweep", str(sweep), "--out", str(tmp_path / "o"), "--scheduler", "synchronous"])
@@ -175,6 +177,7 @@ def _kill(p):
 SLOW_AXES = "k = [5, 6, 7]\nmethod = [\"pipeline\"]\nseed = [1, 2]\n"
 
 
+@pytest.mark.slow
 def test_real_scheduler_worker_killed_midsweep_then_completes(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 1.5")
     (tmp_path / "sweep.toml").write_text(sweep)
@@ -215,6 +218,7 @@ def test_real_scheduler_worker_killed_midsweep_then_completes(tmp_path, small_en
                 p.kill()
 
 
+@pytest.mark.slow
 def test_killed_sweep_resumes_with_only_the_missing_cells(tmp_path, small_envelope):
     sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 0.7")
     (tmp_path / "sweep.toml").write_text(sweep)

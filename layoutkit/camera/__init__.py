@@ -1,5 +1,7 @@
 """Monocular camera room: rectangle-face attitude (Zhai et al. 2014), corner detection,
-synthetic pinhole renders and camera input for the live mode (design §7, §8).
+synthetic pinhole renders and camera input for the live mode (design §7, §8); real cameras:
+lens distortion (``lens``), calibration from pattern photos (``calibration``), face attitude
+through a lens with its predicted σ (``face``) and a face detector for photographs (``face_detect``).
 
 ``rectangle_attitude`` and ``euler_zyx`` are the public entry points (re-exported by
 ``layoutkit``); OpenCV and pyvista are imported only inside the functions that need them.

@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import NONNEGATIVE, POSITIVE, PROBABILITY, Conflict, flag_rules
+from .options import POSITIVE, PROBABILITY, Conflict, Number, flag_rules
 from .options import (json_flag, layout_option, overwrite_option, protocol_option, rho_option, seed_option,
                       sigma_option, stations_option)
 
@@ -13,13 +13,14 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
 @layout_option(help="Sensor layout JSON.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), default=None,
               help="Write a capture file (+ .idx and .json sidecar) instead of streaming on a pty.")
-@overwrite_option(what="an existing --out capture")
+@overwrite_option(what="an existing --out capture and --truth file")
 @click.option("--pty", "use_pty", is_flag=True, help="Stream on a pseudo-terminal (the default without --out).")
 @click.option("--link", type=click.Path(dir_okay=False), default=None,
               help="With a pty: also make this symlink point at the device path.")
 @click.option("--truth", "truth_path", type=click.Path(dir_okay=False), default=None,
               help="Write the true poses as a pose table (t,station,status,rx,ry,rz,tx,ty,tz,residual_rms; "
-                   "s, rad, m; one row per sweep).")
+                   "s, rad, m; one row per sweep), ended by a '# layoutkit-run' line naming the byte stream "
+                   "(replay --truth checks it against the capture). An existing file is refused unless --overwrite.")
 @click.option("--duration", "duration_s", type=POSITIVE, default=60.0, show_default=True,
               help="Simulated seconds.")
 @seed_option
@@ -37,8 +38,9 @@ from .options import (json_flag, layout_option, overwrite_option, protocol_optio
               help="Emit at real timing (default: on for a pty, off for --out).")
 @click.option("--speed", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
               help="Real-time speed factor.")
-@click.option("--wait-reader", "wait_reader_s", type=NONNEGATIVE, default=None,
-              help="With a pty: give up when no reader opened it within this many seconds [default: wait].")
+@click.option("--wait-reader", "wait_reader_s", type=Number(0.0, allow_inf=True, what="seconds"), default=60.0,
+              show_default=True,
+              help="With a pty: give up (exit 2) when no reader opened it within this many seconds ('inf': wait).")
 @click.option("--tumble-rate-deg-s", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="Largest angular rate of --motion tumble, deg/s [default: 0.5, a slow static-like tumble].")
 @click.option("--camera-out", "camera_out", type=click.Path(file_okay=False), default=None,
@@ -65,7 +67,10 @@ def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s
 
     Without --out a pseudo-terminal is opened and its device path printed (first line,
     "device: /dev/pts/N") so that `layoutkit live --port /dev/pts/N` can read it; streaming starts
-    when a reader opens the port. --link keeps a stable path across runs (replug).
+    when a reader opens the port (at most --wait-reader seconds). --link keeps a stable path across
+    runs (replug). SIGTERM, SIGHUP and Ctrl-C end it cleanly with a message (the capture closed, the
+    link removed; exit 143, 129, 130); the camera rendering stops too (its folder keeps the frames
+    made, and is said to be incomplete).
     """
     import sys
 
@@ -103,7 +108,7 @@ def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s
             if not stations:
                 fail(f"{stations_path}: no stations")
         summary = run_fake(layout, out=out, link=link, truth_path=truth_path, realtime=realtime, speed=speed,
-                           wait_reader_s=wait_reader_s, overwrite=overwrite, on_ready=ready, duration_s=duration_s, seed=seed,
+                           wait_reader_s=None if wait_reader_s == float("inf") else wait_reader_s, overwrite=overwrite, on_ready=ready, duration_s=duration_s, seed=seed,
                            protocol=protocol, motion=motion, dropout=dropout, frame_loss=frame_loss,
                            garbage=garbage, sigma=sigma, rho=rho, tumble_rate_deg_s=tumble_rate_deg_s,
                            camera=camera, on_camera=camera_done, stations=stations)
@@ -115,9 +120,21 @@ def fake_fpga(layout_path, out, overwrite, use_pty, link, truth_path, duration_s
         fail(f"{exc.filename}: {exc.strerror or exc}" if exc.filename else f"cannot emit: {exc}")
     if as_json:
         echo_json(summary)
-    else:
+    elif not summary.get("stopped_by"):
         click.echo(f"sent {summary['frames_sent']} frames ({summary['bytes']} bytes) to {summary['path']} "
                    f"in {summary['wall_s']:.2f} s")
+    if summary.get("stopped_by"):
+        import signal
+
+        cam = summary.get("camera") or {}
+        where = (f"while rendering the camera ({cam.get('frames')} frames kept in {cam.get('folder')}, incomplete)"
+                 if cam.get("incomplete") else
+                 f"while waiting for a reader of {summary['path']}: nothing sent"
+                 if out is None and not summary["bytes"] and summary.get("path") else
+                 f"after {summary['frames_sent']} of {summary['chunks']} frames ({summary['bytes']:,} bytes) to "
+                 f"{summary.get('path') or 'nothing'}" + (" (capture closed)" if out is not None else ""))
+        click.echo(f"stopped by {summary['stopped_by']} {where}", err=True)
+        sys.exit(128 + int(getattr(signal, summary["stopped_by"])))
 
 
 commands: list = [fake_fpga]

@@ -124,6 +124,12 @@ def reference_cmd(file, out, units, as_json):
         echo_json(s)
     else:
         click.echo(f"wrote {s['rows']} reference poses ({'position only' if s['position_only'] else 'pose'}) to {out}")
+    if s["dropped_rows"]:
+        lines = s["dropped_lines"]
+        where = (f" (line{'s' if len(lines) > 1 else ''} {', '.join(map(str, lines[:10]))}"
+                 f"{', ...' if len(lines) > 10 else ''})" if lines else "")
+        click.echo(f"note: {s['dropped_rows']} row(s) of {file} left out: a time or value is NaN or empty{where}",
+                   err=True)
 
 
 commands = [import_group]

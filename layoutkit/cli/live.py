@@ -10,6 +10,7 @@ from .options import POSITIVE, Requires, flag_rules
 from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
                       units_option)
+from .options import Number
 
 _common_options = [
     layout_option(required=False, help="Layout JSON (sensor positions, m, body frame)."),
@@ -45,9 +46,11 @@ _common_options = [
 
 
 def _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
-                   corner_sigma_px, folder=None):
+                   corner_sigma_px, folder=None, camera_model=None):
     """A :class:`CameraConfig` from the camera flags (None without a camera), with the capture
-    folder's ``camera.json`` filling what the flags leave out."""
+    folder's ``camera.json`` filling what the flags leave out. ``--camera-model`` (a camera file
+    with the lens distortion), else a model recorded in the folder's ``camera.json``, makes the
+    camera side undistort (``--focal-length-px`` / ``--principal-point-px`` are then refused)."""
     from pathlib import Path
 
     from ._common import fail
@@ -55,10 +58,26 @@ def _camera_config(camera_device, focal_length_px, principal_point_px, camera_me
     src = camera_device if camera_device is not None else folder
     if src is None:
         return None
-    from ..io.camera import read_camera_meta
+    from ..io.camera import read_camera_meta, read_camera_model
     from ..live.camera import CameraConfig
 
-    meta = read_camera_meta(src) if Path(str(src)).is_dir() else None
+    try:
+        meta = read_camera_meta(src) if Path(str(src)).is_dir() else None
+        model = read_camera_model(camera_model) if camera_model is not None else None
+        if model is None and meta is not None and meta.camera_matrix is not None and not focal_length_px:
+            model = meta.camera_model()
+    except ValueError as exc:
+        fail(str(exc))
+    if model is not None:
+        if camera_model is not None and (focal_length_px or principal_point_px):
+            fail("--camera-model: gives the focal length and principal point; leave out --focal-length-px and "
+                 "--principal-point-px")
+        ar = aspect_ratio if aspect_ratio is not None else (meta.aspect_ratio if meta else None)
+        try:
+            return CameraConfig.from_model(model, method=camera_method, aspect_ratio=ar,
+                                           corner_sigma_px=corner_sigma_px)
+        except ValueError as exc:
+            fail(str(exc))
     f = focal_length_px or (meta.focal_length_px if meta else None)
     if f is None:
         if camera_device is None:
@@ -81,12 +100,15 @@ def _print_camera(summary: dict, err: bool) -> None:
                 if c.get("by_status") and len(c["by_status"]) > 1 else "")]
     clk = c.get("clock") or {}
     if clk.get("message"):
-        lines.append(f"camera clock: {clk['message']}")
+        lines.append(f"camera clock: {clk['message']}" if clk.get("status") in ("ok", "given", None)
+                     else f"camera clock: {clk['status']}: {clk['message']}")
+    st = c.get("status")
+    head = "lighthouse vs camera: " + ("" if st == "ok" else f"{st}: ")
     if c.get("disagreement_rms_deg") is not None:
-        lines.append(f"lighthouse vs camera: {c.get('message')} (ratio {c.get('ratio') or float('nan'):.3f}); "
+        lines.append(f"{head}{c.get('message')} (ratio {c.get('ratio') or float('nan'):.3f}); "
                      f"{c.get('face_on_frames')} face-on frames, {c.get('mirror_branch_frames')} on the mirror branch")
     elif c.get("message"):
-        lines.append(f"lighthouse vs camera: {c['message']}")
+        lines.append(f"{head}{c['message']}")
     for ln in lines:
         click.echo(ln, err=err)
 
@@ -179,6 +201,11 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
                 lines.append(f"  frame by frame: RMS {e['frame_by_frame_rms_rot_deg']:.4f} deg / "
                              f"{e['frame_by_frame_rms_pos_m'] * 1e3:.3f} mm, DOP prediction "
                              f"{e['frame_dop_predicted_rot_deg']:.4f} deg / {e['frame_dop_predicted_pos_m'] * 1e3:.3f} mm")
+    for ev in summary.get("evidence") or ():  # files given beside the capture: whose run they are
+        if ev.get("status") == "other_run":
+            lines.append(f"warning: {ev['message']}")
+        elif ev.get("status") != "tied":
+            lines.append(f"note: {ev['message']}")
     rep = summary.get("report")
     if rep:
         lines.append(f"report: {rep.get('json')}")
@@ -194,7 +221,7 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
                camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
-               solve_mode):
+               camera_model, solve_mode):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -212,7 +239,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                     filter_settings=filter_settings)
     beside = camera_folder_for(capture)
     cam_cfg = _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
-                             corner_sigma_px, folder=beside if beside.is_dir() else None)
+                             corner_sigma_px, folder=beside if beside.is_dir() else None, camera_model=camera_model)
     try:
         summary = replay_capture(capture, layout_path, protocol=protocol, options=opts, truth=truth,
                                  reference=reference, reference_units=reference_units,
@@ -278,22 +305,27 @@ def _quiet_exit():
 @click.option("--duration", type=POSITIVE, default=None, help="Stop after this many seconds (wall clock) [default: Ctrl-C].")
 @click.option("--idle-timeout", type=POSITIVE, default=None,
               help="Stop when no byte arrived for this many seconds after the first byte.")
+@click.option("--port-timeout", "port_timeout", type=Number(0.0, min_open=True, allow_inf=True, what="seconds"),
+              default=10.0, show_default=True,
+              help="Give up (exit 2) when the port has not opened within this many seconds: a mistyped or absent "
+                   "device ('inf': wait). Once it has opened, an unplugged port is waited for as long as the run lasts.")
 @click.option("--baudrate", type=click.IntRange(min=1), default=None, help="Baud rate [default: 921600].")
 @click.option("--no-dashboard", is_flag=True, help="No rich dashboard (print the summary at the end only).")
 @_add(_common_options)
 @filter_options
 @camera_options
 @flag_rules(Requires("--overwrite", "--record", "only a --record capture can be replaced"))
-def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
+def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
              as_json, system_config, stations_path, filter_settings, camera_device, focal_length_px, principal_point_px,
-             camera_method, aspect_ratio, corner_sigma_px, solve_mode):
+             camera_method, aspect_ratio, corner_sigma_px, camera_model, solve_mode):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
     capture (fsynced), pending frames are solved, the report and summary are written. Exit status:
     0 (duration / idle timeout / Ctrl-C), 143 after SIGTERM, 129 after SIGHUP, 2 when the capture
-    could not be written (disk full: the capture keeps what was written, the report is still made).
+    could not be written (disk full: the capture keeps what was written, the report is still made)
+    or when the port never opened within --port-timeout (no empty capture is left behind).
     Without a dashboard the waiting state is printed to stderr while the port is not connected.
     A reconnect reads only the device first opened (same path and device identity), else refuses.
     With --camera-device the camera stream runs beside the serial stream (own threads; frames kept
@@ -315,10 +347,10 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,
-              idle_timeout=idle_timeout, overwrite=overwrite, camera_device=camera_device,
+              idle_timeout=idle_timeout, overwrite=overwrite, port_timeout=None if port_timeout == float("inf") else port_timeout, camera_device=camera_device,
               stations=stations, system_config=cfg, solve=solve_mode,
               camera_config=_camera_config(camera_device, focal_length_px, principal_point_px, camera_method,
-                                           aspect_ratio, corner_sigma_px))
+                                           aspect_ratio, corner_sigma_px, camera_model=camera_model))
     try:
         if json_lines or no_dashboard or not sys.stderr.isatty():
             summary = run_live(port, layout_path, on_status=lambda m: click.echo(m, err=True), **kw)
@@ -349,7 +381,9 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, baudrate, no_dashb
             + (["report written"] if summary.get("report") else []) + ["summary printed"]), err=True)
         sys.exit(128 + int(getattr(signal, stopped)))
     if not src.get("connects"):  # the port never opened: say so rather than a silent empty run
-        fail(f"{port}: the port never opened ({src.get('last_error') or 'no such device'}); nothing was received")
+        within = (f" within {summary['port_timeout_s']:g} s (--port-timeout)" if summary.get("port_timeout_s") else "")
+        fail(f"{port}: the port never opened{within} ({src.get('last_error') or 'no such device'}); nothing was "
+             "received" + (f", no capture kept at {record}" if record and not summary.get("capture") else ""))
 
 
 commands: list = [live_cmd, replay_cmd]

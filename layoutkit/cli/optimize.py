@@ -6,6 +6,7 @@ import math
 import click
 
 from ._common import echo_json, fail
+from .options import Conflict, flag_rules
 from .options import (allow_odd_size_option, coverage_option, envelope_option, half_angle_option, json_flag, min_visible_option,
                       out_file_option, registry_choice, report_option, rho_option, seed_option, time_limit_option,
                       units_option)
@@ -51,7 +52,7 @@ def _tilt_toward(ctx, param, value):
 @click.option("--candidates", "candidates_path", default=None, type=click.Path(dir_okay=False),
               help="Candidate sites (layout JSON from `layoutkit candidates`).")
 @click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
-              help="Sample candidate sites this far apart, mm (default 1 %% of the mesh size, coarser if that "
+              help="Sample candidate sites this far apart, mm (default 1 % of the mesh size, coarser if that "
                    "would give more than ~25 sites per sensor, at most 1500).")
 @click.option("--keepout-box", multiple=True, metavar="X0,Y0,Z0,X1,Y1,Z1",
               help="Keep-out box in the body frame, mm (repeatable; with --spacing-mm sampling).")
@@ -84,6 +85,8 @@ def _tilt_toward(ctx, param, value):
 @click.option("--branch-and-bound/--no-branch-and-bound", "bnb", default=True, show_default=True,
               help="Tighten the certified bound by branch-and-bound in a second process beside the search "
                    "(worst-case objectives with a time limit; docs/optimize.md).")
+@flag_rules(Conflict("--candidates", "--spacing-mm", "the candidates file already fixes the sites"),
+            Conflict("--candidates", "--keepout-box", "keep-out boxes filter sampled sites; filter the file instead"))
 def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_dir, method, candidates_path,
                  spacing_mm, keepout_box, fixed, min_visible, coverage_fraction, min_spacing_mm,
                  half_angle_deg, k_range, time_limit_s, seed, units, allow_odd_size, no_render, as_json,
@@ -134,6 +137,8 @@ def _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fract
     """The :class:`layoutkit.optimize.OptimizeSpec` of the command's options (errors: exit 2 with the field)."""
     from ..optimize import DenseSpec, OptimizeSpec
 
+    if weights and not objective.strip().lower().endswith("weighted"):
+        fail(f"--weights is for the *-weighted objectives; --objective {objective} would ignore it")
     if objective.strip().lower().endswith("weighted") and not weights:
         fail(f"--objective {objective}: needs --weights A,B (weights of ADOP² in deg² and PDOP² in m²); "
              "no silent default")

@@ -1,5 +1,8 @@
 """One click option per quantity (after rasterio's ``rio/options.py``).
 
+Why one module of ~610 lines: every option of every command lives here by design — one spelling,
+unit, range and default per quantity is only checkable when they are in one place.
+
 Every command that takes a quantity takes it through the object defined here, so a quantity has
 one spelling, one unit, one range and one default across the whole CLI. Old spellings stay for
 one release as *hidden* aliases that print a one-line deprecation note to stderr and feed the
@@ -31,8 +34,8 @@ __all__ = [
     "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
-    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options", "Number", "finite", "finite_types",
-    "PROBABILITY", "POSITIVE", "NONNEGATIVE", "FINITE",
+    "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options", "camera_model_option", "corner_sigma_option",
+    "Number", "finite", "finite_types", "PROBABILITY", "POSITIVE", "NONNEGATIVE", "FINITE",
     "system_config_option", "stations_option", "ignore_calibration_option", "solve_mode_option", "SOLVE_MODES", "scheduler_option", "workers_option",
 ]
 
@@ -480,11 +483,28 @@ def time_limit_option(f=None, *, help: str = "Wall-time budget, s."):
     return deco(f) if f is not None else deco
 
 
+def camera_model_option(f=None, *, flags=("--camera-model",), required: bool = False,
+                        help: str = "Camera model file: OpenCV YAML/XML (camera_matrix, distortion_coefficients, as "
+                                    "`layoutkit camera calibrate` or OpenCV's calibration sample writes it) or our JSON."):
+    """The camera model file (matrix + lens distortion; :mod:`layoutkit.io.camera`). ``flags``:
+    ``camera attitude`` spells it ``--camera`` (issue 28), ``live``/``replay`` ``--camera-model``
+    (their ``--camera`` is the attitude-CSV reference). The command receives ``camera_model``."""
+    deco = click.option(*flags, "camera_model", type=click.Path(exists=True, dir_okay=False), default=None,
+                        required=required, metavar="CAM.yml", help=help)
+    return deco(f) if f is not None else deco
+
+
+def corner_sigma_option(f=None, *, help: str = "Corner noise per coordinate, px [default: estimated from the residuals]."):
+    """``--corner-sigma-px``: i.i.d. corner noise (px). The command receives ``corner_sigma_px``."""
+    deco = click.option("--corner-sigma-px", "corner_sigma_px", type=POSITIVE, default=None, help=help)
+    return deco(f) if f is not None else deco
+
+
 def camera_options(f):
     """The live camera stream: ``--camera-device``, ``--focal-length-px``, ``--principal-point-px``,
-    ``--camera-method``, ``--aspect-ratio``, ``--corner-sigma-px`` (used by ``live`` and ``replay``).
-    The command receives ``camera_device, focal_length_px, principal_point_px, camera_method,
-    aspect_ratio, corner_sigma_px``."""
+    ``--camera-method``, ``--aspect-ratio``, ``--corner-sigma-px``, ``--camera-model`` (used by ``live``
+    and ``replay``). The command receives ``camera_device, focal_length_px, principal_point_px,
+    camera_method, aspect_ratio, corner_sigma_px, camera_model``."""
     opts = [
         click.option("--camera-device", "camera_device", default=None, metavar="INDEX|URL|FILE|DIR",
                      help="Camera stream beside the serial stream: an OpenCV device index, a stream URL, a video "
@@ -497,8 +517,10 @@ def camera_options(f):
                      show_default=True, help="Rectangle-face attitude solver."),
         click.option("--aspect-ratio", "aspect_ratio", type=click.FloatRange(min=0.0, min_open=True), default=None,
                      help="Face aspect ratio L/W [default: the capture folder's camera.json, else 1]."),
-        click.option("--corner-sigma-px", "corner_sigma_px", type=click.FloatRange(min=0.0, min_open=True),
-                     default=None, help="Corner noise per coordinate, px [default: estimated from the residuals]."),
+        corner_sigma_option(),
+        camera_model_option(help="Camera model file with the lens distortion (OpenCV YAML/XML or our JSON): corners "
+                                 "are undistorted before the solve and the capture folder's camera.json records it "
+                                 "[default: the capture folder's camera.json]."),
     ]
     for o in reversed(opts):
         f = o(f)

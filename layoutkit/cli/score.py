@@ -45,12 +45,17 @@ def score_cmd(ctx, layout, envelope_path, mesh_path, units, rho, half_angle_deg,
     def given(name, value):
         return value if explicit(ctx, name) else None
 
+    from .progress import progress_bar
+
     try:
-        res = score_layout(layout, envelope_path, mesh=mesh_path if mesh_path is not None else FROM_LAYOUT,
-                           units=given("units", units), rho=given("rho", rho),
-                           half_angle_deg=given("half_angle_deg", half_angle_deg),
-                           min_visible=given("min_visible", min_visible), coverage=given("coverage", coverage),
-                           poses=n_poses, seed=seed, compare=compare_path, report=report_dir, draws=draws)
+        with progress_bar("poses", quiet=as_json or not n_poses) as bar:
+            task = bar.add_task("poses", total=n_poses)
+            res = score_layout(layout, envelope_path, mesh=mesh_path if mesh_path is not None else FROM_LAYOUT,
+                               units=given("units", units), rho=given("rho", rho),
+                               half_angle_deg=given("half_angle_deg", half_angle_deg),
+                               min_visible=given("min_visible", min_visible), coverage=given("coverage", coverage),
+                               poses=n_poses, seed=seed, compare=compare_path, report=report_dir, draws=draws,
+                               progress=lambda n: bar.advance(task, n))
     except ValueError as exc:
         fail(str(exc))
     out = {k: v for k, v in res.items() if not k.startswith("_")}

@@ -223,6 +223,21 @@ def _read_npz(path):
     return t, ang, ids, station, R, T
 
 
+def _check_radians(path, ang, ids) -> None:
+    """Frame-table angles are radians in (0, pi) (LH1-equivalent sweep angles). A file whose finite
+    angles are mostly outside that range holds degrees (or another unit): refused, naming the first
+    such column and line. A few stray values stay per-frame ``invalid_angle`` statuses."""
+    fin = np.isfinite(ang)
+    if not fin.any():
+        return
+    out = fin & ((ang <= 0.0) | (ang >= np.pi))
+    if out.sum() > 0.5 * fin.sum():
+        f, k, a = (int(x[0]) for x in np.nonzero(out))
+        raise ValueError(f"{path}: line {f + 2}, column th_{'xy'[a]}_{ids[k]}: {float(ang[f, k, a]):.6g} is outside "
+                         f"(0, pi) rad, like {100 * out.sum() / fin.sum():.0f} % of the angles: frame tables hold "
+                         "radians; these look like degrees")
+
+
 def read_frame_table(path, layout_ids=None) -> Frames:
     """Read a frame table; ``ValueError`` naming file, column and line on malformed content.
 
@@ -246,6 +261,7 @@ def read_frame_table(path, layout_ids=None) -> Frames:
             raise ValueError(f"{path}: frame {bad} (line {bad + 2}): {name} is empty, NaN or infinite")
     if station is not None and len(station) != len(t):
         raise ValueError(f"{path}: 'station' has {len(station)} entries for {len(t)} frames")
+    _check_radians(path, ang, ids)
     if layout_ids is not None:
         layout_ids = tuple(str(i) for i in layout_ids)
         missing = [i for i in ids if i not in layout_ids]

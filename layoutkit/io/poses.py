@@ -481,7 +481,8 @@ class ReferenceTable:
 
     t : (N,) s, sorted (any clock origin); rotvec : (N, 3) rad or None (position only);
     translation : (N, 3) m or None (attitude only); dropped : rows left out for a non-finite time
-    or value; path : the file.
+    or value; dropped_lines : their line numbers in the file (CSV; empty for .npy rows, which
+    have none); path : the file.
     """
 
     t: np.ndarray
@@ -489,6 +490,7 @@ class ReferenceTable:
     translation: np.ndarray | None
     dropped: int = 0
     path: str = ""
+    dropped_lines: tuple = ()
 
 
 _REF_POS = (("x", "y", "z"), ("tx", "ty", "tz"))
@@ -576,13 +578,17 @@ def read_reference(path, units: str = "m") -> ReferenceTable:
     if keep.sum() < 2:
         raise ValueError(f"{path}: fewer than 2 rows with a finite time and values")
     return _reference(path, t[keep], None if rv is None else rv[keep], None if pos is None else pos[keep],
-                      int(np.sum(~keep)))
+                      int(np.sum(~keep)), () if lines is None else tuple(int(x) for x in lines[~keep]))
 
 
-def _reference(path, t, rv, pos, dropped) -> ReferenceTable:
+def _reference(path, t, rv, pos, dropped, dropped_lines=()) -> ReferenceTable:
+    from .._validate import check_range
+
     order = np.argsort(t, kind="stable")
+    if pos is not None and len(pos):  # a mocap volume is a room: km-sized positions are millimetres
+        check_range(float(np.max(np.linalg.norm(pos, axis=1))), f"{path}: positions")
     return ReferenceTable(t[order], None if rv is None else rv[order], None if pos is None else pos[order],
-                          dropped, str(path))
+                          dropped, str(path), dropped_lines)
 
 
 def _numeric_rows(path, header):

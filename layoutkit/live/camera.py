@@ -39,7 +39,11 @@ class CameraConfig:
     method : rectangle solver (``layoutkit.camera.rectangle.RECTANGLE_SOLVERS``). aspect_ratio : face
     L/W (needed by "ippe"; with it the corner noise is estimated from IPPE's residuals for any
     method). corner_sigma_px : corner noise per coordinate, px (None: estimate). fps : frame rate
-    of an image folder without an index.
+    of an image folder without an index. camera_model : a
+    :class:`layoutkit.io.camera.CameraModel` (matrix + lens distortion, ``--camera-model``); with
+    it the detector runs through the lens (corners and their covariance in the undistorted image)
+    and the focal length / principal point are the model's ideal camera
+    (:func:`layoutkit.camera.lens.ideal_camera`); :meth:`from_model` builds such a config.
     """
 
     focal_length_px: float
@@ -48,6 +52,15 @@ class CameraConfig:
     aspect_ratio: float | None = None
     corner_sigma_px: float | None = None
     fps: float | None = None
+    camera_model: object | None = None
+
+    @classmethod
+    def from_model(cls, model, **kw) -> "CameraConfig":
+        """A config whose focal length and principal point are ``model``'s ideal camera."""
+        from ..camera.lens import ideal_camera
+
+        f, cx, cy = ideal_camera(model.matrix)
+        return cls(f, (cx, cy), camera_model=model, **kw)
 
     def __post_init__(self):
         from ..camera.rectangle import RECTANGLE_SOLVERS
@@ -144,13 +157,25 @@ class CameraProcessor:
         if image is None:
             self.frames.append(t, status, nanR, nan4, np.nan, np.nan, np.nan, np.nan)
             return
-        det = detect_quadrilateral(image)
+        cfg = self.config
+        model = cfg.camera_model
+        if model is not None:
+            det = detect_quadrilateral(image, camera_matrix=model.matrix, distortion=model.distortion)
+        else:
+            det = detect_quadrilateral(image)
         if not det.success:
             self.frames.append(t, det.status, nanR, nan4, np.nan, np.nan, np.nan, np.nan)
             return
-        cfg = self.config
         pp = cfg.principal_point_px or ((image.shape[1] - 1) / 2, (image.shape[0] - 1) / 2)
-        q = corners_to_paper(det.corners_px, pp)
+        corners, cov = det.corners_px, det.corner_cov_px
+        if model is not None:  # solve in the ideal (undistorted, square-pixel) camera
+            if det.corners_ideal_px is not None:
+                corners, cov = det.corners_ideal_px, det.corner_cov_ideal_px
+            else:
+                from ..camera.lens import undistort_pixels
+
+                corners = undistort_pixels(det.corners_px, model.matrix, model.distortion)
+        q = corners_to_paper(corners, pp)
         R, st, sol = self.tracker.update(t, q)
         if R is None:
             self.frames.append(t, st, nanR, nan4, np.nan, np.nan, np.nan, np.nan)
@@ -169,8 +194,8 @@ class CameraProcessor:
             rep = float(e[0])
             alt = float(e[1] / e[0]) if e[0] > 0 and np.isfinite(e[1]) else np.nan
         pv, rp2 = np.nan, np.nan
-        if det.corner_cov_px is not None:
-            S = _paper_cov(det.corners_px, det.corner_cov_px, pp, c)
+        if cov is not None:
+            S = _paper_cov(corners, cov, pp, c)
             pv = float(np.trace(J @ S @ J.T))
             if cfg.aspect_ratio is not None and np.isfinite(rep):
                 rp2 = _reprojection_mc(c, f, cfg.aspect_ratio, S, rep, len(self.frames))
@@ -312,9 +337,20 @@ class CameraReader:
         self.processor = CameraProcessor(config)
         self.writer = None
         if record_dir is not None:
-            self.writer = CameraIndexWriter(record_dir, CameraMeta(
-                focal_length_px=config.focal_length_px, principal_point_px=config.principal_point_px,
-                source=str(source), clock="host-monotonic", aspect_ratio=config.aspect_ratio))
+            # a folder source made by the bench simulator names its serial stream: the recording keeps
+            # that tie, so a replay can tell whether the frames belong to the capture (io/runtie.py)
+            from ..io.runtie import read_file_tie
+
+            tie = read_file_tie(source) if Path(str(source)).is_dir() else None
+            extra = {"run": tie.to_dict()} if tie is not None else {}
+            if config.camera_model is not None:  # the capture records the lens it was solved with
+                meta = CameraMeta.from_model(config.camera_model, source=str(source), clock="host-monotonic",
+                                             aspect_ratio=config.aspect_ratio, extra=extra)
+            else:
+                meta = CameraMeta(focal_length_px=config.focal_length_px, principal_point_px=config.principal_point_px,
+                                  source=str(source), clock="host-monotonic", aspect_ratio=config.aspect_ratio,
+                                  extra=extra)
+            self.writer = CameraIndexWriter(record_dir, meta)
         self._q: queue.Queue = queue.Queue()
         self._stop = threading.Event()
         self.received = 0
@@ -469,7 +505,7 @@ class LiveCrossCheck:
             out["state"] = "estimating clock and alignment" if self._thread is not None else "collecting frames"
             return out
         if self._est[0] == "failed":
-            out["state"] = f"alignment failed: {self._est[1]}"
+            out["state"] = f"cross-check not usable: {self._est[1]}"
             return out
         off, drift, X, Y, vf = self._est
         new = range(self._done, n)

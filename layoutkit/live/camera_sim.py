@@ -39,6 +39,8 @@ class BenchCamera:
     R_cl (3, 3), t_cl (3,) m : camera (OpenCV) ← lighthouse/world. R_bf (3, 3), c_bf (3,) m : body ←
     face. length_m, width_m : the face's L and W. fps : frames per camera second.
     clock_offset_s, clock_drift : camera clock relation. noise_grey, blur_px, supersample : image model.
+    distortion : OpenCV distortion vector of the lens (empty: a pinhole); the frames are rendered
+    through it and ``camera.json`` records the camera model (matrix + distortion).
     """
 
     width: int
@@ -56,6 +58,7 @@ class BenchCamera:
     noise_grey: float = 4.0
     blur_px: float = 0.7
     supersample: int = 3
+    distortion: tuple = ()
 
     @property
     def aspect_ratio(self) -> float:
@@ -132,12 +135,15 @@ def bench_camera_for(rotation0, translation0, *, focal_length_px: float | None =
 
 
 def render_camera_stream(cam: BenchCamera, trajectory, duration_s: float, out_dir, *, seed: int = 0,
-                         t_start: float = 0.0, on_frame=None) -> dict:
+                         t_start: float = 0.0, on_frame=None, run: dict | None = None) -> dict:
     """Render ``duration_s`` device seconds of the bench camera into a camera capture folder.
 
     trajectory : callable ``t_device (K,) -> (R (K, 3, 3) body→world, t (K, 3) m)``. Frame ``k`` is
     exposed at camera time ``t_cam0 + k / fps`` with ``t_cam0 = (1 + drift) t_start + offset``.
-    Returns a summary dict (frames, focal length, truth).
+    run : the serial stream's tie (:class:`layoutkit.io.runtie.StreamTie` dict), recorded in
+    ``camera.json`` as ``extra.run``. ``on_frame(k, n)`` is called after each frame (an exception
+    it raises ends the rendering; the frames written so far stay). Returns a summary dict (frames,
+    focal length, truth).
     """
     from ..camera.synthetic import PinholeCamera, SyntheticCamera
     from ..io.camera import CameraIndexWriter, CameraMeta
@@ -148,10 +154,17 @@ def render_camera_stream(cam: BenchCamera, trajectory, duration_s: float, out_di
     t_cam = t_cam0 + np.arange(n) / cam.fps
     t_dev = (t_cam - cam.clock_offset_s) / (1.0 + cam.clock_drift)
     R, tr = trajectory(t_dev)
-    meta = CameraMeta(focal_length_px=cam.focal_length_px, principal_point_px=None, width=cam.width,
-                      height=cam.height, source="fake-fpga", clock="simulated", aspect_ratio=cam.aspect_ratio,
-                      truth=cam.truth())
-    pin = PinholeCamera(cam.width, cam.height, cam.focal_length_px)
+    pin = PinholeCamera(cam.width, cam.height, cam.focal_length_px, distortion=tuple(cam.distortion))
+    if pin.has_distortion:  # the capture records the lens (camera.json version 2)
+        from ..io.camera import CameraModel
+
+        model = CameraModel(pin.K, np.asarray(cam.distortion, float), (cam.width, cam.height), source="fake-fpga")
+        meta = CameraMeta.from_model(model, source="fake-fpga", clock="simulated", aspect_ratio=cam.aspect_ratio,
+                                     truth=cam.truth(), extra={"run": run} if run else {})
+    else:
+        meta = CameraMeta(focal_length_px=cam.focal_length_px, principal_point_px=None, width=cam.width,
+                          height=cam.height, source="fake-fpga", clock="simulated", aspect_ratio=cam.aspect_ratio,
+                          truth=cam.truth(), extra={"run": run} if run else {})
     mesh = face_mesh(cam)
     with CameraIndexWriter(out_dir, meta) as wr, \
             SyntheticCamera(mesh, pin, lighting="flat", supersample=cam.supersample,

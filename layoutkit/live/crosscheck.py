@@ -24,6 +24,17 @@ the body attitude ``R_lh(t_dev)``; ``R_ct = X R_lh Y`` with fixed ``X`` (camera 
    Frames whose face tilt is inside ``face_on_deg`` are flagged (the tilt sign — the mirror
    branch — is nearly unobservable there and the linearisation does not hold) and left out of the
    ratio.
+4. **Consistency test.** Under the model ``E[d_k^2] = p_k^2``; ``T = sum d_k^2 / p_k^2`` over the
+   ``n`` frames used, with each term taken as one degree of freedom (the conservative end: an
+   isotropic error would give three) and the residuals' autocorrelation inflation ``c`` (as for
+   the clock), is ``c^2 chi2(n / c^2)``. ``T / n`` above its 99.9 % point ``chi2_0.999(nu) / nu``,
+   ``nu = n / c^2``, means the streams disagree beyond what their predicted errors allow: status
+   ``inconsistent``, never ``ok`` (another run's frames, a wrong clock, a wrong camera model).
+
+Statuses (``summary["status"]``): ``ok`` only when the clock is ``ok`` or given and the test
+passes; else ``inconsistent``, ``clock_<status>`` (the clock estimate is ``ambiguous``, has
+``no_uncertainty`` — a flat chi² at its minimum: the data do not pin the clock — or found
+``no_overlap``), or ``too_few_samples``; ``message`` says what it means.
 
 Everything is a function of the two recorded streams, so ``replay`` of a session's capture
 reproduces the live figures exactly.
@@ -38,7 +49,7 @@ from ..geometry import attitude_error, matrix_to_rotvec, rotvec_to_matrix
 from ..rotations import fit_rotation_pair
 from ..units import RAD2DEG
 
-__all__ = ["ClockEstimate", "CrossCheck", "estimate_camera_clock", "camera_crosscheck", "lh_at"]
+__all__ = ["ClockEstimate", "CrossCheck", "estimate_camera_clock", "camera_crosscheck", "consistency_test", "lh_at"]
 
 
 @dataclass(frozen=True)
@@ -211,6 +222,11 @@ def estimate_camera_clock(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, *, m
         return ClockEstimate(off, 0.0, abs(ambiguous - off), s_d, False, "ambiguous",
                              f"clock offset ambiguous: {off:.3f} s and {ambiguous:.3f} s fit the data "
                              "equally well (too little motion); pass the offset if it is known")
+    if not np.isfinite(s_off):
+        return ClockEstimate(off, 0.0, np.nan, s_d, False, "no_uncertainty",
+                             f"offset {off:.6f} s with no uncertainty: the attitude chi² has no curvature at its "
+                             "minimum, so the two streams do not pin the clock (they do not show the same motion: "
+                             "another run's frames, or too little motion); do not use it")
     if np.isfinite(s_d) and s_d <= max_drift_sigma and abs(d) > 3 * s_d:
         return ClockEstimate(off0, d, s_off0, s_d, True, "ok",
                              f"offset {off0:.6f} s ± {s_off0 * 1e3:.3g} ms, drift {d * 1e6:.3g} ± {s_d * 1e6:.3g} ppm "
@@ -230,7 +246,11 @@ def _correlation_inflation(t_lh, R_lh, adop, t_cam, R_cam, pc2, sigma_theta, off
     R, a, w, ok = _matched(t_lh, R_lh, adop, t_cam, R_cam, off, drift)
     e = matrix_to_rotvec(np.swapaxes(R_cam[ok], -1, -2) @ fit.X @ R[ok] @ fit.Y)
     p = np.sqrt(pc2[ok] + w[ok] * (a[ok] * sigma_theta / RAD2DEG) ** 2)[:, None]
-    z = e / p
+    return _inflation(e / p)
+
+
+def _inflation(z) -> float:
+    """``sqrt(1 + 2 sum_k rho_k)`` of whitened residual vectors ``z (n, 3)`` in time order."""
     z = z - z.mean(0)
     var = np.sum(z * z)
     if not var > 0 or len(z) < 20:
@@ -271,6 +291,34 @@ def _cov_from_hessian(H):
         return 2.0 * np.linalg.inv(H)  # chi2 = -2 log L: cov = (H / 2)^-1
     except np.linalg.LinAlgError:
         return None
+
+
+def consistency_test(d, p, e=None, level: float = 0.999) -> dict:
+    """Is the disagreement within its prediction? (module docstring, step 4).
+
+    d (n,) rad : disagreement per frame; p (n,) rad : its predicted RMS (``E[d^2] = p^2``);
+    e (n, 3) rad : the residual rotation vectors in time order, for the autocorrelation
+    inflation (None: independent frames). Returns ``chi2_per_frame`` (``mean (d/p)^2``),
+    ``bound_999`` (its ``level`` point), ``frames``, ``effective_frames``, ``inflation``,
+    ``p_value`` and ``consistent``.
+    """
+    from scipy.stats import chi2
+
+    d = np.asarray(d, float)
+    p = np.asarray(p, float)
+    good = np.isfinite(d) & np.isfinite(p) & (p > 0)
+    n = int(good.sum())
+    r2 = (d[good] / p[good]) ** 2
+    c = 1.0
+    if e is not None and n >= 20:
+        c = max(1.0, _inflation(np.asarray(e, float)[good] / p[good, None]))
+    nu = max(n / c ** 2, 1.0)
+    T = float(np.sum(r2))
+    bound = float(chi2.ppf(level, nu) / nu)
+    mean = T / n if n else np.nan
+    pv = float(chi2.sf(T / c ** 2, nu)) if n else np.nan
+    return {"chi2_per_frame": mean, "bound_999": bound, "frames": n, "effective_frames": nu, "inflation": c,
+            "p_value": pv, "consistent": bool(n and mean <= bound), "level": level}
 
 
 @dataclass(frozen=True)
@@ -366,6 +414,8 @@ def camera_crosscheck(lh_t, lh_R, lh_adop, sigma_theta, cam: dict, *, clock: tup
     prms = float(np.sqrt(np.mean(pred[sel] ** 2))) if sel.any() else np.nan
     in_band = m & ~off_band
     mirror = in_band & (d > 5 * pred)
+    test = consistency_test(d[sel], pred[sel], matrix_to_rotvec(
+        np.swapaxes(R_cam[sel], -1, -2) @ X @ R_l[sel] @ Y)) if sel.sum() >= 10 else None
     out.update(
         status="ok" if sel.sum() >= 10 else "too_few_samples",
         matched=int(m.sum()), used=int(sel.sum()), face_on_frames=int(in_band.sum()),
@@ -381,6 +431,23 @@ def camera_crosscheck(lh_t, lh_R, lh_adop, sigma_theta, cam: dict, *, clock: tup
     out["message"] = (f"{out['used']} frames outside the ±{face_on_deg:g}° face-on band: disagreement "
                       f"{out['disagreement_rms_deg']:.4g}° RMS vs predicted {out['predicted_disagreement_rms_deg']:.4g}°"
                       if out["status"] == "ok" else "fewer than 10 matched frames outside the face-on band")
+    if test is not None:
+        out["consistency"] = test
+        if not test["consistent"]:
+            out["status"] = "inconsistent"
+            out["message"] = (
+                f"{out['message']} ({out['ratio'] or float('nan'):.3g}x): mean (d/p)² {test['chi2_per_frame']:.4g} "
+                f"is above its 99.9 % chi-square bound {test['bound_999']:.3g} (~{test['effective_frames']:.0f} "
+                "independent frames), so the camera and the lighthouse do not show the same motion as modelled "
+                "(another run's camera frames? a wrong clock offset, camera model or face size?); not a measure "
+                "of accuracy")
+    if ce.status not in ("ok", "given") and out["status"] in ("ok", "inconsistent"):
+        if out["status"] == "ok":
+            out["status"] = f"clock_{ce.status}"
+            out["message"] = (f"{out['message']}, measured on a camera clock that is {ce.status} (see the clock's "
+                              "message): not a measure of accuracy")
+        else:
+            out["message"] += f"; the camera clock is {ce.status} too"
     if truth:
         tt = {}
         if "clock_offset_s" in truth:

@@ -230,7 +230,9 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             pd = np.where(ok, d.pdop, np.inf)
         else:
             ad = pd = np.full(idx.size, np.inf)
-        st = np.where(~ok, np.where(np.asarray(sol.status) == _status.TOO_FEW_LIT, _status.TOO_FEW_LIT, _status.SOLVER_FAILED),
+        s0 = np.asarray(sol.status)  # too few / low redundancy keep their names (layoutkit.status)
+        st = np.where(~ok, np.where(np.isin(s0, (_status.TOO_FEW_LIT, _status.LOW_REDUNDANCY)), s0,
+                                    _status.SOLVER_FAILED),
                       np.where(rr > limit, _status.HIGH_RESIDUAL, _status.OK))
         st, cand = continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
         state["jump"] = cand

@@ -1,6 +1,6 @@
 """Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
 
-Why one module of ~860 lines: the stages below (pairing, batching, the chunk solve with its
+Why one module of ~610 lines: the stages below (pairing, batching, the chunk solve with its
 continuity gate and motion compensation) pass per-station state to each other and to the one
 config class :class:`LiveConfig`; they are read as one data flow.
 
@@ -406,7 +406,8 @@ def _solve_frames(solve_pnp, P, a, lit, kw, config: LiveConfig, dop=None):
         ad, pd = np.array(dop[0]), np.array(dop[1])
     else:
         ad, pd = _dop(P, Rs, ts, ok, lit, config, cal)
-    failed = np.where(np.asarray(sol.status) == _status.AMBIGUOUS, _status.AMBIGUOUS, _status.SOLVER_FAILED)
+    st0 = np.asarray(sol.status)  # ambiguous and low-redundancy poses keep their names (layoutkit.status)
+    failed = np.where(np.isin(st0, (_status.AMBIGUOUS, _status.LOW_REDUNDANCY)), st0, _status.SOLVER_FAILED)
     stat = np.where(~ok, failed,
                     np.where(rr > config.max_residual_sigma * config.sigma_theta, _status.HIGH_RESIDUAL, _status.OK))
     return Rs, ts, ok, rr, ad, pd, stat

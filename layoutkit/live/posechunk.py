@@ -16,7 +16,8 @@ __all__ = ["STATUS_NAMES", "PoseChunk", "empty_pose_arrays"]
 #: The statuses the live pipeline gives, by name: the codes and names of the one table,
 #: :mod:`layoutkit.status`.
 STATUS_NAMES = {c: _status.NAMES[c] for c in (_status.OK, _status.TOO_FEW_LIT, _status.SOLVER_FAILED,
-                                               _status.HIGH_RESIDUAL, _status.JUMP, _status.AMBIGUOUS)}
+                                               _status.HIGH_RESIDUAL, _status.JUMP, _status.AMBIGUOUS,
+                                               _status.LOW_REDUNDANCY)}
 
 
 @dataclass(frozen=True)

@@ -322,17 +322,20 @@ def encode_frames(sw: SimulatedSweeps, protocol: str = "layoutkit") -> list:
     return protocol_entry(protocol).encode(sw)
 
 
-def write_truth(sw: SimulatedSweeps, path) -> None:
+def write_truth(sw: SimulatedSweeps, path, tie=None) -> None:
     """TRUTH.csv: a pose table (:mod:`layoutkit.io.poses`), one row per sweep (emitted or not) at
-    its sync time, ``station`` = the sweeping station, status 0, residual_rms NaN."""
-    from ..io.poses import PoseTable, write_poses
+    its sync time, ``station`` = the sweeping station, status 0, residual_rms NaN. tie : the
+    emitted stream's :class:`layoutkit.io.runtie.StreamTie`, recorded on the file's last line
+    (``# layoutkit-run {...}``) so that ``replay --truth`` can tell which capture it belongs to."""
+    from ..io.poses import PoseTable
+    from ..io.runtie import write_tied_poses
 
-    write_poses(path, PoseTable(sw.t, sw.rotvec, sw.translation, station=sw.station))
+    write_tied_poses(path, PoseTable(sw.t, sw.rotvec, sw.translation, station=sw.station), tie)
 
 
 def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, on_ready=None,
                   drain_timeout: float = 5.0, speed: float = 1.0, sidecar: dict | None = None,
-                  wait_reader: float | None = None, overwrite: bool = False) -> dict:
+                  wait_reader: float | None = None, overwrite: bool = False, stop=None) -> dict:
     """Emit ``chunks`` ``[(t_emit, bytes), ...]`` into a capture file or a pseudo-terminal.
 
     out : capture path → written with :class:`CaptureWriter` (index times = t_emit, sidecar
@@ -342,7 +345,10 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
     input, so nothing is sent before), then writes each chunk at its time (``realtime`` default
     True; late chunks are sent at once, so nothing is dropped when the reader is slow), waits
     until the reader drained the pty, and closes it (the reader then sees the device vanish).
-    Returns a summary dict (bytes, chunks, wall time, path).
+    stop : a :class:`layoutkit.live.stopping.StopRequest` checked while waiting and between chunks:
+    when set, emitting ends there (the capture closed, the pty link removed and the pty closed).
+    Returns a summary dict (bytes, chunks, ``chunks_sent``, wall time, path, ``stopped_by``: the
+    stop signal's name or None).
     """
     import time
 
@@ -351,15 +357,27 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
     t_wall0 = time.monotonic()
     t0 = chunks[0][0] if chunks else 0.0
     total = 0
+    sent = 0
+
+    def stopped() -> bool:
+        return stop is not None and stop.requested
+
+    def summary(path) -> dict:
+        return {"path": str(path), "bytes": total, "chunks": len(chunks), "chunks_sent": sent,
+                "wall_s": time.monotonic() - t_wall0, "stopped_by": stop.name if stopped() else None}
+
     if out is not None:
         realtime = bool(realtime)
         with CaptureWriter(out, sidecar or {}, overwrite=overwrite) as w:
             for t_emit, data in chunks:
                 if realtime:
-                    _sleep_until(t_wall0 + (t_emit - t0) / speed)
+                    _sleep_until(t_wall0 + (t_emit - t0) / speed, stop)
+                if stopped():
+                    break
                 w.write(data, t_emit)
                 total += len(data)
-        return {"path": str(out), "bytes": total, "chunks": len(chunks), "wall_s": time.monotonic() - t_wall0}
+                sent += 1
+        return summary(out)
 
     import os
     import select
@@ -393,8 +411,10 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
     try:
         t_wait = time.monotonic()
         while not reader_present(50):  # a reader opening the port flushes its input: wait for it
+            if stopped():
+                return summary(path)
             if wait_reader is not None and time.monotonic() - t_wait > wait_reader:
-                raise TimeoutError(f"no reader opened {path} within {wait_reader} s")
+                raise TimeoutError(f"no reader opened {path} within {wait_reader:g} s (--wait-reader)")
         t_cfg = time.monotonic()  # wait for the reader to configure the port (at most 2 s: `cat` never does)
         while termios.tcgetattr(master)[6][termios.VTIME] == _VTIME_MARK and time.monotonic() - t_cfg < 2.0:
             time.sleep(0.005)
@@ -403,13 +423,17 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
         t_wall0 = time.monotonic()
         for t_emit, data in chunks:
             if realtime:
-                _sleep_until(t_wall0 + (t_emit - t0) / speed)
+                _sleep_until(t_wall0 + (t_emit - t0) / speed, stop)
+            if stopped():
+                break
             view = memoryview(data)
             away_since = None
             while view:
                 try:
                     k = os.write(master, view)
                 except BlockingIOError:  # reader slow or away: the pty buffer is full, wait
+                    if stopped():  # (a frame already begun is otherwise always finished)
+                        break
                     if reader_present():
                         away_since = None
                     elif away_since is None:
@@ -420,8 +444,12 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
                     time.sleep(0.005)
                     continue
                 view = view[k:]
-            total += len(data)
-        _drain(path, drain_timeout)
+                total += k
+            if view:
+                break  # stopped with the reader blocked
+            sent += 1
+        # what was written reaches the reader before the port goes away (a stop: at most 2 s)
+        _drain(path, min(drain_timeout, 2.0) if stopped() else drain_timeout)
     finally:
         # Unplugged: the device node goes away first (a reader reconnecting through the link must
         # not reopen this pty's number, which the system may already have given to another pty).
@@ -432,7 +460,7 @@ def run_fake_fpga(chunks, *, out=None, realtime: bool | None = None, link=None, 
             except OSError:
                 pass
         os.close(master)
-    return {"path": path, "bytes": total, "chunks": len(chunks), "wall_s": time.monotonic() - t_wall0}
+    return summary(path)
 
 
 _VTIME_MARK = 77  # deciseconds; no reader sets this value
@@ -443,12 +471,15 @@ class ReaderGone(RuntimeError):
     """The pty's reader went away and the simulator cannot deliver more bytes."""
 
 
-def _sleep_until(t_wall: float) -> None:
+def _sleep_until(t_wall: float, stop=None) -> None:
+    """Sleep until monotonic time ``t_wall`` (in steps of <= 0.1 s while a ``stop`` may come)."""
     import time
 
-    dt = t_wall - time.monotonic()
-    if dt > 0:
-        time.sleep(dt)
+    while True:
+        dt = t_wall - time.monotonic()
+        if dt <= 0 or (stop is not None and stop.requested):
+            return
+        time.sleep(dt if stop is None else min(dt, 0.1))
 
 
 def _drain(path: str, timeout: float) -> None:

@@ -210,7 +210,7 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
     # evaluation after the deadline takes well under a second
     deadline = (math.inf if time_limit is None
                 else t0 + float(time_limit) - min(max(_FINISH_RESERVE_S, 0.08 * float(time_limit)), 2.0))
-    ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
+    ctx = Context(rng=rng, deadline=deadline, progress=progress, cover_start=cov.selection, **(ctx_options or {}))
     if not cov.decided:
         ctx.notes.append(cov.message)
     t1 = time.perf_counter()
@@ -233,8 +233,9 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
             return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout; {cov.message}", cov)
         kmin = cov.min_k if cov.min_k is not None else minimum_k(problem.lit, problem.m, n_cover, fixed, conflict)[0]
         cov = dataclasses.replace(cov, min_k=kmin)
+        hint = "give it more time (--time-limit-s)" if method == "pipeline" else "try method 'pipeline'"
         return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout although one "
-                    f"exists (smallest k = {kmin}); try method 'pipeline'", cov)
+                    f"exists (smallest k = {kmin}); {hint}", cov)
     res = _finish(problem, obj, out, method, t0, t1, t2, ctx.notes, P)
     if ctx.interrupted:
         res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": ctx.interrupted},

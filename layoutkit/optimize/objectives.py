@@ -77,6 +77,13 @@ class _warnings_off:
         return self._c.__exit__(*a)
 
 
+def objective_unit(name: str) -> str:
+    """The unit of an objective's value: ``deg/rad`` (ADOP), ``m/rad`` (PDOP) or the weighted
+    combination's ``sqrt(a deg² + b m²)/rad``; ``""`` for a name that does not parse."""
+    metric = str(name).strip().lower().rpartition("-")[2]
+    return {"adop": "deg/rad", "pdop": "m/rad", "weighted": "√(a·deg² + b·m²)/rad"}.get(metric, "")
+
+
 def parse_objective(name: str, weights=None) -> Objective:
     """Parse ``"<aggregate>-<metric>"``: aggregate ``worst`` | ``mean`` | ``pNN`` (percentile NN,
     e.g. ``p95``), metric ``adop`` | ``pdop`` | ``weighted``. ``weights = (a, b)`` (default (1, 1))

@@ -135,10 +135,13 @@ class _Completed:
                 self.tick()
             self.ex._run(h)
             return h, h.ok, h.value
-        if self.tick is not None:  # poll, so a progress display sees tasks start between completions
-            while not self._ac.is_empty() and not self._ac.has_ready():
+        # poll, so a progress display sees tasks start between completions, and Ctrl-C lands in
+        # time.sleep here, not inside distributed's blocking sync() (whose cancel callback then logs
+        # a NameError traceback through tornado while the sweep stops)
+        while not self._ac.is_empty() and not self._ac.has_ready():
+            if self.tick is not None:
                 self.tick()
-                time.sleep(0.25)
+            time.sleep(0.1 if self.tick is None else 0.25)
         f = next(self._ac)
         if f.status == "finished":
             return f, True, f.result()

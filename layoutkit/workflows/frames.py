@@ -427,7 +427,8 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     Returns a summary dict plus per-frame arrays ``t, station, status, rotvec, translation,
     residual_rms, success``.
     """
-    from ..status import AMBIGUOUS as STATUS_AMBIGUOUS, DESCRIPTIONS, NO_START as STATUS_NO_START, OK as STATUS_OK
+    from ..status import AMBIGUOUS as STATUS_AMBIGUOUS, DESCRIPTIONS, LOW_REDUNDANCY as STATUS_LOW_REDUNDANCY
+    from ..status import NO_START as STATUS_NO_START, OK as STATUS_OK
 
     seen = ~np.isnan(fr.angles)
     st = fr.stations()
@@ -451,7 +452,8 @@ def solve_frames(fr: Frames, layout: Layout, *, sigma: float | None = None, rho:
     names = {int(k): DESCRIPTIONS.get(int(k), str(k)) for k in np.unique(status)}
     counts = {names[int(k)]: int(v) for k, v in zip(*np.unique(status, return_counts=True))}
     rv = np.full((len(fr.t), 3), np.nan)
-    has_pose = ok | amb  # an ambiguous frame keeps its best candidate (its status says so)
+    # an ambiguous frame keeps its best candidate, a low-redundancy one its pose (their statuses say so)
+    has_pose = ok | amb | (status == STATUS_LOW_REDUNDANCY)
     if has_pose.any():
         rv[has_pose] = matrix_to_rotvec(R[has_pose])
     # what was wrong with the input, by reason

@@ -538,4 +538,5 @@ def import_reference(path, out, *, units: str = "m") -> dict:
     pos = np.full((n, 3), np.nan) if ref.translation is None else ref.translation
     write_poses(out, PoseTable(ref.t, rv, pos, station=np.full(n, JOINT), status=np.zeros(n, int)))
     return {"file": str(path), "out": str(out), "rows": n, "dropped_rows": ref.dropped,
+            "dropped_lines": list(ref.dropped_lines),
             "position_only": ref.rotvec is None, "attitude_only": ref.translation is None, "t_first": float(ref.t[0]), "t_last": float(ref.t[-1])}

@@ -164,6 +164,7 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
         summary[key] = res
     if camera_frames is not None:
         summary.update(_camera_summary(session, camera_frames, report_dir))
+    _mark_other_runs(summary)
     if session.truth_err is not None:
         extra_series["truth"] = session.truth_err.series.array()
     if report_dir is not None:
@@ -172,6 +173,20 @@ def _finish_run(session: LiveSession, summary: dict, *, reference=None, referenc
         summary["report"] = write_report(report_dir, summary, error_series=extra_series,
                                          dop_series=session.dop_series.array())
     return summary
+
+
+def _mark_other_runs(summary: dict) -> None:
+    """A comparison with a file of another run (``summary["evidence"]``, a live run) says so in its
+    own status: ``other_run``, never ``ok``."""
+    for ev in summary.get("evidence") or ():
+        if ev.get("status") != "other_run":
+            continue
+        key = {"--truth": "truth", "--reference": "reference", "--camera": "camera", "--camera-device": "camera",
+               "the capture's camera folder": "camera"}.get(ev["option"])
+        if isinstance(summary.get(key), dict):
+            summary[key] = {**summary[key], "status": "other_run",
+                            "message": ev["message"] + (f"; {summary[key]['message']}" if summary[key].get("message")
+                                                        else "")}
 
 
 def _camera_summary(session: LiveSession, camera_frames, report_dir) -> dict:
@@ -224,8 +239,11 @@ def resolve_solve_mode(solve: str | None, stations, options: LiveConfig | None) 
     return replace(options, solve=solve)
 
 
-def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_config, solve, cfusdlog_source):
-    """Every input of a replay read once: ``(RunSetup, the cfusdlog source dict or None)``."""
+def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_config, solve, cfusdlog_source,
+                  tied=None):
+    """Every input of a replay read once: ``(RunSetup, the cfusdlog source dict or None, evidence)``.
+    tied : ``{option: path}`` of the files given beside the capture, checked against it
+    (:func:`layoutkit.io.runtie.check_ties`: a file of another run is a ValueError)."""
     from dataclasses import replace
 
     from ..io.sidecar import read_sidecar
@@ -234,6 +252,10 @@ def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_
     cfg = None if system_config is None else read_system_config(system_config)
     given = stations_from_files(stations, cfg) if (stations is not None or cfg is not None) else None
     sidecar = read_sidecar(capture)
+    from ..io.runtie import check_ties
+
+    # before any work: another run's file is refused (the camera folder found beside it: flagged)
+    evidence = check_ties(capture, sidecar, tied or {}, soft=("the capture's camera folder",))
     usd = None
     if not sidecar.protocol and _is_cfusdlog(capture):
         from .importers import cfusdlog_replay_source
@@ -242,7 +264,7 @@ def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_
         sidecar = usd["sidecar"]
     setup = RunSetup.from_sidecar(sidecar, _layout_from(layout, sidecar), protocol=protocol, config=options,
                                   stations=given, system_config=cfg)
-    return replace(setup, config=resolve_solve_mode(solve, setup.stations, setup.config)), usd
+    return replace(setup, config=resolve_solve_mode(solve, setup.stations, setup.config)), usd, evidence
 
 
 def _feed_capture(s: LiveSession, capture: Path, usd, on_progress) -> None:
@@ -299,8 +321,13 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     capture = Path(capture)
     if not capture.is_file():
         raise ValueError(f"{capture}: no such capture file")
-    setup, usd = _replay_setup(capture, layout, protocol=protocol, options=options, stations=stations,
-                               system_config=system_config, solve=solve, cfusdlog_source=cfusdlog_source)
+    beside = camera_folder_for(capture) if camera_device is None and camera_config is not None else None
+    setup, usd, evidence = _replay_setup(
+        capture, layout, protocol=protocol, options=options, stations=stations, system_config=system_config,
+        solve=solve, cfusdlog_source=cfusdlog_source,
+        tied={"--truth": truth, "--reference": reference, "--camera": camera,
+              "--camera-device": camera_device if camera_device is None or Path(camera_device).is_dir() else None,
+              "the capture's camera folder": beside if beside is not None and beside.is_dir() else None})
     firmware = (usd or {}).get("firmware") if setup.config.solve == "joint" else None
     poses = None if report_dir is None else Path(report_dir) / "poses.csv"
     s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
@@ -309,6 +336,7 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     summary = s.finish()
     summary["capture"] = str(capture)
     summary["protocol"] = setup.protocol
+    summary["evidence"] = evidence
     if usd is not None:
         summary["cfusdlog"] = usd["info"]
         if firmware:  # the firmware's own estimates beside ours (same clock, same world frame)
@@ -352,7 +380,8 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
              reference_offset: float | None = None, camera=None, json_out=None, report_dir=None,
              baudrate: int | None = None, stations=None, on_update=None, update_interval: float = 0.25,
              idle_timeout: float | None = None, overwrite: bool = False, on_status=None, status_interval: float = 10.0,
-             camera_device=None, camera_config=None, system_config=None, solve: str | None = None) -> dict:
+             camera_device=None, camera_config=None, system_config=None, solve: str | None = None,
+             port_timeout: float | None = None) -> dict:
     """Read a serial port (reconnecting), record the raw bytes before decoding, solve live.
 
     port : pyserial URL or device/pty path. record : capture path (raw bytes + index + sidecar);
@@ -361,7 +390,10 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     SIGHUP). idle_timeout : stop when no byte arrived for this many seconds after the first byte
     (None: never). on_update(snapshot) is called every ``update_interval`` s (dashboard).
     on_status(text) (no dashboard) is told once, then every ``status_interval`` s, while the port
-    is not connected and why (never a silent wait). camera_device + camera_config : a camera stream
+    is not connected and why (never a silent wait). port_timeout : give up when the port has not
+    opened once within this many seconds (None: wait; after the first connection a replug is
+    waited for as long as the run lasts): ``summary["port_timeout_s"]`` is then set, and a capture
+    that received nothing is removed (an empty file would block the retry). camera_device + camera_config : a camera stream
     beside the serial one (:class:`layoutkit.live.camera.CameraReader`: own threads, host-clock
     stamps, frames kept raw in ``RECORD.camera/`` before they are solved); a camera that stops,
     stalls or sends corrupt frames never stops the serial side; the summary's ``camera`` object
@@ -388,7 +420,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
     # the capture first: an existing one is refused before the port is touched
     writer = CaptureWriter(record, setup.sidecar(port=settings, source="live"), overwrite=overwrite) \
         if record is not None else None
-    with stop_on_signals() as stop:
+    with stop_on_signals(interrupt=True) as stop:  # Ctrl-C is a flag too: no frame lost mid-solve
         try:
             src = ReconnectingSerial(port, baudrate=baudrate, timeout=0.05)
             s = open_session(setup, truth=truth, json_out=json_out,
@@ -400,7 +432,7 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
                 writer.close()
             raise
         loop = _LiveLoop(src, s, writer, stop, port, cam_reader, on_update, update_interval, on_status,
-                         status_interval, idle_timeout)
+                         status_interval, idle_timeout, port_timeout)
         try:
             loop.run(duration)
         finally:
@@ -410,6 +442,9 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
             if writer is not None:
                 writer.close(decode=s.decoder.stats.as_dict(),
                              **({"stopped_by": stop.name} if stop.requested else {}))
+                if not src.connects and not writer.bytes_written and cam_reader is None:
+                    _remove_capture(record)  # nothing received: an empty capture would only block the retry
+                    record = None
         summary = s.finish()
         cam_frames = None
         if cam_reader is not None:
@@ -419,12 +454,27 @@ def run_live(port: str, layout, *, protocol: str = "layoutkit", options: LiveCon
                        capture=None if record is None else str(record),
                        stopped_by=stop.name or ("SIGINT" if loop.interrupted else None),
                        capture_error=loop.capture_error,
-                       capture_bytes=None if writer is None else writer.bytes_written)
+                       capture_bytes=None if writer is None else writer.bytes_written,
+                       port_timeout_s=port_timeout if loop.port_gave_up else None)
+        from ..io.runtie import check_ties_head  # files of another run: said, never silently compared
+
+        summary["evidence"] = check_ties_head(loop.head, port, {
+            "--truth": truth, "--reference": reference, "--camera": camera,
+            "--camera-device": camera_device if camera_device is not None and Path(str(camera_device)).is_dir() else None})
         out = _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
                           report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam_frames)
         if on_update is not None:
             on_update(s.snapshot(src.state))
         return out
+
+
+def _remove_capture(record) -> None:
+    """Remove the capture ``record`` (+ .idx/.json) of a run that received no byte."""
+    from ..io.sidecar import sidecar_path
+    from ..live.capture import index_path
+
+    for p in (Path(record), index_path(record), sidecar_path(record)):
+        p.unlink(missing_ok=True)
 
 
 def _start_camera(camera_device, camera_config, record, src):
@@ -447,7 +497,7 @@ class _LiveLoop:
     (``interrupted``) or a failed capture write (``capture_error``)."""
 
     def __init__(self, src, session, writer, stop, port, cam_reader, on_update, update_interval, on_status,
-                 status_interval, idle_timeout):
+                 status_interval, idle_timeout, port_timeout=None):
         self.src, self.s, self.writer, self.stop, self.port = src, session, writer, stop, port
         self.cam_reader = cam_reader
         self.cam_live = None
@@ -458,6 +508,11 @@ class _LiveLoop:
         self.on_update, self.update_interval = on_update, update_interval
         self.on_status, self.status_interval = on_status, status_interval
         self.idle_timeout = idle_timeout
+        self.port_timeout = port_timeout
+        self.port_gave_up = False
+        from ..io.runtie import HeadHash
+
+        self.head = HeadHash()  # the stream's first bytes: which run a truth or camera file belongs to
         self.interrupted = False
         self.capture_error = None
 
@@ -477,10 +532,14 @@ class _LiveLoop:
                         except OSError as exc:  # disk full: keep the prefix, stop, still report
                             self.capture_error = f"{exc.filename}: {exc.strerror or exc}"
                             break
+                    self.head.update(data)
                     s.feed_bytes(data)
                     s.flush_pending()  # one chunk per read: low latency, large chunks after a backlog
                     last_byte = now
                 elif self.idle_timeout is not None and last_byte is not None and now - last_byte > self.idle_timeout:
+                    break
+                elif self.port_timeout is not None and not src.connects and now - t_start > self.port_timeout:
+                    self.port_gave_up = True  # never opened: a mistyped or absent device
                     break
                 if self.on_status is not None and not src.connected and (
                         last_status is None or now - last_status >= self.status_interval):
@@ -502,6 +561,8 @@ class _LiveLoop:
         st = self.src.state
         what = "refusing the device now at the path" if st.get("refusals") and st.get("connects") else (
             "disconnected" if st.get("connects") else "not connected yet")
+        if not st.get("connects") and self.port_timeout is not None:
+            remaining = self.port_timeout - elapsed if remaining is None else min(remaining, self.port_timeout - elapsed)
         return (f"waiting for {self.port}: {what} ({st.get('last_error') or 'no such device'}); "
                 f"{elapsed:.0f} s so far, retrying (every <= {self.src.backoff_max:g} s); "
-                + ("Ctrl-C or SIGTERM ends the run" if remaining is None else f"the run ends in {remaining:.0f} s"))
+                + ("Ctrl-C or SIGTERM ends the run" if remaining is None else f"the run ends in {max(remaining, 0):.0f} s"))

@@ -203,7 +203,10 @@ def write_report(report_dir, problem, res, summary, render=True, echo=print):
     d.mkdir(parents=True, exist_ok=True)
     files = []
     if res.success:
-        t = problem.translations
+        dense = res.info.get("dense") or {}
+        # a dense run's per-pose arrays are over its working set (the poses the layout was tuned on)
+        t, which = ((dense["working_translations"], "working-set") if len(dense.get("working_translations", ()))
+                    == len(res.adop) and "working_translations" in dense else (problem.translations, "envelope"))
         ref = problem.stations[problem.envelope.reference_station if problem.envelope is not None else 0]
         rng_m = np.linalg.norm(t - ref.translation, axis=1)
         fig, ax = plt.subplots(1, 2, figsize=(12, 4.6))
@@ -227,7 +230,7 @@ def write_report(report_dir, problem, res, summary, render=True, echo=print):
         fig.suptitle(f"{res.objective} over the envelope: value {res.value:.4g}, bound {res.bound:.4g}, "
                      f"gap {100 * res.gap:.1f} %")
         p = d / "dop_over_envelope.png"
-        save_figure(fig, p, caption=f"{len(rng_m)} envelope poses of the optimised {len(res.selected)}-sensor layout; "
+        save_figure(fig, p, caption=f"{len(rng_m)} {which} poses of the optimised {len(res.selected)}-sensor layout; "
                     "colour: lit sensors; red circle: the worst pose (largest DOP); log scale.")
         files.append(p.name)
         fig, ax = plt.subplots(1, 2, figsize=(11, 4))

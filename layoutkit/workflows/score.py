@@ -22,6 +22,12 @@ from ..units import RHO_PAPER
 
 __all__ = ["FROM_LAYOUT", "score_arrays", "score_layout", "write_score_report", "comparison_table"]
 
+#: Above this many poses ``score_layout`` streams (chunks of :data:`CHUNK_POSES`).
+STREAM_POSES = 200_000
+CHUNK_POSES = 50_000
+#: Percentile sketch of a streamed score: relative resolution 10^(1/200) - 1 = 1.2 %.
+_SKETCH = dict(lo=1e-6, hi=1e12, bins_per_decade=200)
+
 #: ``score_layout(mesh=FROM_LAYOUT)``: the mesh named in the layout's provenance (none if it names none)
 FROM_LAYOUT = "from-layout"
 
@@ -103,7 +109,7 @@ def _resolve(lay, where, envelope, mesh, units, settings):
 
 
 def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half_angle_deg=None, min_visible=None,
-                 coverage=None, poses=None, seed=None, compare=None, report=None, draws=0):
+                 coverage=None, poses=None, seed=None, compare=None, report=None, draws=0, progress=None):
     """Score ``layout`` (path or Layout) over ``envelope`` (path or Envelope).
 
     A layout written by ``layoutkit optimize`` records its envelope, mesh and settings: ``envelope=None``
@@ -118,12 +124,16 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
     layout scored over the same poses (``result["compare"]``, and ``result["comparison"]``: one row per
     quantity with both values and their ratio compare / layout). report : folder for plots + JSON. Returns a
     JSON-able dict with at least worst_adop, median_adop, p95_adop (deg/rad), worst_pdop (m/rad),
-    coverage_fraction and poses.
+    coverage_fraction and poses. More than :data:`STREAM_POSES` poses (without ``draws``) are drawn and
+    scored in chunks (:func:`_score_streamed`: memory flat, quantiles from a log histogram, the report's
+    plots from the first chunk); ``progress(n)`` is told every chunk's pose count.
     """
     from ..coverage_rule import check_rule
+    from ..envelope import envelope_set
     from ..layout import Layout, load_layout
     from ..mesh import load_mesh, mesh_hash
     from ..optimize import DesignProblem
+    from ..optimize.heldout import HELDOUT_POSES_PER_DRAW
 
     lay = layout if isinstance(layout, Layout) else load_layout(layout)
     where = str(layout) if isinstance(layout, (str, Path)) else "layout"
@@ -137,7 +147,17 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
         if sources["mesh"] == "layout provenance" and want_hash and mesh_hash(mesh) != want_hash:
             raise ValueError(f"{where}: its mesh {mesh_name} changed since the layout was made (SHA-256 differs); "
                              "give --mesh explicitly to score on it anyway")
-    env, R, t, sizes = _pose_sets(envelope, poses, seed, draws)
+    if poses is not None and int(poses) > STREAM_POSES and not draws:  # memory flat for any pose count
+        env = envelope_set(envelope, 1, seed)[0]
+        res, other, first = _score_streamed(lay, env, int(poses), mesh, st, compare, progress)
+        R, t = first
+    else:
+        per = int(poses or HELDOUT_POSES_PER_DRAW)
+        if draws and int(draws) * per > STREAM_POSES:
+            raise ValueError(f"score: --draws {draws} x --poses {per} is more than {STREAM_POSES} poses "
+                             "held at once; give fewer draws, or one large --poses set (streamed)")
+        env, R, t, sizes = _pose_sets(envelope, poses, seed, draws)
+        res = other = None
 
     def one(L):
         pb = DesignProblem.load(mesh, None, candidates=L, half_angle_deg=st["half_angle_deg"], stations=env.stations)
@@ -148,16 +168,17 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
             out["draws"] = _per_draw(out, sizes, env)
         return out
 
-    res = one(lay)
+    if res is None:
+        res = one(lay)
     res.update({"layout": str(layout) if isinstance(layout, (str, Path)) else "(in memory)",
                 "envelope": str(envelope) if isinstance(envelope, (str, Path)) else env.name,
                 "envelope_seed": env.seed, "half_angle_deg": float(st["half_angle_deg"]),
                 "occlusion": "mesh" if mesh is not None else "none (no mesh: acceptance cone and field of view only)",
                 "mesh": mesh_name, "sources": sources})
-    other = None
     if compare is not None:
-        oth = compare if isinstance(compare, Layout) else load_layout(compare)
-        other = one(oth)
+        if other is None:
+            oth = compare if isinstance(compare, Layout) else load_layout(compare)
+            other = one(oth)
         other["layout"] = str(compare) if isinstance(compare, (str, Path)) else "(in memory)"
     if report is not None:
         res["report"] = write_score_report(report, res, other, R, t, env)
@@ -282,3 +303,105 @@ def write_score_report(report_dir, res, other, R, t, env):
     atomic_write_text(d / "score.json", json.dumps(to_jsonable(out), indent=2) + "\n")
     files.append("score.json")
     return {"dir": str(d), "files": files}
+
+
+class _Stream:
+    """Running score of one layout over pose chunks (exact counts, max, mean; sketched quantiles)."""
+
+    def __init__(self, n_sensors, stations):
+        from ..parallel.sketch import LogHistogram, Moments
+
+        self.hist = {q: LogHistogram(**_SKETCH) for q in ("adop", "pdop")}
+        self.mom = {q: Moments() for q in ("adop", "pdop")}
+        self.P = self.covered = self.singular = 0
+        self.lit_min = None
+        self.lit_any = np.zeros(n_sensors)
+        self.lit_cov = np.zeros(n_sensors)
+        self.lit_st = np.zeros((len(stations), n_sensors))
+        self.uncovered = []
+
+    def add(self, r, vis):
+        cov = r["_covered"]
+        for q in ("adop", "pdop"):
+            x = r[f"_{q}"][cov]
+            self.hist[q].add(x)
+            self.mom[q].add(x)
+        if self.uncovered is not None and len(self.uncovered) < 200:
+            self.uncovered += (self.P + np.flatnonzero(~cov)).tolist()[:200 - len(self.uncovered)]
+        self.P += len(cov)
+        self.covered += int(cov.sum())
+        self.singular += int(r["singular_covered_poses"])
+        self.lit_min = r["lit_count_min"] if self.lit_min is None else min(self.lit_min, r["lit_count_min"])
+        self.lit_any += vis.any(axis=1).sum(0)
+        self.lit_cov += vis[cov].any(axis=1).sum(0)
+        self.lit_st += vis.sum(0)
+
+    def result(self, first: dict, stations) -> dict:
+        out = dict(first)
+        ok = self.covered > 0
+        nan = float("nan")
+        for q in ("adop", "pdop"):
+            h, m = self.hist[q], self.mom[q]
+            out.update({f"worst_{q}": m.max if ok else nan, f"mean_{q}": m.mean if ok else nan,
+                        f"median_{q}": h.quantile(0.5) if ok else nan, f"p95_{q}": h.quantile(0.95) if ok else nan})
+            if q == "adop":
+                out["p99_adop"] = h.quantile(0.99) if ok else nan
+            if m.nonfinite:  # inf DOP (singular) among the covered poses: the worst is inf
+                out[f"worst_{q}"] = float("inf")
+        ids = [u["id"] for u in first["per_sensor"]]
+        out["per_sensor"] = [{"id": ids[i], "lit_fraction": float(self.lit_any[i] / self.P),
+                              "lit_fraction_per_station": {s.id: float(self.lit_st[k, i] / self.P)
+                                                           for k, s in enumerate(stations)},
+                              "lit_fraction_covered_poses": float(self.lit_cov[i] / self.covered) if ok else 0.0}
+                             for i in range(len(ids))]
+        out.update({"poses": self.P, "covered_poses": self.covered, "coverage_fraction": self.covered / self.P,
+                    "singular_covered_poses": self.singular, "uncovered_pose_indices": self.uncovered,
+                    "lit_count_min": int(self.lit_min), "success": ok, "status": "ok" if ok else "no_coverage",
+                    "message": (f"{self.covered}/{self.P} poses covered ({out['coverage_rule']}, >= "
+                                f"{out['min_visible']} lit)" if ok else
+                                f"no pose of {self.P} has {out['min_visible']} lit sensors by the "
+                                f"{out['coverage_rule']} rule")})
+        return out
+
+
+def _score_streamed(lay, env, poses: int, mesh, st: dict, compare, progress):
+    """Score ``poses`` envelope poses in chunks of :data:`CHUNK_POSES` (memory flat for any count).
+
+    Chunk k draws its poses with the seed ``SeedSequence([env.seed, k])`` (a streamed set is the same
+    for any machine, not the one-shot draw of the same count). Counts, worst and mean are exact; the
+    median / p95 / p99 come from a log histogram (``result["streamed"]`` gives its resolution). The
+    ``_adop``/``_pdop``/``_covered`` arrays (report plots) are the first chunk's. Returns
+    ``(result, compare result or None, (R, t) of the first chunk)``."""
+    import dataclasses
+
+    from ..layout import Layout, load_layout
+    from ..optimize import DesignProblem
+
+    lays = [lay] + ([compare if isinstance(compare, Layout) else load_layout(compare)] if compare is not None else [])
+    streams, firsts, first_pose = None, None, None
+    done = k = 0
+    while done < poses:
+        n = min(CHUNK_POSES, poses - done)
+        seed = int(np.random.SeedSequence([int(env.seed), k]).generate_state(1)[0])
+        ck = dataclasses.replace(env, count=n, seed=seed)
+        res = []
+        for L in lays:
+            pb = DesignProblem.load(mesh, ck, candidates=L, half_angle_deg=st["half_angle_deg"])
+            r = score_arrays(L.positions, pb.visible, pb.rotations, pb.translations, pb.stations, rho=st["rho"],
+                             min_visible=st["min_visible"], coverage=st["coverage"], ids=L.ids)
+            res.append((r, pb.visible))
+        if streams is None:
+            streams = [_Stream(len(L.ids), pb.stations) for L in lays]
+            firsts = [r for r, _ in res]
+            first_pose = (pb.rotations, pb.translations)
+        for sm, (r, vis) in zip(streams, res):
+            sm.add(r, vis)
+        done += n
+        k += 1
+        if progress is not None:
+            progress(n)
+    sketch = {"chunks": k, "chunk_poses": CHUNK_POSES, "quantiles": "log histogram",
+              "relative_resolution": 10 ** (1 / _SKETCH["bins_per_decade"]) - 1,
+              "plots": f"the first {len(firsts[0]['_covered'])} poses"}
+    out = [sm.result(f, pb.stations) | {"streamed": sketch} for sm, f in zip(streams, firsts)]
+    return out[0], (out[1] if len(out) > 1 else None), first_pose

@@ -21,7 +21,6 @@
 from __future__ import annotations
 
 import csv
-import io
 import json
 import math
 import time
@@ -30,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_write, atomic_write_bytes, atomic_write_text
+from ..io.atomic import atomic_write, atomic_write_text
 from .sweep_config import PREP_KEYS, SweepConfig, load_sweep
 
 __all__ = ["run_sweep", "prepare_task", "cell_task", "read_cells", "SUMMARY_COLUMNS"]
@@ -255,24 +254,80 @@ def _pareto(rows) -> list[dict]:
     return front
 
 
-def _savefig(fig, path: Path) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    atomic_write_bytes(path, buf.getvalue())
+def _objective_label(cfg) -> str:
+    from ..optimize.objectives import objective_unit
+
+    names = sorted({str(dict(c.options).get("objective")) for c in cfg.cells})
+    if len(names) == 1:
+        unit = objective_unit(names[0])
+        return f"{names[0]} ({unit})" if unit else names[0]
+    return "objective value (ADOP deg/rad, PDOP m/rad)"
 
 
 def _plots(out: Path, cfg: SweepConfig, rows, front, echo) -> list[str]:
-    """objective_vs_axes.png (one panel per axis) and pareto_worst_adop_vs_k.png."""
+    """objective_vs_axes.png (one panel per axis; cells without a layout drawn as red crosses on top)
+    and pareto_worst_adop_vs_k.png."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..io.figures import save_figure
+
     ok = [r for r in rows if r["status"] in ("ok", "optimal") and r["value"] is not None]
+    failed = [r for r in rows if r not in ok]
     files = []
     if not ok:
         echo("note: no feasible cell; no plots")
         return files
+    names = cfg.axis_names or ("k",)
+    fig, axs = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.8), squeeze=False)
+    top = max(r["value"] for r in ok) * 2.0
+    for ax, name in zip(axs[0], names):
+        vals = [r.get(name, r["k"]) for r in ok + failed]
+        numeric = all(isinstance(v, (int, float)) for v in vals)
+        levels = sorted(set(vals)) if numeric else list(dict.fromkeys(vals))
+        x_all = np.array([v if numeric else levels.index(v) for v in vals], float)
+        x, xf = x_all[:len(ok)], x_all[len(ok):]
+        y = np.array([r["value"] for r in ok])
+        ax.scatter(x, y, s=18, alpha=0.7, label="cells")
+        lx = np.array([lv if numeric else i for i, lv in enumerate(levels)], float)
+        best = [y[x == v].min() if np.any(x == v) else np.nan for v in lx]
+        ax.plot(lx, best, "k.-", lw=1, label="best at this value")
+        if len(xf):
+            ax.scatter(xf, np.full(len(xf), top), marker="x", s=40, c="C3", label="infeasible / failed (no value)")
+        if not numeric:
+            ax.set_xticks(lx, [Path(str(v)).stem for v in levels], rotation=20)
+        ax.set_xlabel(name)
+        ax.set_ylabel(_objective_label(cfg))
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axs[0][0].legend(fontsize=8)
+    fig.suptitle(f"sweep {cfg.name}: objective of each cell against each axis")
+    fig.tight_layout()
+    save_figure(fig, out / "objective_vs_axes.png",
+                caption=f"{len(ok)} cells with a layout (dots; black: the best at each axis value)"
+                        + (f", {len(failed)} without one (red crosses drawn above the rest: infeasible or failed, "
+                           "see summary.csv)" if failed else "") + "; log scale.")
+    files.append("objective_vs_axes.png")
+    pts = [(r["k"], r["worst_adop_deg_per_rad"]) for r in ok if r["worst_adop_deg_per_rad"] is not None]
+    if pts:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        ax.scatter(*zip(*pts), s=18, c="0.6", label="cells")
+        ax.plot([p["k"] for p in front], [p["worst_adop_deg_per_rad"] for p in front], "o-", c="C3",
+                label="Pareto front")
+        ax.set_xlabel("sensors k")
+        ax.set_ylabel("worst ADOP over the envelope (deg/rad)")
+        ax.set_yscale("log")
+        ax.set_title(f"sweep {cfg.name}: worst ADOP against the sensor count")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        save_figure(fig, out / "pareto_worst_adop_vs_k.png",
+                    caption="Worst ADOP over the envelope of every cell with a layout (grey) and the cells no other "
+                            "cell beats with as few sensors (red).")
+        files.append("pareto_worst_adop_vs_k.png")
+    return files
     names = cfg.axis_names or ("k",)
     fig, axs = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.8), squeeze=False)
     for ax, name in zip(axs[0], names):

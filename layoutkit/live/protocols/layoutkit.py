@@ -215,6 +215,13 @@ class LayoutkitDecoder:
             if L - pos < HEADER_SIZE:
                 break
             _, ver, flags, seq, n, sync = unpack(buf, pos)
+            if ver == VERSION and not flags & 0xC0 and n and want_n is not None and n != want_n:
+                end = pos + HEADER_SIZE + 4 * n + CRC_SIZE  # a whole frame of another layout? (never waited for)
+                if end <= L and crc32(buf[pos:end - CRC_SIZE]) == int.from_bytes(buf[end - CRC_SIZE:end], "little"):
+                    self.stats.drop(f"frames of {n} sensors, the layout has {want_n} (another layout's capture?)")
+                    self._skip(end - pos)
+                    pos = end
+                    continue
             if ver != VERSION or flags & 0xC0 or n == 0 or (want_n is not None and n != want_n):
                 self.stats.bad += 1
                 self._skip(1)
