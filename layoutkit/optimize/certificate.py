@@ -137,8 +137,10 @@ def _why(problem, spec, res, bound, gap, value, dense, heldout, struct) -> str:
                      "working set can close")
     bnb = res.info.get("branch_and_bound") if isinstance(res.info, dict) else None
     if dense is not None:
+        src = ("the largest round relaxation" if "relaxation" in str(res.certified_by) else
+               f"the {res.certified_by} bound of its round")
         parts.append("branch-and-bound is off in the dense loop (it would spend the budget certifying one working "
-                     "set); the bound is the largest round relaxation")
+                     f"set); the bound is {src}")
     elif bnb:
         parts.append(f"branch-and-bound raised the bound from {bnb['root_bound']:.5g} to {bnb['bound']:.5g} in "
                      f"{bnb['nodes']} node relaxations before it stopped")

@@ -29,7 +29,7 @@ DEVICES = (
     ("Vive headset (HMD, 32 sensors)", "lh1_test_cal_first4s.rec.gz", "HMD"),
     ("Vive tracker (WM0, 22 sensors)", "tracker-bad-tracking.rec.gz", "WM0"),
     ("Index headset (T20, 32 sensors)", "haagh-tracking2.rec.gz", "T20"),
-    ("Vive wand controller (T20, 24 sensors)", "lh1_test_cal_first4s.rec.gz", "T20"),
+    ("Index controller (Knuckles EV3.0 right, T20)", "lh1_test_cal_first4s.rec.gz", "T20"),
 )
 
 

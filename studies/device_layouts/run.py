@@ -211,7 +211,7 @@ def main():
     ap.add_argument("--out", default=str(HERE))
     args = ap.parse_args()
     out = Path(args.out)
-    res = json.loads((out / "results.json").read_text()) if (out / "results.json").exists() else {"devices": {}}
+    res = _revive(json.loads((out / "results.json").read_text())) if (out / "results.json").exists() else {"devices": {}}
     res.update(load={"loadavg_start": os.getloadavg(), "cpus": os.cpu_count()})
     for name in args.devices:
         label, rec, dn = next(d for d in DEVICES if d[2] == name or d[0].startswith(name))
@@ -244,6 +244,19 @@ def main():
 
         atomic_write_text(out / "results.json", json.dumps(to_jsonable(res), indent=1) + "\n")
     _markdown(res, out)
+
+
+def _revive(tree, key=""):
+    """JSON writes inf as null: the scores' and checks' DOP values and ratios back to inf (a layout that leaves
+    poses untracked has an infinite worst case)."""
+    if isinstance(tree, dict):
+        return {k: _revive(v, k) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [_revive(v, key) for v in tree]
+    if tree is None and ("adop" in key or "pdop" in key or key.startswith(("x_shipped", "worst_over"))
+                         or key.startswith("fresh")):
+        return math.inf
+    return tree
 
 
 def _figures(dev, folder: Path, sc, layouts):
