@@ -237,7 +237,7 @@ def test_live_still_waits_for_a_replug_after_the_first_connection(tmp_path):
                                 str(link), "--speed", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _device_line(a)
     live = subprocess.Popen(EXE + ["live", "--layout", str(LAYOUT), "--port", str(link), "--port-timeout", "1",
-                                   "--duration", "40", "--idle-timeout", "8", "--no-dashboard", "--json"],
+                                   "--duration", "40", "--idle-timeout", "20", "--no-dashboard", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         a.wait(timeout=60)
