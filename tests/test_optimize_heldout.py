@@ -163,3 +163,51 @@ def test_spare_lit_margin_holds_on_the_working_set_and_is_stated(chen):
     h = heldout_estimate(chen, res.selected, rho=RHO, draws=1, poses_per_draw=300)
     assert h["min_visible"] == 4
     assert ">= 5 lit" in certificate(chen, spec, res, h)["candidate_set"]
+
+
+def test_tilted_plain_call_json_keeps_the_interface_and_explains_its_bound(tmp_path, small_envelope):
+    """`optimize MESH --envelope ENV --sensors K --max-tilt-deg D --tilt-toward station --json` (issue 27's
+    interface): `value` is the held-out estimate (recounted by `score --draws 5` of the written layout, which
+    carries the tilted axes), `bound` and `gap` are the certificate's, the gap is the stated value over the
+    bound, the candidate set names the tilt, and a loose bound says why and which verdict it has."""
+    out = tmp_path / "lay.json"
+    r = CliRunner().invoke(main, ["optimize", MESH, "--envelope", small_envelope, "--sensors", "10", "--spacing-mm",
+                                  "16", "--max-tilt-deg", "25", "--tilt-toward", "station", "--time-limit-s", "20",
+                                  "--no-render", "--out", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout)
+    c = s["certificate"]
+    assert s["value"] == s["heldout"]["value"] and s["value_refers_to"].startswith("held-out estimate")
+    sc = json.loads(CliRunner().invoke(main, ["score", str(out), "--draws", "5", "--json"]).stdout)
+    assert sc["worst_adop"] == pytest.approx(s["value"], rel=1e-9)
+    assert "tilted 25°" in c["candidate_set"] and "one orientation per site" in c["candidate_set"]
+    assert c["candidate_set"] in s["gap_refers_to"] and c["pose_set"] in s["gap_refers_to"]
+    if c["bound"] is None:
+        assert s["bound"] is None and c["verdict"] == "none" and c["why"]
+    else:
+        assert (s["bound"], s["gap"]) == (c["bound"], c["gap"]) and 0 < c["bound"] <= c["value_on_pose_set"]
+        assert c["value_on_pose_set"] >= s["value"] and s["gap"] == pytest.approx(c["value_on_pose_set"] / c["bound"] - 1)
+        want = "tight" if s["gap"] <= 0.10 else "loose" if s["gap"] <= 1.0 else "uninformative"
+        assert c["verdict"] == want and (want == "tight") == (not c["loose"])
+        if c["loose"]:
+            assert c["why"] and ("loose: " + c["why"]) in s["gap_refers_to"]
+        if want == "uninformative":
+            assert "uninformative" in c["statement"]
+
+
+def test_certificate_verdict_thresholds_on_a_known_gap():
+    """The verdict follows the gap's definition on a solved instance: the same result stated against a bound
+    scaled down (a weaker but still valid bound) turns tight → loose → uninformative at 10 % and 100 %."""
+    from layoutkit.optimize.certificate import certificate
+    from layoutkit.optimize.instances import synthetic_instance
+
+    pb = DesignProblem.from_arrays(**synthetic_instance(18, 16, rng=3))
+    spec = OptimizeSpec(k=6, rho=RHO, method="exhaustive", seed=0)
+    res = solve(pb, spec)
+    for scale, want in ((1.0, "tight"), (1 / 1.5, "loose"), (1 / 3.0, "uninformative")):
+        r = dataclasses.replace(res, bound=res.value * scale, certified_by="relaxation")
+        c = certificate(pb, spec, r)
+        assert c["verdict"] == want and c["gap"] == pytest.approx(1 / scale - 1)
+        assert ("uninformative" in c["statement"]) == (want == "uninformative")
+    c = certificate(pb, spec, dataclasses.replace(res, bound=float("nan"), certified_by="none", message="bound: none"))
+    assert c["verdict"] == "none" and c["gap"] is None and c["why"]

@@ -197,11 +197,14 @@ def _print_summary(s):
     if s["certified_by"] == "none" or s["bound"] is None or s["bound"] != s["bound"]:
         click.echo(f"  bound: none ({s['message'].split('bound: none')[-1].strip(' ;')})")
     else:
-        click.echo(f"  certified bound {s['bound']:.5g} ({s['certified_by']})   gap {100 * s['gap']:.2f} %")
+        gap = s["gap"]
+        gtxt = "none" if gap is None else f"{100 * gap:.2f} %"
+        click.echo(f"  certified bound {s['bound']:.5g} ({s['certified_by']})   gap {gtxt}"
+                   + (f"   [{cert['verdict']}]" if cert.get("verdict") else ""))
         if cert.get("statement"):
             click.echo(f"    {cert['statement']}")
-        if cert.get("loose"):
-            click.echo(f"    loose: {cert['why']}")
+    if cert.get("loose") and cert.get("why"):
+        click.echo(f"    {'loose' if cert.get('bound') is not None else 'why'}: {cert['why']}")
         if s.get("branch_and_bound"):
             b = s["branch_and_bound"]
             click.echo(f"  branch-and-bound: {b['nodes']} node relaxations, bound {b['root_bound']:.5g} (relaxation)"

@@ -28,6 +28,9 @@ __all__ = ["certificate", "relaxation_structure"]
 
 #: a gap above this is called loose and explained
 LOOSE_GAP = 0.10
+#: a gap above this (the bound below half the value) is called uninformative: the bound then only says the
+#: layout is within a factor ``1 + gap`` of the best, which no user would call a certificate
+UNINFORMATIVE_GAP = 1.0
 
 
 def relaxation_structure(z, site=None, k=None) -> dict:
@@ -63,7 +66,8 @@ def certificate(problem, spec, res, heldout=None) -> dict:
     heldout : :func:`layoutkit.optimize.heldout.heldout_estimate` of the layout, or None.
     Returns a JSON-able dict: ``bound``, ``certified_by``, ``pose_set`` and ``candidate_set`` (what the
     bound is over), ``value_on_pose_set`` (the layout's objective there), ``gap`` (value_on_pose_set /
-    bound - 1; None without a bound), ``loose`` (bool), ``why`` (plain-language explanation, "" if tight),
+    bound - 1; None without a bound), ``loose`` (bool), ``verdict`` ("tight": gap <= 10 %, "loose",
+    "uninformative": gap > 100 %, "none": no bound), ``why`` (plain-language explanation, "" if tight),
     ``relaxation`` (:func:`relaxation_structure` of the relaxed z when one is known) and ``statement``
     (one sentence for the report).
     """
@@ -90,6 +94,8 @@ def certificate(problem, spec, res, heldout=None) -> dict:
     struct = relaxation_structure(z, problem.site, spec.k) if z is not None else None
     loose = bound is None or gap is None or gap > LOOSE_GAP
     why = _why(problem, spec, res, bound, gap, value, dense, heldout, struct) if loose else ""
+    verdict = ("none" if bound is None else "uninformative" if gap is None or gap > UNINFORMATIVE_GAP else
+               "loose" if loose else "tight")
     cand = _describe_candidates(problem)
     spare = spec.dense.spare_lit if spec.dense is not None else 0
     if spare:  # the loop's coverage rows ask for more: the bound is over the layouts that keep that many lit
@@ -98,10 +104,21 @@ def certificate(problem, spec, res, heldout=None) -> dict:
         statement = f"no certified bound ({res.message.split('bound: none')[-1].strip(' ();') or res.certified_by})"
     else:
         statement = (f"no {spec.k}-sensor layout of these {cand} has {spec.objective} below {bound:.5g} over "
-                     f"{pose_set}; this layout's is {value:.5g} there (gap {100 * gap:.1f} %)")
+                     f"{pose_set}; this layout's is {value:.5g} there (gap {_pct(gap)})")
+        if verdict == "uninformative":
+            statement += (f"; the bound is uninformative: it only says the best layout is no better than "
+                          f"{_pct_of(gap)} of this one's value")
     return {"bound": bound, "certified_by": res.certified_by, "pose_set": pose_set, "bound_from": work,
             "candidate_set": cand, "value_on_pose_set": value, "gap": gap, "loose": bool(loose), "why": why,
-            "relaxation": struct, "statement": statement}
+            "relaxation": struct, "statement": statement, "verdict": verdict}
+
+
+def _pct(gap) -> str:
+    return "none" if gap is None else "∞" if not math.isfinite(gap) else f"{100 * gap:.1f} %"
+
+
+def _pct_of(gap) -> str:
+    return "0 %" if gap is None or not math.isfinite(gap) else f"{100 / (1 + gap):.0f} %"
 
 
 def _why(problem, spec, res, bound, gap, value, dense, heldout, struct) -> str:
