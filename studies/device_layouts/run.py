@@ -72,11 +72,20 @@ def _cached(path: Path, force: bool, fn):
     if path.exists() and not force:
         return json.loads(path.read_text())
     out = fn()
+    out["code_commit"] = _commit()
     from layoutkit.io.atomic import atomic_write_text
     from layoutkit.io.jsonfile import to_jsonable
 
     atomic_write_text(path, json.dumps(to_jsonable(out), indent=1) + "\n")
     return out
+
+
+def _commit() -> str:
+    """The worktree's commit (``+dirty`` when layoutkit/ has uncommitted edits): what code a stage ran."""
+    def git(*a):
+        return subprocess.run(["git", *a], cwd=HERE, capture_output=True, text=True).stdout.strip()
+    return git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain", "--", "../../layoutkit")
+                                                 else "")
 
 
 def stage_newcomer(dev, folder: Path):
@@ -197,7 +206,7 @@ def main():
                     help="candidate spacing as a fraction of the device's largest extent (instead of --spacing-mm)")
     ap.add_argument("--dense-poses", type=int, default=5000)
     ap.add_argument("--coverage-poses", type=int, default=None)
-    ap.add_argument("--seed-poses", default=0, type=lambda v: v if v == "all" else int(v))
+    ap.add_argument("--seed-poses", default="all", type=lambda v: v if v == "all" else int(v))
     ap.add_argument("--coverage-dop", action="store_true")
     ap.add_argument("--spare-lit", type=int, default=0,
                     help="lit sensors the dense loop requires beyond 4 (a margin; scoring still counts 4)")
@@ -374,10 +383,11 @@ def _markdown(res, out: Path):
         lines += ["", "Without self-occlusion (acceptance cone and field of view only; the hull stands in for the "
                   "housing, and a shipped sensor whose normal is far from the hull's face normal is occluded by the "
                   "hull although the real housing lets it see): worst over the 5 draws / 20,000, coverage (20,000), "
-                  "×shipped min over the 6 sets: " + "; ".join(
+                  "×shipped min over the 6 sets (and on the poses both track): " + "; ".join(
                       f"{n} {_fmt(max(r[lab]['worst_adop'] for lab, _, _ in FRESH[:-1]))} / "
                       f"{_fmt(r['fresh 20k seed+200']['worst_adop'])}, {100 * r['fresh 20k seed+200']['covered_fraction']:.2f} %, "
-                      f"{_fmt(min(_ratio(no['shipped'][lab]['worst_adop'], r[lab]['worst_adop']) for lab, _, _ in FRESH), 2)}"
+                      f"{_fmt(min(_ratio(no['shipped'][lab]['worst_adop'], r[lab]['worst_adop']) for lab, _, _ in FRESH), 2)} "
+                      f"({_fmt(min(r[lab]['shipped_worst_adop_common'] / r[lab]['worst_adop_common'] for lab, _, _ in FRESH), 2)})"
                       for n, r in no.items()) + "."]
         if sc.get("recording_setup"):
             e = sc["recording_setup_envelope"]
