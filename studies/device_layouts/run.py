@@ -20,7 +20,8 @@ reruns):
   worst, p99 and median ADOP, worst and median PDOP, coverage;
 - figures: held-out ADOP CDFs and the layouts side by side on the hull.
 
-Writes ``OUT/results.json``, ``OUT/results.md`` and the figures (default OUT: this folder). The hulls,
+Writes ``OUT/results.json``, ``OUT/results.md`` and the figures (default OUT: ``results/`` beside this file;
+README.md beside this file says what each row is and which must-show lines hold). The hulls,
 envelopes and layouts it optimised are in ``OUT/<device>/`` (derived from MIT-licensed recordings).
 """
 from __future__ import annotations
@@ -217,7 +218,7 @@ def main():
     ap.add_argument("--tilt-directions", type=int, default=4)
     ap.add_argument("--method", default="pipeline")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=str(HERE))
+    ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args()
     out = Path(args.out)
     res = _revive(json.loads((out / "results.json").read_text())) if (out / "results.json").exists() else {"devices": {}}
