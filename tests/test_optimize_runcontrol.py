@@ -171,7 +171,7 @@ def test_cli_tilt_toward_station_writes_meridional_axes_and_rejects_a_zero_axis(
     assert bad.exit_code == 2 and "--tilt-toward" in bad.output and not out.exists()
     r = CliRunner().invoke(main, args + ["--tilt-toward", "station"])
     assert r.exit_code in (0, 1), r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["tilt_toward"] == "station" and s["max_tilt_deg"] == 15.0
     assert s["tilted_sensors"] >= 1  # (6 on this instance): the checks below see tilted axes
     plain = DesignProblem.load("models/chen_target.stl", str(env), spacing=0.016)

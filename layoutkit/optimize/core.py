@@ -47,7 +47,8 @@ class OptimizeResult:
         "relaxation" (joint), "branch-and-bound" (:mod:`layoutkit.optimize.bnb`), "per-pose
         relaxation", "trace" (closed form) or "exhaustive".
     success : a feasible layout was found; status : "optimal" (proven), "ok", "infeasible",
-        "uncoverable", "no_feasible_found"; message : plain-language summary.
+        "uncoverable", "no_feasible_found", "interrupted", "incomplete" (the dense loop ended with poses
+        short of lit sensors: optimize.dense); message : plain-language summary.
     adop, pdop : (P,) exact per-pose ADOP (deg/rad) and PDOP (m/rad); n_lit : (P,) lit counts.
     min_k : smallest k keeping m lit everywhere (set when infeasible); uncoverable : (U,) poses with
         fewer than m lit candidates at all. timings : seconds per stage. method, objective : names.

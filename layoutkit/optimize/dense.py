@@ -485,6 +485,10 @@ class _DenseLoop:
             res = dataclasses.replace(res, bound=float(max(bounds)),
                                       certified_by=f"relaxation (dense round {fin[src]['round']})",
                                       gap=res.value / max(bounds) - 1)
+        if short and res.status in ("ok", "optimal"):  # an honest status: the loop ended short of coverage
+            res = dataclasses.replace(res, status="incomplete", message=res.message + (
+                f" [incomplete: the dense loop ended ({self.note or 'its rounds, budget or patience spent'}) "
+                f"with {short} of its poses below {self.m} lit sensors]"))
         if self.interrupted:
             res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": self.interrupted},
                                       message=res.message + " [interrupted: best dense round so far]")
