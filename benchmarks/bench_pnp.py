@@ -1,8 +1,8 @@
-"""Benchmark and accuracy study of ``layoutkit.pnp.solve_pnp`` against OpenCV (issue #2, part 8).
+"""Benchmark and accuracy study of ``layoutkit.pnp.solve_pnp`` against OpenCV (issue #2 part 8, issue 30 item 1).
 
-What it measures, all on the reconstructed Chen target (12 sensors, 12.5 x 12.5 x 6.25 cm) at
-random poses 1-3 m in front of the station, inside the 120 deg field of view, with the paper's
-angle noise (sigma = 4.014e-5 rad):
+What it measures, on the reconstructed Chen target (12 sensors, 12.5 x 12.5 x 6.25 cm) and on
+bodies of 24 and 48 sensors in the same box, at random poses 1-3 m in front of the station, inside
+the 120 deg field of view, with the paper's angle noise (sigma = 4.014e-5 rad):
 
 1. accuracy: RMS attitude / position error of the batch solver over many frames at rho = 0,
    divided by the Cramer-Rao bound sqrt(mean(ADOP^2)) sigma, sqrt(mean(PDOP^2)) sigma
@@ -11,12 +11,22 @@ angle noise (sigma = 4.014e-5 rad):
    n = 12 (rho = 0 and rho = 0.8717), at n = 4 coplanar (the top face turned towards the
    station) and at n = 5-6 lit sensors (sensors whose normal is within 60 deg of the direction
    to the station), compared with OpenCV SQPNP (and ITERATIVE) on the same frames;
-3. speed: solves/s of the batch solver and of Python loops over ``cv2.solvePnP`` with
-   SOLVEPNP_SQPNP and SOLVEPNP_ITERATIVE on the same 12-sensor frames, interleaved rounds,
-   median of >= 5, plus peak memory (tracemalloc) of a large batch.
+3. speed at n = 4 (the coplanar top face), 6, 12, 24, 48: solves/s of the compiled solver
+   (``lm``, numba, on all of numba's threads and on one), of the numpy reference (``lm-numpy``) and
+   of Python loops over ``cv2.solvePnP`` with SOLVEPNP_SQPNP and SOLVEPNP_ITERATIVE on the same
+   frames (one OpenCV thread), interleaved rounds, median of >= 5; the ratios to both loops and
+   RMS/CRLB of every method at every n;
+4. the FLOP ratio at n = 12: time per solve (per core: CPU time of the one-thread run, median and
+   best round) over the time the solver's arithmetic
+   would take at this core's peak. The arithmetic is the typical path's count (:func:`pnp_flops`,
+   ~4.9 kflop at n = 12: POSIT, one Gram build, two residual passes; transcendental calls not
+   counted); the peak is measured in the same run by a compiled loop of independent scalar
+   multiply-add chains (:func:`scalar_peak_flops`), the rate scalar per-frame code can reach;
+5. peak memory (tracemalloc) of a large batch.
 
-Run ``python benchmarks/bench_pnp.py`` (about 1-2 minutes) or ``--quick`` (a few seconds).
-Writes ``benchmarks/results/pnp.json`` (``pnp_quick.json`` with ``--quick``).
+Run ``python benchmarks/bench_pnp.py`` (a few minutes) or ``--quick`` (well under a minute).
+Writes ``benchmarks/results/pnp.json`` (``pnp_quick.json`` with ``--quick``). The machine's load
+changes every figure; run the full benchmark on a quiet machine (the JSON records the load average).
 """
 from __future__ import annotations
 
@@ -102,11 +112,6 @@ def measure(layout, R, t, rho, rng):
 
 
 # ------------------------------------------------------------------------------- solvers
-
-def solve_ours(P, ang, vis):
-    r = solve_pnp(P, ang, vis)
-    return r.rotation, r.translation
-
 
 def solve_cv(P, ang, vis, flag, scale=1000.0):
     """Python loop over cv2.solvePnP on normalised coordinates (K = I, no distortion).
@@ -201,6 +206,141 @@ def plot_efficiency(P, R, t, results, path, bins=10):
     plt.close(fig)
 
 
+# ------------------------------------------------------------------------------- speed by n
+
+SPEED_N = (4, 6, 12, 24, 48)
+
+
+def speed_body(n, layout):
+    """(points (n, 3), normals or None) of the speed runs: n = 4 the Chen top face (coplanar), 6 a
+    non-coplanar subset of the Chen sensors, 12 the Chen target, 24 / 48 points uniform in the same
+    12.5 x 12.5 x 6.25 cm box (fixed seed)."""
+    if n == 4:
+        return layout.positions[[i for i, s in enumerate(layout.ids) if s.startswith("T")]]
+    if n == 6:
+        return layout.positions[[0, 1, 2, 3, 4, 8]]
+    if n == 12:
+        return layout.positions
+    return np.random.default_rng(1000 + n).uniform(-0.0625, 0.0625, (n, 3)) * [1.0, 1.0, 0.5]
+
+
+def speed_at(n, layout, F, rounds, rng, cv2):
+    """Every method on the same F frames of the n-sensor body (all sensors seen), interleaved rounds."""
+    import numba
+
+    P = speed_body(n, layout)
+    R = random_rotations(F, rng)
+    t = sample_positions(F, P, R, rng)
+    ang = sweep_angles(transform_points(R, t, P))
+    ang = ang + sample_angle_noise(ang.shape[:-1], SIGMA_THETA_PAPER, 0.0, rng)
+    vis = np.ones((F, n), bool)
+    threads = numba.get_num_threads()
+
+    def compiled():
+        r = solve_pnp(P, ang, method="lm")
+        return r.rotation, r.translation
+
+    def compiled_1thread():
+        numba.set_num_threads(1)
+        try:
+            return compiled()
+        finally:
+            numba.set_num_threads(threads)
+
+    def numpy_ref():
+        r = solve_pnp(P, ang, method="lm-numpy")
+        return r.rotation, r.translation
+
+    methods = {"layoutkit": compiled, "layoutkit_1thread": compiled_1thread, "layoutkit_numpy": numpy_ref,
+               "sqpnp_loop": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_SQPNP, 1000.0),
+               "iterative_loop": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_ITERATIVE, 1.0)}
+    if n == 12:  # tracking start: the true pose moved by 0.5 deg, 5 mm (a slowly moving target's last pose)
+        R_prev = np.matmul(rotvec_to_matrix(rng.normal(0.0, np.deg2rad(0.5) / np.sqrt(3), (F, 3))), R)
+        t_prev = t + rng.normal(0.0, 0.005 / np.sqrt(3), (F, 3))
+
+        def warm():
+            r = solve_pnp(P, ang, initial=(R_prev, t_prev))
+            return r.rotation, r.translation
+        methods["layoutkit_previous_frame_start"] = warm
+    compiled(), compiled_1thread()  # compile (or load the cache) outside the timing
+    times = {k: [] for k in methods}
+    cpu = {k: [] for k in methods}
+    last = {}
+    for _ in range(rounds):
+        for k, f in methods.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            last[k] = f()
+            times[k].append(time.perf_counter() - t0)
+            cpu[k].append(time.process_time() - c0)
+    row = {"frames": F, "rounds": rounds, "threads": threads}
+    for k in methods:
+        med = float(np.median(times[k]))
+        Re, te = last[k]
+        row[k] = {"median_s": med, "solves_per_s": F / med, "round_s": times[k],
+                  "cpu_median_s": float(np.median(cpu[k])), "cpu_best_s": float(np.min(cpu[k])), "round_cpu_s": cpu[k],
+                  "gross_failures": gross_failures(P, Re, te, R, vis),
+                  **crlb_ratio(P, np.nan_to_num(Re), np.nan_to_num(te), R, t)}
+    sq, it = row["sqpnp_loop"]["median_s"], row["iterative_loop"]["median_s"]
+    row["ratio_vs_sqpnp"] = sq / row["layoutkit"]["median_s"]
+    row["ratio_vs_sqpnp_1thread"] = sq / row["layoutkit_1thread"]["median_s"]
+    row["ratio_vs_iterative"] = it / row["layoutkit"]["median_s"]
+    row["ratio_vs_iterative_1thread"] = it / row["layoutkit_1thread"]["median_s"]
+    row["numpy_ratio_vs_sqpnp"] = sq / row["layoutkit_numpy"]["median_s"]
+    # the same on CPU time (one thread each): robust to other processes taking the cores
+    c1, csq, cit = (row[k]["cpu_median_s"] for k in ("layoutkit_1thread", "sqpnp_loop", "iterative_loop"))
+    row["cpu_ratio_vs_sqpnp_1thread"] = csq / c1
+    row["cpu_ratio_vs_iterative_1thread"] = cit / c1
+    # best rounds on CPU time: what each method costs when no other process takes its core (on a loaded
+    # machine the medians include other processes' cache and core contention)
+    b1, bsq, bit = (row[k]["cpu_best_s"] for k in ("layoutkit_1thread", "sqpnp_loop", "iterative_loop"))
+    row["cpu_best_ratio_vs_sqpnp_1thread"] = bsq / b1
+    row["cpu_best_ratio_vs_iterative_1thread"] = bit / b1
+    return row, last, R, t
+
+
+def pnp_flops(n: int) -> float:
+    """Arithmetic (+, -, *, /, sqrt; not tan or atan2) of one solve with n sensors on the typical
+    path of the LM solver (layoutkit.pnp_numba): cot of 2n angles, two scatters, POSIT (two
+    iterations), one residual + gradient + Gram pass, the 6 x 6 factor and solve, the trial step, one
+    residual + gradient pass, the step test with the reused factor. Per sensor: 2 + 2 x 25 + 66 +
+    156 + 96 = 370; fixed: eigenvalues, POSIT's 3 x 3 algebra, Cholesky, two solves, Rodrigues ~550."""
+    return 370.0 * n + 550.0
+
+
+def scalar_peak_flops(seconds: float = 0.3) -> float:
+    """This core's scalar double-precision peak (flop/s): a compiled loop of 8 independent
+    multiply-add chains (fused where the CPU has FMA), best of 5 runs of ~``seconds``."""
+    import numba
+
+    @numba.njit(fastmath={"contract"})
+    def chains(m, x):
+        a0, a1, a2, a3, a4, a5, a6, a7 = x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]
+        b, c = 0.9999999, 1e-9
+        for _ in range(m):
+            a0 = a0 * b + c
+            a1 = a1 * b + c
+            a2 = a2 * b + c
+            a3 = a3 * b + c
+            a4 = a4 * b + c
+            a5 = a5 * b + c
+            a6 = a6 * b + c
+            a7 = a7 * b + c
+        return a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7
+
+    x = np.ones(8)
+    chains(10, x)
+    m = 1_000_000
+    t0 = time.perf_counter()
+    chains(m, x)
+    m = max(int(m * seconds / max(time.perf_counter() - t0, 1e-6)), 1000)
+    best = np.inf
+    for _ in range(5):
+        t0 = time.process_time()
+        chains(m, x)
+        best = min(best, time.process_time() - t0)
+    return 16.0 * m / best
+
+
 # ------------------------------------------------------------------------------- main
 
 def main(argv=None):
@@ -220,7 +360,7 @@ def main(argv=None):
     q = args.quick
     n_acc = 20000 if q else 180000        # n = 12 accuracy / failure frames
     n_small = 2000 if q else 10000        # n = 4 and n = 5-6 frames
-    n_speed = 4000 if q else 10000        # speed frames
+    n_speed = 2000 if q else 10000        # speed frames per n
     rounds = 5
     out = {"quick": q, "seed": args.seed, "sigma_theta_rad": SIGMA_THETA_PAPER,
            "machine": platform.platform(), "python": sys.version.split()[0],
@@ -271,60 +411,53 @@ def main(argv=None):
         small[name] = row
     out["small_sets"] = small
 
-    # 4: speed, same 12-sensor frames, interleaved rounds
-    R, t, vis = frames_all(layout, n_speed, rng)
-    ang = measure(layout, R, t, 0.0, rng)
-    # tracking start: the true pose moved by a small random motion (0.5 deg, 5 mm), like the
-    # previous frame of a slowly moving target
-    R_prev = np.matmul(rotvec_to_matrix(rng.normal(0.0, np.deg2rad(0.5) / np.sqrt(3), (n_speed, 3))), R)
-    t_prev = t + rng.normal(0.0, 0.005 / np.sqrt(3), (n_speed, 3))
-
-    def solve_warm():
-        r = solve_pnp(P, ang, vis, initial=(R_prev, t_prev))
-        return r.rotation, r.translation
-
-    methods = {
-        "layoutkit": lambda: solve_ours(P, ang, vis),
-        "layoutkit_previous_frame_start": solve_warm,
-        "sqpnp_loop": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_SQPNP, 1000.0),
-        "sqpnp_loop_object_in_metres": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_SQPNP, 1.0),
-        "iterative_loop": lambda: solve_cv(P, ang, vis, cv2.SOLVEPNP_ITERATIVE, 1.0),
-    }
-    times = {k: [] for k in methods}
-    last = {}
-    solve_ours(P, ang[:100], vis[:100])  # warm-up
-    for _ in range(rounds):
-        for k, f in methods.items():
-            t0 = time.perf_counter()
-            last[k] = f()
-            times[k].append(time.perf_counter() - t0)
+    # 3: speed at n = 4, 6, 12, 24, 48 (same frames for every method), 4: FLOP ratio at n = 12
     speed = {}
-    for k in methods:
-        med = float(np.median(times[k]))
-        Re, te = last[k]
-        speed[k] = {"median_s": med, "solves_per_s": n_speed / med, "round_s": times[k],
-                    "gross_failures": gross_failures(P, Re, te, R, vis),
-                    **crlb_ratio(P, np.nan_to_num(Re), np.nan_to_num(te), R, t)}
-    # against the faster of the two SQPNP unit variants (both are correct at n = 12)
-    sq = min(speed["sqpnp_loop"]["median_s"], speed["sqpnp_loop_object_in_metres"]["median_s"])
-    speed["ratio_vs_sqpnp"] = sq / speed["layoutkit"]["median_s"]
-    speed["ratio_vs_iterative"] = speed["iterative_loop"]["median_s"] / speed["layoutkit"]["median_s"]
-    speed["frames"] = n_speed
-    speed["rounds"] = rounds
-    for k in methods:
-        s = speed[k]
-        print(f"speed {k:28s}: {s['solves_per_s']:10.0f} solves/s  RMS/CRLB att {s['attitude_rms_over_crlb']:.3f} "
-              f"pos {s['position_rms_over_crlb']:.3f}  gross {s['gross_failures']}")
-    print(f"ratio vs (faster) SQPNP loop {speed['ratio_vs_sqpnp']:.2f}x, vs ITERATIVE loop {speed['ratio_vs_iterative']:.2f}x")
-    out["speed"] = speed
+    for n in SPEED_N:
+        speed[f"n={n}"], last, R, t = speed_at(n, layout, n_speed, rounds, rng, cv2)
+        s = speed[f"n={n}"]
+        print(f"n={n:2d}: compiled {s['layoutkit']['solves_per_s']:9.0f}/s ({s['threads']} threads), one thread "
+              f"{s['layoutkit_1thread']['solves_per_s']:9.0f}/s, numpy {s['layoutkit_numpy']['solves_per_s']:8.0f}/s, "
+              f"SQPNP {s['sqpnp_loop']['solves_per_s']:7.0f}/s, ITERATIVE {s['iterative_loop']['solves_per_s']:7.0f}/s | "
+              f"x SQPNP {s['ratio_vs_sqpnp']:.1f} (1 thread {s['ratio_vs_sqpnp_1thread']:.1f}), x ITERATIVE "
+              f"{s['ratio_vs_iterative']:.1f} | RMS/CRLB att {s['layoutkit']['attitude_rms_over_crlb']:.3f} pos "
+              f"{s['layoutkit']['position_rms_over_crlb']:.3f} | on CPU time, one thread: x SQPNP "
+              f"{s['cpu_ratio_vs_sqpnp_1thread']:.1f}, x ITERATIVE {s['cpu_ratio_vs_iterative_1thread']:.1f} "
+              f"(best rounds x SQPNP {s['cpu_best_ratio_vs_sqpnp_1thread']:.1f})")
+        if n == 12:
+            n12_last, n12_R, n12_t = last, R, t
+    peak = scalar_peak_flops()
+    f12 = pnp_flops(12)
+    per_core = speed["n=12"]["layoutkit_1thread"]["cpu_median_s"] / n_speed  # CPU time: one core's work
+    per_core_best = speed["n=12"]["layoutkit_1thread"]["cpu_best_s"] / n_speed  # (the peak is a best of 5 too)
+    wall = speed["n=12"]["layoutkit"]["median_s"] / n_speed
+    out["flops"] = {"flops_per_solve_n12": f12, "scalar_peak_flops_per_s": peak,
+                    "flop_limit_s_per_solve": f12 / peak, "s_per_solve_one_core": per_core,
+                    "s_per_solve_wall_all_threads": wall,
+                    "flop_ratio_one_core": per_core / (f12 / peak),
+                    "s_per_solve_one_core_best_round": per_core_best,
+                    "flop_ratio_one_core_best_round": per_core_best / (f12 / peak),
+                    "flop_ratio_wall_all_threads": wall / (f12 / peak),
+                    "definition": "time per solve / (flops per solve (pnp_flops) / scalar peak (scalar_peak_flops))"}
+    print(f"FLOP ratio at n=12: {out['flops']['flop_ratio_one_core']:.1f}x the limit on one core "
+          f"(best round {out['flops']['flop_ratio_one_core_best_round']:.1f}x; "
+          f"{f12:.0f} flop per solve at a measured scalar peak of {peak / 1e9:.1f} GFLOP/s), "
+          f"{out['flops']['flop_ratio_wall_all_threads']:.1f}x in wall time on {speed['n=12']['threads']} threads")
+    # the n = 12 table of the earlier versions (same keys), and the tracking start
+    R, t = n12_R, n12_t
+    out["speed"] = {**speed["n=12"], "by_n": speed}
     if args.figure is not None:
-        plot_efficiency(P, R, t, {"layoutkit (angle ML)": last["layoutkit"], "OpenCV SQPNP": last["sqpnp_loop"],
-                                  "OpenCV ITERATIVE": last["iterative_loop"]}, args.figure)
+        plot_efficiency(P, R, t, {"layoutkit (angle ML)": n12_last["layoutkit"], "OpenCV SQPNP": n12_last["sqpnp_loop"],
+                                  "OpenCV ITERATIVE": n12_last["iterative_loop"]}, args.figure)
         print(f"wrote {os.path.relpath(args.figure)}")
+    try:
+        out["load_average_1_5_15min"] = list(os.getloadavg())
+    except OSError:
+        pass
 
     # peak memory of one large batch (chunked, so flat in F)
     Fm = 50000 if q else 200000
-    Rm, tm = R[np.arange(Fm) % n_speed], t[np.arange(Fm) % n_speed]
+    Rm, tm = R[np.arange(Fm) % len(R)], t[np.arange(Fm) % len(R)]
     angm = measure(layout, Rm, tm, 0.0, rng)
     tracemalloc.start()
     base = tracemalloc.get_traced_memory()[0]

@@ -1,6 +1,6 @@
 """Self-calibration: bundle adjustment of station poses, station calibration and sensor offsets.
 
-About 700 lines, one problem kept together on purpose: the column layout, the analytic sparse
+About 1000 lines, one problem kept together on purpose: the column layout, the analytic sparse
 Jacobian, the Schur-complement LM, the covariance and the per-parameter report all index the
 same parameter vector; split, each piece would re-derive that layout.
 
@@ -47,17 +47,30 @@ them).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .geometry import right_jacobian_so3, rotvec_to_matrix
-from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, Station, measure_jacobian
+from .lighthouse import CALIBRATION_PARAMS, MODEL_PARAMS, Calibration, check_station_ids, measure_jacobian
 
 __all__ = ["BA_PARAMS", "BundleResult", "ParameterEstimate", "bundle_adjust", "jacobian_sparsity", "to_ba", "from_ba",
-           "station_to_ba", "station_from_ba"]
+           "station_to_ba", "station_from_ba", "static_segments", "timing_gain", "STATIC_POSITION_TOL",
+           "STATIC_ROTATION_TOL", "PRIOR_DOMINATED"]
 
 UNOBSERVABLE_RATIO = 0.5
+#: Status of a device's own sensor term (offset, latency) whose sd exceeds UNOBSERVABLE_RATIO of its
+#: prior: it is a prior-constrained unknown, so it is adjusted (never held), but its value is set
+#: mostly by the prior — the data carry less than 3x the prior's information about it.
+PRIOR_DOMINATED = "prior_dominated"
+#: The Schur LM stops when this many accepted steps together lowered the cost by less than STALL_RTOL of it.
+STALL_ITERATIONS = 10
+STALL_RTOL = 1e-6
+#: A body that stays within these of a segment's first pose (after a 9-sample running median) is at
+#: rest there: ~10x the per-window scatter of the static Vive devices of ``lh1_test_cal`` (0.4 mm,
+#: 0.23 deg: the lit set changes from window to window), far below any real motion.
+STATIC_POSITION_TOL = 5e-3
+STATIC_ROTATION_TOL = np.deg2rad(1.0)
 #: A fitted calibration parameter this many reported sds from its factory value is ``suspect``.
 SUSPECT_SIGMAS = 5.0
 
@@ -66,7 +79,8 @@ SUSPECT_SIGMAS = 5.0
 class ParameterEstimate:
     """One global parameter: ``name`` (e.g. ``station 1 axis 0 phase``), ``value``, ``std`` (None when not
     fitted; includes the layout consider term), ``start``, ``unit``, ``status`` ("ok", "suspect",
-    "weakly_observable", "unobservable" or "fixed"; module docstring), ``correlation``: multiple
+    "weakly_observable", "unobservable" or "fixed"; module docstring; a sensor offset / latency:
+    "ok" or :data:`PRIOR_DOMINATED`, adjusted either way), ``correlation``: multiple
     correlation with all other unknowns at the last solve where it was free (None if never free)."""
 
     name: str
@@ -86,7 +100,8 @@ class BundleResult:
     rotation (K, 3, 3), translation (K, 3): sample poses (world); parameters : list of
     :class:`ParameterEstimate`; residual_before / residual_after : (K, S, n, 2) rad (NaN = no
     angle), before = with the starting parameters and each sample's best pose under them;
-    success, status ("ok", "not_converged", "too_few"), message; nfev; sigma_scale: sqrt of the
+    success, status ("ok", "not_converged", "too_few", "nothing_determined": every free parameter
+    held as unobservable, nothing adjusted), message; nfev; sigma_scale: sqrt of the
     residual variance in units of the given sigma.
     """
 
@@ -172,21 +187,95 @@ def _dc_to_ba(dc, model):
     return out
 
 
+def static_segments(t, rotation, translation, ok=None, *, position_tol: float = STATIC_POSITION_TOL,
+                    rotation_tol: float = STATIC_ROTATION_TOL, min_samples: int = 10, smooth: int = 9):
+    """Which samples share one body pose: runs of samples at rest.
+
+    t : (K,) s; rotation (K, 3, 3), translation (K, 3) m: per-sample solved poses (world frame);
+    ok : (K,) bool, samples with a pose (others never join a segment). The poses are smoothed by a
+    running median over ``smooth`` samples (the per-window scatter of a static device is mostly
+    lit-set changes, not motion); in time order a segment takes the following samples while the
+    smoothed pose stays within ``position_tol`` (m) and ``rotation_tol`` (rad) of the segment's first
+    one. A segment of at least ``min_samples`` samples is one pose; every other sample is its own.
+    Returns ``pose_of (K,)`` int (pose index of each sample, poses numbered in time order) and
+    ``static (P,)`` bool (the pose is a segment at rest).
+    """
+    from scipy.ndimage import median_filter
+
+    from .geometry import matrix_to_rotvec
+
+    t = np.asarray(t, float)
+    K = t.size
+    R = np.asarray(rotation, float)
+    T = np.asarray(translation, float)
+    ok = np.ones(K, bool) if ok is None else np.asarray(ok, bool)
+    ok = ok & np.all(np.isfinite(T), 1) & np.all(np.isfinite(R), (1, 2))
+    order = np.argsort(t, kind="stable")
+    g = order[ok[order]]                                  # samples with a pose, in time order
+    label = np.full(K, -1)
+    if g.size:
+        rv = matrix_to_rotvec(R[g] @ R[g[0]].T)           # small within a segment at rest
+        size = max(1, min(int(smooth), g.size))
+        sm_t = median_filter(T[g], size=(size, 1), mode="nearest")
+        sm_r = median_filter(rv, size=(size, 1), mode="nearest")
+        seg, a = 0, 0
+        for q in range(g.size):
+            if (np.linalg.norm(sm_t[q] - sm_t[a]) > position_tol or np.linalg.norm(sm_r[q] - sm_r[a]) > rotation_tol):
+                seg, a = seg + 1, q
+            label[g[q]] = seg
+    pose_of = np.full(K, -1)
+    static = []
+    nxt = 0
+    counts = np.bincount(label[label >= 0]) if np.any(label >= 0) else np.zeros(0, int)
+    seen: dict = {}
+    for k in order:
+        lab = label[k]
+        if lab >= 0 and counts[lab] >= min_samples:
+            if lab not in seen:
+                seen[lab] = nxt
+                static.append(True)
+                nxt += 1
+            pose_of[k] = seen[lab]
+        else:
+            pose_of[k] = nxt
+            static.append(False)
+            nxt += 1
+    return pose_of, np.asarray(static, bool)
+
+
+def timing_gain(station) -> float:
+    """d angle / d sensor latency of ``station``'s angles, rad/s: a sensor that reports its hit
+    ``tau`` s late reads the rotor ``omega tau`` further on. libsurvive's angles grow with the hit
+    time on both LH1 axes and both LH2 planes (checked on the real recordings: +377 rad/s LH1, +328 rad/s
+    on an LH2 channel); ours are ``theta = pi/2 + a`` (LH1: ``+omega``) and ``alpha = -a`` (LH2:
+    ``-omega``); ``omega = 2 pi rotor_rpm / 60``."""
+    omega = 2.0 * np.pi * float(station.rotor_rpm) / 60.0
+    return omega if station.kind == "lh1" else -omega
+
+
 class _Problem:
     """Index bookkeeping and the residual/Jacobian of one bundle adjustment (private)."""
 
     def __init__(self, P, ang, stations, *, sigma, free_cal, free_station, offsets, offset_prior,
-                 calibration_prior, cal_start, reference, reference_sigma):
+                 calibration_prior, cal_start, reference, reference_sigma, pose_of=None, timing=False,
+                 timing_prior=1e-7, offset_sensors=None, station_prior=None):
         self.P0 = P
         self.n = P.shape[0]
         self.ang = ang
-        self.K, self.S = ang.shape[:2]
+        self.S = ang.shape[1]
+        self.pose_of = np.arange(ang.shape[0]) if pose_of is None else np.asarray(pose_of, int)
+        self.K = int(self.pose_of.max()) + 1 if self.pose_of.size else 0   # poses (columns)
         self.stations = stations
         self.sigma = sigma
         mask = np.isfinite(ang)
-        self.obs = np.nonzero(mask)                               # (k, s, i, ax)
+        self.obs = np.nonzero(mask)                               # (k, s, i, ax): k a sample
+        self.kp = self.pose_of[self.obs[0]]                       # the pose of each observation
         self.meas = ang[mask]
-        self.free_station = list(free_station)                   # station indices with free pose
+        # free station-pose components (s, c), c = 0..2 rotation increment, 3..5 translation; a bare
+        # station index frees all six
+        self.free_station = [tuple(f) if isinstance(f, tuple) else (int(f), c) for f in free_station
+                             for c in ((None,) if isinstance(f, tuple) else range(6))]
+        self.free_station = [(int(a), int(b)) for a, b in self.free_station]
         self.free_cal = free_cal                                  # list of (s, ax, j)
         self.offsets = offsets
         self.offset_prior = offset_prior
@@ -194,22 +283,39 @@ class _Problem:
         self.cal_start = cal_start                                # (S, 2, 7)
         self.reference = reference
         self.reference_sigma = reference_sigma
+        self.timing = bool(timing)
+        self.timing_prior = float(timing_prior)
+        #: d angle / d latency per station, rad/s (module docstring: +omega for LH1 theta, -omega for LH2 alpha)
+        self.timing_gain = np.array([timing_gain(st) for st in stations])
+        # which sensors carry offset / timing columns (default all; a device's sensors only when one
+        # device of several is adjusted)
+        self.adj = np.arange(self.n) if offset_sensors is None else np.asarray(offset_sensors, int)
+        self.adj_col = np.full(self.n, -1)
+        self.adj_col[self.adj] = np.arange(self.adj.size)
+        na = self.adj.size
         # column layout
         self.c_pose = 0
         self.c_st = 6 * self.K
-        self.c_cal = self.c_st + 6 * len(self.free_station)
+        self.c_cal = self.c_st + len(self.free_station)
         self.c_off = self.c_cal + len(free_cal)
-        self.N = self.c_off + (3 * self.n if offsets else 0)
-        self.st_col = {s: self.c_st + 6 * q for q, s in enumerate(self.free_station)}
+        self.c_tim = self.c_off + (3 * na if offsets else 0)
+        self.N = self.c_tim + (na if self.timing else 0)
+        self.st_col = {sc: self.c_st + q for q, sc in enumerate(self.free_station)}
+        self.st_free = sorted({sc[0] for sc in self.free_station})
         self.cal_col = {key: self.c_cal + q for q, key in enumerate(free_cal)}
         self.m_data = len(self.meas)
         self.m_cal = len(free_cal)
-        self.m_off = 3 * self.n if offsets else 0
+        self.m_off = 3 * na if offsets else 0
+        self.m_tim = na if self.timing else 0
         self.m_ref = 0
         if reference is not None:
             self.ref_k = np.flatnonzero(reference[2])
             self.m_ref = 6 * len(self.ref_k)
-        self.M = self.m_data + self.m_cal + self.m_off + self.m_ref
+        self.station_prior = station_prior                      # (rad, m) or None (free)
+        self.m_stp = len(self.free_station) if station_prior is not None else 0
+        self._stp_sd = (np.array([station_prior[c // 3] for _, c in self.free_station], float)
+                        if station_prior is not None else None)
+        self.M = self.m_data + self.m_cal + self.m_off + self.m_tim + self.m_stp + self.m_ref
 
     # ---------------------------------------------------------------- unpack
     def unpack(self, x, R0, t0, RS0, TS0):
@@ -218,18 +324,38 @@ class _Problem:
         R = rotvec_to_matrix(xp[:, :3]) @ R0
         t = t0 + xp[:, 3:]
         RS, TS = RS0.copy(), TS0.copy()
-        for s, c in self.st_col.items():
-            RS[s] = rotvec_to_matrix(x[c:c + 3]) @ RS0[s]
-            TS[s] = TS0[s] + x[c + 3:c + 6]
+        for s in self.st_free:
+            v = self.station_increment(x, s)
+            RS[s] = rotvec_to_matrix(v[:3]) @ RS0[s]
+            TS[s] = TS0[s] + v[3:]
         cal = self.cal_start.copy()
         for (s, ax, j), c in self.cal_col.items():
             cal[s, ax, j] = x[c]
-        off = x[self.c_off:].reshape(self.n, 3) if self.offsets else np.zeros((self.n, 3))
+        off = np.zeros((self.n, 3))
+        if self.offsets:
+            off[self.adj] = x[self.c_off:self.c_tim].reshape(-1, 3)
         return R, t, RS, TS, cal, off
 
-    def predict(self, R, t, RS, TS, cal, off, jacobian):
+    def station_increment(self, x, s):
+        """Station ``s``'s pose increment (6,): rotation vector (left) and translation, 0 where held."""
+        v = np.zeros(6)
+        for c in range(6):
+            col = self.st_col.get((s, c))
+            if col is not None:
+                v[c] = x[col]
+        return v
+
+    def tau_of(self, x):
+        """Per-sensor latency (n,) s (zero where not adjusted)."""
+        tau = np.zeros(self.n)
+        if self.timing:
+            tau[self.adj] = x[self.c_tim:self.c_tim + self.adj.size]
+        return tau
+
+    def predict(self, R, t, RS, TS, cal, off, jacobian, tau=None):
         """Predicted angle per observation and (optionally) the Jacobian pieces."""
-        k, s, i, ax = self.obs
+        _, s, i, ax = self.obs
+        k = self.kp
         P = self.P0 + off
         pw = np.einsum("mij,mj->mi", R[k], P[i]) + t[k]
         pred = np.empty(len(k))
@@ -244,6 +370,8 @@ class _Problem:
             a, dp, dc = measure_jacobian(ps[:, None, :], c, jacobian=jacobian)
             axs = ax[sel]
             pred[sel] = a[np.arange(sel.size), 0, axs]
+            if tau is not None:
+                pred[sel] += self.timing_gain[q] * tau[i[sel]]
             if jacobian:
                 aps = dp[np.arange(sel.size), 0, axs]             # (m, 3) d angle / d p_s
                 aw = aps @ RS[q].T                                 # d angle / d p_world
@@ -262,7 +390,7 @@ class _Problem:
     # ---------------------------------------------------------------- residual & Jacobian
     def residual(self, x, base):
         R, t, RS, TS, cal, off = self.unpack(x, *base)
-        pred, _, _ = self.predict(R, t, RS, TS, cal, off, False)
+        pred, _, _ = self.predict(R, t, RS, TS, cal, off, False, self.tau_of(x))
         return self._stack(x, pred, R, t, cal, off)
 
     def _stack(self, x, pred, R, t, cal, off):
@@ -271,7 +399,11 @@ class _Problem:
             r.append(np.array([(cal[s, ax, j] - self.cal_start[s, ax, j]) / self.calibration_prior[j]
                                for (s, ax, j) in self.free_cal]))
         if self.m_off:
-            r.append(off.ravel() / self.offset_prior)
+            r.append(off[self.adj].ravel() / self.offset_prior)
+        if self.m_tim:
+            r.append(x[self.c_tim:self.c_tim + self.m_tim] / self.timing_prior)
+        if self.m_stp:
+            r.append(x[self.c_st:self.c_cal] / self._stp_sd)
         if self.m_ref:
             Rr, tr = self.reference[0][self.ref_k], self.reference[1][self.ref_k]
             from .geometry import matrix_to_rotvec
@@ -282,26 +414,31 @@ class _Problem:
 
     def pattern(self):
         """(rows, cols) of the nonzeros: the ``jac_sparsity`` structure."""
-        k, s, i, ax = self.obs
+        _, s, i, ax = self.obs
+        k = self.kp
         m = np.arange(self.m_data)
         rows, cols = [], []
         for c in range(6):
             rows.append(m)
             cols.append(6 * k + c)
-        for q, c0 in self.st_col.items():
+        for (q, c), col in self.st_col.items():
             sel = np.flatnonzero(s == q)
-            for c in range(6):
-                rows.append(sel)
-                cols.append(np.full(sel.size, c0 + c))
+            rows.append(sel)
+            cols.append(np.full(sel.size, col))
         for (q, a, j), c0 in self.cal_col.items():
             both = self.stations[q].kind == "lh2" and j == 0
             sel = np.flatnonzero((s == q) & ((ax == a) | both))
             rows.append(sel)
             cols.append(np.full(sel.size, c0))
+        ja = self.adj_col[i]
+        ma = m[ja >= 0]
         if self.offsets:
             for c in range(3):
-                rows.append(m)
-                cols.append(self.c_off + 3 * i + c)
+                rows.append(ma)
+                cols.append(self.c_off + 3 * ja[ja >= 0] + c)
+        if self.timing:
+            rows.append(ma)
+            cols.append(self.c_tim + ja[ja >= 0])
         r0 = self.m_data
         if self.m_cal:
             rows.append(r0 + np.arange(self.m_cal))
@@ -311,6 +448,14 @@ class _Problem:
             rows.append(r0 + np.arange(self.m_off))
             cols.append(self.c_off + np.arange(self.m_off))
             r0 += self.m_off
+        if self.m_tim:
+            rows.append(r0 + np.arange(self.m_tim))
+            cols.append(self.c_tim + np.arange(self.m_tim))
+            r0 += self.m_tim
+        if self.m_stp:
+            rows.append(r0 + np.arange(self.m_stp))
+            cols.append(self.c_st + np.arange(self.m_stp))
+            r0 += self.m_stp
         if self.m_ref:
             for q, kk in enumerate(self.ref_k):
                 for a in range(6):
@@ -324,21 +469,22 @@ class _Problem:
 
         R, t, RS, TS, cal, off = self.unpack(x, *base)
         _, pw, parts = self.predict(R, t, RS, TS, cal, off, True)
-        k, s, i, ax = self.obs
+        _, s, i, ax = self.obs
+        k = self.kp
         K = self.K
         Jl = right_jacobian_so3(-x[: 6 * K].reshape(K, 6)[:, :3])  # left Jacobian J_l(x) = J_r(-x)
         rows, cols, vals = [], [], []
         aw_all = np.zeros((self.m_data, 3))
         for q, (sel, aw, qv, dc) in parts.items():
             aw_all[sel] = aw
-            if q in self.st_col:
-                c0 = self.st_col[q]
-                xs = x[c0:c0 + 3]
+            if q in self.st_free:
+                xs = self.station_increment(x, q)[:3]
                 Js = np.cross(aw, qv) @ right_jacobian_so3(-xs)
-                for c in range(3):
-                    rows.append(sel); cols.append(np.full(sel.size, c0 + c)); vals.append(-Js[:, c])
-                for c in range(3):
-                    rows.append(sel); cols.append(np.full(sel.size, c0 + 3 + c)); vals.append(aw[:, c])
+                for c in range(6):
+                    col = self.st_col.get((q, c))
+                    if col is not None:
+                        rows.append(sel); cols.append(np.full(sel.size, col))
+                        vals.append(-Js[:, c] if c < 3 else aw[:, c - 3])
             for (qq, a, j), c0 in self.cal_col.items():
                 if qq != q:
                     continue
@@ -351,10 +497,14 @@ class _Problem:
             rows.append(m_idx); cols.append(6 * k + c); vals.append(-Jr[:, c])
         for c in range(3):
             rows.append(m_idx); cols.append(6 * k + 3 + c); vals.append(-aw_all[:, c])
+        ja = self.adj_col[i]
+        ma = ja >= 0
         if self.offsets:
-            Jo = np.einsum("mi,mij->mj", aw_all, R[k])
+            Jo = np.einsum("mi,mij->mj", aw_all[ma], R[k[ma]])
             for c in range(3):
-                rows.append(m_idx); cols.append(self.c_off + 3 * i + c); vals.append(-Jo[:, c])
+                rows.append(m_idx[ma]); cols.append(self.c_off + 3 * ja[ma] + c); vals.append(-Jo[:, c])
+        if self.timing:
+            rows.append(m_idx[ma]); cols.append(self.c_tim + ja[ma]); vals.append(-self.timing_gain[s[ma]])
         vals = [v / self.sigma for v in vals]                    # residual = (meas - pred) / sigma
         r0 = self.m_data
         if self.m_cal:
@@ -365,6 +515,14 @@ class _Problem:
             rows.append(r0 + np.arange(self.m_off)); cols.append(self.c_off + np.arange(self.m_off))
             vals.append(np.full(self.m_off, 1.0 / self.offset_prior))
             r0 += self.m_off
+        if self.m_tim:
+            rows.append(r0 + np.arange(self.m_tim)); cols.append(self.c_tim + np.arange(self.m_tim))
+            vals.append(np.full(self.m_tim, 1.0 / self.timing_prior))
+            r0 += self.m_tim
+        if self.m_stp:
+            rows.append(r0 + np.arange(self.m_stp)); cols.append(self.c_st + np.arange(self.m_stp))
+            vals.append(1.0 / self._stp_sd)
+            r0 += self.m_stp
         if self.m_ref:
             Rr = self.reference[0][self.ref_k]
             from .geometry import matrix_to_rotvec
@@ -409,6 +567,8 @@ def _global_covariance(J, K):
     the per-sample 6 × 6 pose blocks of ``J^T J``."""
     Jc = J.tocsc()
     Jp, Jg = Jc[:, : 6 * K], Jc[:, 6 * K:]
+    if Jg.shape[1] == 0:                                       # every global parameter held
+        return np.zeros((0, 0)), np.zeros(0, bool)
     Hgg = (Jg.T @ Jg).toarray()
     Hgp = (Jg.T @ Jp).toarray().reshape(Jg.shape[1], K, 6)
     inv = np.linalg.pinv(_pose_blocks(Jp, K))
@@ -454,7 +614,9 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                   calibration_prior: float = 0.1, reference=None, reference_sigma=(1e-3, 1e-3),
                   gauge_station: int = 0, loss: str = "soft_l1", f_scale: float = 3.0, max_nfev: int = 200,
                   solver: str = "schur", jacobian: str = "analytic", before=None,
-                  layout_sigma: float | None = None) -> BundleResult:
+                  layout_sigma: float | None = None, pose_of=None, sensor_timing: bool = False,
+                  timing_prior: float = 1e-7, sensor_labels=None, adjusted_sensors=None,
+                  station_prior=None) -> BundleResult:
     """Bundle adjustment of K samples seen by S stations (module docstring).
 
     points_body : (n, 3) m, the layout as measured; angles : (K, S, n, 2) rad, measured (distorted)
@@ -474,6 +636,19 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     layout_sigma : m, 1-sigma of each sensor coordinate when ``sensor_offsets`` is off (default
     ``offset_prior``; 0 = the layout is exact): carried as a consider term in every reported sd and in
     the ``weakly_observable`` test (module docstring).
+    pose_of : optional (K,) int, the body pose of each sample (default: one pose per sample); samples
+        that share a pose (a static segment: the body did not move) share its 6 unknowns. Then
+        ``initial_poses`` and the returned ``rotation``/``translation`` are per pose, and a
+        ``reference`` is per pose too.
+    sensor_timing : also adjust a per-sensor latency ``tau_i`` (s; prior sd ``timing_prior``): the
+        sensor's angles read ``timing_gain(station) * tau_i`` more (:func:`timing_gain`).
+    sensor_labels : optional n names for the sensor parameters (e.g. ``"HMD 3"`` when several devices'
+        sensors are stacked into one body, each device's samples seeing only its own sensors).
+    adjusted_sensors : optional indices of the sensors whose offsets / timing are adjusted (default
+        all); the others are held as given (e.g. a device used only through its known layout).
+    station_prior : optional ``(rad, m)`` prior sd of each free station's pose around its start (the
+        start is itself a solution, e.g. libsurvive's ``LH_POSE``): directions the data do not
+        determine stay where they were instead of absorbing the devices' own errors. None: free.
     """
     from scipy.optimize import least_squares
 
@@ -481,21 +656,32 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     ang = np.asarray(angles, float)
     K, S, n = ang.shape[:3]
     stations = list(stations)
+    check_station_ids(stations)
+    pose_of = np.arange(K) if pose_of is None else np.asarray(pose_of, int)
+    if pose_of.shape != (K,) or (K and pose_of.min() < 0):
+        raise ValueError(f"pose_of: expected {K} non-negative pose indices, got shape {pose_of.shape}")
     R0 = np.asarray(initial_poses[0], float).copy()
     t0 = np.asarray(initial_poses[1], float).copy()
+    Kp = R0.shape[0]
+    if K and pose_of.max() >= Kp:
+        raise ValueError(f"pose_of: index {pose_of.max()} but only {Kp} initial poses")
     good = np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1)
-    ang = np.where(good[:, None, None, None], ang, np.nan)
+    good_s = good[pose_of]
+    ang = np.where(good_s[:, None, None, None], ang, np.nan)
     R0[~good], t0[~good] = np.eye(3), 0.0
-    if np.sum(np.isfinite(ang)) < 6 * max(int(good.sum()), 1) + 20 or good.sum() < 2:
+    if np.sum(np.isfinite(ang)) < 6 * max(int(good.sum()), 1) + 20 or good_s.sum() < 2:
         z = np.full(ang.shape, np.nan)
         return BundleResult(stations, P, R0, t0, [], z, z, False, "too_few",
-                            f"too few samples with a start pose ({int(good.sum())} of {K})")
+                            f"too few samples with a start pose ({int(good_s.sum())} of {K})")
+    adj = np.arange(n) if adjusted_sensors is None else np.asarray(adjusted_sensors, int)
+    labels = [str(i) for i in range(n)] if sensor_labels is None else [str(x) for x in sensor_labels]
     RS0 = np.stack([st.rotation for st in stations])
     TS0 = np.stack([st.translation for st in stations])
     cal_start = np.stack([station_to_ba(st.calibration.params if st.calibration is not None
                                         else np.zeros((2, len(CALIBRATION_PARAMS))), st.kind) for st in stations])
     prior = np.full(len(BA_PARAMS), float(calibration_prior))
-    free_station = [s for s in range(S) if reference is not None or s != gauge_station]
+    free_station = [(s, c) for s in range(S) if reference is not None or s != gauge_station for c in range(6)]
+    st_prior = None if station_prior is None else np.asarray(station_prior, float)
     free_cal = []
     if fit_calibration:
         for s, st in enumerate(stations):
@@ -512,24 +698,36 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     x0_full = None
     before_res = before
     corr_seen: dict = {}
-    for attempt in range(len(free_cal) + 1):
+    st_held: set = set()
+    st_weak: set = set()
+    prev = None
+    for attempt in range(len(free_cal) + len(free_station) + 1):
         cal_list = [c for c in free_cal if c not in fixed]
-        pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
+        st_list = [c for c in free_station if c not in st_held]
+        pb = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=st_list,
                       offsets=sensor_offsets, offset_prior=offset_prior, calibration_prior=prior,
-                      cal_start=cal_start, reference=reference, reference_sigma=reference_sigma)
+                      cal_start=cal_start, reference=reference, reference_sigma=reference_sigma,
+                      pose_of=pose_of, timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj,
+                      station_prior=station_prior)
+        K = pb.K                                              # poses (the columns), from here on
         x0 = np.zeros(pb.N)
         for (s, ax, j), c in pb.cal_col.items():
             x0[c] = cal_start[s, ax, j]
         if x0_full is not None:                               # warm start from the previous pass
-            x0[: pb.c_cal] = x0_full[: pb.c_cal]
-            if sensor_offsets:
-                x0[pb.c_off:] = x0_full[-3 * n:]
+            x0[: 6 * K] = x0_full[: 6 * K]
+            for key, c in pb.st_col.items():
+                x0[c] = x0_full[prev.st_col[key]]
+            for key, c in pb.cal_col.items():
+                x0[c] = x0_full[prev.cal_col[key]]
+            tail = pb.N - pb.c_off                            # offsets and timing: same length every pass
+            if tail:
+                x0[pb.c_off:] = x0_full[len(x0_full) - tail:]
         if before_res is None:
             before_res = _residual_grid(pb, x0, base)
         lo = np.full(pb.N, -np.inf)
         hi = np.full(pb.N, np.inf)
         if sensor_offsets:
-            lo[pb.c_off:], hi[pb.c_off:] = -offset_bound, offset_bound
+            lo[pb.c_off:pb.c_tim], hi[pb.c_off:pb.c_tim] = -offset_bound, offset_bound
         if solver == "schur":
             sol = _schur_lm(pb, x0, base, lo, hi, loss, f_scale, max_nfev)
         else:
@@ -553,18 +751,21 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
         Jw = diags(np.sqrt(wts)) @ J
         cov, null = _global_covariance(Jw, K)
         rd = r[: pb.m_data]
-        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off), 1)
+        dof = max(pb.m_data - (pb.N - pb.m_cal - pb.m_off - pb.m_tim - pb.m_stp), 1)
         s2 = float(np.sum(wts[: pb.m_data] * rd * rd) / dof)
         std_noise = np.sqrt(np.maximum(np.diag(cov), 0) * s2)
         if consider:                                   # the unadjusted layout's error (module docstring)
             from scipy.sparse import csr_matrix, vstack
 
-            twin = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=free_station,
+            twin = _Problem(P, ang, stations, sigma=sigma, free_cal=cal_list, free_station=st_list,
                             offsets=True, offset_prior=lsig, calibration_prior=prior, cal_start=cal_start,
-                            reference=reference, reference_sigma=reference_sigma)
-            Jt = twin.jacobian(np.concatenate([sol.x, np.zeros(3 * n)]), base).tocsr()
-            Jo = vstack([diags(np.sqrt(wts[: pb.m_data])) @ Jt[: pb.m_data, twin.c_off:],
-                         csr_matrix((pb.M - pb.m_data, 3 * n))])
+                            reference=reference, reference_sigma=reference_sigma, pose_of=pose_of,
+                            timing=sensor_timing, timing_prior=timing_prior, offset_sensors=adj,
+                            station_prior=station_prior)
+            xt = np.concatenate([sol.x[: pb.c_off], np.zeros(3 * adj.size), sol.x[pb.c_off:]])
+            Jt = twin.jacobian(xt, base).tocsr()
+            Jo = vstack([diags(np.sqrt(wts[: pb.m_data])) @ Jt[: pb.m_data, twin.c_off:twin.c_tim],
+                         csr_matrix((pb.M - pb.m_data, 3 * adj.size))])
             cov_tot = cov * s2 + _consider_covariance(Jw, Jo, K, cov) * lsig ** 2
         else:
             cov_tot = cov * s2
@@ -581,24 +782,36 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
             elif std[gi] > UNOBSERVABLE_RATIO * prior[j]:
                 newly.add((s, ax, j))
                 weak.add((s, ax, j))
-        x0_full = sol.x
-        if not newly:
+        newly_st = set()
+        if st_prior is not None:                       # the same rule for station poses with a prior
+            for (s, c), col in pb.st_col.items():
+                gi = col - 6 * K
+                lim = UNOBSERVABLE_RATIO * st_prior[c // 3]
+                if null[gi] or std_noise[gi] > lim:
+                    newly_st.add((s, c))
+                elif std[gi] > lim:
+                    newly_st.add((s, c))
+                    st_weak.add((s, c))
+        x0_full, prev = sol.x, pb
+        if not newly and not newly_st:
             break
         fixed |= newly
+        st_held |= newly_st
     R, t, RS, TS, cal, off = pb.unpack(sol.x, *base)
     after = _residual_grid(pb, sol.x, base)
     params = []
     names_st = ("d_rx", "d_ry", "d_rz", "tx", "ty", "tz")  # rotation: change from the start
     for s in range(S):
-        c0 = pb.st_col.get(s)
         for q in range(6):
+            c0 = pb.st_col.get((s, q))
             if c0 is None:
                 val = (0.0 if q < 3 else TS0[s, q - 3])
+                held = "fixed" if (s, q) not in st_held else ("weakly_observable" if (s, q) in st_weak else "unobservable")
                 params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val), None,
-                                                float(val), "rad" if q < 3 else "m", "fixed"))
+                                                float(val), "rad" if q < 3 else "m", held))
             else:
-                gi = c0 + q - 6 * K
-                val = sol.x[c0 + q] if q < 3 else TS[s, q - 3]
+                gi = c0 - 6 * K
+                val = sol.x[c0] if q < 3 else TS[s, q - 3]
                 st0 = 0.0 if q < 3 else TS0[s, q - 3]
                 bad = bool(null[gi])
                 params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val),
@@ -659,27 +872,45 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                                                 float(m0[ia]), "rad",
                                                 fitted_status(s, m0[ia] + dph, m0[ia], sd_ph) if ok_ph else "unobservable"))
     if sensor_offsets:
-        for i in range(n):
+        for q, i in enumerate(adj):
             for c in range(3):
-                gi = pb.c_off + 3 * i + c - 6 * K
+                gi = pb.c_off + 3 * q + c - 6 * K
                 bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * offset_prior
-                params.append(ParameterEstimate(f"sensor {i} offset {'xyz'[c]}", float(off[i, c]),
-                                                None if bad else float(std[gi]), 0.0, "m",
-                                                "unobservable" if bad else "ok"))
+                params.append(ParameterEstimate(f"sensor {labels[i]} offset {'xyz'[c]}", float(off[i, c]),
+                                                None if null[gi] else float(std[gi]), 0.0, "m",
+                                                PRIOR_DOMINATED if bad else "ok"))
+    tau = pb.tau_of(sol.x)
+    if sensor_timing:
+        for q, i in enumerate(adj):
+            gi = pb.c_tim + q - 6 * K
+            bad = bool(null[gi]) or std[gi] > UNOBSERVABLE_RATIO * timing_prior
+            params.append(ParameterEstimate(f"sensor {labels[i]} timing", float(tau[i]),
+                                            None if null[gi] else float(std[gi]), 0.0, "s",
+                                            PRIOR_DOMINATED if bad else "ok"))
     new_st = []
     for s, st in enumerate(stations):
         c = Calibration(station_from_ba(cal[s], st.kind), st.kind, st.calibration.gib_argument if st.calibration else "ideal")
-        new_st.append(Station(id=st.id, rotation=RS[s], translation=TS[s], kind=st.kind, rotor_rpm=st.rotor_rpm,
-                              clock_hz=st.clock_hz, fov_deg=st.fov_deg, calibration=c))
+        new_st.append(replace(st, rotation=RS[s], translation=TS[s], calibration=c))
     R = np.where(good[:, None, None], R, np.nan)
     t = np.where(good[:, None], t, np.nan)
     status = "ok" if sol.status > 0 else "not_converged"
-    cnt = {k: sum(p.status == k for p in params) for k in ("unobservable", "weakly_observable", "suspect")}
+    cnt = {k: sum(p.status == k for p in params) for k in ("unobservable", "weakly_observable", "suspect",
+                                                            PRIOR_DOMINATED)}
     msg = (f"{sol.message.strip()} ({sol.nfev} evaluations); residual scale {np.sqrt(s2):.3g} sigma; "
            f"{cnt['unobservable']} parameter(s) unobservable, {cnt['weakly_observable']} weakly observable "
            f"(held at their start), {cnt['suspect']} suspect")
-    return BundleResult(new_st, P + off, R, t, params, before_res, after, sol.status > 0, status, msg,
-                        int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost)})
+    if cnt[PRIOR_DOMINATED]:
+        msg += (f"; {cnt[PRIOR_DOMINATED]} sensor term(s) adjusted but set mostly by their prior "
+                f"(sd > {UNOBSERVABLE_RATIO:g} prior: {PRIOR_DOMINATED})")
+    if pb.N == 6 * K:                                          # nothing left to adjust: say so, never "ok"
+        status = "nothing_determined"
+        n_weak = len(weak) + len(st_weak)
+        n_free = len(free_cal) + len(free_station)
+        msg = (f"the {int(good_s.sum())} samples determine none of the {n_free} free parameter(s) "
+               f"({n_free - n_weak} unobservable, {n_weak} weakly observable; all held at their start): "
+               f"nothing adjusted")
+    return BundleResult(new_st, P + off, R, t, params, before_res, after, status == "ok", status, msg,
+                        int(sol.nfev), float(np.sqrt(s2)), {"cost": float(sol.cost), "timing_s": tau})
 
 
 def _loss_weights(r, m_data, loss, f_scale):
@@ -712,7 +943,11 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
     Normal equations ``H = J^T W J``, ``b = J^T W r`` (W the IRLS weights); with pose blocks
     ``H_pp`` (K 6 × 6), ``H_pg``, ``H_gg``: ``S = H_gg - H_gp H_pp^-1 H_pg``,
     ``S dg = -(b_g - H_gp H_pp^-1 b_p)``, ``dp = -H_pp^-1 (b_p + H_pg dg)``; damping
-    ``lambda diag(H)``. Stops when a step lowers the cost by less than 1e-10 of it.
+    ``lambda diag(H)``. Stops when a step lowers the cost by less than 1e-10 of it, or when the last
+    :data:`STALL_ITERATIONS` accepted steps together lowered it by less than :data:`STALL_RTOL` of it
+    or by less than 0.5 (the cost is half the chi-square: the parameters moved by well under one
+    standard deviation; a robust cost on real data creeps on by tiny steps along the weakly
+    determined directions).
     Returns a namespace like ``least_squares``'s result (x, status, nfev, message, cost).
     """
     from types import SimpleNamespace
@@ -724,6 +959,7 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
     lam = 1e-4
     nfev, status, msg = 1, 0, "iteration limit reached"
     idx = np.arange(K) * 6
+    history = [cost]
     for it in range(max_iter):
         J = pb.jacobian(x, base).tocsc()
         w = _loss_weights(r, pb.m_data, loss, f_scale)
@@ -764,8 +1000,13 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
         if not improved:
             status, msg = 2, "no step lowers the cost (converged to working precision)"
             break
+        history.append(cost)
         if gain <= 1e-10 * cost:
             status, msg = 1, f"converged (relative cost change {gain / max(cost, 1e-300):.1e})"
+            break
+        if len(history) > STALL_ITERATIONS and history[-1 - STALL_ITERATIONS] - cost <= max(STALL_RTOL * cost, 0.5):
+            status, msg = 1, (f"converged (the last {STALL_ITERATIONS} steps lowered the cost by "
+                              f"{(history[-1 - STALL_ITERATIONS] - cost) / max(cost, 1e-300):.1e} of it)")
             break
     return SimpleNamespace(x=x, status=status, nfev=nfev, message=msg, cost=cost)
 
@@ -773,7 +1014,7 @@ def _schur_lm(pb: _Problem, x0, base, lo, hi, loss, f_scale, max_iter):
 def _residual_grid(pb: _Problem, x, base) -> np.ndarray:
     """Angle residuals (rad) at ``x`` on the (K, S, n, 2) grid, NaN where no angle."""
     R, t, RS, TS, cal, off = pb.unpack(x, *base)
-    pred, _, _ = pb.predict(R, t, RS, TS, cal, off, False)
+    pred, _, _ = pb.predict(R, t, RS, TS, cal, off, False, pb.tau_of(x))
     out = np.full(pb.ang.shape, np.nan)
     out[pb.obs] = _wrap(pb.meas - pred)
     return out

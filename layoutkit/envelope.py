@@ -28,7 +28,7 @@ of ``R_nominal``, i.e. ``R = exp([w]x) R_nominal`` with ``|w| <= half_angle``), 
 (a pose table, :mod:`layoutkit.io.poses`: ``t,rx,ry,rz,tx,ty,tz`` at least, rotation vector in
 RADIANS — or columns ``rx_deg,ry_deg,rz_deg`` — and metres, body in the world frame; it gives the whole pose and ``range_m``/``boresight_cone_deg`` are not
 used). Without ``[[station]]`` one LH1 station sits at the world origin, so the world frame is
-the station frame.
+the station frame (said in a :class:`~layoutkit._validate.ValidationWarning`).
 
 Pose convention everywhere: ``p_world = R p_body + t``.
 """
@@ -164,7 +164,17 @@ class Envelope:
         raw_st = d.get("station", [])
         if not isinstance(raw_st, list):
             raise ValueError("station: expected an array of tables [[station]]")
-        stations = tuple(_station_from_dict(s, k) for k, s in enumerate(raw_st)) or (Station(),)
+        stations = tuple(_station_from_dict(s, k) for k, s in enumerate(raw_st))
+        if not stations:  # documented default, but never silent: where the lighthouse is sets every pose
+            import warnings
+
+            from ._validate import ValidationWarning
+
+            stations = (Station(),)
+            warnings.warn(ValidationWarning(
+                "station: no [[station]] table: one LH1 station 'A' (field of view 120 deg) at the world origin "
+                "looking along +z is assumed, so the world frame is the station frame; add a [[station]] table "
+                "(position_m, rotvec_deg or look_at_m, kind) to say where your lighthouse is"), stacklevel=2)
         try:
             return cls(
                 range_m=tuple(d.get("range_m", (1.0, 3.0))),

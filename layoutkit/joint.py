@@ -33,7 +33,7 @@ from .status import AMBIGUOUS as STATUS_AMBIGUOUS, BEHIND as STATUS_BEHIND, DEGE
 from .status import LOW_REDUNDANCY as STATUS_LOW_REDUNDANCY, MIN_ANGLES, MIN_REDUNDANCY
 from .status import NOT_CONVERGED as STATUS_NOT_CONVERGED, OK as STATUS_OK, TOO_FEW_LIT as STATUS_TOO_FEW
 
-__all__ = ["solve_joint", "model_angles_jacobian", "group_windows", "window_angles", "ray_midpoints",
+__all__ = ["solve_joint", "JOINT_METHODS", "model_angles_jacobian", "group_windows", "window_angles", "ray_midpoints",
            "firmware_corrected_angles", "crossing_beam_positions", "MIN_ANGLES", "DEFAULT_CHUNK",
            "WINDOW_S"]
 
@@ -177,7 +177,7 @@ def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
 
 
 def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt=None, velocity=None,
-                max_iterations: int = 30, chunk_size: int = DEFAULT_CHUNK) -> PnPResult:
+                max_iterations: int = 30, chunk_size: int = DEFAULT_CHUNK, method: str = "lm") -> PnPResult:
     """Body poses in the stations' world frame from the angles of all stations at once.
 
     points_body : (n, 3) m, sensors in the body frame.
@@ -189,6 +189,9 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
     initial : optional ``(R (F, 3, 3), t (F, 3))`` world start; default the per-station solves.
     dt, velocity : optional motion compensation (see :func:`model_angles_jacobian`; dt (F, S) or
         (F, S, 2) per axis).
+    method : ``"lm"`` (default) the compiled kernel :mod:`layoutkit.joint_numba` (start selection and
+        Levenberg–Marquardt per frame, on numba's threads), ``"lm-numpy"`` the numpy reference
+        :func:`_lm` (the same steps; the tests hold the kernel to it). Keys of :data:`JOINT_METHODS`.
     Returns a :class:`layoutkit.pnp_result.PnPResult` (world frame; ``residual_rms`` over the used angles).
     Frames with fewer than ``MIN_ANGLES`` (6) usable angles (or no station start) get
     ``STATUS_TOO_FEW``; singular normal equations ``STATUS_DEGENERATE``; a used point behind its
@@ -200,6 +203,8 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
     S = len(stations)
     if S == 0:
         raise ValueError("stations: at least one station is required")
+    if method not in JOINT_METHODS:
+        raise ValueError(f"method: expected one of {list(JOINT_METHODS)}, got {method!r}")
     P = as_array(points_body, "points_body", (None, 3))
     n = P.shape[0]
     ang = np.asarray(angles, float)
@@ -232,14 +237,86 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
             parts.append(_solve_chunk(P, ang[s0:e], mask[s0:e], stations, ini,
                                       None if dt is None else dt[s0:e],
                                       None if velocity is None else (velocity[0][s0:e], velocity[1][s0:e]),
-                                      max_iterations))
+                                      max_iterations, method))
     return concat_results(parts)
 
 
-def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> PnPResult:
+class _Compiled:
+    """The chunk's arrays for :mod:`layoutkit.joint_numba` (station poses, kinds, calibrations;
+    motion as (F, S, 2) times and (F, 3) velocities, zeros without)."""
+
+    def __init__(self, P, meas, mask, stations, dt, vel):
+        F, S = meas.shape[:2]
+        self.P = np.ascontiguousarray(P, float)
+        self.SR = np.ascontiguousarray(np.stack([st.rotation for st in stations]), float)
+        self.ST = np.ascontiguousarray(np.stack([st.translation for st in stations]), float)
+        self.kinds = np.array([0 if st.kind == "lh1" else 1 for st in stations], np.int64)
+        self.cals = np.ascontiguousarray(np.stack([np.zeros((2, 7)) if st.calibration is None else
+                                                   st.calibration.params for st in stations]), float)
+        self.corrected = np.array([st.calibration is not None and st.calibration.gib_argument == "corrected"
+                                   for st in stations])
+        self.meas = np.ascontiguousarray(meas, float)
+        self.mask = np.ascontiguousarray(mask)
+        self.motion = dt is not None and vel is not None
+        if self.motion:
+            d = np.asarray(dt, float)
+            self.dt = np.ascontiguousarray(np.broadcast_to(d if d.ndim == 3 else d[..., None], (F, S, 2)))
+            self.omega = np.ascontiguousarray(vel[0], float)
+            self.vel = np.ascontiguousarray(vel[1], float)
+        else:
+            self.dt, self.omega, self.vel = np.zeros((F, S, 2)), np.zeros((F, 3)), np.zeros((F, 3))
+
+    def args(self):
+        return (self.P, self.SR, self.ST, self.kinds, self.cals, self.corrected, self.meas, self.mask, self.dt,
+                self.omega, self.vel, self.motion)
+
+
+def _start_costs(P, meas, mask, stations, dt, vel, starts, kernel):
+    """(K, F) joint cost of each start (inf where not a start)."""
+    F = meas.shape[0]
+    if kernel is not None:
+        from . import joint_numba
+
+        Rs = np.ascontiguousarray(np.stack([s[0] for s in starts]), float)
+        ts = np.ascontiguousarray(np.stack([s[1] for s in starts]), float)
+        ok = np.ascontiguousarray(np.stack([s[2] for s in starts]))
+        out = np.empty(ok.shape)
+        joint_numba.start_costs(*kernel.args(), Rs, ts, ok, out)
+        return out
+    out = np.full((len(starts), F), np.inf)
+    for k, (Rw, tw, ok) in enumerate(starts):
+        if not ok.any():
+            continue
+        sub = (None if dt is None else dt[ok], None if vel is None else (vel[0][ok], vel[1][ok]))
+        c = _cost(P, Rw[ok], tw[ok], stations, meas[ok], mask[ok], sub[0], sub[1], False)[0]
+        out[k, ok] = np.where(np.isfinite(c), c, np.inf)
+    return out
+
+
+def _lm_compiled(kernel, R0, t0, go, max_iterations):
+    """:func:`_lm` for the frames ``go`` through :func:`layoutkit.joint_numba.solve_frames`: the poses,
+    cost, done, iterations, and per frame the final Gram matrix and the depth sums."""
+    from . import joint_numba
+
+    F = R0.shape[0]
+    S, n = kernel.mask.shape[1:3]
+    R, t = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan)
+    cost, done, its = np.full(F, np.inf), np.zeros(F, bool), np.zeros(F, np.int64)
+    A, zsum = np.zeros((F, 6, 6)), np.zeros((F, S, n))
+    joint_numba.solve_frames(*kernel.args(), np.ascontiguousarray(R0, float), np.ascontiguousarray(t0, float),
+                             np.ascontiguousarray(go), int(max_iterations), _RTOL, _ATOL, R, t, cost, done, its, A, zsum)
+    return R, t, cost, done, its, A, zsum
+
+
+#: Joint solvers (:func:`solve_joint` ``method``): the compiled kernel and the numpy reference.
+JOINT_METHODS = ("lm", "lm-numpy")
+
+
+def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations, method="lm") -> PnPResult:
     F = ang.shape[0]
     meas = np.where(mask, ang, 0.0)
     m = mask.sum(axis=(1, 2, 3))
+    kernel = _Compiled(P, meas, mask, stations, dt, vel) if method == "lm" else None
     if initial is not None:
         R0, t0 = initial[0].copy(), initial[1].copy()
         have = np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1)
@@ -247,13 +324,8 @@ def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> Pn
         starts = _start(P, ang, mask, stations)
         best = np.full(F, np.inf)
         R0, t0 = np.tile(np.eye(3), (F, 1, 1)), np.zeros((F, 3))
-        for Rw, tw, ok in starts:
-            if not ok.any():
-                continue
-            c = np.full(F, np.inf)
-            sub = (None if dt is None else dt[ok], None if vel is None else (vel[0][ok], vel[1][ok]))
-            c[ok] = _cost(P, Rw[ok], tw[ok], stations, meas[ok], mask[ok], sub[0], sub[1], False)[0]
-            c = np.where(np.isfinite(c), c, np.inf)
+        costs = _start_costs(P, meas, mask, stations, dt, vel, starts, kernel)
+        for (Rw, tw, ok), c in zip(starts, costs):   # in order: the first of equal costs wins
             take = c < best
             R0[take], t0[take], best[take] = Rw[take], tw[take], c[take]
         have = np.isfinite(best)
@@ -264,16 +336,21 @@ def _solve_chunk(P, ang, mask, stations, initial, dt, vel, max_iterations) -> Pn
     its = np.zeros(F, int)
     go = have & (m >= MIN_ANGLES)
     if go.any():
-        sub = (None if dt is None else dt[go], None if vel is None else (vel[0][go], vel[1][go]))
-        Rg, tg, cost, done, it, ps, J = _lm(P, R0[go].copy(), t0[go].copy(), stations, meas[go], mask[go],
-                                          sub[0], sub[1], max_iterations)
         mk = mask[go]
-        Jm = (J * mk[..., None]).reshape(Rg.shape[0], -1, 6)
-        A = np.swapaxes(Jm, 1, 2) @ Jm
+        if kernel is not None:
+            Rg, tg, cost, done, it, A, zsum = (v[go] for v in _lm_compiled(kernel, R0, t0, go, max_iterations))
+            z = zsum / 2.0                                       # mean over the two axes' times
+        else:
+            sub = (None if dt is None else dt[go], None if vel is None else (vel[0][go], vel[1][go]))
+            Rg, tg, cost, done, it, ps, J = _lm(P, R0[go].copy(), t0[go].copy(), stations, meas[go], mask[go],
+                                              sub[0], sub[1], max_iterations)
+            Jm = (J * mk[..., None]).reshape(Rg.shape[0], -1, 6)
+            A = np.swapaxes(Jm, 1, 2) @ Jm
+            z = ps[..., 2]
         w = np.linalg.eigvalsh(A / np.maximum(np.trace(A, axis1=1, axis2=2), 1e-300)[:, None, None])
         singular = w[:, 0] <= 1e-12 * w[:, -1]
         used = np.any(mk, -1)                                    # (f, S, n)
-        behind = np.any(used & (ps[..., 2] <= 0), axis=(1, 2))
+        behind = np.any(used & (z <= 0), axis=(1, 2))
         low = m[go] < MIN_ANGLES + MIN_REDUNDANCY                # cannot check itself
         st = np.where(singular, STATUS_DEGENERATE,
                       np.where(behind, STATUS_BEHIND, np.where(~done, STATUS_NOT_CONVERGED,

@@ -18,6 +18,7 @@ import numpy as np
 from ._validate import as_array, check_finite
 
 __all__ = [
+    "check_station_ids",
     "LH1_ROTOR_RPM",
     "DEFAULT_CLOCK_HZ",
     "sweep_angles",
@@ -133,6 +134,15 @@ def lh2_sweep_angles(points_lh, tilt_rad: float = LH2_TILT_RAD) -> np.ndarray:
     return np.stack(out, -1)
 
 
+def check_station_ids(stations, where: str = "stations") -> None:
+    """``ValueError`` when two stations of a list share an ``id`` (results and reports key on it)."""
+    ids = [str(s.id) for s in stations]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise ValueError(f"{where}: station id(s) {', '.join(map(repr, dup))} used by more than one station "
+                         f"(ids: {ids}); give every station its own id (a foreign id can go in 'source_id')")
+
+
 @dataclass(frozen=True)
 class Station:
     """A base station with a known pose in the world frame.
@@ -141,6 +151,9 @@ class Station:
     ``p_world = rotation @ p_station + translation`` (m). ``kind`` is ``"lh1"`` or ``"lh2"``.
     calibration : the station's :class:`Calibration` (None = ideal); solvers and DOP go through
     :func:`measure` with it.
+    source_id : the id a foreign source gave the station (e.g. libsurvive's lighthouse serial, which
+    is not unique: ``nan_crash_windows`` names three lighthouses 2147483647); ``id`` is what
+    layoutkit keys on and must be unique in a stations list (:func:`check_station_ids`).
     To and from JSON: :mod:`layoutkit.io.stations`.
     """
 
@@ -152,6 +165,7 @@ class Station:
     clock_hz: float = DEFAULT_CLOCK_HZ
     fov_deg: float = 120.0
     calibration: "Calibration | None" = None
+    source_id: "str | None" = None
 
     def __post_init__(self):
         R = as_array(self.rotation, "Station.rotation", (3, 3))

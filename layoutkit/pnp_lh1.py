@@ -876,8 +876,64 @@ def _with_redundancy(r: PnPResult, n_angles) -> PnPResult:
     return replace(r, status=st, success=st == STATUS_OK)
 
 
-#: Registry of batched PnP solvers (the names the CLI offers).
-PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_lm}
+#: Frames from which the compiled solver spreads a chunk over threads (below, one thread: the
+#: thread pool's start-up costs more than it saves), and frames per thread task.
+PARALLEL_MIN_FRAMES = 256
+PARALLEL_BLOCK = 32
+
+
+def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: int = 20, sigma: float | None = None,
+                       rho: float = RHO_PAPER) -> PnPResult:
+    """:func:`solve_pnp_lm` compiled: the same algorithm per frame in one numba kernel
+    (:mod:`layoutkit.pnp_numba`; shapes as :class:`PnPSolver`). Same statuses and poses as the numpy
+    reference to rounding (``tests/test_pnp_compiled.py``); chunks of at least
+    :data:`PARALLEL_MIN_FRAMES` frames run on numba's threads. Compiled on first use, cached on disk."""
+    from . import pnp_numba
+
+    P = np.asarray(points_body, float)
+    lit = np.asarray(lit, bool)
+    if lit.ndim == 2:
+        lit = np.repeat(lit[..., None], 2, -1)
+    lit = np.ascontiguousarray(lit)
+    ang = np.asarray(angles, dtype=float)
+    # cot(theta) here, not per frame in the kernel: numpy's SIMD tan is ~10x the scalar libm call the
+    # kernel would make (the values are the reference's, _Frames)
+    # (in place: a second (F, n, 2) temporary costs more in page faults than the tangents)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        cot = np.tan(ang) if lit.all() else np.where(lit, np.tan(np.where(lit, ang, 1.0)), 1.0)
+        np.divide(1.0, cot, out=cot)
+    F = lit.shape[0]
+    has = np.zeros(F, bool)
+    R0, t0 = np.zeros((1, 3, 3)), np.zeros((1, 3))  # read only where has (no per-frame zeros to fault in)
+    if initial is not None:
+        Ri = np.array(initial[0], float)
+        ti = np.asarray(initial[1], float)
+        has = np.all(np.isfinite(Ri), (1, 2)) & np.all(np.isfinite(ti), 1)
+        idx = np.flatnonzero(has)
+        if idx.size:
+            R0, t0 = np.zeros((F, 3, 3)), np.zeros((F, 3))
+            Rs = Ri[idx]
+            off = np.abs(np.matmul(Rs, Rs.transpose(0, 2, 1)) - np.eye(3)).max((1, 2)) > 1e-9
+            if off.any():  # not a rotation: start from the nearest one (as solve_pnp_lm)
+                Rs[off] = nearest_rotation(Rs[off])
+            R0[idx], t0[idx] = Rs, ti[idx]
+    consts = np.array([MIN_ANGLES, MIN_SENSORS, MIN_START_SENSORS, PLANARITY_THRESHOLD, COPLANAR_THRESHOLD,
+                       COLLINEAR_THRESHOLD, RETRY_RESIDUAL, np.cos(DISTINCT_ANGLE), AMBIGUITY_LR], float)
+    out = (np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F, np.int64), np.empty(F), np.empty(F, np.int64),
+           np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F))
+    args = (np.ascontiguousarray(P[None] if P.ndim == 2 else P), P.ndim == 2, cot, lit, R0, t0, has,
+            int(max_iterations), np.nan if sigma is None else float(sigma), float(rho), consts)
+    if F >= PARALLEL_MIN_FRAMES:
+        pnp_numba.solve_batch_parallel(*args, PARALLEL_BLOCK, *out)
+    else:
+        pnp_numba.solve_batch(*args, *out)
+    R, t, st, res, it, aR, at, ares = out  # runner-ups: NaN except ambiguous frames (as solve_pnp_lm)
+    return PnPResult(R, t, st == STATUS_OK, st, res, it, aR, at, ares)
+
+
+#: Registry of batched PnP solvers (the names the CLI offers): ``lm`` the compiled kernel,
+#: ``lm-numpy`` the numpy reference it is tested against (the same algorithm, frames-last arrays).
+PNP_SOLVERS: "dict[str, PnPSolver]" = {"lm": solve_pnp_compiled, "lm-numpy": solve_pnp_lm}
 
 
 def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterations: int = 20,
@@ -931,13 +987,15 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
             p = P if P.ndim == 2 else P[s:e]
             v = vis[s:e] & ~np.isnan(a)  # NaN = not seen
             good = np.isfinite(a) & (a > 0) & (a < np.pi)
-            invalid = (v & ~good).any((1, 2))  # a seen angle that is inf or outside (0, pi)
+            bad = v & ~good  # a seen angle that is inf or outside (0, pi)
+            invalid = bad.any((1, 2)) if bad.any() else None  # (per frame only when there is one)
             lit = v & good
             if P.ndim == 3:
                 lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
-            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), lit.sum((1, 2)))
-            if invalid.any():
+            n_angles = np.full(e - s, lit[0].size) if lit.all() else lit.sum((1, 2))
+            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), n_angles)
+            if invalid is not None:
                 r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
             parts.append(r)
     return concat_results(parts)

@@ -65,6 +65,8 @@ def concat_results(parts) -> PnPResult:
     if not parts:
         return PnPResult(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, bool),
                          np.zeros(0, int), np.zeros(0), np.zeros(0, int))
+    if len(parts) == 1:  # one chunk: its arrays as they are (no copy)
+        return parts[0]
     extra = ({f: np.concatenate([getattr(r, f) for r in parts]) for f in _ALTS}
              if all(r.alt_rotation is not None for r in parts) else {})
     return PnPResult(*(np.concatenate([getattr(r, f) for r in parts]) for f in _FIELDS), **extra)

@@ -249,6 +249,56 @@ def tilt_glyphs(positions, axes, tilt_deg, surface_normals, arrow_length):
     return arrows(~on, A), arrows(on, A), normal
 
 
+SCALE_BAR_COLOR = "#1f3a93"
+
+
+def nice_length(x: float) -> float:
+    """The largest 1-2-5 × 10^k length not above ``x`` (> 0), m: a scale bar's round length."""
+    e = 10.0 ** np.floor(np.log10(x))
+    m = x / e
+    return float(e * (5.0 if m >= 5.0 else 2.0 if m >= 2.0 else 1.0))
+
+
+def length_text(length_m: float) -> str:
+    """``0.05`` → ``"50 mm"``, ``2.0`` → ``"2 m"`` (mm below 1 m)."""
+    return f"{length_m * 1000:g} mm" if length_m < 1.0 else f"{length_m:g} m"
+
+
+def scale_bar_geometry(vertices, center, view_direction, up, diag: float, gap: float = 0.08):
+    """Where a scale bar goes in a picture looking along ``view_direction`` (body frame, from the
+    camera towards the scene) with screen-up ``up``: a round length (:func:`nice_length` of a quarter of
+    ``diag``, m) lying along the screen's horizontal in the plane through ``center`` perpendicular to
+    the view (so its length in the picture is true at the depth of ``center``), just below the mesh
+    ``vertices`` (n, 3) (``gap`` × ``diag`` below them). Returns ``(start (3,), end (3,), length m)``."""
+    v = np.asarray(view_direction, float)
+    v = v / np.linalg.norm(v)
+    right = np.cross(v, np.asarray(up, float))
+    right /= np.linalg.norm(right)
+    up_s = np.cross(right, v)
+    rel = np.asarray(vertices, float) - center
+    below = float(np.min(rel @ up_s)) - gap * diag
+    left = float(np.min(rel @ right))
+    length = nice_length(0.25 * diag)
+    start = center + below * up_s + left * right
+    return start, start + length * right, length
+
+
+def _add_scale_bar(pl, mesh, center, view_direction, up, diag: float, h: int, *, tight: bool = False) -> None:
+    """Draw (or move: named actors) the scale bar of :func:`scale_bar_geometry` with its length
+    written under it, or beside it when ``tight`` (a view framed closely around the mesh)."""
+    import pyvista as pv
+
+    a, b, length = scale_bar_geometry(mesh.vertices, center, view_direction, up, diag, gap=0.035 if tight else 0.08)
+    pl.add_mesh(pv.Line(a, b).tube(radius=0.006 * diag), color=SCALE_BAR_COLOR, name="scale_bar",
+                smooth_shading=True, ambient=0.6)
+    v = np.asarray(view_direction, float)
+    right = np.cross(v, np.asarray(up, float))
+    right /= np.linalg.norm(right)
+    at = b + 0.03 * diag * right if tight else 0.5 * (a + b) - 0.05 * diag * np.cross(right, v)
+    pl.add_point_labels([at], [length_text(length)], font_size=max(10, h // 80), text_color=SCALE_BAR_COLOR,
+                        shape_opacity=0.0, show_points=False, always_visible=True, name="scale_bar_label")
+
+
 def _add_mesh(pl, mesh, opacity=1.0, edges=True):
     """The mesh in light grey with its feature edges (dihedral angle > 20°) drawn dark."""
     poly = _polydata(mesh)
@@ -356,6 +406,7 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
         d = d / np.linalg.norm(d)
         pl.add_text(f"view: {v}, camera along ({d[0]:+.2f}, {d[1]:+.2f}, {d[2]:+.2f}) in the body frame",
                     position="lower_left", font_size=max(9, h // 95), color="#404040", name="view")
+        _add_scale_bar(pl, mesh, center, -d, up, diag, h)
         pl.camera.focal_point = center
         pl.camera.position = center + d * 3.0 * diag
         pl.camera.up = up
@@ -496,6 +547,8 @@ def render_station_view(mesh, positions, normals, rotation, translation, lit, *,
                 + (f", {int(shadowed.sum())} shadowed by the mesh (orange)" if shadowed.any() else "")
                 + f", {int((~lit & ~shadowed).sum())} not lit (red)",
                 position="upper_left", font_size=max(10, h // 80), color="black")
+    _add_scale_bar(pl, mesh, 0.5 * (np.asarray(mesh.bounds[0], float) + np.asarray(mesh.bounds[1], float)),
+                   R[2], -R[1], diag, h, tight=True)
     pl.renderer.ResetCameraClippingRange()
     _shoot(pl, out)
     pl.close()

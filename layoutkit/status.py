@@ -31,6 +31,10 @@ code  name             meaning
                        in one angle moves it and leaves no residual; with 7 an error shows in the
                        one residual degree of freedom but every angle's standardised residual is
                        the same, so it cannot be located (Baarda). The pose is returned, not ok.
+12    imprecise        solved, but its predicted 1-sigma position (DOP with the run's sigma/rho)
+                       is above the run's limit (e.g. a small deck seen by one station)
+13    uncertain        tracking filter: its own 1-sigma pose is above the configured limits
+14    lost             tracking filter: the innovations reject the state; re-initialising
 ====  ===============  ==========================================================================
 
 Single results use names: the optimiser (``"optimal"``, ``"ok"``, ``"infeasible"``,
@@ -38,14 +42,15 @@ Single results use names: the optimiser (``"optimal"``, ``"ok"``, ``"infeasible"
 with some of its poses short of lit sensors), coverage (``"ok"``,
 ``"infeasible"``, ``"uncoverable"``), camera frames (``"ok"``, ``"degenerate"``, ``"mirrored"``,
 ``"failed"`` and the detector's own names). Results that may be wrong say so
-(``ambiguous``, ``underdetermined``, ``inaccurate``, ``high_residual``, ``jump``).
+(``ambiguous``, ``underdetermined``, ``inaccurate``, ``high_residual``, ``jump``, ``imprecise``).
 """
 from __future__ import annotations
 
 import numpy as np
 
 __all__ = ["OK", "TOO_FEW_LIT", "DEGENERATE", "NOT_CONVERGED", "BEHIND", "AMBIGUOUS", "INVALID_ANGLE", "NO_START",
-           "HIGH_RESIDUAL", "JUMP", "SOLVER_FAILED", "LOW_REDUNDANCY", "MIN_ANGLES", "MIN_REDUNDANCY",
+           "HIGH_RESIDUAL", "JUMP", "SOLVER_FAILED", "LOW_REDUNDANCY", "IMPRECISE", "UNCERTAIN", "LOST", "MIN_ANGLES",
+           "MIN_REDUNDANCY",
            "NAMES", "CODES", "DESCRIPTIONS", "summarize"]
 
 OK = 0
@@ -60,6 +65,9 @@ HIGH_RESIDUAL = 8
 JUMP = 9
 SOLVER_FAILED = 10
 LOW_REDUNDANCY = 11
+IMPRECISE = 12
+UNCERTAIN = 13
+LOST = 14
 
 #: The redundancy rule (docs/pnp.md "Redundancy"): a rigid pose has 6 unknowns, so it needs
 #: MIN_ANGLES = 6 seen angles (fewer: ``too_few_lit``), and MIN_REDUNDANCY = 2 more angles to check
@@ -73,7 +81,8 @@ MIN_REDUNDANCY = 2
 NAMES = {OK: "ok", TOO_FEW_LIT: "too_few_lit", DEGENERATE: "degenerate", NOT_CONVERGED: "not_converged",
          BEHIND: "behind", AMBIGUOUS: "ambiguous", INVALID_ANGLE: "invalid_angle", NO_START: "no_start",
          HIGH_RESIDUAL: "high_residual", JUMP: "jump", SOLVER_FAILED: "solver_failed",
-         LOW_REDUNDANCY: "low_redundancy"}
+         LOW_REDUNDANCY: "low_redundancy", IMPRECISE: "imprecise",
+         UNCERTAIN: "uncertain", LOST: "lost"}
 #: Name → code.
 CODES = {v: k for k, v in NAMES.items()}
 #: Code → one-line description (messages).
@@ -90,6 +99,9 @@ DESCRIPTIONS = {
     JUMP: "inconsistent with the recent track",
     SOLVER_FAILED: "no usable pose from the solver",
     LOW_REDUNDANCY: "low redundancy (fewer than 8 seen angles for 6 unknowns: the pose cannot check itself)",
+    IMPRECISE: "predicted precision worse than the run's limit",
+    UNCERTAIN: "filter covariance above its limits",
+    LOST: "filter lost (innovations reject the state)",
 }
 
 

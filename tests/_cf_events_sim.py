@@ -172,19 +172,21 @@ def write_event_log(sim, folder, *, event="lhAngle", version=2, firmware=None, n
 
 
 def simulate_uart_log(folder, *, seed=1, duration=3.0, sigma=4e-5, motion=None, log_offset_s=10.78, mode="kalman",
-                      name="log00", **probabilities):
+                      name="log00", extra=None, setup_seed=None, **probabilities):
     """An LH2 log of the deck's pulses (``lhUartFrame``) and the firmware's ``lhAngle`` bursts
     (``cf_helpers.simulate_lh2_log``: no channel on each block's first pulse, one offset per block,
     the log clock at -1.094 % of the deck's, the UART queue) + ``sys.yaml``. The truth motion is a
     function of the log clock; each rotation's rotor zero is on the deck's clock (integer ticks).
     probabilities : ``p_missing``, ``p_two_offsets``, ``p_no_channel``, ``p_garbage`` (see there).
+    extra : more events to write, ``{name: (variables [(var, char)], times (K,), rows)}``.
+    setup_seed : the calibrations' seed (default ``seed``): logs of one set-up share it.
     Returns ``(log, yml, sim)`` with sim as :func:`simulate_events` plus ``"uart"`` (the
     ``simulate_lh2_log`` result) and ``"alpha"`` / ``"t0"`` per channel (the measured plane angles,
     the rotor zeros in deck ticks)."""
     import yaml
 
     rng = np.random.default_rng(seed)
-    lay, cals, stations = _setup("lh2", rng)
+    lay, cals, stations = _setup("lh2", rng if setup_seed is None else np.random.default_rng(setup_seed))
     motion = static_motion() if motion is None else motion
     alpha, t0 = {}, {}
     for s, st in enumerate(stations):
@@ -198,7 +200,11 @@ def simulate_uart_log(folder, *, seed=1, duration=3.0, sigma=4e-5, motion=None, 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     log = folder / name
-    write_cfusdlog(log, uart["events"], types=uart["types"])
+    events, types = dict(uart["events"]), dict(uart["types"])
+    for ename, (vars_, tt, rows) in (extra or {}).items():
+        types[ename] = vars_
+        events[ename] = (np.asarray(tt, float), rows)
+    write_cfusdlog(log, events, types=types)
     yml = folder / "sys.yaml"
     yml.write_text(yaml.safe_dump(system_config_dict(dict(enumerate(stations)), cals, system_type=2)))
     sim = {"stations": stations, "cals": cals, "layout": lay, "motion": motion, "kind": "lh2", "sigma": sigma,

@@ -72,7 +72,7 @@ def _fw_angle(off, plane: int, period: int) -> np.float32:
 
 def simulate_lh2_log(alpha: dict, t0: dict, *, rng, mode: str = "crossing_beam", log_offset_s: float = 10.78,
                      p_missing: float = 0.0, p_two_offsets: float = 0.0, p_no_channel: float = 0.0,
-                     p_garbage: float = 0.0, log_rate: float = LOG_RATE) -> dict:
+                     p_garbage: float = 0.0, p_stray: float = 0.0, log_rate: float = LOG_RATE) -> dict:
     """The deck's pulses and the firmware's lhAngle bursts of LH2 channels, as a Crazyflie logs them.
 
     alpha : channel → (R, 4, 2) measured light-plane angles (rad, NaN = sensor not hit); t0 :
@@ -82,7 +82,9 @@ def simulate_lh2_log(alpha: dict, t0: dict, *, rng, mode: str = "crossing_beam",
     offset; one later pulse carries its offset, quantised to the deck's 6 MHz (``4 * round((ts -
     t0) / 4)``). With probabilities: ``p_missing`` one sensor of the block lost, ``p_two_offsets`` a
     second pulse carries its offset, ``p_no_channel`` no pulse of the block has a channel or an
-    offset, ``p_garbage`` the offset is mis-decoded (wrong by 5000-100000 ticks, channel still given).
+    offset, ``p_garbage`` the offset is mis-decoded (wrong by 5000-100000 ticks, channel still given),
+    ``p_stray`` a sensor (not the block's first) is hit a second time 113 ticks (1.5 mrad) early
+    without channel or offset (lh2_crossingBeam_jitter/log04's sensor 1: a reflection).
 
     Log times: a pulse is logged when its frame has crossed the UART (queued behind earlier ones),
     ``t_log = log_offset_s + log_rate * (deck s) + U(0, 50 us)``. The firmware's lhAngle bursts
@@ -131,6 +133,12 @@ def simulate_lh2_log(alpha: dict, t0: dict, *, rng, mode: str = "crossing_beam",
                 ref = min(refs) if refs else None
                 t0e = hit[ref][1] - ps[ref][2] if ref is not None else None
                 clean = len(hit) == 4 and len(refs) == 1 and not garbage
+                if len(hit) > 2 and rng.random() < p_stray:
+                    j = int(rng.integers(2, len(hit)))
+                    if hit[j][1] - 113 > hit[0][1]:
+                        ps.append((hit[j][0], hit[j][1] - 113, 0, None))
+                        ps.sort(key=lambda q: q[1])
+                        clean = False          # five pulses: the firmware drops the workspace
                 blocks.append((hit[0][1], ch, r, k, ps, clean, t0e))
     blocks.sort(key=lambda b: b[0])
     stream = sorted(((ts, s, off, c, bi) for bi, b in enumerate(blocks) for s, ts, off, c in b[4]),

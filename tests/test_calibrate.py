@@ -214,7 +214,7 @@ def test_cli_calibrate_then_joint_solve(tmp_path, rng):
                                   "--sigma-arcsec", str(cap["sigma"] / 4.84813681109536e-06), "--json",
                                   "--offset-prior-mm", "0.01"])
     assert r.exit_code == 0, r.output
-    rep = json.loads(r.output)
+    rep = json.loads(r.stdout)
     for f in ("stations.json", "layout.json", "report.json", "residuals.png"):
         assert (out / f).exists()
     med = rep["median_sample_residual_rms_rad"]
@@ -225,7 +225,7 @@ def test_cli_calibrate_then_joint_solve(tmp_path, rng):
                                   "--stations", str(out / "stations.json"), "--solve", "joint", "--json",
                                   "--out", str(tmp_path / "poses.csv")])
     assert r.exit_code == 0, r.output
-    summ = json.loads(r.output)
+    summ = json.loads(r.stdout)
     assert summ["mode"] == "joint" and summ["poses"] == 80
     from layoutkit.io.poses import read_poses
 
@@ -272,3 +272,35 @@ def test_consider_term_equals_dense_full_inverse():
     for chunk in (1, 4, 100):
         got = _consider_covariance(csr_matrix(J), csr_matrix(Jo), K, cov, chunk=chunk)
         np.testing.assert_allclose(got, ref, rtol=1e-8, atol=1e-12 * np.abs(ref).max())
+
+
+def test_cli_calibrate_that_determines_nothing_says_why(tmp_path):
+    """issue 29: 8 simulated frames without a station column and a one-station JSON (its pose is the
+    gauge, its calibration terms unobservable from 8 frames) used to end in "zero-size array to
+    reduction operation maximum". Now: exit 2, one error naming the frame file, the missing 'station'
+    column, the stations file, and what to give instead; nothing written."""
+    from layoutkit.resources import model_path
+
+    lay = str(model_path("chen_target.layout.json"))
+    r = CliRunner().invoke(main, ["simulate", "--layout", lay, "--frames", "8", "--out", str(tmp_path / "f.csv")])
+    assert r.exit_code == 0, r.output
+    (tmp_path / "st1.json").write_text(json.dumps({"stations": [
+        {"id": "A", "kind": "lh1", "translation": [0, 0, 0], "rotation": np.eye(3).tolist()}]}))
+    r = CliRunner().invoke(main, ["calibrate", str(tmp_path / "f.csv"), "--layout", lay, "--stations",
+                                  str(tmp_path / "st1.json"), "--out-dir", str(tmp_path / "D")])
+    assert r.exit_code == 2, r.output
+    assert r.exception is None or isinstance(r.exception, SystemExit), r.exception
+    msg = r.output
+    assert msg.startswith("error:") and "f.csv" in msg and "nothing to calibrate" in msg
+    assert "'station'" in msg and "st1.json" in msg and "determine none of the 10 free parameter(s)" in msg
+    assert not (tmp_path / "D" / "stations.json").exists()
+
+
+def test_cli_calibrate_without_stations_is_a_usage_error(tmp_path):
+    """issue 29: `calibrate FRAMES --layout L --out-dir D` without --stations (required) was a TypeError."""
+    (tmp_path / "f.csv").write_text("t,th_x_a,th_y_a\n0,1.5,1.5\n")
+    (tmp_path / "l.json").write_text(json.dumps({"units": "m", "sensors": [{"id": "a", "position": [0, 0, 0],
+                                                                             "normal": [0, 0, 1]}]}))
+    r = CliRunner().invoke(main, ["calibrate", str(tmp_path / "f.csv"), "--layout", str(tmp_path / "l.json"),
+                                  "--out-dir", str(tmp_path / "D")])
+    assert r.exit_code == 2 and "Missing option '--stations'" in r.output and "Traceback" not in r.output

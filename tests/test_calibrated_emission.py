@@ -47,7 +47,7 @@ def _simulate(tmp_path, layout, stations, *extra, name="f.csv"):
     r = CliRunner().invoke(main, ["simulate", "--layout", str(layout), "--frames", "60", "--seed", "3",
                                   "--out", str(out), "--stations", str(sp), "--json", *extra])
     assert r.exit_code == 0, r.output
-    return out, sp, json.loads(r.output)
+    return out, sp, json.loads(r.stdout)
 
 
 @pytest.fixture
@@ -163,7 +163,7 @@ def test_noisy_joint_scatter_follows_joint_dop(tmp_path, chen, rng):
     r = CliRunner().invoke(main, ["solve", str(out), "--layout", str(chen), "--stations", str(sp), "--solve", "joint",
                                   "--json", "--out", str(tmp_path / "p.csv"), "--rho", "0"])
     assert r.exit_code == 0, r.output
-    summ = json.loads(r.output)
+    summ = json.loads(r.stdout)
     tab = read_poses(tmp_path / "p.csv")
     ok = tab.status == 0
     assert ok.mean() > 0.97
@@ -172,7 +172,7 @@ def test_noisy_joint_scatter_follows_joint_dop(tmp_path, chen, rng):
     r = CliRunner().invoke(main, ["solve", str(out), "--layout", str(chen), "--stations", str(sp), "--solve",
                                   "per-station", "--json", "--rho", "0", "--sigma-arcsec", "8.28"])
     assert r.exit_code == 0, r.output
-    ps = json.loads(r.output)
+    ps = json.loads(r.stdout)
     assert ps["calibrated_stations"] == [0, 1] and ps["solved"] > 0.9 * 600
     assert ps["rms_trans_m_without_gross"] < 3 * ps["predicted_rms_trans_m"]
 

@@ -47,7 +47,7 @@ def test_calibrate_cli_meets_the_must_show(tmp_path):
     r = CliRunner().invoke(main, ["camera", "calibrate", *map(str, PHOTOS), "--pattern", "chessboard", "--inner", "9x6",
                                   "--square-mm", "25", "--out", str(out), "--json"])
     assert r.exit_code == 0, r.output
-    res = json.loads(r.output)
+    res = json.loads(r.stdout)
     assert res["status"] == "ok" and res["rms_px"] <= 0.5
     cam = read_camera_model(out)
     for (i, j) in ((0, 0), (1, 1), (0, 2), (1, 2)):
@@ -152,7 +152,7 @@ def test_attitude_cli_chessboard_and_face(tmp_path):
     r = CliRunner().invoke(main, ["camera", "attitude", str(img), "--camera", str(cam), "--detect", "chessboard",
                                   "--picture", str(pic), "--json"])
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     for key in ("rotvec", "status", "sigma_deg", "corners_px", "aspect_ratio", "position_over_width"):
         assert key in out
     assert out["status"] == "ok" and np.asarray(out["corners_px"]).shape == (4, 2)
@@ -166,7 +166,7 @@ def test_attitude_cli_chessboard_and_face(tmp_path):
     assert abs(out["aspect_ratio"] - 1.6) < 0.05
     assert cv2.imread(str(pic)) is not None
     r = CliRunner().invoke(main, ["camera", "attitude", str(img), "--camera", str(cam), "--json", "--no-picture"])
-    face = json.loads(r.output)
+    face = json.loads(r.stdout)
     assert r.exit_code == 0 and face["detector"] == "face" and face["sigma_deg"] > 0
 
 
@@ -245,4 +245,4 @@ def test_charuco_calibration_recovers_a_known_camera(tmp_path):
         assert abs(cam.matrix[i, j] / K[i, j] - 1) < 0.005
         assert abs(cam.matrix[i, j] - K[i, j]) < 4 * sd[k]  # the reported std devs are honest
     assert abs(cam.distortion[0] - D[0]) < 0.02
-    assert json.loads(r.output)["rms_px"] < 0.5
+    assert json.loads(r.stdout)["rms_px"] < 0.5

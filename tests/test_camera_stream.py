@@ -115,7 +115,7 @@ def test_corners_csv_and_cli(tmp_path):
     r = CliRunner().invoke(main, ["camera-attitude", str(path), "--focal-length-px", str(F),
                                   "--principal-point-px", "645.5", "481.5", "--json"])
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     assert out["n_solved"] == len(t)
     # the CLI has no prior attitude: it equals the library without `initial`, and that one equals
     # the truth up to the documented 90°-multiple labelling turn about the face normal

@@ -106,7 +106,7 @@ def test_cli_candidates_writes_a_layout(tmp_path):
     r = CliRunner().invoke(main, ["candidates", str(tmp_path / "z.glb"), "--spacing-mm", "800", "--keepout-part",
                                   "wing-y", "--keepout-box=-2000,-2000,1400,2000,2000,2000", "--out", str(out), "--json"])
     assert r.exit_code == 0, r.output
-    summary = json.loads(r.output)
+    summary = json.loads(r.stdout)
     lay = load_layout(out)
     assert summary["count"] == lay.n and "wing-y" not in summary["parts"]
     P = lay.positions

@@ -178,10 +178,13 @@ def test_import_writes_a_frame_table_that_solve_reads(tmp_path):
     r = CliRunner().invoke(main, ["import", "cfusdlog", str(log), "--system-config", str(yml),
                                   "--out", str(tmp_path / "imp"), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["capture"] is None and s["kind"] == "lh1" and s["frames"] == len(sim["fresh"])
     assert s["uart_frames"] > 0 and any("LH1" in n for n in s["notes"])
     assert not (tmp_path / "imp" / "capture.bin").exists()
+    from layoutkit.live.cf_events import firmware_angle_check
+
+    assert firmware_angle_check(log)["status"] == "no_data"        # an LH2 check: no channel in an LH1 log
     imp = tmp_path / "imp"
     r = CliRunner().invoke(main, ["solve", str(imp / "frames.csv"), "--layout", str(imp / "layout.json"),
                                   "--stations", str(imp / "stations.json"), "--solve", "joint", "--json",

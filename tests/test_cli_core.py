@@ -24,7 +24,7 @@ def test_dop_json_equals_library(chen_layout):
     r = CliRunner().invoke(main, ["dop", "--layout", str(chen_layout), "--rotvec-deg", "10", "-20", "5",
                                   "--translation-m", "0.1", "0.2", "2.5", "--lit", "all", "--rho", "0.5", "--json"])
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     ref = pose_dop(chen_target()[1].positions, rotvec_to_matrix(np.radians([10, -20, 5])), [0.1, 0.2, 2.5], rho=0.5)
     assert out["adop_deg_per_rad"] == pytest.approx(float(ref.adop), rel=1e-12)
     assert out["pdop_m_per_rad"] == pytest.approx(float(ref.pdop), rel=1e-12)
@@ -39,7 +39,7 @@ def test_simulate_then_solve_recovers_truth_noise_free(chen_layout, tmp_path):
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(main, ["solve", str(f), "--layout", str(chen_layout), "--sigma-arcsec", "0", "--json"])
     assert r.exit_code == 0, r.output  # noise-free frames: told so, no two poses tie (no 'ambiguous')
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     assert out["solved"] == 50
     assert out["rms_rot_deg"] < 1e-6 and out["rms_trans_m"] < 1e-8
 

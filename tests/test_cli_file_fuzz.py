@@ -1,12 +1,14 @@
 """CLI fuzz over file arguments: every input file of every command, replaced by an empty file, a
-binary blob and a truncated copy of a valid one.
+binary blob and a truncated copy of a valid one; and every file with a length or angle unit by a
+copy written in the wrong unit (millimetres for metres, degrees for radians).
 
 Proof kind: fault injection through the real CLI (CliRunner, each case in a forked child with a
 time limit) against issue 29's contract: never a traceback; an empty or binary input ends with
 exit 2 and an ``error:`` line naming the file; a truncated one either does the same or runs (a
 cut capture is a shorter capture) — and never hangs. The base invocations are the README tour's,
 shrunk; a new command gets its row here (``test_every_command_has_a_file_fuzz_row`` fails until
-it does).
+it does). A wrong-unit file is refused (exit 2, ``error:`` naming the file) or accepted with a
+``warning:`` naming it — never taken silently.
 """
 from __future__ import annotations
 
@@ -51,7 +53,9 @@ ROWS = {
     "validate": ("{layout} --envelope {envelope} --frames 200 --scheduler synchronous --json", ["envelope"]),
     "sweep": ("{sweep} --out-dir {tmp}/sw --scheduler synchronous --json", ["sweep"]),
 }
-NOT_FILE_COMMANDS = {"demo", "live", "study chen2024", "study zhai2014"}  # no input file (live: a port)
+# no input file (live: a port; study bitcraze-dataset: a folder — its bad files are listed as not used,
+# tests/test_study_bitcraze_dataset.py::test_bad_files_in_the_folder_are_listed_not_fatal)
+NOT_FILE_COMMANDS = {"demo", "live", "study chen2024", "study zhai2014", "study bitcraze-dataset"}
 
 
 def _commands(cmd=main, path=()):
@@ -156,6 +160,56 @@ def test_base_invocation_works_on_valid_files(files, tmp_path, cmd):
 
 CASES = [pytest.param(cmd, ph, kind, id=f"{cmd}-{ph}-{kind}")
          for cmd, (_, phs) in ROWS.items() for ph in phs for kind in ("empty", "binary", "truncated")]
+
+
+def _wrong_unit(ph: str, src: Path, dst: Path) -> Path:
+    """A copy of the valid file ``src`` in the unit a user gets wrong: lengths in mm read as m,
+    sweep angles in degrees read as radians."""
+    import csv
+    import json
+
+    dst = dst.with_suffix("".join(src.suffixes))
+    if ph == "layout":
+        d = json.loads(src.read_text())
+        d["sensors"] = [s | {"position": [1000.0 * c for c in s["position"]]} for s in d["sensors"]]
+        dst.write_text(json.dumps(d))
+    elif ph == "mesh":
+        import trimesh
+
+        trimesh.load_mesh(src).apply_scale(1000.0).export(dst)
+    elif ph == "envelope":
+        dst.write_text(src.read_text().replace("range_m = [1.0, 2.0]", "range_m = [1000.0, 2000.0]"))
+    else:  # a table: pose positions (truth) or sweep angles (frames) scaled
+        lines = src.read_text().splitlines()
+        notes = [ln for ln in lines if ln.startswith("#")]  # a run tie (io.runtie) stays as it was
+        rows = list(csv.reader(ln for ln in lines if not ln.startswith("#")))
+        head = rows[0]
+        cols = ({"tx", "ty", "tz"} if ph == "truth" else {c for c in head if c.startswith("th_")})
+        scale = 1000.0 if ph == "truth" else 180.0 / np.pi
+        out = [head] + [[f"{float(v) * scale!r}" if c in cols and v not in ("", "nan") else v
+                         for c, v in zip(head, r)] for r in rows[1:]]
+        dst.write_text("\n".join(notes + [",".join(r) for r in out]) + "\n")
+    return dst
+
+
+#: the file arguments with a length or angle unit (the rest: pixels, raw bytes, recordings with their own)
+UNIT_FILES = {"layout", "mesh", "envelope", "truth", "frames", "frames_st"}
+UNIT_CASES = [pytest.param(cmd, ph, id=f"{cmd}-{ph}-wrong-unit")
+              for cmd, (_, phs) in ROWS.items() for ph in phs if ph in UNIT_FILES and cmd != "import cfusdlog"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cmd, ph", UNIT_CASES)
+def test_wrong_unit_file_is_refused_or_said(files, tmp_path, cmd, ph):
+    template, _ = ROWS[cmd]
+    bad = _wrong_unit(ph, Path(files[ph]), tmp_path / f"unit_{ph}")
+    sub = {**{k: str(v) for k, v in files.items()}, ph: str(bad), "tmp": str(tmp_path)}
+    got = _invoke(cmd.split() + template.format(**sub).split())
+    assert got is not None, f"{cmd} with a {ph} in the wrong unit did not end within 90 s"
+    code, out, tb = got
+    assert tb is None and "Traceback" not in out, (code, tb, out)
+    said = [ln for ln in out.splitlines() if ln.startswith(("error:", "warning:")) and bad.name in ln]
+    assert said and (code == 2 or code == 0 and said[0].startswith("warning:")), (code, out)
 
 
 @pytest.mark.slow

@@ -245,7 +245,7 @@ def test_replay_motion_compensation_flag(tmp_path):
     for flag in ([], ["--motion-compensation"]):
         r = _run(["replay", cap, "--layout", LAYOUT, "--truth", truth, "--json", *flag])
         assert r.exit_code == 0, r.output
-        out[bool(flag)] = json.loads(r.output)["truth"]
+        out[bool(flag)] = json.loads(r.stdout)["truth"]
     assert out[False]["ratio_rot"] > 1.2
     assert abs(out[True]["ratio_rot"] - 1) < 0.1
 

@@ -98,7 +98,7 @@ def test_solve_bad_rows_statuses_by_reason(chen_layout, tmp_path, rng):
     out = tmp_path / "poses.csv"
     r = CliRunner().invoke(main, ["solve", str(p), "--layout", str(chen_layout), "--json", "--out", str(out)])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["status_counts"][str(STATUS_TOO_FEW)] == 2            # NaN row, 2 lit
     assert s["status_counts"][str(STATUS_INVALID_ANGLE)] == 3      # inf, 100 rad, degrees
     assert s["input"]["infinite angles"] == 1 and s["input"]["angles outside (0, pi) rad"] >= 2

@@ -25,7 +25,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_allclose(back.positions, lay.positions, atol=1e-15)
     np.testing.assert_allclose(back.normals, lay.normals, atol=1e-12)
     assert back.ids == tuple(str(i) for i in range(lay.n))
-    assert back.metadata["device_class"] == "tracker" and json.loads(r.output)["sensors"] == lay.n
+    assert back.metadata["device_class"] == "tracker" and json.loads(r.stdout)["sensors"] == lay.n
 
 
 def test_real_config_line(libsurvive_dir, tmp_path):

@@ -69,7 +69,7 @@ def test_dop_with_three_lit_is_underdetermined():
     r = _run(["dop", "--layout", LAYOUT, "--lit", "T1,T2,T3"])
     assert r.exit_code == 1 and "error: underdetermined: 3 lit sensors" in r.output
     r = _run(["dop", "--layout", LAYOUT, "--lit", "T1,T2,T3", "--json"])
-    assert r.exit_code == 1 and json.loads(r.output)["status"] == "underdetermined"
+    assert r.exit_code == 1 and json.loads(r.stdout)["status"] == "underdetermined"
     assert _run(["dop", "--layout", LAYOUT, "--lit", "T1,T2,T3,C1"]).exit_code == 0
 
 

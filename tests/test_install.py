@@ -6,14 +6,17 @@ the checkout nor its ``models/`` is reachable, so the bundled mesh and envelope 
 the installed package. The independent reference for "every model is bundled" is the checkout's
 own ``models/`` folder.
 
-Two variants: the default one installs the wheel alone (``--no-deps``) and lends the fresh
-environment the third-party packages of the running one (a ``.pth`` line, which adds their folder
-but runs none of its ``.pth`` files, so the checkout's editable hook stays out); the ``slow`` one
-lets pip install every dependency into the fresh environment (minutes: from pip's cache and the
-configured indexes; marked ``install``, run by ``make test-install`` only).
+Three tests: the wheel installed alone (``--no-deps``) into a fresh environment that borrows the
+third-party packages of the running one (a ``.pth`` line, which adds their folder but runs none of
+its ``.pth`` files, so the checkout's editable hook stays out) carries every model and loads them
+from outside the checkout (``slow``: in ``make test``); the same environment runs ``layoutkit demo``
+outside the checkout, and pip installs the wheel with every dependency into a fresh environment and
+runs the demo there (both ``install``: ``make test-install`` only — a fresh install compiles the
+numba kernels, ~1-2 minutes of CPU each, and the full install fetches ~1 GB from pip's cache).
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -95,6 +98,9 @@ def _run_demo_outside(python: Path, work: Path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert (work / "demo" / "optimize" / "layout.json").is_file()
     assert (work / "demo" / "chen2024").is_dir()
+    # the shipped hand layout is found from the wheel too and compared over the same poses
+    versus = json.loads((work / "demo" / "optimize" / "report" / "versus_shipped.json").read_text())
+    assert versus["other"]["layout"].endswith("chen_target.layout.json") and "against the shipped" in r.stdout
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +121,7 @@ def test_wheel_carries_the_models(lent_venv, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.install
 def test_wheel_runs_demo_outside_checkout(lent_venv, tmp_path):
     _run_demo_outside(lent_venv, tmp_path)
 

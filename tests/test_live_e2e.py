@@ -59,7 +59,7 @@ def test_replay_rms_error_consistent_with_dop(sim):
     r = CliRunner().invoke(main, ["replay", str(sim["capture"]), "--layout", str(sim["layout"]),
                                   "--truth", str(sim["truth"]), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     T = truth_rows(sim["truth"])
     assert s["frames"] == len(T) // 2 and s["bad"] <= 2  # every frame solved; a rare high residual is flagged
     assert s["decode"]["dropped"] == 0 and s["unpaired_sweeps"] == 0
@@ -107,7 +107,7 @@ def test_report_and_mocap_reference(sim, tmp_path):
                                   str(sim["truth"]), "--reference", str(mocap), "--reference-units", "mm",
                                   "--report", str(rep), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     a = s["reference"]["alignment"]
     # a frame's pose blends its X and Y sweeps (8.3 ms apart) while TRUTH is stamped at the X
     # sweep: the data-driven offset may absorb up to about one slot of that skew

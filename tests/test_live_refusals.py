@@ -57,7 +57,7 @@ def test_replay_refuses_the_truth_of_another_run(tmp_path):
     assert r.exit_code == 2 and r.output.startswith(f"error: --reference {truth2}: belongs to another run"), r.output
     ok = _run(["replay", cap1, "--truth", truth1, "--json"])
     assert ok.exit_code == 0, ok.output
-    s = json.loads(ok.output)
+    s = json.loads(ok.stdout)
     assert [e["status"] for e in s["evidence"]] == ["tied"] and s["truth"]["ratio_rot"] < 2
 
 
@@ -109,7 +109,7 @@ def test_camera_folder_of_another_run_is_refused_before_solving(tmp_path):
     shutil.copytree(tmp_path / "cam1", Path(str(cap2) + ".camera"))
     r = _run(["replay", cap2, "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["evidence"][0]["status"] == "other_run" and s["camera"]["status"] == "other_run", s["evidence"]
     assert "belongs to another run" in s["camera"]["message"] and s["good"] > 0
     assert "warning: the capture's camera folder" in _run(["replay", cap2]).output
@@ -356,4 +356,4 @@ def test_sigint_to_live_record_solves_every_captured_frame(tmp_path):
         assert s["frames"] == again["frames"] == rows, (k, s["frames"], again["frames"], rows)
         assert rep["summary"]["frames"] == s["frames"] if "summary" in rep else rep["frames"] == s["frames"]
         tied = _run(["replay", cap, "--truth", truth, "--json"])
-        assert tied.exit_code == 0 and json.loads(tied.output)["evidence"][0]["status"] == "tied", tied.output
+        assert tied.exit_code == 0 and json.loads(tied.stdout)["evidence"][0]["status"] == "tied", tied.output

@@ -134,7 +134,7 @@ def test_fake_fpga_cli_writes_capture_sidecar_truth(tmp_path):
     res = CliRunner().invoke(main, ["fake-fpga", "--layout", LAYOUT, "--out", str(cap), "--truth", str(truth),
                                     "--duration", "3", "--seed", "7", "--json"])
     assert res.exit_code == 0, res.output
-    summary = json.loads(res.output)
+    summary = json.loads(res.stdout)
     side = read_sidecar(cap)
     assert side["protocol"] == "layoutkit" and side["protocol_options"]["n_sensors"] == 12
     assert len(side["layout"]["sensors"]) == 12 and len(side["stations"]) == 1 and "start_time_utc" in side

@@ -168,7 +168,7 @@ def test_cli_mesh_info(tmp_path):
     box.export(p)
     r = CliRunner().invoke(main, ["mesh-info", str(p), "--units", "mm", "--json"])
     assert r.exit_code == 0, r.output
-    info = json.loads(r.output)
+    info = json.loads(r.stdout)
     np.testing.assert_allclose(sorted(info["extents_m"]), [0.1, 0.1, 0.34])
     assert info["faces"] == 12 and info["watertight"] and info["warnings"] == []
     r = CliRunner().invoke(main, ["mesh-info", str(p)])

@@ -273,7 +273,7 @@ def test_cli_branch_and_bound_switch(tmp_path, capsys):
     on = CliRunner().invoke(main, args + ["--out", str(tmp_path / "a.json")])
     off = CliRunner().invoke(main, args + ["--out", str(tmp_path / "b.json"), "--no-branch-and-bound"])
     assert on.exit_code == 0 and off.exit_code == 0, on.output + off.output
-    s_on, s_off = json.loads(on.output), json.loads(off.output)
+    s_on, s_off = json.loads(on.stdout), json.loads(off.stdout)
     assert s_off["branch_and_bound"] is None and s_off["certified_by"] in ("relaxation", "none")
     if s_on["certified_by"] != "none":
         b = s_on["branch_and_bound"]

@@ -30,7 +30,7 @@ def test_optimize_writes_layout_with_metadata(tmp_path, small_envelope):
                                   "--report", str(tmp_path / "rep"), "--method", "greedy", "--spacing-mm", "12",
                                   "--no-render", "--json", "--dense-poses", "0"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     lay = load_layout(out)
     assert lay.n == 12
     assert lay.metadata["mesh_sha256"] == mesh_hash(load_mesh(MESH))

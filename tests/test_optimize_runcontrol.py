@@ -132,7 +132,7 @@ def test_cli_dense_tilt_coverage_flags_and_heldout_matches_score(tmp_path):
                                   "--max-tilt-deg", "15", "--coverage", "each-station", "--time-limit-s", "15",
                                   "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     sets = s["envelope_sets"]
     assert sets["design"]["poses"] == 30 and sets["dense"]["poses"] == 330 and sets["heldout"]["poses"] == 2000
     assert s["coverage_rule"] == "each-station" and s["max_tilt_deg"] == 15.0
@@ -145,7 +145,7 @@ def test_cli_dense_tilt_coverage_flags_and_heldout_matches_score(tmp_path):
     r2 = CliRunner().invoke(main, ["score", str(out), "--envelope", str(env), "--mesh", "models/chen_target.stl",
                                    "--poses", "2000", "--seed", str(2024 + 2), "--json"])
     assert r2.exit_code == 0, r2.output
-    sc = json.loads(r2.output)
+    sc = json.loads(r2.stdout)
     assert sc["worst_adop"] == pytest.approx(sets["heldout"]["worst_adop"], rel=1e-9)
 
 

@@ -146,9 +146,9 @@ def test_layout_alone_finds_mesh_envelope_and_settings(tmp_path, small_envelope)
     assert lay["spec"]["half_angle_deg"] == 55.0 and lay["provenance"]["mesh"] == str(Path(MESH).resolve())
     alone = CliRunner().invoke(main, ["score", str(out), "--json"])
     assert alone.exit_code == 0, alone.output
-    a = json.loads(alone.output)
+    a = json.loads(alone.stdout)
     full = json.loads(CliRunner().invoke(main, ["score", str(out), "--envelope", small_envelope, "--mesh", MESH,
-                                                "--half-angle-deg", "55", "--rho", "0.5", "--json"]).output)
+                                                "--half-angle-deg", "55", "--rho", "0.5", "--json"]).stdout)
     for key in ("worst_adop", "median_adop", "worst_pdop", "coverage_fraction", "poses"):
         assert a[key] == full[key], key
     assert a["sources"]["envelope"] == "layout provenance" and a["sources"]["rho"] == "layout spec"

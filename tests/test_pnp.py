@@ -225,7 +225,7 @@ def test_bad_shapes_exact_messages():
     assert str(e.value) == "initial: expected shapes (5, 3, 3) and (5, 3), got (3, 3) and (3,)"
     with pytest.raises(ValueError) as e:
         solve_pnp(P12, ang, method="nope")
-    assert str(e.value) == "method: expected one of ['lm'], got 'nope'"
+    assert str(e.value) == "method: expected one of ['lm', 'lm-numpy'], got 'nope'"
 
 
 def test_normal_equations_match_dop_angle_jacobian(rng):

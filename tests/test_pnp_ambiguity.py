@@ -77,7 +77,7 @@ def test_solve_gross_counts_agree_with_statuses(tmp_path):
     write_frames(Frames(np.arange(len(R)) / 120.0, meas, lay.ids, R, t), tmp_path / "f.csv")
     r = CliRunner().invoke(main, ["solve", str(tmp_path / "f.csv"), "--layout", str(tmp_path / "l.json"), "--json"])
     assert r.exit_code == 0, r.output
-    s = json.loads(r.output)
+    s = json.loads(r.stdout)
     assert s["status_counts"].get(str(STATUS_AMBIGUOUS), 0) == s["ambiguous"]["frames"] > 0
     assert s["gross_failures"] == s["gross_failures_by_status"]["ok"]
     assert 0 < s["ambiguous"]["truth_within_1deg_of_a_candidate"] <= s["ambiguous"]["frames"]

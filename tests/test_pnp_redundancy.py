@@ -153,7 +153,7 @@ def test_libsurvive_lh2_sample_low_redundancy_frames(libsurvive_dir, tmp_path):
                                   str(tmp_path / "stations.json"), "--solve", "per-station", "--json",
                                   "--out", str(tmp_path / "poses.csv")])
     assert r.exit_code == 0, r.output
-    counts = json.loads(r.output)["status_counts"]
+    counts = json.loads(r.stdout)["status_counts"]
     n_ang = np.isfinite(read_frame_table(d / "frames.csv").angles).sum((1, 2))
     poses = read_poses(tmp_path / "poses.csv")
     assert len(poses.t) == len(n_ang)

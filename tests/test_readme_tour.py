@@ -27,11 +27,11 @@ SHORTEN = [
     ("optimize", "--spacing-mm 8", "--spacing-mm 14 --no-render"),
     ("optimize", "--time-limit-s 120", "--time-limit-s 20"),
     ("score", "--draws 5", "--draws 2 --poses 300"),
-    ("render", "--out-dir pics/", "--out-dir pics/ --size 320x240 --grid-deg 15 --views iso"),
+    ("render", "--out-dir out/pics/", "--out-dir out/pics/ --size 320x240 --grid-deg 15 --views iso"),
     ("simulate", "--frames 10000", "--frames 300"),
     ("fake-fpga", "--duration 600", "--duration 3"),
     ("fake-fpga", "--duration 60", "--duration 4 --wait-reader 60"),
-    ("live", "--report val-live/", "--report val-live/ --duration 30 --idle-timeout 1.5"),
+    ("live", "--report out/val-live/", "--report out/val-live/ --duration 30 --idle-timeout 1.5"),
     ("chen2024", "--groups 50 --frames 3600", "--groups 2 --frames 30 --dynamic-seconds 1"),
     ("zhai2014", "study zhai2014", "study zhai2014 --quick"),
     ("sweep", "models/chen_sweep.toml", "models/chen_sweep_quick.toml --scheduler synchronous"),
@@ -64,13 +64,17 @@ def _shorten(line: str) -> str:
 
 def test_tour_block_is_paste_ready():
     """No bracketed optional arguments, no placeholder folders that nothing creates, no file written
-    twice by different lines (the second fake-fpga overwrote truth.csv)."""
+    twice by different lines (the second fake-fpga overwrote truth.csv), every file it writes under
+    out/ (it used to write 15 files into the repository root)."""
     lines = tour_lines()
     assert len(lines) >= 15
     assert not any(re.search(r"\[--", ln) for ln in lines)
     outs = [a for ln in lines for a in re.findall(r"--(?:out|out-dir|json-out|truth|record|report) (\S+)", ln)
             if "replay" not in ln and " live " not in f" {ln} "]
     assert len(outs) == len(set(outs)), outs
+    writes = [a for ln in lines for a in re.findall(r"--(?:out|out-dir|json-out|record|report) (\S+)", ln)]
+    assert writes and all(a.startswith("out/") for a in writes), writes
+    assert "mkdir -p out" in (REPO / "README.md").read_text().split("## A tour", 1)[1].split("```", 2)[1]
 
 
 def _group(line: str) -> str:
@@ -82,6 +86,7 @@ def _group(line: str) -> str:
 
 def _run_lines(lines, tmp_path):
     (tmp_path / "models").symlink_to(REPO / "models")
+    (tmp_path / "out").mkdir()  # the tour's `mkdir -p out`
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     device = None
     for line in lines:
@@ -105,7 +110,8 @@ def _run_lines(lines, tmp_path):
         if args[1] == "live":
             _, err = device[1].communicate(timeout=60)
             assert device[1].returncode == 0, err
-            assert (tmp_path / "cap.lkcap").stat().st_size > 0 and (tmp_path / "val-live" / "report.json").is_file()
+            assert (tmp_path / "out" / "cap.lkcap").stat().st_size > 0
+            assert (tmp_path / "out" / "val-live" / "report.json").is_file()
         print(f"{time.monotonic() - t0:6.1f} s  {cmd}")
 
 
@@ -127,4 +133,5 @@ def test_readme_tour_runs(tmp_path, group, files):
     assert lines
     _run_lines(lines, tmp_path)
     for f in files:
-        assert (tmp_path / f).exists(), f
+        assert (tmp_path / "out" / f).exists(), f
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models", "out"]  # nothing written outside out/

@@ -69,7 +69,7 @@ def test_envelope_range_in_millimetres_is_refused_naming_file_and_unit(tmp_path,
     p.write_text(Path(small_envelope).read_text().replace("range_m = [1.0, 2.0]", "range_m = [1000.0, 3000.0]"))
     r = _run(["score", LAYOUT, "--envelope", p, "--json"])
     assert r.exit_code == 2
-    assert r.output.startswith(f"error: {p}: range_m [1000.0, 3000.0]: 3000 m is farther than any lighthouse "
+    assert r.stderr.split("\n")[-2].startswith(f"error: {p}: range_m [1000.0, 3000.0]: 3000 m is farther than any lighthouse "
                                "reaches (<= 30 m): the numbers are probably millimetres (3 m?)"), r.output
     ok = _run(["score", LAYOUT, "--envelope", p, "--json", "--allow-odd-size"])
     assert ok.exit_code == 0 and "warning:" in ok.output  # let through on request, still said
@@ -208,3 +208,43 @@ def test_score_streams_many_poses_and_agrees_with_the_exact_statistics(monkeypat
     for k in ("median_adop", "p95_adop", "p99_adop", "median_pdop", "p95_pdop"):
         assert abs(res[k] / exact[k] - 1) <= tol, (k, res[k], exact[k])
     assert [u["lit_fraction"] for u in res["per_sensor"]] == pytest.approx([u["lit_fraction"] for u in exact["per_sensor"]])
+
+
+def test_demo_comparison_says_what_the_shipped_layout_leaves_uncovered(tmp_path, small_envelope):
+    """The demo reported a worst ADOP 3.4x the shipped layout's without saying that the shipped one
+    leaves poses uncovered: versus_layout puts coverage beside the DOP. Closed-form reference: the
+    four top sensors with their normals reversed face away from the station in every pose where the
+    shipped top face is lit (the envelope keeps the top face towards the station), so that layout
+    covers no pose at all, and the comparison says so in its message."""
+    from layoutkit.workflows.optimize import versus_layout
+
+    d = json.loads(LAYOUT.read_text())
+    d["sensors"] = [s | {"normal": [-c for c in s["normal"]]} for s in d["sensors"] if s["id"].startswith("T")]
+    away = tmp_path / "away.json"
+    away.write_text(json.dumps(d))
+    v = versus_layout(LAYOUT, away, small_envelope, REPO / "models" / "chen_target.stl", 0.8717)
+    a, b = v["optimised"], v["other"]
+    assert a["poses"] == b["poses"] == 30 and a["covered_poses"] == 30 and b["covered_poses"] == 0
+    assert "30 poses it cannot track at all" in v["message"] and "covers none of the 30 poses" in v["message"]
+    same = versus_layout(LAYOUT, LAYOUT, small_envelope, REPO / "models" / "chen_target.stl", 0.8717)
+    assert {k: v for k, v in same["optimised"].items() if k != "layout"} == \
+           {k: v for k, v in same["other"].items() if k != "layout"}
+    assert "cannot track" not in same["message"]
+
+
+def test_envelope_without_a_station_says_which_station_it_assumed(tmp_path, small_envelope):
+    """An envelope without ``[[station]]`` silently got a default station. Now a warning names the
+    file and the assumed station; the reference for "assumed" is the same envelope with that station
+    written out: identical scores, and no warning."""
+    r = _run(["score", LAYOUT, "--envelope", small_envelope, "--json"])
+    assert r.exit_code == 0
+    warned = [ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]
+    assert len(warned) == 1 and f"{small_envelope}: station: no [[station]] table" in warned[0], r.stderr
+    explicit = tmp_path / "explicit.toml"
+    explicit.write_text(Path(small_envelope).read_text() + '\n[[station]]\nid = "A"\nposition_m = [0.0, 0.0, 0.0]\n'
+                        'rotvec_deg = [0.0, 0.0, 0.0]\nkind = "lh1"\nfov_deg = 120.0\n')
+    r2 = _run(["score", LAYOUT, "--envelope", explicit, "--json"])
+    assert r2.exit_code == 0 and "warning:" not in r2.stderr, r2.stderr
+    a, b = json.loads(r.stdout), json.loads(r2.stdout)
+    assert (a["covered_poses"], a["worst_adop"], a["median_pdop"]) == (b["covered_poses"], b["worst_adop"],
+                                                                        b["median_pdop"])

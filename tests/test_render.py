@@ -189,7 +189,7 @@ def test_cli_render_writes_every_picture(tmp_path):
         "--views", "iso", "--quality-map", "--grid-deg", "20", "--roll-samples", "2", "--rho", "0.8717",
         "--station-view-pose", "envelope:3", "--json"])
     assert res.exit_code == 0, res.output
-    out = json.loads(res.output)
+    out = json.loads(res.stdout)
     names = [Path(p).name for p in out["paths"]]
     assert names == ["chen_target_iso.png", "chen_target_quality_map.png", "chen_target_station_view.png"]
     for p in out["paths"]:
@@ -216,3 +216,34 @@ def test_cli_render_bad_input(tmp_path, args, msg):
                                     "--views", "iso", "--size", "64x48"] + args)
     assert res.exit_code == 2
     assert res.output.strip().splitlines()[-1] == msg
+
+
+def test_scale_bar_is_as_long_as_its_label_says(tmp_path):
+    """Every 3-D picture carries a scale bar of a round length. Reference: the pinhole model of
+    design §8 (:func:`render.station_view_pixels`, itself checked against the picture above) maps the
+    bar's end points to pixels; the blue bar found in the rendered image spans that many columns
+    (within 1.5 px; an open tube has no caps), and its length is the 1-2-5 value its label prints."""
+    from layoutkit.geometry import rotvec_to_matrix
+
+    assert [render.nice_length(x) for x in (0.035, 0.05, 0.0999, 7.0, 1.0)] == [0.02, 0.05, 0.05, 5.0, 1.0]
+    assert render.length_text(0.02) == "20 mm" and render.length_text(2.0) == "2 m"
+    mesh, lay = chen_target()
+    R = rotvec_to_matrix([np.pi, 0.0, 0.0])  # the station looks at the top face, bar along the image rows
+    t = np.array([0.0, 0.0, 0.6])
+    size = (640, 480)
+    out = render.render_station_view(mesh, lay.positions[:0], lay.normals[:0], R, t, np.zeros(0, bool), fov_deg=40.0,
+                                     size=size, out=tmp_path / "sv.png", anti_aliasing=False)
+    img = _png(out).astype(int)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    mask = (b > r + 60) & (b > g + 40)
+    assert mask.sum() > 50
+    center = 0.5 * (np.asarray(mesh.bounds[0]) + np.asarray(mesh.bounds[1]))
+    a, e, length = render.scale_bar_geometry(mesh.vertices, center, R[2], -R[1], render._scale(mesh), gap=0.035)
+    assert length == render.nice_length(0.25 * render._scale(mesh))
+    uv, _ = render.station_view_pixels(np.array([a, e]), R, t, fov_deg=40.0, size=size)
+    row = mask[int(uv[:, 1].mean())]  # the image row through the bar's axis (the label sits beside it)
+    mid = int(uv[:, 0].mean())
+    assert row[mid]
+    lo = mid - np.argmin(row[mid::-1]) + 1  # the contiguous blue run through the bar's middle
+    hi = mid + np.argmin(row[mid:]) - 1
+    assert abs((hi - lo + 1) - abs(uv[1, 0] - uv[0, 0])) < 1.5, (lo, hi, uv)  # measured 22 px vs 21.98

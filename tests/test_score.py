@@ -31,7 +31,7 @@ def test_score_json_matches_pose_dop(tmp_path):
     r = CliRunner().invoke(main, ["score", LAY, "--envelope", ENV, "--mesh", MESH, "--rho", "0.8717",
                                   "--half-angle-deg", "60", "--units", "m", "--json"])
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     lay = load_layout(LAY)
     env = load_envelope(ENV)
     R, t = env.poses()
@@ -79,7 +79,7 @@ def test_compare_and_report(tmp_path):
     r = CliRunner().invoke(main, ["score", LAY, "--envelope", ENV, "--compare", LAY, "--poses", "100",
                                   "--report", str(tmp_path / "rep"), "--json"])
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output)
+    out = json.loads(r.stdout)
     assert out["compare"]["worst_adop"] == out["worst_adop"]
     assert {"dop_cdf.png", "envelope_map.png", "score.json"} <= {p.name for p in (tmp_path / "rep").iterdir()}
     r = CliRunner().invoke(main, ["score", LAY, "--envelope", ENV, "--compare", LAY, "--poses", "50"])
@@ -92,4 +92,4 @@ def test_errors(tmp_path):
     # nothing covered: exit 1 with the reason
     r = CliRunner().invoke(main, ["score", LAY, "--envelope", ENV, "--min-visible", "13", "--json"])
     assert r.exit_code == 1
-    assert json.loads(r.output)["status"] == "no_coverage"
+    assert json.loads(r.stdout)["status"] == "no_coverage"

@@ -6,8 +6,9 @@ import click
 from ..units import ARCSEC
 from ._common import call_or_fail, echo_json, emit_json, fail
 from .options import NONNEGATIVE, POSITIVE
-from .options import (filter_options, half_angle_option, json_flag, json_out_option, layout_option, out_dir_option, out_file_option,
-                      registry_choice, rho_option, seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
+from .options import (data_dir_option, filter_options, half_angle_option, json_flag, json_out_option, layout_option,
+                      out_dir_option, out_file_option, motion_compensation_option, registry_choice, rho_option,
+                      seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
                       ignore_calibration_option,
                       workers_option)
 
@@ -109,8 +110,9 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, statio
 @json_flag(help="Print a JSON summary.")
 @filter_options
 @solve_mode_option
+@motion_compensation_option
 def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, static, calibrated, ignore_calibration,
-              as_json, filter_settings, solve_mode):
+              as_json, filter_settings, solve_mode, motion_compensation):
     """Solve the pose of every frame in a frame file (batched PnP); errors vs truth if present.
 
     Bad frames (too few angles, inf, angles outside (0, pi), all behind) get a status each and the
@@ -140,7 +142,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
         several = False
     if several:  # joint: one pose per window through every station's calibrated forward model
         summary = call_or_fail(solve_station_file, frames_path, lay, stations_path, out=out, mode="joint",
-                               sigma=sigma, rho=rho, ignore_calibration=ignore_calibration)
+                               sigma=sigma, rho=rho, ignore_calibration=ignore_calibration,
+                               motion_compensation=motion_compensation is not False)
         if as_json:
             echo_json(summary)
         else:
@@ -149,6 +152,8 @@ def solve_cmd(frames_path, layout_path, out, solver, rho, sigma, stations_path, 
             if "predicted_position_sigma_m" in summary:
                 click.echo(f"position scatter {summary['position_scatter_m'] * 1e3:.3f} mm; DOP prediction "
                            f"{summary['predicted_position_sigma_m'] * 1e3:.3f} mm")
+            if "precision_accuracy" in summary:
+                click.echo(f"precision vs accuracy: {summary['precision_accuracy']['message']}")
         if summary["solved"] == 0:
             fail(summary.get("reason", "no pose solved"), code=1)
         return
@@ -262,6 +267,37 @@ def study_zhai(quick, seed, out_dir, as_json, json_out):
         click.echo(f"wrote figures, table.md and results.json to {out_dir}")
 
 
+@study_group.command("bitcraze-dataset", short_help="Public Crazyflie Lighthouse logs: firmware vs layoutkit.")
+@data_dir_option(help="The dataset's data folder (sets <lh1|lh2>_<crossingBeam|kalman>_<jitter|move|flight>/ with "
+                      "logNN, mocapNN.npy, system-config.yaml; bitcraze/positioning_dataset).")
+@out_dir_option(default="out/bitcraze_dataset", out_alias=True, help="Folder for table.md, results.json and the figures.")
+@json_flag(help="Print the per-set summary JSON to stdout (instead of the table).")
+@scheduler_option
+@workers_option
+def study_bitcraze(data_dir, out_dir, as_json, scheduler, workers):
+    """The Crazyflie Lighthouse dataset's own metrics — jitter (static) and error vs motion capture after
+    temporal (offset + rate) and rigid (Arun) alignment (moving) — for the firmware's estimates in each
+    log (crossing beam, EKF) and for ours (per-station, joint, filter: `replay LOG`), side by side; the
+    stations of each set-up refined once from its static logs (OUT/stations/<set-up>.json) and used
+    for all its logs.
+
+    One Dask task per log and method (default: a LocalCluster on this machine); says which files it
+    could not use and why."""
+    from ..studies.bitcraze_dataset import run_study, usable_logs, write_outputs
+    from .distributed import executor_from_flags
+
+    quiet = as_json
+    call_or_fail(usable_logs, data_dir)       # a folder without any usable log fails before a cluster starts
+    with executor_from_flags(scheduler, workers, quiet=quiet) as ex:
+        res = call_or_fail(run_study, data_dir, executor=ex, work_dir=out_dir,
+                           progress=None if quiet else (lambda msg: click.echo(msg, err=True)))
+    paths = write_outputs(res, out_dir)
+    if emit_json({"sets": res["sets"], "setups": res["setups"], "skipped": res["skipped"], "outputs": paths}, as_json, None):
+        return
+    click.echo(open(paths["table"], encoding="utf-8").read())
+    click.echo(f"wrote {paths['table']}, {paths['results']} and {len(paths['figures'])} figure(s)")
+
+
 @click.command("demo", short_help="Optimise a layout on a bundled model, then a Chen study.")
 @out_dir_option(default="out/demo", aliases=("--out",), help="Folder for the optimised layout, report and study.")
 @seed_option
@@ -282,6 +318,8 @@ def demo_cmd(out_dir, seed):
         click.echo("== layoutkit optimize on the Chen target (bundled model) ==")
         summ = run_demo(out / "optimize", quick=True, seed=seed)
         click.echo(f"{summ['message']}\nlayout {out / 'optimize' / 'layout.json'}, report {out / 'optimize' / 'report'}")
+        if summ.get("versus_shipped"):
+            click.echo(f"against the shipped hand layout, same poses: {summ['versus_shipped']['message']}")
     from ..studies.chen2024 import StudyConfig, run_chen2024, write_outputs
 
     click.echo("== reduced Chen (2024) precision study ==")

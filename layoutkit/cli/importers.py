@@ -4,7 +4,8 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import json_flag, out_dir_option, out_file_option, system_config_option, units_option
+from .options import (Requires, flag_rules, json_flag, out_dir_option, out_file_option, stations_option,
+                      system_config_option, units_option)
 
 
 @click.group("import", short_help="Import real recordings and device files.")
@@ -43,8 +44,13 @@ def vive_config_cmd(file, out, as_json):
 @click.option("--device", default=None, metavar="NAME", help="Only this device (libsurvive code name: HMD, T20, WM0, ...).")
 @click.option("--config", "config", type=click.Path(dir_okay=False), default=None, metavar="JSON",
               help="libsurvive lighthouse config (default: <recording>.json beside it).")
+@click.option("--imu-filter", "imu_filter", is_flag=True,
+              help="Also run the IMU-aided filter (gyro/accelerometer 'i' lines + every sweep) on each device with "
+                   "IMU lines: <device>/imu_filter_poses.csv, one pose per sweep (docs/real-data.md).")
+@stations_option(help="Stations JSON for --imu-filter (e.g. calibrate's stations.json) [default: the recording's].")
 @json_flag(help="Print the JSON summary.")
-def libsurvive_cmd(recording, out_dir, device, config, as_json):
+@flag_rules(Requires("--stations", "--imu-filter", "the import itself writes the recording's stations"))
+def libsurvive_cmd(recording, out_dir, device, config, imu_filter, stations_path, as_json):
     """A libsurvive .rec / .rec.gz recording → per-device layout, frame table and reference poses,
     and the stations (poses + factory calibration) from the recording's .json.
 
@@ -55,7 +61,8 @@ def libsurvive_cmd(recording, out_dir, device, config, as_json):
     from ..workflows.importers import import_libsurvive
 
     out = out_dir
-    s = _run(import_libsurvive, recording, out, device=device, config=config)
+    s = _run(import_libsurvive, recording, out, device=device, config=config, imu_filter=imu_filter,
+             filter_stations=stations_path)
     if as_json:
         echo_json(s)
         return
@@ -71,6 +78,15 @@ def libsurvive_cmd(recording, out_dir, device, config, as_json):
         st = s["stations"]
         click.echo(f"stations: {st['count']} ({st['with_pose']} with pose, {st['with_calibration']} with calibration) "
                    f"-> {st['file']}")
+    for dev, f in s.get("imu_filter", {}).items():
+        if "skipped" in f:
+            click.echo(f"{dev}: IMU filter skipped: {f['skipped']}")
+            continue
+        c = f["sweeps"]
+        med = f["residual_before_update_median_rad"]
+        click.echo(f"{dev}: IMU filter: {c['accepted']} of {c['sweeps']} sweeps accepted, {c['rejected']} rejected, "
+                   f"{c['restarts']} restart(s); residual before each sweep's update "
+                   f"{'n/a' if med is None else f'{med:.3g} rad'} (median) -> {f['file']}")
 
 
 @import_group.command("cfusdlog", short_help="Crazyflie microSD log to a capture.")

@@ -7,7 +7,7 @@ import sys
 import click
 
 from .options import POSITIVE, Requires, flag_rules
-from .options import (camera_options, filter_options, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
+from .options import (camera_options, filter_options, length_mm_option, refine_stations_option, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
                       units_option)
 from .options import Number
@@ -42,6 +42,11 @@ _common_options = [
     system_config_option,
     stations_option,
     solve_mode_option,
+    length_mm_option("--max-sigma-mm", "max_sigma_position",
+                     help="Largest predicted 1-sigma position error (PDOP x sigma, Chen eq. 24) of an 'ok' pose, mm; "
+                          "above it a solved pose is 'imprecise'. Default: joint windows with 2+ stations must be "
+                          "below the geometric mean of what the best single station and all stations would give "
+                          "at that pose (a one-station window of a small deck is not ok); per-station: no limit."),
 ]
 
 
@@ -121,10 +126,11 @@ def _add(options):
     return deco
 
 
-def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, filter_settings=None):
+def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, filter_settings=None,
+             max_sigma_position: float | None = None):
     from ..live.pipeline import LiveConfig
 
-    kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation)
+    kw = dict(sigma_theta=sigma, rho=rho, motion_compensation=motion_compensation, max_sigma_position=max_sigma_position)
     if filter_settings is not None:
         from ..workflows.filter import filter_config
 
@@ -161,6 +167,9 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
         per = ", ".join(f"{k} station(s): {v}" for k, v in (j.get("windows_by_stations") or {}).items())
         lines.append(f"joint: {j['poses']} windows ({per}), {j['good']} ok; window {j['window_s'] * 1e3:.0f} ms; "
                      f"poses in the stations' world frame")
+    sr = summary.get("station_refinement")
+    if sr:
+        lines.append(f"stations ({'refined' if sr.get('applied') else 'as given'}): {sr.get('message')}")
     g = summary.get("static_groups") or []
     if g:
         lines.append(f"static groups: {len(g)}")
@@ -216,12 +225,13 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @click.command("replay", short_help="Decode and solve a recorded capture as fast as possible.")
 @click.argument("capture", type=click.Path(dir_okay=False))
 @_add(_common_options)
+@refine_stations_option
 @filter_options
 @camera_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
                camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
-               camera_model, solve_mode):
+               camera_model, solve_mode, max_sigma_position, refine_stations, refine_from, refine_calibration):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -236,7 +246,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     from ._common import fail
 
     opts = _options(rho, sigma, live=False, motion_compensation=motion_compensation,
-                    filter_settings=filter_settings)
+                    filter_settings=filter_settings, max_sigma_position=max_sigma_position)
     beside = camera_folder_for(capture)
     cam_cfg = _camera_config(camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio,
                              corner_sigma_px, folder=beside if beside.is_dir() else None, camera_model=camera_model)
@@ -246,14 +256,14 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  reference_offset=reference_offset, camera=camera,
                                  json_out=sys.stdout if json_lines else None, report_dir=report_dir,
                                  camera_device=camera_device, camera_config=cam_cfg, stations=stations_path,
-                                 system_config=system_config, solve=solve_mode)
+                                 system_config=system_config, solve=solve_mode,
+                                 refine_stations=refine_stations or bool(refine_from), refine_from=refine_from,
+                                 refine_calibration=refine_calibration)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
-    _print_summary(summary, as_json, err=json_lines)
-    if not as_json:
-        _print_camera(summary, err=json_lines)
+    _print_run(summary, as_json, json_lines)
     dec = summary.get("decode") or {}
     if not dec.get("good"):  # nothing decodable: not a capture, or another protocol
         n_in = dec.get("bytes_in", 0)
@@ -288,6 +298,14 @@ def _stations_arg(stations_path, system_config):
     return cfg, stations_from_files(stations_path, cfg)
 
 
+def _print_run(summary: dict, as_json: bool, json_lines: bool) -> None:
+    """The run's summary (JSON or text; on stderr when stdout carries --json-lines) and, in text,
+    the camera cross-check."""
+    _print_summary(summary, as_json, err=json_lines)
+    if not as_json:
+        _print_camera(summary, err=json_lines)
+
+
 def _quiet_exit():
     import os
 
@@ -318,7 +336,7 @@ def _quiet_exit():
 def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baudrate, no_dashboard, layout_path, protocol, json_lines,
              truth, reference, reference_units, reference_offset, camera, report_dir, rho, sigma, motion_compensation,
              as_json, system_config, stations_path, filter_settings, camera_device, focal_length_px, principal_point_px,
-             camera_method, aspect_ratio, corner_sigma_px, camera_model, solve_mode):
+             camera_method, aspect_ratio, corner_sigma_px, camera_model, solve_mode, max_sigma_position):
     """Solve poses live from a serial port (reconnects after unplug), with a dashboard.
 
     Ctrl-C, SIGTERM and SIGHUP end the run cleanly: reading stops, everything received is in the
@@ -339,7 +357,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baud
     if duration is not None and not duration > 0:
         fail(f"--duration: expected a positive number of seconds, got {duration}")
     opts = _options(rho, sigma, live=True, motion_compensation=motion_compensation,
-                    filter_settings=filter_settings)
+                    filter_settings=filter_settings, max_sigma_position=max_sigma_position)
     try:
         cfg, stations = _stations_arg(stations_path, system_config)
     except ValueError as exc:
@@ -363,9 +381,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baud
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:
         fail(str(exc))
-    _print_summary(summary, as_json, err=json_lines)
-    if not as_json:
-        _print_camera(summary, err=json_lines)
+    _print_run(summary, as_json, json_lines)
     src = summary.get("source") or {}
     if summary.get("capture_error"):  # disk full: the capture holds a valid prefix, the report was written
         fail(f"{summary['capture_error']} (the capture keeps the {summary.get('capture_bytes') or 0} bytes "

@@ -31,7 +31,7 @@ from ..units import ARCSEC, LENGTH_UNIT_NAMES, LENGTH_UNITS, RHO_PAPER, SIGMA_TH
 __all__ = [
     "option", "explicit", "registry_choice", "sigma_option", "rho_option", "half_angle_option", "units_option",
     "seed_option", "json_flag", "json_out_option", "out_file_option", "out_dir_option",
-    "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "allow_odd_size_option",
+    "report_option", "layout_option", "envelope_option", "distance_m_option", "length_mm_option", "refine_stations_option", "allow_odd_size_option",
     "overwrite_option", "coverage_option", "COVERAGE_CHOICES", "min_visible_option", "FILTER_CHOICES",
     "filter_options", "protocol_option", "port_option", "time_limit_option", "RegistryChoice", "RHO_RANGE",
     "SIGMA_RANGE", "SIGMA_RANGE_SIMULATION", "camera_options", "camera_model_option", "corner_sigma_option",
@@ -157,6 +157,13 @@ def explicit(ctx: click.Context, dest: str) -> bool:
     return src not in (ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP, None) or (_META + dest) in ctx.meta
 
 
+def _unset_none(default) -> dict:
+    """``{"default": default}``, or ``{}`` for None: click 8.5 takes an explicit ``default=None`` as a
+    given default, so ``required=True`` was never checked (``calibrate`` without ``--stations`` went
+    on with None and ended in a traceback, issue 29). Not given, the default is None all the same."""
+    return {} if default is None else {"default": default}
+
+
 def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]] = (), callback=None,
            silent_aliases: Iterable[str] = (), **kw):
     """A click option ``flag`` delivering parameter ``dest``, with hidden deprecated ``aliases``.
@@ -168,6 +175,8 @@ def option(flag: str, dest: str, *, aliases: Iterable[str | tuple[str, Callable]
     e.g. ``import libsurvive --out DIR`` in issue 10, next to the visible ``--out-dir``).
     """
     required = bool(kw.pop("required", False))
+    if kw.get("default", 0) is None:
+        del kw["default"]                                      # see _unset_none
     aliases = tuple((a, True) for a in aliases) + tuple((a, False) for a in silent_aliases)
     alias_type = kw.get("type")
     alias_flag = kw.get("is_flag", False)
@@ -291,7 +300,7 @@ def json_out_option(f=None, *, help: str = "Also write the JSON to this file ('-
 
 def out_file_option(f=None, *, required: bool = True, help: str = "Output file.", default=None):
     """``--out FILE``: the command's output file. The command receives ``out``."""
-    deco = click.option("--out", "out", type=click.Path(dir_okay=False), required=required, default=default,
+    deco = click.option("--out", "out", type=click.Path(dir_okay=False), required=required, **_unset_none(default),
                         help=help)
     return deco(f) if f is not None else deco
 
@@ -310,23 +319,31 @@ def out_dir_option(f=None, *, required: bool = True, help: str = "Output folder.
     return deco(f) if f is not None else deco
 
 
+def data_dir_option(f=None, *, help: str = "Input data folder."):
+    """``--data DIR``: an existing input data folder (e.g. a public dataset). The command receives ``data_dir``."""
+    deco = click.option("--data", "data_dir", type=click.Path(exists=True, file_okay=False), required=True, help=help)
+    return deco(f) if f is not None else deco
+
+
 def report_option(f=None, *, help: str = "Write a report folder (JSON + plots) here."):
     """``--report DIR``: a report folder. The command receives ``report_dir``."""
     deco = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, help=help)
     return deco(f) if f is not None else deco
 
 
-def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md)."):
-    """``--layout FILE``. The command receives ``layout_path``."""
+def layout_option(f=None, *, required: bool = True, help: str = "Layout JSON (docs/layout-format.md).",
+                  multiple: bool = False):
+    """``--layout FILE``. The command receives ``layout_path`` (a tuple with ``multiple``: the option
+    may be given once per input, e.g. one layout per device of ``calibrate``)."""
     deco = click.option("--layout", "layout_path", type=click.Path(dir_okay=False), required=required,
-                        default=None, help=help)
+                        help=help, multiple=multiple)
     return deco(f) if f is not None else deco
 
 
 def envelope_option(f=None, *, required: bool = True, help: str = "Operating envelope TOML (docs/envelope.md)."):
     """``--envelope FILE``. The command receives ``envelope_path``."""
     deco = click.option("--envelope", "envelope_path", type=click.Path(dir_okay=False), required=required,
-                        default=None, help=help)
+                        help=help)
     return deco(f) if f is not None else deco
 
 
@@ -347,6 +364,26 @@ def length_mm_option(flag: str, dest: str, *, default: float | None = None, requ
 
     return option(flag, dest, type=Number(0.0, min_open=not allow_zero), default=default,
                   show_default=default is not None, required=required, callback=to_m, help=help)
+
+
+def refine_stations_option(f):
+    """``--refine-stations``, ``--refine-from CAPTURE`` (repeatable) and ``--refine-calibration``:
+    estimate the stations from the capture (and more captures of the same set-up) before solving
+    (replay). The command receives ``refine_stations``, ``refine_from`` (a tuple of paths) and
+    ``refine_calibration``."""
+    f = click.option("--refine-calibration", is_flag=True,
+                     help="With --refine-stations: also the observable calibration terms (on the Bitcraze dataset "
+                          "they trade off against the station poses: 17 vs 9 mm RMS on a moving log, docs/live.md).")(f)
+    f = click.option("--refine-from", "refine_from", multiple=True, type=click.Path(dir_okay=False),
+                     help="Another capture of the same station set-up whose slow windows join --refine-stations "
+                          "(repeatable; e.g. the static captures of a session for a moving one).")(f)
+    return click.option("--refine-stations", is_flag=True,
+                        help="Estimate the station poses (with --refine-calibration also the observable calibration "
+                             "terms) from the capture's slow "
+                             "windows seen by every station before solving; solve with them when they explain the "
+                             "angles better; report how far each station moved, its 1-sigma, and whether the data "
+                             "contradict the given set-up (summary 'station_refinement'; stations_refined.json in "
+                             "--report for later --stations).")(f)
 
 
 def allow_odd_size_option(f=None):
@@ -395,7 +432,7 @@ def stations_option(f=None, *, required: bool = False,
                     help: str = "Stations JSON (station poses, calibration), e.g. from layoutkit import."):
     """``--stations FILE``: a stations JSON (station poses and calibration). The command receives
     ``stations_path``."""
-    deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False), default=None,
+    deco = click.option("--stations", "stations_path", type=click.Path(dir_okay=False),
                         required=required, metavar="FILE", help=help)
     return deco(f) if f is not None else deco
 
@@ -417,17 +454,17 @@ def filter_options(f):
     """``--filter ekf|none`` and the filter's tuning flags (SI units; docs/filter.md).
 
     The command receives ``filter_settings``: None for ``--filter none``, else a dict of
-    :class:`layoutkit.filter.EkfConfig` keywords (``psd_rot`` rad²/s³, ``psd_pos`` m²/s³,
+    :class:`layoutkit.filter.EkfConfig` keywords (``motion``, ``psd_rot`` rad²/s³, ``psd_pos`` m²/s³,
     ``gate_angle_p``, ``gate_sweep_p``, ``zupt``, ``constant_acceleration``, ``hit_timing``,
     ``model``) — the command adds sigma / rho from its own noise options.
     """
     import functools
 
     @functools.wraps(f)
-    def wrapper(*args, filter_name, filter_psd_rot, filter_psd_pos, filter_gate_p, filter_zupt, filter_ca,
-                filter_hit_timing, filter_model, **kwargs):
+    def wrapper(*args, filter_name, filter_motion, filter_psd_rot, filter_psd_pos, filter_gate_p, filter_zupt,
+                filter_ca, filter_hit_timing, filter_model, **kwargs):
         kwargs["filter_settings"] = None if filter_name == "none" else {
-            "psd_rot": filter_psd_rot, "psd_pos": filter_psd_pos, "gate_angle_p": filter_gate_p,
+            "motion": filter_motion, "psd_rot": filter_psd_rot, "psd_pos": filter_psd_pos, "gate_angle_p": filter_gate_p,
             "gate_sweep_p": filter_gate_p, "zupt": filter_zupt, "constant_acceleration": filter_ca,
             "hit_timing": filter_hit_timing, "model": filter_model}
         return f(*args, **kwargs)
@@ -436,10 +473,18 @@ def filter_options(f):
         click.option("--filter", "filter_name", type=click.Choice(FILTER_CHOICES), default="none", show_default=True,
                      help="ekf: per-sweep error-state Kalman filter (one pose per sweep, with covariance); "
                           "none: frame-by-frame PnP only."),
+        click.option("--filter-motion", "filter_motion", type=click.Choice(("adaptive", "fixed")), default="adaptive",
+                     show_default=True,
+                     help="Filter: adaptive = a bank of constant-velocity models from a resting to a swung or flown "
+                          "body, mixed by their likelihoods (the process noise follows the motion, nothing to tune); "
+                          "fixed = one model with --filter-psd-rot / --filter-psd-pos (needed by --filter-zupt, "
+                          "--filter-ca)."),
         click.option("--filter-psd-rot", "filter_psd_rot", type=click.FloatRange(min=0.0), default=1e-6,
-                     show_default=True, help="Filter: PSD of the white angular acceleration, rad^2/s^3."),
+                     show_default=True, help="Filter (--filter-motion fixed): PSD of the white angular acceleration, "
+                                             "rad^2/s^3."),
         click.option("--filter-psd-pos", "filter_psd_pos", type=click.FloatRange(min=0.0), default=1e-6,
-                     show_default=True, help="Filter: PSD of the white linear acceleration, m^2/s^3."),
+                     show_default=True, help="Filter (--filter-motion fixed): PSD of the white linear acceleration, "
+                                             "m^2/s^3."),
         click.option("--filter-gate-p", "filter_gate_p", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True),
                      default=1e-4, show_default=True,
                      help="Filter: false-rejection probability of the chi^2 outlier gates (per angle, per sweep)."),
@@ -489,7 +534,7 @@ def camera_model_option(f=None, *, flags=("--camera-model",), required: bool = F
     """The camera model file (matrix + lens distortion; :mod:`layoutkit.io.camera`). ``flags``:
     ``camera attitude`` spells it ``--camera`` (issue 28), ``live``/``replay`` ``--camera-model``
     (their ``--camera`` is the attitude-CSV reference). The command receives ``camera_model``."""
-    deco = click.option(*flags, "camera_model", type=click.Path(exists=True, dir_okay=False), default=None,
+    deco = click.option(*flags, "camera_model", type=click.Path(exists=True, dir_okay=False),
                         required=required, metavar="CAM.yml", help=help)
     return deco(f) if f is not None else deco
 
@@ -537,6 +582,16 @@ def solve_mode_option(f=None):
     deco = click.option("--solve", "solve_mode", type=click.Choice(SOLVE_MODES), default=None,
                         help="joint: one pose per 20 ms window from all stations (station 'joint'); per-station: "
                              "one pose per station frame. Default: joint when several stations are given.")
+    return deco(f) if f is not None else deco
+
+
+def motion_compensation_option(f=None, *, help: str | None = None):
+    """``--motion-compensation/--no-motion-compensation`` (default None: the command decides, on for a
+    joint solve). The command receives ``motion_compensation``."""
+    deco = click.option("--motion-compensation/--no-motion-compensation", "motion_compensation", default=None,
+                        help=help or ("--solve joint: each station's angles at their own time in the 20 ms window, "
+                                      "the body at constant velocity (from the neighbouring poses); only windows "
+                                      "whose motion moves the angles by > 0.25 sigma. Default on."))
     return deco(f) if f is not None else deco
 
 

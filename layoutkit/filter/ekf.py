@@ -46,8 +46,18 @@ _TWO_PI = 2.0 * math.pi
 class EkfConfig:
     """Tuning of the filter (SI units throughout).
 
-    psd_rot : rad²/s³, PSD of the white angular acceleration (constant-velocity model).
-    psd_pos : m²/s³, PSD of the white linear acceleration.
+    motion : "adaptive" (default) — an interacting-multiple-model bank of constant-velocity filters
+        whose PSDs span a resting to a swung / flying body (``imm_psd_rot``, ``imm_psd_pos``; per-sweep
+        mode stay probability ``imm_stay``): the process noise follows the motion
+        (:class:`layoutkit.filter.imm.ImmFilter`, compiled); "fixed" — one model with ``psd_rot`` /
+        ``psd_pos`` (compiled; with ``constant_acceleration`` or ``zupt`` this numpy class).
+    noise_scale_max, noise_scale_rate : adaptive mode: the angle noise variance is ``s sigma_theta²``
+        with ``s`` in ``[1, noise_scale_max]`` matched to the innovations (``s <- s (1 + rate
+        (NIS/dof - 1))``, each sweep's ratio capped at 10): a real station's model errors (calibration,
+        sensor positions: 2-6 sigma at the deck on the Bitcraze logs) count as noise instead of
+        starving the gates; ``noise_scale_max = 1`` keeps ``sigma_theta``.
+    psd_rot : rad²/s³, PSD of the white angular acceleration (constant-velocity model, "fixed").
+    psd_pos : m²/s³, PSD of the white linear acceleration ("fixed").
     constant_acceleration : add angular and linear acceleration states, driven by white jerk of
         PSDs ``psd_jerk_rot`` (rad²/s⁵) and ``psd_jerk_pos`` (m²/s⁵).
     sigma_theta : rad, 1-sigma angle noise; rho : same-rotor correlation (Chen eq. 19).
@@ -56,10 +66,19 @@ class EkfConfig:
     hit_timing : model each angle at its own hit time (sync + angle / rotor rate); False = all
         angles of a sweep at the sync time (the simulator's model).
     init_sigma_rate : rad/s, init_sigma_speed : m/s — prior 1-sigma of the velocities at
-        (re-)initialisation (they start at zero); init_inflation : factor on the PnP pose covariance.
+        (re-)initialisation (they start at zero; the defaults admit a hand-swung or flying body:
+        the first sweeps then determine the velocity); init_inflation : factor on the PnP pose
+        covariance.
     max_sigma_rot_deg, max_sigma_pos_m : status "ok" only while every 1-sigma attitude component
-        (deg) and position component (m) is below these; above ``lost_factor`` times them the
-        filter counts as lost.
+        (deg) and position component (m) is below these, and every velocity component below
+        ``max_sigma_speed`` (m/s: a filter that does not know its velocity is not tracking); a
+        position above ``lost_factor`` times its limit counts as lost (an attitude left unobserved
+        about one axis stays "uncertain").
+    ok_beats_one_station : with two or more stations, "ok" also needs the position 1-sigma (root
+        trace, m) below what the best single station would give at the filter's pose with every
+        sensor lit (``PDOP_1 · sigma_theta``, Chen eq. 24; re-evaluated every 0.1 s of stream) —
+        the joint windows' rule (``layoutkit.live.joint_stream.auto_sigma_limit``): a small deck's
+        filter that knows its position no better than one station is not ok.
     lost_after : consecutive rejected sweeps after which the filter counts as lost (re-initialise).
     zupt : static detector + zero-velocity updates; zupt_window : sweeps per static test;
         zupt_p : false-alarm probability of the motion test; zupt_sigma_rate (rad/s),
@@ -69,6 +88,12 @@ class EkfConfig:
 
     psd_rot: float = 1e-6
     psd_pos: float = 1e-6
+    motion: str = "adaptive"
+    imm_psd_rot: tuple = (1e-6, 1e-3, 1.0, 1e3)
+    imm_psd_pos: tuple = (1e-6, 1e-3, 1.0, 1e3)
+    imm_stay: float = 0.999
+    noise_scale_max: float = 100.0
+    noise_scale_rate: float = 0.01
     constant_acceleration: bool = False
     psd_jerk_rot: float = 1e-6
     psd_jerk_pos: float = 1e-6
@@ -77,10 +102,12 @@ class EkfConfig:
     gate_angle_p: float = 1e-4
     gate_sweep_p: float = 1e-4
     hit_timing: bool = True
-    init_sigma_rate: float = 0.05
-    init_sigma_speed: float = 0.05
+    init_sigma_rate: float = 6.0
+    init_sigma_speed: float = 3.0
     init_inflation: float = 4.0
-    max_sigma_rot_deg: float = 1.0
+    max_sigma_rot_deg: float = 5.0
+    max_sigma_speed: float = 1.0
+    ok_beats_one_station: bool = True
     max_sigma_pos_m: float = 0.02
     lost_factor: float = 10.0
     lost_after: int = 6
@@ -97,7 +124,7 @@ class EkfConfig:
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a PSD >= 0, got {v}")
         for name in ("sigma_theta", "init_sigma_rate", "init_sigma_speed", "init_inflation",
-                     "max_sigma_rot_deg", "max_sigma_pos_m", "zupt_sigma_rate", "zupt_sigma_speed"):
+                     "max_sigma_rot_deg", "max_sigma_pos_m", "max_sigma_speed", "zupt_sigma_rate", "zupt_sigma_speed"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive value, got {v}")
@@ -109,6 +136,21 @@ class EkfConfig:
                 raise ValueError(f"{name}: expected a probability in (0, 1), got {v}")
         if self.lost_after < 1 or self.zupt_window < 2 or self.lost_factor < 1:
             raise ValueError("lost_after >= 1, zupt_window >= 2 and lost_factor >= 1 expected")
+        if self.motion not in ("adaptive", "fixed"):
+            raise ValueError(f"motion: expected 'adaptive' or 'fixed', got {self.motion!r}")
+        if self.motion == "adaptive" and (self.constant_acceleration or self.zupt):
+            raise ValueError("constant_acceleration and zupt need motion 'fixed' (the adaptive bank is constant "
+                             "velocity; its quietest model is the static case)")
+        qr, qp = tuple(self.imm_psd_rot), tuple(self.imm_psd_pos)
+        if not (len(qr) == len(qp) >= 1 and all(math.isfinite(v) and v >= 0 for v in qr + qp)):
+            raise ValueError(f"imm_psd_rot, imm_psd_pos: expected equally long lists of PSDs >= 0, got {qr}, {qp}")
+        object.__setattr__(self, "imm_psd_rot", qr)
+        object.__setattr__(self, "imm_psd_pos", qp)
+        if not (math.isfinite(self.noise_scale_max) and self.noise_scale_max >= 1.0
+                and 0.0 <= self.noise_scale_rate < 1.0):
+            raise ValueError("noise_scale_max >= 1 and noise_scale_rate in [0, 1) expected")
+        if not 0.0 < self.imm_stay <= 1.0:
+            raise ValueError(f"imm_stay: expected a probability in (0, 1], got {self.imm_stay}")
         if self.model not in FORWARD_MODELS:
             raise ValueError(f"model: expected one of {sorted(FORWARD_MODELS)}, got {self.model!r}")
 
@@ -142,6 +184,72 @@ def chi2_quantile(p: float, dof: int) -> float:
     from scipy.stats import chi2
 
     return float(chi2.ppf(p, dof))
+
+
+def start_covariance(config: EkfConfig, cov, dim: int) -> np.ndarray:
+    """(dim, dim) start covariance of the error state ``(dphi, w, dp, v, ...)``: ``cov`` (6, 6) of
+    ``(dphi, dp)`` with the config's velocity priors (``init_sigma_rate``, ``init_sigma_speed``), or
+    ``cov`` (12, 12) of ``(dphi, w, dp, v)`` as given (e.g. a two-point start)."""
+    cov = np.asarray(cov, float)
+    P = np.zeros((dim, dim))
+    if cov.shape == (12, 12):
+        P[:12, :12] = 0.5 * (cov + cov.T)
+        return P
+    if cov.shape != (6, 6):
+        raise ValueError(f"start covariance: expected (6, 6) or (12, 12), got {cov.shape}")
+    i = np.r_[0:3, 6:9]
+    P[np.ix_(i, i)] = cov
+    P[3:6, 3:6] = np.eye(3) * config.init_sigma_rate ** 2
+    P[9:12, 9:12] = np.eye(3) * config.init_sigma_speed ** 2
+    return P
+
+
+def single_station_sigma(points_body, rotation, translation, stations, rho: float, sigma_theta: float) -> float:
+    """m, the best single station's predicted 1-sigma position (root trace, ``PDOP_1 · sigma_theta``,
+    Chen eq. 24) at the pose ``rotation (3, 3)``, ``translation (3,)`` m (world) with every sensor
+    of ``points_body (n, 3)`` lit; inf when no station sees the layout."""
+    from ..dop import pose_dop
+
+    S, n = len(stations), len(points_body)
+    vis = np.zeros((S, S, n), bool)
+    for k in range(S):
+        vis[k, k] = True
+    d = np.asarray(pose_dop(points_body, np.broadcast_to(rotation, (S, 3, 3)), np.broadcast_to(translation, (S, 3)),
+                            rho=rho, visible=vis, stations=stations).pdop, float)
+    d = d[np.isfinite(d)]
+    return float(d.min()) * sigma_theta if d.size else math.inf
+
+
+def two_point_start(a, b, max_speed: float, max_rate: float):
+    """Velocity, rate and start covariance from two pose solves on disjoint angles (two-point
+    differencing, Bar-Shalom, Li & Kirubarajan 2001 §5.5.3). ``a``, ``b`` = ``(t s, R (3, 3), p (3,)
+    m, C (6, 6) of (dphi, dp), s)`` with ``s`` the standard deviation (s) of the solve's angles' hit
+    times. Velocity ``(p_b - p_a) / dt`` and rate ``log(R_b R_a^T) / dt`` (world frame); each solve's
+    covariance is widened by the motion over its hit-time spread (``(|v| s)²``, ``(|w| s)²``: a
+    solve of a moving body mixes poses), then the state ``(dphi, w, dp, v)`` at b has covariance
+    ``C_b`` (pose), ``(C_a + C_b) / dt²`` (velocities) and ``C_b / dt`` between them. Returns
+    ``(v (3,), w (3,), P (12, 12))``, or None when ``dt <= 0`` or the implied speed or rate exceeds
+    ``max_speed`` m/s / ``max_rate`` rad/s (a wrong solve)."""
+    from scipy.spatial.transform import Rotation
+
+    ta, Ra, pa, Ca, sa = a
+    tb, Rb, pb, Cb, sb = b
+    dt = tb - ta
+    if not dt > 0:
+        return None
+    v = (np.asarray(pb, float) - pa) / dt
+    w = Rotation.from_matrix(Rb @ np.asarray(Ra).T).as_rotvec() / dt
+    if not (np.linalg.norm(v) <= max_speed and np.linalg.norm(w) <= max_rate):
+        return None
+    blur = np.r_[np.full(3, float(np.linalg.norm(w)) ** 2), np.full(3, float(np.linalg.norm(v)) ** 2)]
+    Ca, Cb = Ca + np.diag(blur * sa ** 2), Cb + np.diag(blur * sb ** 2)
+    P = np.zeros((12, 12))
+    ip, iv = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+    P[np.ix_(ip, ip)] = Cb
+    P[np.ix_(iv, iv)] = (Ca + Cb) / dt ** 2
+    P[np.ix_(ip, iv)] = Cb / dt
+    P[np.ix_(iv, ip)] = Cb / dt
+    return v, w, P
 
 
 class ErrorStateEKF:
@@ -215,7 +323,8 @@ class ErrorStateEKF:
     def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None) -> None:
         """Start (or restart) at time ``t`` s with pose ``(rotation (3, 3), position (3,) m)`` of
         covariance ``pose_cov (6, 6)`` (dphi, dp) and zero (or the given) velocities with the
-        configured prior sigmas."""
+        configured prior sigmas — or, with ``pose_cov`` (12, 12), the covariance of ``(dphi, w, dp,
+        v)`` (:func:`start_covariance`)."""
         c = self.config
         self.t = float(t)
         self.q = quat_from_matrix(rotation)
@@ -224,11 +333,7 @@ class ErrorStateEKF:
         self.v = np.zeros(3) if velocity is None else np.array(velocity, float)
         self.alpha = np.zeros(3)
         self.a = np.zeros(3)
-        P = np.zeros((self.dim, self.dim))
-        i = np.r_[0:3, 6:9]
-        P[np.ix_(i, i)] = np.asarray(pose_cov, float)
-        P[3:6, 3:6] = np.eye(3) * c.init_sigma_rate ** 2
-        P[9:12, 9:12] = np.eye(3) * c.init_sigma_speed ** 2
+        P = start_covariance(c, pose_cov, self.dim)
         if c.constant_acceleration:
             P[12:15, 12:15] = np.eye(3) * (c.init_sigma_rate / 0.1) ** 2
             P[15:18, 15:18] = np.eye(3) * (c.init_sigma_speed / 0.1) ** 2

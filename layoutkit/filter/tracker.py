@@ -25,7 +25,9 @@ Life cycle (docs/filter.md):
    a pose sigma beyond ``lost_factor`` times the limits, or time running backwards → status
    "lost" and back to 1 (the outputs keep coming, with status "lost", until a frame re-initialises).
 
-Static detector (``zupt``): consecutive sweeps of the same station and axis differ by ``d`` on the
+Static detector (``zupt``; always on in the adaptive mode, where it holds the bank in its quietest
+model at rest, :meth:`layoutkit.filter.imm.ImmFilter.hold_static`, with the robust rule of
+:meth:`SweepTracker._static_test`): consecutive sweeps of the same station and axis differ by ``d`` on the
 sensors lit in both; at rest ``d ~ N(0, 2 sigma² C)`` with ``C`` the correlation of Chen eq. (19), so
 ``T = d^T C^-1 d / (2 sigma²)`` is chi²(m). When the sum of ``T`` over the last ``zupt_window`` pairs is
 below the chi² quantile ``1 - zupt_p`` the body is taken as static: no process noise and a
@@ -35,16 +37,17 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from statistics import median
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..lighthouse import Station, to_sweep_angles
 from ..units import RAD2DEG
-from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile
-from .so3 import quat_to_rotvec
+from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
+from .so3 import quat_to_matrix, quat_to_rotvec
 
-__all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance"]
+__all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance", "joint_pose_covariance"]
 
 #: Output statuses: "ok" = tracking within the configured sigma limits.
 STATUSES = ("ok", "uncertain", "lost")
@@ -137,6 +140,23 @@ class TrackerCounters:
         return dict(self.__dict__)
 
 
+def joint_pose_covariance(jacs, sigma: float, rho: float) -> np.ndarray:
+    """Covariance (6, 6) of an unweighted least-squares pose over several stations: the sandwich
+    ``A^-1 (sum_k J_k^T R_k J_k) A^-1``, ``A = sum_k J_k^T J_k``, each station's angles correlated as
+    Chen eq. (19) within its own rotor only. jacs : per station (m_k, 2, 6), world perturbation."""
+    from ..noise import angle_correlation
+
+    A = np.zeros((6, 6))
+    M = np.zeros((6, 6))
+    for jac in jacs:
+        J = np.asarray(jac, float).reshape(-1, 6)
+        A += J.T @ J
+        M += J.T @ angle_correlation(J.shape[0] // 2, rho) @ J
+    Ai = np.linalg.inv(A)
+    H = Ai @ M @ Ai * sigma ** 2
+    return 0.5 * (H + H.T)
+
+
 def pnp_pose_covariance(jac, sigma: float, rho: float) -> np.ndarray:
     """Covariance (6, 6) of an unweighted least-squares pose from one frame (Chen eq. 18).
 
@@ -171,24 +191,43 @@ class SweepTracker:
         self.points_body = np.ascontiguousarray(points_body, float)
         self.n = self.points_body.shape[0]
         self.stations = list(stations) if stations else [Station()]
-        self.ekf = ErrorStateEKF(self.points_body, self.stations, self.config, model)
+        if self.config.motion == "fixed" and (self.config.constant_acceleration or self.config.zupt or model is not None):
+            self.ekf = ErrorStateEKF(self.points_body, self.stations, self.config, model)
+        else:  # the compiled estimator: the adaptive bank, or one constant-velocity model
+            from .imm import ImmFilter
+
+            self.ekf = ImmFilter(self.points_body, self.stations, self.config)
         self.init_max_residual_sigma = float(init_max_residual_sigma)
         self.init_window_s = float(init_window_s)
         self.init_retry_s = 0.5 * float(init_window_s)
+        self.reorder_s = 0.05  # s, sweeps older than the filter by at most this are applied late, not a reset
+        # s, oldest angle of a multi-station start: about one rotation of every station (a moving body
+        # has moved little since; the single-station start waits up to init_window_s for 4 sensors)
+        self.joint_init_window_s = min(self.init_window_s, 0.025)
         self.confirm_sweeps = int(confirm_sweeps)
         self._confirm = 0
         self._ambiguous = 0
+        self._amb = None  # (station, start R) of an ambiguous PnP start: not ok until told apart
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
+        self._waiting_since = None  # when the tracker began waiting for a start (several stations)
+        self._first = None  # (t, mean angle time, R, p, cov) of a joint start's first solve
         self._bad_run = 0
+        self._bad_by_station: dict = {}
         self._lost = False
         self._last_same: dict = {}
         W = self.config.zupt_window
         self._static_T = deque(maxlen=W)
         self._static_m = deque(maxlen=W)
+        self._static_per = deque(maxlen=min(W, 20))  # T / m of the latest pairs (the adaptive rule)
         self._static_q: dict = {}
         self.static = False
+        # the adaptive bank takes the static detector's verdict (ImmFilter.hold_static) over the last
+        # 20 pairs of sweeps (~0.1 s of two LH2 stations): a start settles at rest quickly
+        self.static_window = min(self.config.zupt_window, 20)
+        self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
+        self._one_station = (-math.inf, math.inf)  # (t evaluated, m): ok_beats_one_station's limit
 
     # --------------------------------------------------------------------------- helpers
     def _station(self, s: int) -> Station:
@@ -196,11 +235,16 @@ class SweepTracker:
             raise ValueError(f"sweep station {s}: the set-up has {len(self.stations)} station(s)")
         return self.stations[s]
 
-    def _hit_offsets(self, st: Station, kind: str, ang: np.ndarray):
+    def _hit_offsets(self, st: Station, kind: str, ang: np.ndarray, axis: int = 0):
+        """Hit time of each angle after the sweep's time (s): LH1 ``theta / omega`` after the sync,
+        LH2 plane ``axis`` ``(alpha + pi -/+ pi/3) / omega`` after the rotor zero (the decoder's
+        plane angles ``a0 = off0 omega - pi + pi/3``, ``a1 = off1 omega - pi - pi/3``)."""
         if not self.config.hit_timing:
             return None
         omega = 2.0 * math.pi * st.rotor_rpm / 60.0
-        return (ang + (math.pi if kind == "lh2" else 0.0)) / omega
+        if kind == "lh2":
+            return (ang + math.pi + (-math.pi / 3 if axis == 0 else math.pi / 3)) / omega
+        return ang / omega
 
     def _remember(self, s: int, axis: int, t: float, ang: np.ndarray) -> None:
         rec = self._recent.get(s)
@@ -211,11 +255,117 @@ class SweepTracker:
         rec[0][hit, axis] = ang[hit]
         rec[1][hit, axis] = t
 
+    def _try_joint_init(self, t: float) -> bool:
+        """A start from every station's recent angles at once (:func:`layoutkit.joint.solve_joint`
+        through each station's forward model): with two or more stations a small body's range is
+        fixed by the stations' baseline, where one station alone leaves it centimetres uncertain
+        (and the other stations' first sweeps would then be rejected). Needs >= 2 stations with
+        >= 2 sensors lit on both axes and one with >= 4 (the solve's start); True when started."""
+        from ..joint import solve_joint
+
+        S = len(self.stations)
+        ang = np.full((S, self.n, 2), np.nan)
+        lits = np.zeros((S, self.n), bool)
+        for k, rec in self._recent.items():
+            if 0 <= k < S:
+                lit = np.all(rec[1] >= t - self.joint_init_window_s, -1)
+                ang[k][lit], lits[k] = rec[0][lit], lit
+        per = lits.sum(1)
+        if (per >= 2).sum() < 2 or per.max() < 4:
+            return False
+        first = self._first
+        if first is not None and t - first[0] > self.init_window_s:
+            first = self._first = None  # too old to difference with: start over
+        if first is not None and t - first[0] < self.joint_init_window_s:
+            return False  # the second solve uses fresh angles (no angle in both)
+        key = lits.tobytes()
+        prev = self._tried.get("joint")
+        if prev is not None and prev[0] == key and t - prev[1] < self.init_retry_s:
+            return False
+        self.counters.pnp_tries += 1
+        sol = solve_joint(self.points_body, ang[None], stations=self.stations)
+        c = self.config
+        if not sol.success[0] or not sol.residual_rms[0] <= self.init_max_residual_sigma * c.sigma_theta:
+            self._tried["joint"] = (key, t)
+            return False
+        R, p = np.asarray(sol.rotation[0]), np.asarray(sol.translation[0])
+        try:
+            cov = joint_pose_covariance([self.ekf.model.jacobian(self.points_body[lits[k]], R, p, self.stations[k])
+                                         for k in range(S) if lits[k].any()], c.sigma_theta, c.rho) * c.init_inflation
+        except np.linalg.LinAlgError:
+            cov = np.full((6, 6), np.nan)
+        if not np.all(np.isfinite(cov)):
+            self._tried["joint"] = (key, t)
+            return False
+        times = np.concatenate([self._hit_times(k, lits[k]) for k in range(S) if lits[k].any()])
+        # the solve's time: the mean hit time of its angles; their spread says how much a motion blurs it
+        tm, spread = float(times.mean()), float(times.std())
+        noise = (float(sol.residual_rms[0]) / c.sigma_theta) ** 2
+        if first is None:
+            self._first = (t, tm, R, p, cov, spread)
+            return False
+        return self._start_two_point(first, (t, tm, R, p, cov, spread), noise)
+
+    def _hit_times(self, k: int, lit) -> np.ndarray:
+        """(2 m,) s, hit times of the remembered angles of station ``k``'s sensors ``lit`` (sweep
+        time + :meth:`_hit_offsets`)."""
+        ang, times = self._recent[k][0][lit], self._recent[k][1][lit]
+        st = self.stations[k]
+        out = times.copy()
+        for axis in (0, 1):
+            offs = self._hit_offsets(st, st.kind, ang[:, axis], axis)
+            if offs is not None:
+                out[:, axis] += offs
+        return out.ravel()
+
+    def _start_two_point(self, a, b, noise_scale) -> bool:
+        """Start from two joint solves on disjoint angles (:func:`~layoutkit.filter.ekf.two_point_start`)
+        at solve b's time; an implied speed beyond 3x the velocity prior keeps b as the first."""
+        c = self.config
+        _, ta, Ra, pa, Ca, sa = a
+        t, tb, Rb, pb, Cb, sb = b
+        st = two_point_start((ta, Ra, pa, Ca, sa), (tb, Rb, pb, Cb, sb), 3 * c.init_sigma_speed, 3 * c.init_sigma_rate)
+        if st is None:
+            self._first = b
+            return False
+        v, w, P = st
+        self._start(tb, Rb, pb, P, 0.0, noise_scale, velocity=v, rate=w)
+        return True
+
+    def _start(self, t, R, p, cov, age, noise_scale=None, velocity=None, rate=None) -> None:
+        """Initialise the filter at ``t``: ``cov`` (6, 6) pose covariance (velocity priors of the
+        config, inflated by the motion they allow over ``age`` s), or (12, 12) the whole state's
+        (with the given ``velocity``/``rate``)."""
+        c = self.config
+        if cov.shape == (6, 6):
+            cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
+            cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
+        kw = {"noise_scale": noise_scale} if noise_scale is not None and hasattr(self.ekf, "hold_static") else {}
+        self.ekf.initialize(t, R, p, cov, velocity=velocity, rate=rate, **kw)
+        self._first = None
+        self._one_station = (-math.inf, math.inf)
+        self._amb = None
+        self._waiting_since = None
+        self._confirm = self.confirm_sweeps
+        self._lost = False
+        self._bad_run = 0
+        self._bad_by_station.clear()
+        self._tried.clear()
+        self.counters.inits += 1
+
     def _try_init(self, s: int, t: float, st: Station) -> bool:
-        """PnP on the recent angles of station ``s`` (see the module docstring); True when started."""
+        """A start from all stations' recent angles (:meth:`_try_joint_init`), else PnP on the recent
+        angles of station ``s`` (see the module docstring); True when started."""
         from ..pnp import solve_pnp
         from ..status import AMBIGUOUS as STATUS_AMBIGUOUS
 
+        if len(self.stations) >= 2:
+            if self._try_joint_init(t):
+                return True
+            if self._waiting_since is None:
+                self._waiting_since = t
+            if t - self._waiting_since < self.init_window_s:
+                return False  # give the other stations one init window to be seen before starting from one
         rec = self._recent.get(s)
         if rec is None:
             return False
@@ -254,15 +404,9 @@ class SweepTracker:
             return False
         if not np.all(np.isfinite(cov)):
             return False
-        age = t - float(times[lit].min())
-        cov[0:3, 0:3] += np.eye(3) * (c.init_sigma_rate * age) ** 2
-        cov[3:6, 3:6] += np.eye(3) * (c.init_sigma_speed * age) ** 2
-        self.ekf.initialize(t, R, p, cov)
-        self._confirm = self.confirm_sweeps
-        self._lost = False
-        self._bad_run = 0
-        self._tried.clear()
-        self.counters.inits += 1
+        self._start(t, R, p, cov, t - float(times[lit].min()))
+        if sol.status[0] == STATUS_AMBIGUOUS and sol.alt_rotation is not None:
+            self._amb = (s, R)
         return True
 
     def _static_test(self, key, t, ang) -> None:
@@ -276,11 +420,22 @@ class SweepTracker:
         m = d.size
         if m == 0:
             return
-        rho = c.rho
+        # adaptive mode: no same-rotor correlation assumed (a real station's is not the paper's; the
+        # per-angle variance 2 sigma² of a difference holds whatever it is)
+        rho = c.rho if c.motion == "fixed" else 0.0
         s = d.sum()
         T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
         self._static_T.append(T)
         self._static_m.append(m)
+        self._static_per.append(T / m)
+        if c.motion != "fixed" and len(self._static_per) >= self.static_window:
+            # robust form for the adaptive bank: at rest the median per-dof statistic of the window is
+            # ~1 (up to 4 allows sigma_theta half the real noise), a single decoding glitch does not
+            # move the median, and three consecutive large pairs (a motion starting) end rest at once
+            per = self._static_per
+            # statistics.median: numpy's definition, without numpy's per-call overhead (every sweep)
+            self.static = bool(median(per) <= 4.0 and not (per[-1] > 9.0 and per[-2] > 9.0 and per[-3] > 9.0))
+            return
         if len(self._static_T) < c.zupt_window:
             self.static = False
             return
@@ -305,14 +460,22 @@ class SweepTracker:
         if ang.shape != (self.n,):
             raise ValueError(f"sweep angles: expected shape ({self.n},), got {ang.shape}")
         ekf = self.ekf
+        late = 0.0
+        if ekf.initialized and t < ekf.t and ekf.t - t <= self.reorder_s:
+            # sweeps of different stations reach the decoder slightly out of time order (a rotation's
+            # time is its zero, the sweep is complete only when the plane has passed): applied at the
+            # filter's time with their hit times moved back
+            late, t = t - ekf.t, ekf.t
         if ekf.initialized and t < ekf.t:  # time ran backwards (device reset): start over
             self._declare_lost()
             ekf.initialized = False
+            self._first = None
             self._recent.clear()
             self._last_same.clear()
             self._static_T.clear()
             self._static_m.clear()
-        if c.zupt:
+            self._static_per.clear()
+        if c.zupt or self._hold:
             self._static_test((s, axis), t, ang)
         event = ""
         if not ekf.initialized or self._lost:
@@ -326,50 +489,102 @@ class SweepTracker:
             self._recent.clear()
         upd = None
         if event != "init":
+            if self._hold:
+                ekf.hold_static(self.static)
             ekf.predict(t, process_noise=not (c.zupt and self.static))
             if not self._lost:
                 idx = np.flatnonzero(np.isfinite(ang))
                 if idx.size:
                     a = ang[idx]
-                    upd = ekf.update_sweep(s, axis, idx, a, self._hit_offsets(st, kind, a))
-                    self._account(upd)
+                    offs = self._hit_offsets(st, kind, a, axis)
+                    if late:
+                        upd = (ekf.update_sweep(s, axis, idx, a, None if offs is None else offs + late, late)
+                               if hasattr(ekf, "propagate") else ekf.update_sweep(s, axis, idx, a,
+                                                                                  (0.0 if offs is None else offs) + late))
+                    else:
+                        upd = ekf.update_sweep(s, axis, idx, a, offs)
+                    self._account(upd, s)
+                    if self._amb is not None and upd.used >= 2 and not upd.sweep_rejected:
+                        self._resolve_ambiguity(s)
+                elif hasattr(ekf, "propagate"):
+                    ekf.propagate()
                 if c.zupt and self.static:
                     ekf.zero_velocity_update()
                     self.counters.zupts += 1
         return self._output(t, s, axis, upd, event)
 
-    def _account(self, upd: SweepUpdate) -> None:
+    def _account(self, upd: SweepUpdate, s: int = 0) -> None:
+        """Counters; lost after ``lost_after`` rejected sweeps in a row, overall or of one station
+        (a state that one station's sweeps keep refusing is wrong although the other station's
+        interleaved sweeps agree with it — e.g. the mirrored pose of a planar one-station start)."""
         cnt = self.counters
         cnt.angles_used += upd.used
         cnt.angles_rejected += upd.rejected
         if upd.sweep_rejected:
             cnt.sweeps_rejected += 1
             self._bad_run += 1
-            if self._bad_run >= self.config.lost_after:
+            self._bad_by_station[s] = self._bad_by_station.get(s, 0) + 1
+            if max(self._bad_run, self._bad_by_station[s]) >= self.config.lost_after:
                 self._declare_lost()
         elif upd.used:
             self._bad_run = 0
+            self._bad_by_station[s] = 0
             self._confirm -= 1
+
+    def _resolve_ambiguity(self, s: int) -> None:
+        """An ambiguous start is settled by a sweep of another station accepted, or by the body
+        turning more than 20 deg from the start pose with its sweeps accepted (the two planar poses
+        mirror about the line of sight: a turn makes their angles differ, the gates reject the
+        wrong one)."""
+        s0, R0 = self._amb
+        if s != s0:
+            self._amb = None
+            return
+        dR = quat_to_matrix(self.ekf.q) @ R0.T
+        if math.degrees(math.acos(min(max((np.trace(dR) - 1.0) / 2.0, -1.0), 1.0))) > 20.0:
+            self._amb = None
 
     def _declare_lost(self) -> None:
         if not self._lost:
             self._lost = True
             self.counters.losts += 1
         self._bad_run = 0
+        self._bad_by_station.clear()
+
+    def _one_station_limit(self, t: float) -> float:
+        """m, ``PDOP_1 · sigma_theta`` of the best single station at the filter's pose, every sensor
+        lit (:attr:`EkfConfig.ok_beats_one_station`); re-evaluated after 0.1 s of stream time or a
+        (re)start."""
+        t0, lim = self._one_station
+        if abs(t - t0) <= 0.1:
+            return lim
+        lim = single_station_sigma(self.points_body, quat_to_matrix(self.ekf.q), self.ekf.p, self.stations,
+                                   self.config.rho, self.config.sigma_theta)
+        self._one_station = (t, lim)
+        return lim
 
     def _output(self, t, s, axis, upd: SweepUpdate | None, event: str) -> FilterOutput:
         c = self.config
         ekf = self.ekf
         P = ekf.P  # never modified in place by the filter: safe to hand out
         d = np.diagonal(P)
-        big = max(math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg,
-                  math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m)
-        if big > c.lost_factor and not self._lost:
+        big_pos = math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m
+        big = max(math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg, big_pos)
+        # lost when the position is beyond recovery; an attitude the sweeps leave unobserved about one
+        # axis (2-3 sensors lit) is uncertain, not lost (the innovations say when the state is wrong)
+        if big_pos > c.lost_factor and not self._lost:
             self._declare_lost()
         if self._lost:
             status = "lost"
         else:  # two consecutive rejected sweeps: the data no longer support the state
-            status = "ok" if big <= 1.0 and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
+            # ok also needs the velocity known (a start's 3 m/s prior lets the pose swing for a few sweeps)
+            slow_known = math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed
+            status = "ok" if big <= 1.0 and slow_known and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
+            if status == "ok" and self._amb is not None:
+                status = "uncertain"  # a planar two-fold start not yet told apart
+            if status == "ok" and c.ok_beats_one_station and len(self.stations) >= 2 \
+                    and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t):
+                status = "uncertain"
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"

@@ -11,7 +11,9 @@ Format (cntools/libsurvive ``src/survive_recording.c``): one event per line,
 - ``<dev> POSE x y z qw qx qy qz`` and ``<name> EXTERNAL_POSE x y z qw qx qy qz``: object poses
   in the world (libsurvive's solution; an external tracker);
 - ``<mode> LH_POSE x y z qw qx qy qz``: a lighthouse pose in the world;
-- everything else (IMU ``i``/``I``, raw light ``C``/``L``/``R``/``W``/``Y``, ``INFO``) is counted
+- ``<dev> i <mask> <timecode> ax ay az gx gy gz ...``: raw IMU samples (device counts; scaled by
+  :func:`layoutkit.importers.libsurvive_imu.imu_samples`);
+- everything else (scaled IMU ``I``, raw light ``C``/``L``/``R``/``W``/``Y``, ``INFO``) is counted
   and skipped.
 
 ``timecode`` is the device's 48 MHz counter (32 bits, unwrapped here onto one monotone clock).
@@ -45,9 +47,9 @@ from ..layout import Layout
 from .vive import layout_from_config
 
 __all__ = [
-    "TICK_HZ", "LH2_TILT", "Recording", "DeviceLight", "read_recording", "read_lighthouse_config",
+    "TICK_HZ", "LH2_TILT", "LH2_CHANNEL_HZ", "Recording", "DeviceLight", "read_recording", "read_lighthouse_config",
     "libsurvive_to_theta", "lh2_to_sweep_angles", "station_rotation_from_quaternion",
-    "device_frames", "FLIP",
+    "device_frames", "FLIP", "libsurvive_stations", "StationMap", "device_sweeps",
 ]
 
 #: libsurvive's device timecode clock (Vive / Index / Tracker), Hz.
@@ -56,6 +58,11 @@ TICK_HZ = 48e6
 LH2_TILT = np.pi / 6
 #: layoutkit station frame = FLIP @ libsurvive lighthouse frame (x kept, y and z reversed).
 FLIP = np.diag([1.0, -1.0, -1.0])
+#: LH2 rotor frequency of each channel (libsurvive's ``mode`` 0-15), Hz: the values libsurvive uses
+#: (``src/survive_process_gen2.c``, ``freq_per_channel``). Checked on the real recordings: the sweep
+#: angle grows at ``2 pi f`` per second of device time (channel 10: 328.2 rad/s measured, 328.17 here).
+LH2_CHANNEL_HZ = (50.0521, 50.1567, 50.3673, 50.5796, 50.6864, 50.9014, 51.0096, 51.1182,
+                  51.2273, 51.6685, 52.2307, 52.6894, 52.9217, 53.2741, 53.7514, 54.1150)
 
 _CAL_KEYS = ("fcalphase", "fcaltilt", "fcalcurve", "fcalgibpha", "fcalgibmag", "fcalogeephase", "fcalogeemag")
 # a sweep of one station and axis lasts well under one 8.33 ms LH1 slot
@@ -90,7 +97,10 @@ class Recording:
 
     configs : device name → CONFIG dict; light : device name → :class:`DeviceLight`;
     poses : object name → list of ``(t, x, y, z, qw, qx, qy, qz)`` (POSE lines);
-    external_poses : the same for EXTERNAL_POSE; lh_poses : mode → last ``(x, y, z, qw, qx, qy, qz)``;
+    external_poses : the same for EXTERNAL_POSE; lh_poses : the line's object (LH1: lighthouse
+    index, LH2: channel) → last ``(x, y, z, qw, qx, qy, qz)``; lh_serials : the same → the serial
+    some recordings write after the pose; imu : device → list of ``[t, timecode, ax, ay, az, gx, gy,
+    gz]`` (raw ``i`` lines: device counts, 48 MHz timecode);
     lines : lines read; counts : line type → count; skipped : reason → count;
     ended : None if the file ended cleanly, else a message saying where and why it ended.
     """
@@ -101,6 +111,8 @@ class Recording:
     poses: dict = field(default_factory=dict)
     external_poses: dict = field(default_factory=dict)
     lh_poses: dict = field(default_factory=dict)
+    lh_serials: dict = field(default_factory=dict)
+    imu: dict = field(default_factory=dict)
     lines: int = 0
     counts: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
@@ -223,8 +235,13 @@ def read_recording(path) -> Recording:
             elif typ in ("POSE", "EXTERNAL_POSE") and len(parts) >= 10:
                 target = rec.poses if typ == "POSE" else rec.external_poses
                 target.setdefault(obj, []).append([t] + [_float(x) for x in parts[3:10]])
+            elif typ == "i" and len(parts) >= 11:
+                # raw IMU: <mask> <timecode> ax ay az gx gy gz [mx my mz] [id] (device counts)
+                rec.imu.setdefault(obj, []).append([t, float(int(parts[4]))] + [_float(x) for x in parts[5:11]])
             elif typ == "LH_POSE" and len(parts) >= 10:
                 rec.lh_poses[int(obj)] = [_float(x) for x in parts[3:10]]
+                if len(parts) >= 11:                  # newer recordings end the line with the serial
+                    rec.lh_serials[int(obj)] = parts[10]
         except ValueError:
             skipped[f"malformed {typ} line"] = skipped.get(f"malformed {typ} line", 0) + 1
     if rec.lines == 0:
@@ -441,3 +458,128 @@ def layout_of(rec: Recording, device: str) -> Layout:
     meta = dict(lay.metadata)
     meta["source"] = {"format": "libsurvive", "file": rec.path, "device": device}
     return Layout(lay.positions, lay.normals, lay.ids, meta)
+
+
+@dataclass(frozen=True)
+class StationMap:
+    """The stations of a recording and how its light events find them.
+
+    stations : :class:`~layoutkit.lighthouse.Station` list (the frame table's ``station`` column
+    indexes it); info : one dict per station for the import summary; lh1 : LH1 lighthouse index →
+    station index; lh2 : LH2 channel → station index.
+    """
+
+    stations: list
+    info: list
+    lh1: dict
+    lh2: dict
+
+
+def libsurvive_stations(rec: Recording, cfg: dict) -> StationMap:
+    """Stations of a recording: poses from the lighthouse config (``.json``) or ``LH_POSE`` lines,
+    factory calibration from its ``fcal*`` values (libsurvive convention,
+    :func:`layoutkit.lighthouse.calibration_from_libsurvive`).
+
+    Ids are unique and stable: ``LH<N>`` for the config's ``lighthouse<N>`` (libsurvive's own
+    lighthouse index, the order of the calibration file) or an LH1 index / LH_POSE line the config
+    does not name, ``ch<c>`` for an LH2 channel the config does not name. libsurvive's own id (the
+    lighthouse serial; not unique: ``nan_crash_windows`` writes 2147483647 for all three) is kept as
+    ``source_id``. LH2 stations get the rotor speed of their channel (:data:`LH2_CHANNEL_HZ`).
+    Stations without a known pose get the identity pose and ``pose_known: false`` in the info.
+    """
+    from ..lighthouse import Station, calibration_from_libsurvive
+
+    gens = {g for d in rec.light.values() for g in set(d.gen)}
+    kind = "lh2" if gens == {2} else "lh1"
+    channels = sorted({c for d in rec.light.values() for c, g in zip(d.station, d.gen) if g == 2})
+    lh1_idx = sorted({c for d in rec.light.values() for c, g in zip(d.station, d.gen) if g == 1})
+    by_mode = {v["mode"]: k for k, v in cfg.items() if v.get("mode") is not None}
+    keys = sorted(set(cfg) | set(lh1_idx) | {by_mode[c] for c in channels if c in by_mode})
+    keys += [("ch", c) for c in channels if c not in by_mode]  # channels the config does not name
+    index = {k: i for i, k in enumerate(keys)}
+    idx_map = {i: index[i] for i in lh1_idx}
+    ch_map = {c: index[by_mode[c]] if c in by_mode else index[("ch", c)] for c in channels}
+    stations, info = [], []
+    for k in keys:
+        c = cfg.get(k, {}) if not isinstance(k, tuple) else {}
+        mode = c.get("mode") if not isinstance(k, tuple) else k[1]
+        pose = c.get("pose") if c.get("position_set", True) else None
+        source = "libsurvive config json" if pose is not None else None
+        line_key = mode if kind == "lh2" else k
+        lhp = rec.lh_poses.get(line_key)
+        if lhp is not None:
+            pose, source = lhp, "LH_POSE line"
+        kw = {}
+        if pose is not None:
+            kw = {"rotation": station_rotation_from_quaternion(pose[3:]), "translation": np.asarray(pose[:3], float)}
+        cal = c.get("calibration")
+        if kind == "lh2":
+            hz = LH2_CHANNEL_HZ[mode] if mode is not None and 0 <= mode < len(LH2_CHANNEL_HZ) else 50.0
+            kw["rotor_rpm"] = 60.0 * hz
+        src = c.get("id") or rec.lh_serials.get(line_key)
+        sid = f"ch{k[1]}" if isinstance(k, tuple) else f"LH{k}"
+        st = Station(id=sid, kind=kind, calibration=calibration_from_libsurvive(cal, kind) if cal else None,
+                     source_id=str(src) if src else None, **kw)
+        stations.append(st)
+        info.append({"index": index[k], "id": st.id, "source_id": st.source_id, "kind": kind,
+                     "pose_known": pose is not None, "pose_source": source, "libsurvive_pose": pose,
+                     "channel": mode if kind == "lh2" else None, "rotor_hz": st.rotor_rpm / 60.0,
+                     "calibration_fcal": cal or None})
+    return StationMap(stations, info, idx_map, ch_map)
+
+
+def _device_time(d: DeviceLight, extra_timecodes=()):
+    """The device clock of :func:`device_frames` (light timecodes unwrapped, one median offset onto the
+    host clock) and the same mapping for ``extra_timecodes`` (e.g. the IMU's, unwrapped together with
+    the light events in host-time order). Returns ``(light_t, extra_t)`` s."""
+    tl = np.asarray(d.timecode, np.int64)
+    hl = np.asarray(d.t, float)
+    te = np.asarray([x[1] for x in extra_timecodes], np.int64) if len(extra_timecodes) else np.zeros(0, np.int64)
+    he = np.asarray([x[0] for x in extra_timecodes], float) if len(extra_timecodes) else np.zeros(0)
+    tc = np.concatenate([tl, te])
+    host = np.concatenate([hl, he])
+    order = np.argsort(host, kind="stable")
+    un = np.empty_like(tc)
+    un[order] = _unwrap32(tc[order])
+    ul, ue = un[: tl.size], un[tl.size:]
+    t0 = _unwrap32(tl)[0] if tl.size else 0
+    shift = ul[0] - t0 if tl.size else 0                    # joint unwrap vs device_frames' own
+    sl = (ul - shift - t0) / TICK_HZ
+    off = float(np.median(hl - sl)) if tl.size else 0.0
+    return sl + off, (ue - shift - t0) / TICK_HZ + off
+
+
+def device_sweeps(d: DeviceLight, layout_n: int, station_of):
+    """Every sweep of one device as its own measurement, for a filter that updates per sweep.
+
+    Returns a dict of arrays over sweeps ``t`` (s, the device clock of :func:`device_frames`: the mean
+    hit time of the sweep), ``station`` (index, via ``station_of(gen, lh)``), ``axis`` (LH1 0 = x
+    sweep, 1 = y; LH2 the plane) and ``angles (K, n)`` rad in the station's convention (LH1 ``theta
+    = pi/2 + a``, LH2 light-plane ``alpha = -a``; NaN = not hit), and ``kind`` per sweep (1 or 2).
+    """
+    t_all, _ = _device_time(d)
+    sensor = np.asarray(d.sensor, int)
+    st = np.asarray(d.station, int)
+    ax = np.asarray(d.axis, int)
+    ang = np.asarray(d.angle, float)
+    gen = np.asarray(d.gen, int)
+    tc = _unwrap32(np.asarray(d.timecode, np.int64))
+    good = (sensor >= 0) & (sensor < layout_n) & np.isfinite(ang) & (np.abs(ang) < np.pi / 2)
+    out_t, out_s, out_a, out_k, out_g = [], [], [], [], []
+    for g in (1, 2):
+        idx = np.flatnonzero(good & (gen == g))
+        for ch in np.unique(st[idx]):
+            sub = idx[st[idx] == ch]
+            for sw in _sweeps(sub, tc, st, ax, sensor, _SWEEP_GAP_S * TICK_HZ):
+                row = np.full(layout_n, np.nan)
+                a = ang[sw]
+                row[sensor[sw]] = np.pi / 2 + a if g == 1 else -a
+                out_t.append(float(np.mean(t_all[sw])))
+                out_s.append(station_of(g, int(ch)))
+                out_k.append(int(ax[sw[0]]))
+                out_a.append(row)
+                out_g.append(g)
+    order = np.argsort(out_t, kind="stable")
+    A = np.array(out_a, float).reshape(-1, layout_n)
+    return {"t": np.asarray(out_t)[order], "station": np.asarray(out_s, int)[order],
+            "axis": np.asarray(out_k, int)[order], "angles": A[order], "gen": np.asarray(out_g, int)[order]}

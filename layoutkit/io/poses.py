@@ -352,6 +352,13 @@ def _rows_to_table(h: _Header, rows: list, first_line: int) -> PoseTable:
         raise ValueError(f"{h.path}: line {first_line + bad}: column t: missing or non-finite time")
     rv = np.stack([col(c) for c in _ROT], -1)
     tr = np.stack([col(c) for c in _POS], -1)
+    fin = np.all(np.isfinite(tr), 1)
+    if fin.any():  # a lighthouse's volume is a room: km-sized positions are millimetres read as metres
+        from .._validate import check_range
+
+        check_range(float(np.max(np.linalg.norm(tr[fin], axis=1))),
+                    f"{h.path}: columns {', '.join(h.names[h.index[c]] for c in _POS)} "
+                    "(name them tx_mm, ty_mm, tz_mm if they are millimetres)")
     if not h.tagged:
         check_rotvec_radians(h.path, rv, [h.names[h.index[c]] for c in _ROT], first_line)
     status = np.zeros(n, np.int64)

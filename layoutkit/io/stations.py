@@ -7,7 +7,9 @@ One station is ``{"id": "A", "kind": "lh1", "rotation": [[...], [...], [...]], "
 parameters, read by :func:`layoutkit.lighthouse.calibration_from_dict` (layoutkit, libsurvive or
 Crazyflie convention) into ``Station.calibration`` and written back by
 :meth:`~layoutkit.lighthouse.Calibration.to_dict` (layoutkit convention, the same model). Every key but ``rotation``/``translation`` is optional (defaults of ``Station``);
-unknown keys are an error naming the station and the key.
+unknown keys are an error naming the station and the key. ``source_id`` (optional) keeps the id a
+foreign source gave the station (libsurvive's lighthouse serial); ``id`` must be unique in a file
+(duplicates are refused with a message: results and reports key on it).
 
 A stations file is JSON ``{"stations": [station, ...]}`` (a bare list is accepted on reading).
 Capture sidecars (:mod:`layoutkit.io.sidecar`) embed the same list. The user-facing envelope
@@ -27,7 +29,8 @@ __all__ = ["STATION_KEYS", "station_to_dict", "station_from_dict", "stations_to_
            "read_stations", "write_stations"]
 
 #: Keys of one station entry.
-STATION_KEYS = ("id", "kind", "rotation", "translation", "rotor_rpm", "clock_hz", "fov_deg", "calibration")
+STATION_KEYS = ("id", "kind", "rotation", "translation", "rotor_rpm", "clock_hz", "fov_deg", "calibration",
+                "source_id")
 
 
 def station_to_dict(station) -> dict:
@@ -37,7 +40,8 @@ def station_to_dict(station) -> dict:
     return {"id": str(station.id), "kind": station.kind, "rotation": np.asarray(station.rotation).tolist(),
             "translation": np.asarray(station.translation).tolist(), "rotor_rpm": float(station.rotor_rpm),
             "clock_hz": float(station.clock_hz), "fov_deg": float(station.fov_deg),
-            **({} if station.calibration is None else {"calibration": to_jsonable(station.calibration.to_dict())})}
+            **({} if station.calibration is None else {"calibration": to_jsonable(station.calibration.to_dict())}),
+            **({} if getattr(station, "source_id", None) is None else {"source_id": str(station.source_id)})}
 
 
 def station_from_dict(d: dict, where: str = "station"):
@@ -84,7 +88,11 @@ def stations_from_list(items, where: str = "stations") -> tuple:
         return ()
     if not isinstance(items, (list, tuple)):
         raise ValueError(f"{where}: expected a list of stations, got {type(items).__name__}")
-    return tuple(station_from_dict(d, f"{where}[{k}]") for k, d in enumerate(items))
+    from ..lighthouse import check_station_ids
+
+    out = tuple(station_from_dict(d, f"{where}[{k}]") for k, d in enumerate(items))
+    check_station_ids(out, where)
+    return out
 
 
 def read_stations(path) -> tuple:

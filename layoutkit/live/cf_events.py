@@ -206,6 +206,8 @@ def firmware_angle_check(log, *, pulse_processor: str = "firmware", n_sensors: i
     if u is None or ev is None or ev.source != "lhAngle":
         return {"status": "no_data", "message": f"{ul.path}: needs lhUartFrame and lhAngle events "
                                                 f"(found {sorted(k for k, v in ul.events.items() if len(v['t']))})"}
+    if not np.any(u.channel >= 0):
+        return {"status": "no_data", "message": f"{ul.path}: no lhUartFrame event carries an LH2 channel (an LH1 log)"}
     clock = fit_deck_clock(u.deck_s, u.t)
     stats = DecodeStats()
     proc = PROCESSORS[pulse_processor](n_sensors, stats)

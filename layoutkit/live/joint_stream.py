@@ -37,7 +37,7 @@ from .continuity import continuity_gate, motion_history, recent_velocity
 from .posechunk import PoseChunk, empty_pose_arrays
 
 __all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "crossing_beam_windows",
-           "MOTION_MIN_SIGMA"]
+           "MOTION_MIN_SIGMA", "auto_sigma_limit"]
 
 #: a window's motion is modelled (``motion_compensation``) when the known velocity changes its
 #: angles by more than this many sigma_theta (RMS over its measurement times): below, the
@@ -174,7 +174,10 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     Statuses: fewer than ``min_lit`` sensors lit on both axes on every station of the window (no
     station can start the solve) → too_few_lit; the joint solve's own failure (degenerate, behind,
     not converged) → solver_failed; RMS residual above ``max_residual_sigma`` sigma → high_residual;
-    a jump from the recent joint track → jump (the per-station continuity gate, on the joint poses).
+    a predicted 1-sigma position (``PDOP · sigma_theta`` at the pose with the lit sets, Chen eq. 24)
+    above ``max_sigma_position`` (default :func:`auto_sigma_limit`) → imprecise; a jump from the
+    recent joint track → jump (the per-station continuity gate, on the joint poses). The chunk
+    carries ``stations_used`` (stations with a sensor lit on both axes in the window).
     With ``motion_compensation`` each station's angles are modelled at their own time in the window
     (constant body velocity from the recent joint poses, :func:`layoutkit.joint.solve_joint`
     ``dt``/``velocity``) and the window is solved again from the first pose — where the velocity is
@@ -195,12 +198,15 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
     n_lit = lit.sum(axis=(1, 2))
     startable = np.any(lit.sum(-1) >= config.min_lit, axis=1)
     R, tr, res, status, adop, pdop = empty_pose_arrays(W)
-    idx = np.flatnonzero(startable)
+    # windows no station can start alone but whose angles from several stations fix a pose from the
+    # track's last one (a deck tilted so that each station sees 3 of its 4 sensors)
+    cont = ~startable & ((lit.sum(-1) > 0).sum(1) >= 2) & (lit.sum(axis=(1, 2)) >= config.min_lit)
+    idx = np.flatnonzero(startable | cont)
     if idx.size:
         a = ang[idx]
-        sol = solve_joint(P, a, stations=stations)
-        Rs, ts, rr = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
-        ok = np.asarray(sol.status) == _status.OK
+        Rs, ts, rr, st0 = _solve_from_starts_or_track(P, a, t[idx], startable[idx], state, config, stations,
+                                                      solve_joint)
+        ok = st0 == _status.OK
         # body velocity from the recent joint poses (causal; NaN at the start of a stream, after a gap
         # or a jump), kept whether or not it is used
         # (from windows with two or more stations when there are: a one-station window of a small
@@ -230,10 +236,10 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
             pd = np.where(ok, d.pdop, np.inf)
         else:
             ad = pd = np.full(idx.size, np.inf)
-        s0 = np.asarray(sol.status)  # too few / low redundancy keep their names (layoutkit.status)
-        st = np.where(~ok, np.where(np.isin(s0, (_status.TOO_FEW_LIT, _status.LOW_REDUNDANCY)), s0,
+        st = np.where(~ok, np.where(np.isin(st0, (_status.TOO_FEW_LIT, _status.LOW_REDUNDANCY)), st0,
                                     _status.SOLVER_FAILED),
                       np.where(rr > limit, _status.HIGH_RESIDUAL, _status.OK))
+        st = _imprecise(st, P, Rs, ts, pd, config, stations)
         st, cand = continuity_gate(t[idx], Rs, ts, st, ad, pd, state.get("last"), state.get("jump"), config)
         state["jump"] = cand
         good = np.flatnonzero(st == _status.OK)
@@ -247,7 +253,85 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         rv[has] = matrix_to_rotvec(R[has])
     return PoseChunk(t=t, station=np.full(W, JOINT), n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
                      status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit.any(1),
-                     n_stations=have.sum(1), lit_by_station=lit.sum(-1))
+                     n_stations=have.sum(1), lit_by_station=lit.sum(-1),
+                     stations_used=(lit.sum(-1) > 0).sum(1), sigma_theta=config.sigma_theta)
+
+
+def auto_sigma_limit(points_body, rotation, translation, stations, rho: float) -> np.ndarray:
+    """The default ``max_sigma_position`` of joint windows, per pose, in units of sigma_theta (m/rad):
+    the geometric mean ``sqrt(PDOP_1 · PDOP_all)`` of the best single station's PDOP and all
+    stations' together, both with every sensor lit, at the pose ``rotation (W, 3, 3)``,
+    ``translation (W, 3)`` m (world). Between the two by construction: a window seen by one station
+    is above it (its PDOP is at least ``PDOP_1``), one seen well by several is below. (W,) m/rad;
+    inf with fewer than two stations (no limit)."""
+    from ..dop import pose_dop
+
+    W, S, n = len(rotation), len(stations), len(points_body)
+    if S < 2 or W == 0:
+        return np.full(W, np.inf)
+    vis = np.ones((W, S, n), bool)
+    d_all = np.asarray(pose_dop(points_body, rotation, translation, rho=rho, visible=vis, stations=stations).pdop)
+    best = np.full(W, np.inf)
+    for s in range(S):
+        vis = np.zeros((W, S, n), bool)
+        vis[:, s] = True
+        d = np.asarray(pose_dop(points_body, rotation, translation, rho=rho, visible=vis, stations=stations).pdop)
+        best = np.minimum(best, np.where(np.isfinite(d), d, np.inf))
+    return np.sqrt(best * d_all)
+
+
+def _imprecise(status, P, R, t, pdop, config, stations):
+    """``status`` with the ok poses whose predicted 1-sigma position exceeds the run's limit
+    (``config.max_sigma_position`` m, else :func:`auto_sigma_limit`) marked imprecise."""
+    k = np.flatnonzero(status == _status.OK)
+    if k.size == 0:
+        return status
+    if config.max_sigma_position is not None:
+        limit = np.full(k.size, config.max_sigma_position)
+    else:
+        limit = auto_sigma_limit(P, R[k], t[k], stations, config.rho) * config.sigma_theta
+    status = status.copy()
+    status[k[pdop[k] * config.sigma_theta > limit]] = _status.IMPRECISE
+    return status
+
+
+def _solve_from_starts_or_track(P, a, t, startable, state, config, stations, solve_joint):
+    """Joint poses of the windows ``a (F, S, n, 2)``: the startable ones from the per-station starts,
+    the others from the latest earlier converged pose within ``reacquire_s`` (a startable window of
+    this batch, or the track's last good pose); a window with no such pose is not solved (too few).
+    Returns ``(R (F, 3, 3), t (F, 3), residual_rms (F,), solver status (F,))`` (codes of
+    :mod:`layoutkit.status`; too_few_lit where not solved)."""
+    F = len(a)
+    Rs, ts, rr = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan), np.full(F, np.nan)
+    st = np.full(F, _status.TOO_FEW_LIT, int)
+    k = np.flatnonzero(startable)
+    if k.size:
+        sol = solve_joint(P, a[k], stations=stations)
+        Rs[k], ts[k], rr[k] = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
+        st[k] = np.asarray(sol.status)
+    c = np.flatnonzero(~startable)
+    if c.size == 0:
+        return Rs, ts, rr, st
+    ok = (st == _status.OK) & (rr <= config.max_residual_sigma * config.sigma_theta)
+    # the nearest earlier good start (this batch), else the track's last good pose
+    src_t = t[ok]
+    j = np.searchsorted(src_t, t[c], side="right") - 1
+    last = state.get("last")
+    R0, t0 = np.full((c.size, 3, 3), np.nan), np.full((c.size, 3), np.nan)
+    age = np.full(c.size, np.inf)
+    have = j >= 0
+    kk = np.flatnonzero(ok)
+    R0[have], t0[have], age[have] = Rs[kk[j[have]]], ts[kk[j[have]]], t[c[have]] - src_t[j[have]]
+    if last is not None:
+        use_last = ~have
+        R0[use_last], t0[use_last], age[use_last] = last[0], last[1], t[c[use_last]] - last[2]
+    go = (age >= 0) & (age <= config.reacquire_s)
+    if go.any():
+        g = c[go]
+        sol = solve_joint(P, a[g], stations=stations, initial=(R0[go], t0[go]))
+        Rs[g], ts[g], rr[g] = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
+        st[g] = np.asarray(sol.status)
+    return Rs, ts, rr, st
 
 
 def _compensate(P, a, dt, Rs, ts, rr, use, w, v, stations, solve_joint):

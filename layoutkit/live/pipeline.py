@@ -1,8 +1,10 @@
 """Live pose pipeline: decoded sweeps → paired angle frames → batched PnP → timestamped poses + DOP.
 
-Why one module of ~610 lines: the stages below (pairing, batching, the chunk solve with its
-continuity gate and motion compensation) pass per-station state to each other and to the one
-config class :class:`LiveConfig`; they are read as one data flow.
+Why one module of ~630 lines: the stages below (pairing, batching, the chunk solve with its
+motion compensation) pass per-station state to each other and to the one config class
+:class:`LiveConfig`; they are read as one data flow. The continuity gate and the velocity estimate
+are in :mod:`layoutkit.live.continuity`, the result type in :mod:`layoutkit.live.posechunk`, the
+joint windows in :mod:`layoutkit.live.joint_stream`.
 
 Data flow (design §3–§5, issue #5 part 4)::
 
@@ -101,6 +103,14 @@ class LiveConfig:
         world pose per window from every station's frame, :mod:`layoutkit.live.joint_stream`;
         needs station poses). The commands pick the default (joint when several stations are known).
     window_s : the joint window rule's span (s, :data:`layoutkit.joint.WINDOW_S`).
+    max_sigma_position : m, the largest predicted 1-sigma position error (``PDOP · sigma_theta``,
+        Chen eq. 24 with the run's sigma/rho, at the solved pose and lit set) of an ``ok`` pose; a
+        solved pose above it is ``imprecise``. None (default): joint solving with two or more
+        stations takes, per window, the geometric mean of what the best single station and all
+        stations together would give at that pose with every sensor lit — so a one-station window of
+        a small deck (range from a 3 cm baseline) is not ok, while a window that also has a few
+        angles of a second station is (:func:`layoutkit.live.joint_stream.auto_sigma_limit`);
+        per-station solving has no limit then.
     calibration : how a station calibration enters — "model": the decoder's measured (distorted)
         angles are fitted through the station's forward model :func:`layoutkit.lighthouse.measure`
         (joint, and per-station through :func:`layoutkit.pnp.solve_pnp` ``calibration=``);
@@ -132,12 +142,15 @@ class LiveConfig:
     solve: str = "per-station"
     window_s: float = 0.020
     calibration: str = "model"
+    max_sigma_position: float | None = None
 
     def __post_init__(self):
         if self.solve not in SOLVE_MODES:
             raise ValueError(f"solve: expected one of {SOLVE_MODES}, got {self.solve!r}")
         if self.calibration not in CALIBRATION_MODES:
             raise ValueError(f"calibration: expected one of {CALIBRATION_MODES}, got {self.calibration!r}")
+        if self.max_sigma_position is not None and not self.max_sigma_position > 0:
+            raise ValueError(f"max_sigma_position: expected > 0 m, got {self.max_sigma_position}")
         if not self.window_s > 0:
             raise ValueError(f"window_s: expected > 0 s, got {self.window_s}")
         if self.n_sensors is not None and self.n_sensors < 1:
@@ -339,6 +352,9 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: LiveConfig,
             (Rs, ts, ok, rr, ad, pd, stat), initial[("motion", int(s))] = _compensate_motion(
                 solve_pnp, P, t[idx], dty[idx], a, lit[idx], (Rs, ts, ok, rr, ad, pd, stat), init,
                 initial.get(("jump", int(s))), initial.get(("motion", int(s))), config)
+        if config.max_sigma_position is not None:  # the user's precision limit (Chen eq. 24)
+            stat = np.where((stat == _status.OK) & (pd * config.sigma_theta > config.max_sigma_position),
+                            _status.IMPRECISE, stat)
         stat, cand = continuity_gate(t[idx], Rs, ts, stat, ad, pd, init, initial.get(("jump", int(s))), config)
         initial[("jump", int(s))] = cand
         if stations is not None:
@@ -360,7 +376,7 @@ def solve_chunk(points_body, frames: list[AngleFrame], config: LiveConfig,
     if has.any():
         rv[has] = matrix_to_rotvec(R[has])
     return PoseChunk(t=t, station=st, n_lit=n_lit, rotation=R, translation=tr, rotvec=rv,
-                     status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit)
+                     status=status, residual_rms=res, adop=adop, pdop=pdop, lit=lit, sigma_theta=config.sigma_theta)
 
 
 def _solve_frames(solve_pnp, P, a, lit, kw, config: LiveConfig, dop=None):

@@ -17,7 +17,7 @@ __all__ = ["STATUS_NAMES", "PoseChunk", "empty_pose_arrays"]
 #: :mod:`layoutkit.status`.
 STATUS_NAMES = {c: _status.NAMES[c] for c in (_status.OK, _status.TOO_FEW_LIT, _status.SOLVER_FAILED,
                                                _status.HIGH_RESIDUAL, _status.JUMP, _status.AMBIGUOUS,
-                                               _status.LOW_REDUNDANCY)}
+                                               _status.LOW_REDUNDANCY, _status.IMPRECISE)}
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,10 @@ class PoseChunk:
     Joint poses (``station`` = :data:`layoutkit.io.poses.JOINT`, one per window, world frame) also
     carry n_stations : (F,) int, stations in the window, and lit_by_station : (F, S) int, sensors
     lit on both axes per station; ``n_lit`` counts lit (sensor, station) pairs.
+    stations_used : (F,) int, stations whose angles entered the pose (joint: a sensor lit on both
+    axes; per-station: 1 where solved); None = one per solved frame.
+    sigma_theta : rad, the run's angle noise: the records' predicted 1-sigma ``PDOP · sigma_theta``
+    (m) and ``ADOP · sigma_theta`` (deg) (Chen eq. 24); None = not reported.
     """
 
     t: np.ndarray
@@ -48,6 +52,8 @@ class PoseChunk:
     lit: np.ndarray
     n_stations: np.ndarray | None = None
     lit_by_station: np.ndarray | None = None
+    stations_used: np.ndarray | None = None
+    sigma_theta: float | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -71,7 +77,9 @@ class PoseChunk:
         """Yield one plain dict per frame with a pose (the ``--json-lines`` contract).
 
         Joint poses: ``"station": "joint"``, plus ``n_stations`` (stations in the window) and
-        ``lit_by_station`` (sensors lit on both axes, per station index)."""
+        ``lit_by_station`` (sensors lit on both axes, per station index). Every record: ``stations_used``
+        and, with ``sigma_theta``, the predicted 1-sigma ``sigma_position_m`` / ``sigma_attitude_deg``
+        (null where not finite)."""
         for i in range(len(self)):
             if self.status[i] in (_status.TOO_FEW_LIT, _status.SOLVER_FAILED):
                 continue
@@ -89,6 +97,10 @@ class PoseChunk:
             if self.n_stations is not None:
                 rec["n_stations"] = int(self.n_stations[i])
                 rec["lit_by_station"] = [int(v) for v in self.lit_by_station[i]]
+            rec["stations_used"] = int(self.stations_used[i]) if self.stations_used is not None else 1
+            if self.sigma_theta is not None:
+                rec["sigma_position_m"] = _finite_or_none(self.pdop[i] * self.sigma_theta)
+                rec["sigma_attitude_deg"] = _finite_or_none(self.adop[i] * self.sigma_theta)
             yield rec
 
 

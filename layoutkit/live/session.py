@@ -106,6 +106,11 @@ class LiveSession:
         """Decode ``data`` and solve whatever frames complete a chunk (and filter every sweep)."""
         return self._consume(self.pipeline.feed(self._filtered(self.decoder.feed(data))))
 
+    def feed_sweeps(self, sweeps) -> list[PoseChunk]:
+        """Solve already decoded sweeps (a capture decoded before, e.g. by a refining replay's first
+        pass) exactly as :meth:`feed_bytes` would after decoding them."""
+        return self._consume(self.pipeline.feed(self._filtered(sweeps)))
+
     def feed_frames(self, frames) -> list[PoseChunk]:
         """Solve already paired frames (:meth:`PosePipeline.feed_frames`; the per-sweep filter, which
         needs sweeps, does not see them)."""
@@ -215,6 +220,10 @@ class LiveSession:
             "frames_per_s": c.frames / wall if wall > 0 else None,
             "mean_lit": self.lit_sum / c.frames if c.frames else 0.0,
             "sigma_theta_rad": self.options.sigma_theta, "rho": self.options.rho,
+            "max_sigma_position_m": self.options.max_sigma_position if self.options.max_sigma_position is not None
+            else ("auto: per window, the geometric mean of the best single station's and all stations' predicted "
+                  "1-sigma position at that pose" if self.options.solve == "joint" and len(self.stations or ()) >= 2
+                  else None),
             "static_groups": [g.as_dict() for g in groups],
             "truth": None if self.truth_err is None or self.truth_err.n == 0 else self.truth_err.summary().as_dict(),
             "status_names": STATUS_NAMES,

@@ -27,7 +27,8 @@ __all__ = [
     "throughput_scenario", "replay_throughput", "real_static_jitter",
 ]
 
-TUMBLE_CONFIG = dict(psd_rot=1e-8, psd_pos=3e-9, hit_timing=False)
+TUMBLE_CONFIG = dict(motion="fixed", psd_rot=1e-8, psd_pos=3e-9, hit_timing=False, init_sigma_rate=0.05,
+                     init_sigma_speed=0.05)
 
 
 def second_station(target=(0.0, 0.0, 2.2), position=(1.2, 0.3, 0.4)) -> Station:
@@ -383,7 +384,8 @@ def real_static_jitter(frames_path, layout_path, stations_path, *, zupt: bool = 
         res = solve_frames(sub, lay)
         pok = np.asarray(res["success"])
         sigma = float(np.nanmedian(np.asarray(res["residual_rms"])[pok]))
-        cfg = EkfConfig(sigma_theta=sigma, rho=0.0, psd_rot=psd, psd_pos=psd, zupt=zupt)
+        cfg = EkfConfig(sigma_theta=sigma, rho=0.0, motion="fixed", psd_rot=psd, psd_pos=psd, zupt=zupt,
+                        init_sigma_rate=0.05, init_sigma_speed=0.05)
         f = filter_frames(sub, lay, cfg, stations=[replace(sts[int(s)], rotation=np.eye(3), translation=np.zeros(3))])
         ok = f["status"] == 0
         late = sub.t >= sub.t[0] + warm_up_s

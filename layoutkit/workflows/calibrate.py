@@ -1,94 +1,25 @@
-"""What ``layoutkit calibrate`` and ``layoutkit solve --solve joint`` do with files.
+"""What ``layoutkit calibrate`` does with files.
 
-Frame table (:mod:`layoutkit.io.frames`: ``t``, ``station``, ``th_x_<id>``, ``th_y_<id>``; radians,
-empty = not seen; LH1-equivalent sweep angles for every station, LH2 rows turned into light-plane
-angles here so that each station's calibrated forward model applies) →
-joint time windows (:func:`layoutkit.joint.group_windows`, 20 ms) → the bundle adjustment of
-:mod:`layoutkit.calibrate` or the joint solve of :mod:`layoutkit.joint`.
+One or several devices' frame tables (:mod:`layoutkit.workflows.joint_solve`: the joint windows,
+each station's convention) → the bundle adjustment over all devices at once and its
+cross-validation (:mod:`layoutkit.workflows.calibrate_devices`, :mod:`layoutkit.calibrate`) →
+``stations.json``, the adjusted layout(s), ``report.json``, ``residuals.png``.
 """
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
 import numpy as np
 
 from ..layout import Layout
+from .joint_solve import (StationFrames, frame_file_stations, read_station_frames, solve_joint_frames,  # noqa: F401
+                          solve_station_file, station_index, window_table)
 
-__all__ = ["StationFrames", "read_station_frames", "station_index", "calibrate_files", "solve_joint_frames",
-           "solve_station_file",
-           "residual_summary"]
-
-
-class StationFrames:
-    """Rows of a frame table: ``t (R,)`` s, ``station (R,)`` text, ``angles (R, n, 2)`` rad in the
-    layout's sensor order (NaN = not seen)."""
-
-    def __init__(self, t, station, angles):
-        self.t, self.station, self.angles = t, station, angles
-
-
-def read_station_frames(path, layout: Layout) -> StationFrames:
-    """Read a frame table (:func:`layoutkit.io.frames.read_frame_table`; no ``station`` column = every
-    row station 0). ValueError naming the file, line and field. Infinite angles count as not seen."""
-    from ..io.frames import read_frame_table
-
-    fr = read_frame_table(path, layout.ids)
-    ang = np.array(fr.angles, float)
-    ang[~np.isfinite(ang)] = np.nan
-    st = fr.stations() if hasattr(fr, "stations") else (fr.station if fr.station is not None else np.zeros(len(fr.t), int))
-    return StationFrames(np.asarray(fr.t, float), np.asarray([str(int(x)) for x in st]), ang)
-
-
-def station_index(labels, stations) -> np.ndarray:
-    """Frame-table station labels → indices into ``stations`` (by id, else by integer position);
-    -1 for a label that matches neither."""
-    ids = {str(s.id): k for k, s in enumerate(stations)}
-    out = np.full(len(labels), -1)
-    for lab in np.unique(labels):
-        k = ids.get(str(lab))
-        if k is None:
-            try:
-                v = int(float(lab))
-                k = v if 0 <= v < len(stations) else None
-            except ValueError:
-                k = None
-        if k is not None:
-            out[np.asarray(labels) == lab] = k
-    return out
-
-
-def frame_file_stations(frames_path, stations_path) -> int:
-    """How many of the stations file's stations appear in the frame table's ``station`` column."""
-    from ..io.stations import read_stations
-
-    stations = read_stations(stations_path)
-    path = Path(frames_path)
-    try:
-        with open(path, newline="") as fh:
-            rd = csv.reader(fh)
-            header = next(rd, None) or []
-            if "station" not in header:
-                return 1
-            k = header.index("station")
-            labels = {r[k].strip() for r in rd if len(r) > k}
-    except (OSError, UnicodeDecodeError):
-        raise ValueError(f"{path}: cannot read the frame table") from None
-    return int(len(set(station_index(sorted(labels), stations).tolist()) - {-1}))
-
-
-def to_station_convention(angles, stations, sidx) -> np.ndarray:
-    """Frame-table angles (LH1-equivalent sweep angles for every station, docs/frames.md) → each row's
-    station convention: LH2 stations get light-plane angles (:func:`layoutkit.lighthouse.sweep_to_lh2_angles`)."""
-    from ..lighthouse import sweep_to_lh2_angles
-
-    out = np.array(angles, float)
-    for q, st in enumerate(stations):
-        if st.kind == "lh2":
-            m = sidx == q
-            out[m] = sweep_to_lh2_angles(out[m])
-    return out
+__all__ = ["calibrate_files", "residual_summary",
+           # the frame-table side lives in joint_solve (re-exported: older imports keep working)
+           "StationFrames", "read_station_frames", "station_index", "frame_file_stations", "solve_joint_frames",
+           "solve_station_file", "window_table"]
 
 
 def residual_summary(res, stations, layout: Layout) -> dict:
@@ -106,47 +37,6 @@ def residual_summary(res, stations, layout: Layout) -> dict:
     out["per_sensor"] = {sid: {str(st.id): {ax: stats(res[:, s, i, k])["rms_rad"] for k, ax in enumerate("xy")}
                                for s, st in enumerate(stations)} for i, sid in enumerate(layout.ids)}
     return out
-
-
-def _windows(fr: StationFrames, stations, window_s):
-    from ..joint import group_windows, window_angles
-
-    sidx = station_index(fr.station, stations)
-    if not np.any(sidx >= 0):
-        raise ValueError(f"no frame-table station label matches the stations given "
-                         f"({', '.join(sorted(set(map(str, fr.station))))[:80]} vs "
-                         f"{', '.join(str(s.id) for s in stations)})")
-    rows, tw = group_windows(fr.t, sidx, len(stations), window_s)
-    return rows, tw, window_angles(to_station_convention(fr.angles, stations, sidx), rows)
-
-
-def solve_joint_frames(fr: StationFrames, layout: Layout, stations, *, window_s: float | None = None,
-                       motion_compensation: bool = False):
-    """Joint poses of every window: ``(t_window (W,), PnPResult (world frame), rows (W, S))``.
-
-    motion_compensation : a second pass with the constant-velocity model, the velocity from the
-    central differences of the first pass' poses, each station's rows at their own time.
-    """
-    from ..geometry import matrix_to_rotvec
-    from ..joint import WINDOW_S, solve_joint
-
-    rows, tw, ang = _windows(fr, stations, WINDOW_S if window_s is None else window_s)
-    res = solve_joint(layout.positions, ang, stations=stations)
-    if motion_compensation and len(tw) >= 3:
-        ok = res.success
-        rv = matrix_to_rotvec(np.where(ok[:, None, None], res.rotation, np.eye(3)))
-        tr = np.where(ok[:, None], res.translation, np.nan)
-        omega = np.zeros((len(tw), 3))
-        vel = np.zeros((len(tw), 3))
-        g = np.flatnonzero(ok)
-        if g.size >= 3:
-            for comp, src in ((vel, tr), (omega, rv)):
-                for c in range(3):
-                    comp[:, c] = np.interp(tw, tw[g], np.gradient(src[g, c], tw[g]))
-        dt = np.where(rows >= 0, fr.t[np.maximum(rows, 0)] - tw[:, None], 0.0)
-        res = solve_joint(layout.positions, ang, stations=stations, dt=dt, velocity=(omega, vel),
-                          initial=(res.rotation, res.translation))
-    return tw, res, rows
 
 
 def _reference_poses(path, tw, tol_s):
@@ -196,79 +86,203 @@ def _plot(before, after, stations, path):
                                    "parameters (before) and the bundle-adjusted ones (after).")
 
 
+def _device_name(path, taken) -> str:
+    p = Path(path)
+    name = p.parent.name if p.stem == "frames" and p.parent.name else p.stem
+    base, k = name or "device", 2
+    while name in taken:
+        name, k = f"{base}_{k}", k + 1
+    return name
+
+
+def _residual_layout(parts, devs):
+    """A stand-in with the stacked sensors' ids (``<device> <id>``) for :func:`residual_summary`."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(ids=tuple(f"{d.name} {i}" for d in devs for i in d.layout.ids) if len(devs) > 1
+                           else devs[0].layout.ids)
+
+
+def _nothing_to_calibrate(frames_paths, stations_path, stations, res, reference_path, station_columns) -> str:
+    """The error of a run that adjusts nothing: what the data lacked, which files, what to give."""
+    files = ", ".join(str(p) for p in frames_paths)
+    note = ""
+    if not any(station_columns):
+        note = (f"; {'the frame table has no' if len(frames_paths) == 1 else 'no frame table has a'} 'station' "
+                f"column, so every row is the first station ({stations[0].id!r} of {stations_path})")
+    gauge = "" if reference_path is not None else (
+        f"; the first station's pose fixes the frame, so {'it has' if len(stations) == 1 else 'the others have'} "
+        f"only {'its calibration terms' if len(stations) == 1 else 'their poses and calibration terms'} to adjust")
+    return (f"{files}: nothing to calibrate: {res.message}{note}{gauge}. Give frames from two stations or more "
+            f"(a 'station' column naming {stations_path}'s ids), more or moving frames, or --reference poses")
+
+
 def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, reference_path=None,
-                    sensor_offsets: bool = False, sigma: float, offset_prior: float = 1e-3,
-                    offset_bound: float = 5e-3, calibration_prior: float = 0.1, window_s: float | None = None,
-                    reference_tolerance_s: float = 0.01, reference_sigma=(1e-3, 1e-3), max_samples: int | None = None,
-                    seed: int = 0) -> dict:
-    """``layoutkit calibrate``: read, adjust, write ``stations.json``, ``layout.json``, ``report.json``
-    and ``residuals.png`` into ``out_dir``; returns the report dict. ValueError naming the file for
-    bad input; a run that cannot adjust anything raises ValueError saying why."""
-    from ..calibrate import bundle_adjust
+                    sensor_offsets: bool = False, sensor_timing: bool = False, sigma: float,
+                    offset_prior: float = 1e-3, offset_bound: float = 5e-3, calibration_prior: float = 0.1,
+                    timing_prior: float = 1e-7, station_prior=None, layout_sigma: float | None = None,
+                    window_s: float | None = None, reference_tolerance_s: float = 0.01,
+                    reference_sigma=(1e-3, 1e-3), max_samples: int | None = None, seed: int = 0,
+                    cross_validation: bool = True, segments: bool = True) -> dict:
+    """``layoutkit calibrate``: read, adjust, cross-validate, write ``stations.json``, the adjusted
+    layout(s), ``report.json`` and ``residuals.png`` into ``out_dir``; returns the report dict.
+
+    frames_path, layout_path : one frame table and its layout, or lists (several devices of one
+    recording, in the stations' world frame; one layout for all, or one per frame table). Every device's
+    windows are adjusted together (:func:`layoutkit.workflows.calibrate_devices.fit_devices`: shared
+    station poses and calibration; each device's sensor offsets / latency with ``sensor_offsets`` /
+    ``sensor_timing``); a device at rest gives one pose per static segment (``segments``).
+    station_prior : ``(rad, m)`` prior sd of the station poses around the given ones (None: free);
+    components the data do not determine are held there (docs/calibration.md).
+    cross_validation : the device and time folds of
+    :func:`~layoutkit.workflows.calibrate_devices.cross_validate`; when a held-out evaluation gets
+    worse, ``stations.json`` holds the given (factory) stations, ``stations_fitted.json`` the fit, and
+    the report's ``transfer`` says ``does_not_transfer`` and why.
+    max_samples : at most this many windows per device (a random subset, ``seed``).
+    ValueError naming the file for bad input; a run that cannot adjust anything raises ValueError saying why.
+    """
     from ..io.atomic import atomic_write_text
     from ..io.stations import read_stations, write_stations
-    from ..joint import WINDOW_S, solve_joint
+    from ..joint import WINDOW_S
     from ..layout import load_layout
-    from ..lighthouse import Station
+    from .calibrate_devices import NO_FIT, cross_validate, device_windows, fit_devices, joint_residual
 
-    layout = load_layout(layout_path)
+    frames_paths = [frames_path] if isinstance(frames_path, (str, Path)) else list(frames_path)
+    layout_paths = [layout_path] if isinstance(layout_path, (str, Path)) else list(layout_path)
+    if not frames_paths:
+        raise ValueError("calibrate: no frame table given")
+    if len(layout_paths) not in (1, len(frames_paths)):
+        raise ValueError(f"--layout: give one layout for all frame tables or one per table "
+                         f"({len(frames_paths)} tables, {len(layout_paths)} layouts)")
+    if len(layout_paths) == 1:
+        layout_paths = layout_paths * len(frames_paths)
+    if reference_path is not None and len(frames_paths) > 1:
+        raise ValueError(f"{reference_path}: a reference pose table belongs to one device; give one frame table with it")
     stations = list(read_stations(stations_path))
     if not stations:
         raise ValueError(f"{stations_path}: no stations")
-    fr = read_station_frames(frames_path, layout)
-    rows, tw, ang = _windows(fr, stations, WINDOW_S if window_s is None else window_s)
-    if max_samples is not None and len(tw) > max_samples:
-        keep = np.sort(np.random.default_rng(seed).choice(len(tw), max_samples, replace=False))
-        rows, tw, ang = rows[keep], tw[keep], ang[keep]
-    P = layout.positions
-    start = solve_joint(P, ang, stations=stations)
-    usable = start.success | (start.status == 3)
-    if usable.sum() < 2:
-        raise ValueError(f"{frames_path}: {int(usable.sum())} of {len(tw)} samples have a start pose "
-                         f"({start.message}); nothing to calibrate")
-    raw_stations = [Station(id=s.id, rotation=s.rotation, translation=s.translation, kind=s.kind,
-                            rotor_rpm=s.rotor_rpm, clock_hz=s.clock_hz, fov_deg=s.fov_deg) for s in stations]
-    raw = solve_joint(P, ang, stations=raw_stations) if any(s.calibration is not None for s in stations) else start
-    reference = None
+    win = WINDOW_S if window_s is None else window_s
+    devs, names, frs = [], [], []
+    for fp, lp in zip(frames_paths, layout_paths):
+        layout = load_layout(lp)
+        fr = read_station_frames(fp, layout)
+        frs.append(fr)
+        name = _device_name(fp, names)
+        names.append(name)
+        try:
+            devs.append(device_windows(name, fr, layout, stations, window_s=win,
+                                       segments=segments and reference_path is None))
+        except ValueError as exc:
+            raise ValueError(f"{fp}: {exc}") from None
+    for fp, d in zip(frames_paths, devs):
+        if d.usable.sum() < 2:
+            raise ValueError(f"{fp}: {int(d.usable.sum())} of {len(d.t)} samples have a start pose "
+                             f"({d.start.message}); nothing to calibrate")
+    ba_kw = dict(sensor_offsets=sensor_offsets, sensor_timing=sensor_timing, offset_prior=offset_prior,
+                 offset_bound=offset_bound, calibration_prior=calibration_prior, timing_prior=timing_prior,
+                 station_prior=station_prior, layout_sigma=layout_sigma)
+    selects = None
     if reference_path is not None:
-        reference = _reference_poses(reference_path, tw, reference_tolerance_s)
+        d = devs[0]
+        rng = np.random.default_rng(seed)
+        sel = d.usable.copy()
+        idx = np.flatnonzero(sel)
+        if max_samples is not None and idx.size > max_samples:
+            sel[:] = False
+            sel[np.sort(rng.choice(idx, max_samples, replace=False))] = True
+        reference = _reference_poses(reference_path, d.t[sel], reference_tolerance_s)
         if reference[2].sum() < 3:
             raise ValueError(f"{reference_path}: only {int(reference[2].sum())} reference pose(s) within "
                              f"{reference_tolerance_s} s of a sample")
-    init = (np.where(usable[:, None, None], start.rotation, np.nan), np.where(usable[:, None], start.translation, np.nan))
-    res = bundle_adjust(P, ang, stations, sigma=sigma, initial_poses=init, sensor_offsets=sensor_offsets,
-                        offset_prior=offset_prior, offset_bound=offset_bound, calibration_prior=calibration_prior,
-                        reference=reference, reference_sigma=reference_sigma)
-    if res.status == "too_few":
-        raise ValueError(f"{frames_path}: {res.message}")
+        selects = [sel]
+        ba_kw.update(reference=reference, reference_sigma=reference_sigma)
+    res, parts = fit_devices(devs, stations, selects, sigma=sigma, max_windows=None if selects else max_samples,
+                             seed=seed, **ba_kw)
+    if res.status in NO_FIT:
+        raise ValueError(_nothing_to_calibrate(frames_paths, stations_path, stations, res, reference_path,
+                                               [f.station_column for f in frs]))
+    folds = []
+    if cross_validation and reference_path is None:
+        folds = cross_validate(devs, stations, sigma=sigma, max_windows=max_samples, seed=seed, **ba_kw)
+    worse = [f for f in folds if f["verdict"] == "worse"]
+    transfer = {"status": "does_not_transfer" if worse else ("ok" if folds else "not_tested"),
+                "folds": folds,
+                "message": ("; ".join(f"{f['held_out']}: {f['factory_rad']:.3g} rad with the given stations, "
+                                      f"{f['calibrated_rad']:.3g} rad calibrated on {', '.join(f['fit_on'])}"
+                                      for f in worse) if worse else
+                            ("every held-out evaluation is as good or better with the calibrated stations"
+                             if folds else "no cross-validation (--no-cross-validation or a reference run)"))}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_stations(out / "stations.json", res.stations)
-    adj = Layout(res.points_body, layout.normals, layout.ids, dict(layout.metadata), layout.extra)
-    atomic_write_text(out / "layout.json", json.dumps(adj.to_dict(), indent=2) + "\n")
+    if worse:
+        write_stations(out / "stations.json", stations)
+        write_stations(out / "stations_fitted.json", res.stations)
+    else:
+        write_stations(out / "stations.json", res.stations)
+    layouts_out = {}
+    for d in devs:
+        sl = parts[d.name]["sensors"]
+        adj = Layout(res.points_body[sl], d.layout.normals, d.layout.ids, dict(d.layout.metadata), d.layout.extra)
+        path = out / ("layout.json" if len(devs) == 1 else f"layout_{d.name}.json")
+        atomic_write_text(path, json.dumps(adj.to_dict(), indent=2) + "\n")
+        layouts_out[d.name] = str(path)
     _plot(res.residual_before, res.residual_after, stations, out / "residuals.png")
+    # each device: the joint residual with the given stations, the fitted ones (nominal layout), and the
+    # fitted ones with its own adjusted layout and latency (the device's terms, fitted on it)
+    devices = {}
+    for d in devs:
+        sl = parts[d.name]["sensors"]
+        lat = res.extra["timing_s"][sl]
+        at_rest = _at_rest(d)
+        devices[d.name] = {
+            "windows": int(len(d.t)), "windows_with_start": int(d.usable.sum()),
+            "windows_used": int(parts[d.name]["windows"].sum()), "body_poses": parts[d.name]["poses"],
+            "static_poses": parts[d.name]["static_poses"], "at_rest": at_rest,
+            "joint_residual_median_rad": {
+                "given_stations": joint_residual(d, stations)["median_rad"],
+                "calibrated_stations": joint_residual(d, res.stations)["median_rad"],
+                "calibrated_stations_and_own_layout": joint_residual(d, res.stations, res.points_body[sl],
+                                                                     latency=lat)["median_rad"]},
+            "own_terms_note": ("at rest: its sensor offsets / latency are determined at this one pose, where they "
+                               "also absorb every other error of the model; nothing here tests them elsewhere")
+            if at_rest and (sensor_offsets or sensor_timing) else None}
+    rl = _residual_layout(parts, devs)
+    determined = _determined(res.parameters)
+    start_rms = np.concatenate([d.start.residual_rms[d.usable] for d in devs])
     report = {
-        "frames": str(frames_path), "samples": int(len(tw)), "samples_with_start": int(usable.sum()),
-        "stations": [str(s.id) for s in stations], "sensors": int(layout.n), "sigma_rad": float(sigma),
-        "window_s": float(WINDOW_S if window_s is None else window_s),
-        "sensor_offsets": bool(sensor_offsets), "reference": None if reference_path is None else str(reference_path),
-        "gauge": "reference poses" if reference is not None else f"station {stations[0].id} pose held as given",
+        "frames": str(frames_paths[0]) if len(frames_paths) == 1 else [str(p) for p in frames_paths],
+        "samples": int(sum(len(d.t) for d in devs)), "samples_with_start": int(sum(d.usable.sum() for d in devs)),
+        "stations": [str(s.id) for s in stations], "sensors": int(sum(d.layout.n for d in devs)),
+        "sigma_rad": float(sigma), "window_s": float(win),
+        "sensor_offsets": bool(sensor_offsets), "sensor_timing": bool(sensor_timing),
+        "station_prior": None if station_prior is None else [float(x) for x in station_prior],
+        "reference": None if reference_path is None else str(reference_path),
+        "gauge": "reference poses" if reference_path is not None else f"station {stations[0].id} pose held as given",
         "success": bool(res.success), "status": res.status, "message": res.message,
         "residual_scale_sigma": res.sigma_scale,
         "median_sample_residual_rms_rad": {
-            "raw": float(np.nanmedian(raw.residual_rms)) if np.isfinite(raw.residual_rms).any() else None,
-            "start": float(np.nanmedian(start.residual_rms)) if np.isfinite(start.residual_rms).any() else None,
-            "after": residual_summary(res.residual_after, stations, layout)["median_sample_rms_rad"]},
-        "layout_sigma_m": None if sensor_offsets else float(offset_prior),
+            "raw": _raw_median(devs, stations),
+            "start": float(np.nanmedian(start_rms)) if np.isfinite(start_rms).any() else None,
+            "after": residual_summary(res.residual_after, stations, rl)["median_sample_rms_rad"]},
+        "layout_sigma_m": None if sensor_offsets else float(offset_prior if layout_sigma is None else layout_sigma),
+        "devices": devices,
+        "transfer": transfer,
+        "stations_written": ("given (the fit did not transfer; the fit is in stations_fitted.json)" if worse
+                             else "fitted" if any(p.name.startswith("station") and p.status in ("ok", "suspect")
+                                                  for p in res.parameters)
+                             else "fitted (= the given: the data determine no station term)"),
+        "determined": determined,
         "parameters": [{"name": p.name, "value": p.value, "std": p.std, "start": p.start, "unit": p.unit,
                         "status": p.status, "correlation": p.correlation} for p in res.parameters],
         "unobservable": [p.name for p in res.parameters if p.status == "unobservable"],
         "weakly_observable": [p.name for p in res.parameters if p.status == "weakly_observable"],
+        "prior_dominated": [p.name for p in res.parameters if p.status == "prior_dominated"],
         "suspect": [p.name for p in res.parameters if p.status == "suspect"],
-        "residuals_before": residual_summary(res.residual_before, stations, layout),
-        "residuals_after": residual_summary(res.residual_after, stations, layout),
-        "outputs": {"stations": str(out / "stations.json"), "layout": str(out / "layout.json"),
-                    "report": str(out / "report.json"), "plot": str(out / "residuals.png")},
+        "residuals_before": residual_summary(res.residual_before, stations, rl),
+        "residuals_after": residual_summary(res.residual_after, stations, rl),
+        "outputs": {"stations": str(out / "stations.json"), "layout": layouts_out[devs[0].name] if len(devs) == 1
+                    else layouts_out, "report": str(out / "report.json"), "plot": str(out / "residuals.png"),
+                    **({"stations_fitted": str(out / "stations_fitted.json")} if worse else {})},
     }
     from ..io.jsonfile import to_jsonable
 
@@ -276,74 +290,41 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
     return report
 
 
-def solve_station_file(frames_path, layout: Layout, stations_path, *, out=None, mode: str | None = None,
-                       sigma: float | None = None, rho: float = 0.0, motion_compensation: bool = False,
-                       ignore_calibration: bool = False) -> dict:
-    """``layoutkit solve FRAMES --stations S [--solve joint|per-station]``: poses in the stations' world
-    frame through each station's forward model (calibration included).
+def _at_rest(d) -> bool:
+    """At least 90 % of the device's usable windows lie in static segments."""
+    u = d.usable
+    return bool(u.any() and d.static.size and np.mean(d.static[d.pose_of[u]]) >= 0.9)
 
-    mode : "joint" (one pose per window, station ``joint``), "per-station" (one pose per row, the
-    row's station) or None (joint when the file has several stations). Writes the pose table to
-    ``out`` (t, station, status, rx, ry, rz, tx, ty, tz, residual_rms; rad, m) and returns a summary
-    with status counts and, with ``sigma``, the DOP-predicted position precision of the geometry.
-    ignore_calibration : drop the stations' calibrations (the ideal model, for comparison).
-    """
-    from ..dop import pose_dop
-    from ..geometry import matrix_to_rotvec
-    from ..io.poses import JOINT, PoseTable, write_poses
-    from ..io.stations import read_stations
+
+def _raw_median(devs, stations):
+    """Median per-window residual RMS through the ideal model (the stations without calibration)."""
+    from dataclasses import replace
+
     from ..joint import solve_joint
-    from ..pnp import STATUS_NAMES
 
-    stations = list(read_stations(stations_path))
-    if ignore_calibration:
-        from dataclasses import replace
-
-        stations = [replace(s, calibration=None) for s in stations]
-    fr = read_station_frames(frames_path, layout)
-    sidx = station_index(fr.station, stations)
-    present = sorted(set(sidx[sidx >= 0].tolist()))
-    if mode is None:
-        mode = "joint" if len(present) > 1 else "per-station"
-    if mode == "joint":
-        t, res, rows = solve_joint_frames(fr, layout, stations, motion_compensation=motion_compensation)
-        st_col = np.full(len(t), JOINT)
-        vis = np.all(np.isfinite(window_angles_of(fr, rows)), -1)
+    if not any(s.calibration is not None for s in stations):
+        rms = np.concatenate([d.start.residual_rms[d.usable] for d in devs])
     else:
-        if not present:
-            raise ValueError(f"{frames_path}: no row's station matches the stations given")
-        ang = np.full((len(fr.t), len(stations), layout.n, 2), np.nan)
-        ok = sidx >= 0
-        ang[np.flatnonzero(ok), sidx[ok]] = to_station_convention(fr.angles, stations, sidx)[ok]
-        res = solve_joint(layout.positions, ang, stations=stations)
-        t, st_col = fr.t, sidx
-        vis = np.all(np.isfinite(ang), -1)
-    rv = matrix_to_rotvec(np.where(np.isfinite(res.rotation), res.rotation, np.eye(3)))
-    rv = np.where(np.isfinite(res.translation[:, :1]), rv, np.nan)
-    if out:
-        write_poses(out, PoseTable(t, rv, res.translation, station=st_col, status=res.status,
-                                   residual_rms=res.residual_rms))
-    counts = {STATUS_NAMES.get(int(k), str(int(k))): int(v) for k, v in zip(*np.unique(res.status, return_counts=True))}
-    summary = {"mode": mode, "rows": int(len(fr.t)), "poses": int(len(t)), "solved": int(res.success.sum()),
-               "status_counts": counts, "stations": [str(s.id) for s in stations],
-               "median_residual_rms_rad": float(np.nanmedian(res.residual_rms)) if res.success.any() else None}
-    if res.success.any():
-        tr = res.translation[res.success]
-        summary["position_scatter_m"] = float(np.sqrt(np.mean(np.sum((tr - tr.mean(0)) ** 2, 1))))
-        if sigma is not None:
-            g = np.flatnonzero(res.success)
-            d = pose_dop(layout.positions, res.rotation[g], res.translation[g], rho=rho, stations=stations,
-                         visible=vis[g])
-            fin = np.isfinite(d.pdop)
-            if fin.any():
-                summary["predicted_position_sigma_m"] = float(np.sqrt(np.mean(d.pdop[fin] ** 2)) * sigma)
-                summary["predicted_attitude_sigma_deg"] = float(np.sqrt(np.mean(d.adop[fin] ** 2)) * sigma)
-    if not res.success.any():
-        summary["reason"] = f"no pose solved ({res.message})"
-    return summary
+        raw = [replace(s, calibration=None) for s in stations]
+        rms = np.concatenate([solve_joint(d.layout.positions, d.angles[d.usable], stations=raw).residual_rms for d in devs])
+    return float(np.nanmedian(rms)) if np.isfinite(rms).any() else None
 
 
-def window_angles_of(fr: StationFrames, rows):
-    from ..joint import window_angles
+def _determined(parameters) -> dict:
+    """Which terms the data determine, by group: counts of each status (``ok``/``suspect`` = fitted;
+    ``unobservable``/``weakly_observable`` = held at the start; ``fixed`` = not adjusted;
+    ``prior_dominated`` = a device's sensor term adjusted, but its sd is > half its prior)."""
+    groups: dict = {}
+    for p in parameters:
+        words = p.name.split()
+        if words[0] == "station":
+            key = f"station {words[1]} {'pose' if words[2] == 'pose' else 'calibration'}"
+        elif words[-1] == "timing":
+            key = f"{' '.join(words[1:-2]) or 'sensor'} latency" if len(words) > 3 else "sensor latency"
+        else:
+            key = f"{' '.join(words[1:-3]) or 'sensor'} offsets" if len(words) > 4 else "sensor offsets"
+        g = groups.setdefault(key, {})
+        g[p.status] = g.get(p.status, 0) + 1
+    return groups
 
-    return window_angles(fr.angles, rows)
+

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from .. import status as _status
 from ..filter import EkfConfig, SweepTracker
 from ..filter.consistency import nees, pose_error
 from ..geometry import rotvec_to_matrix
@@ -37,7 +38,7 @@ class FilterSink:
     station is used with an identity pose, so poses are in its frame as the pipeline's are);
     config : :class:`EkfConfig`; truth : optional :class:`layoutkit.live.reference.PoseTrack` in the
     same frame; json_out : text stream or None; poses_path : write every output to this pose table
-    (status 0 ok / 10 uncertain / 11 lost, extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
+    (status 0 ok / 13 uncertain / 14 lost, codes of :mod:`layoutkit.status`; extras ``cov_rot_deg_*``, ``cov_pos_m_*``; written
     atomically, complete when :meth:`close` / :meth:`summary` runs).
     Memory is flat: outputs are written as they come and only sums are kept.
     """
@@ -140,6 +141,8 @@ class FilterSink:
                "filter_seconds": self.seconds, "filter_cpu_seconds": self.cpu_seconds,
                "sweeps_per_s": self.sweeps / self.seconds if self.seconds else None,
                "sweeps_per_cpu_s": self.sweeps / self.cpu_seconds if self.cpu_seconds else None,
+               "angle_noise_rad": float(np.sqrt(getattr(self.tracker.ekf, "noise_scale", 1.0))
+                                        * self.tracker.config.sigma_theta),
                "config": {k: getattr(self.tracker.config, k) for k in (
                    "psd_rot", "psd_pos", "constant_acceleration", "gate_angle_p", "gate_sweep_p", "zupt",
                    "hit_timing", "model", "sigma_theta", "rho")}}
@@ -163,7 +166,8 @@ class FilterSink:
 
 
 #: Pose-table status codes of filtered poses (``layoutkit solve --filter ekf --out``): 0 = ok.
-FILTER_STATUS_CODES = {"ok": 0, "uncertain": 10, "lost": 11}
+#: The filter's statuses as codes of the one table (:mod:`layoutkit.status`): ok 0, uncertain 13, lost 14.
+FILTER_STATUS_CODES = {"ok": _status.OK, "uncertain": _status.UNCERTAIN, "lost": _status.LOST}
 
 
 def filter_frames(fr, layout, config: EkfConfig, stations=None) -> dict:

@@ -57,63 +57,19 @@ def _quat_rotvec(q_wxyz) -> np.ndarray:
     return matrix_to_rotvec(quaternion_to_matrix(np.asarray(q_wxyz, float).reshape(-1, 4), scalar_first=True))
 
 
-def _libsurvive_stations(rec, cfg: dict) -> tuple[list, list[dict], dict, dict]:
-    """Stations of a recording: poses from the ``.json`` lighthouse config (or ``LH_POSE`` lines),
-    factory calibration from its ``fcal*`` values (libsurvive convention, converted by
-    :func:`layoutkit.lighthouse.calibration_from_libsurvive`).
-
-    Returns the :class:`~layoutkit.lighthouse.Station` list (the frame table's ``station`` column
-    indexes it), per-station info for the summary, the LH1 lighthouse-index → station map and the
-    LH2 channel → station map. Stations without a known pose get the identity pose and
-    ``pose_known: false`` in the info.
-    """
-    from ..importers.libsurvive import station_rotation_from_quaternion
-    from ..lighthouse import Station, calibration_from_libsurvive
-
-    gens = {g for d in rec.light.values() for g in set(d.gen)}
-    kind = "lh2" if gens == {2} else "lh1"
-    channels = sorted({c for d in rec.light.values() for c, g in zip(d.station, d.gen) if g == 2})
-    lh1_idx = sorted({c for d in rec.light.values() for c, g in zip(d.station, d.gen) if g == 1})
-    by_mode = {v["mode"]: k for k, v in cfg.items() if v.get("mode") is not None}
-    keys = sorted(set(cfg) | set(lh1_idx) | {by_mode[c] for c in channels if c in by_mode})
-    keys += [("ch", c) for c in channels if c not in by_mode]  # channels the config does not name
-    index = {k: i for i, k in enumerate(keys)}
-    idx_map = {i: index[i] for i in lh1_idx}
-    ch_map = {c: index[by_mode[c]] if c in by_mode else index[("ch", c)] for c in channels}
-    stations, info = [], []
-    for k in keys:
-        c = cfg.get(k, {}) if not isinstance(k, tuple) else {}
-        mode = c.get("mode")
-        pose = c.get("pose") if c.get("position_set", True) else None
-        source = "libsurvive config json" if pose is not None else None
-        lhp = rec.lh_poses.get(mode if kind == "lh2" else k) if not isinstance(k, tuple) else rec.lh_poses.get(k[1])
-        if lhp is not None:
-            pose, source = lhp, "LH_POSE line"
-        kw = {}
-        if pose is not None:
-            kw = {"rotation": station_rotation_from_quaternion(pose[3:]), "translation": np.asarray(pose[:3], float)}
-        cal = c.get("calibration")
-        if kind == "lh2":
-            kw["rotor_rpm"] = 3000.0  # ~50 Hz; the exact period depends on the channel
-        st = Station(id=c.get("id") or (f"ch{k[1]}" if isinstance(k, tuple) else str(k)), kind=kind,
-                     calibration=calibration_from_libsurvive(cal, kind) if cal else None, **kw)
-        stations.append(st)
-        info.append({"index": index[k], "id": st.id, "kind": kind, "pose_known": pose is not None,
-                     "pose_source": source, "libsurvive_pose": pose,
-                     "channel": (k[1] if isinstance(k, tuple) else mode) if kind == "lh2" else None,
-                     "calibration_fcal": cal or None})
-    return stations, info, idx_map, ch_map
-
-
-def import_libsurvive(recording, out_dir, *, device: str | None = None, config=None) -> dict:
+def import_libsurvive(recording, out_dir, *, device: str | None = None, config=None, imu_filter: bool = False,
+                      filter_stations=None) -> dict:
     """A libsurvive recording → ``out_dir/<device>/{layout.json, frames.csv, reference*.csv}`` and
     ``out_dir/stations.json``.
 
     config : the lighthouse configuration JSON; default ``<recording>.json`` when it exists.
+    imu_filter : also run the IMU-aided filter on every device with IMU lines
+    (:func:`layoutkit.workflows.imu_filter.imu_filter_devices`: ``<device>/imu_filter_poses.csv``),
+    through ``filter_stations`` (a stations JSON, e.g. ``calibrate``'s) or the recording's own.
     Returns a summary: per device frames, lit sensors, dropped events by reason; stations; where
     a truncated recording ended.
     """
-    from ..importers.libsurvive import device_frames, layout_of, read_lighthouse_config, read_recording
+    from ..importers.libsurvive import device_frames, layout_of, libsurvive_stations, read_lighthouse_config, read_recording
 
     recording = Path(recording)
     out = Path(out_dir)
@@ -127,7 +83,8 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         if device not in devices:
             raise ValueError(f"{recording}: no device {device!r}; the recording has {devices}")
         devices = [device]
-    stations, st_info, idx_map, ch_map = _libsurvive_stations(rec, cfg)
+    smap = libsurvive_stations(rec, cfg)
+    stations, st_info, idx_map, ch_map = smap.stations, smap.info, smap.lh1, smap.lh2
     out.mkdir(parents=True, exist_ok=True)
     summary = {"recording": str(recording), "config": str(cfg_path) if cfg else None, "out": str(out),
                "lines": rec.lines, "line_types": rec.counts, "skipped_lines": rec.skipped,
@@ -186,6 +143,11 @@ def import_libsurvive(recording, out_dir, *, device: str | None = None, config=N
         write_reference(ddir / "reference_external.csv", a[:, 0], _quat_rotvec(a[:, 4:8]), a[:, 1:4])
         summary["devices"].setdefault(name, {})["reference_external"] = {
             "file": str(ddir / "reference_external.csv"), "poses": len(a)}
+    if imu_filter:
+        from .imu_filter import imu_filter_devices
+
+        summary["imu_filter"] = imu_filter_devices(recording, out, [d for d in devices if d in rec.light], rec=rec,
+                                                   stations=filter_stations, lighthouse_config=config)
     return summary
 
 
@@ -237,7 +199,6 @@ def cfusdlog_capture(log, ul=None) -> tuple[bytes, "object"]:
     ``log``). ValueError naming the file when it has no ``lhUartFrame`` events."""
     from ..importers.cfusdlog import read_cfusdlog
     from ..io.sidecar import CaptureSidecar
-    from ..io.systemconfig import DECK_CLOCK_HZ
 
     log = Path(log)
     ul = read_cfusdlog(log) if ul is None else ul

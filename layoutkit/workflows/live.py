@@ -14,6 +14,10 @@ chunks, every pose is written out (JSON lines, ``poses.csv``) and only running s
 bounded, decimated series are kept (:mod:`layoutkit.live.stats`) — except when a reference is
 compared: its alignment is estimated from the whole run, so the good poses are kept in memory
 (72 bytes a pose, :class:`~layoutkit.live.session.PoseStore`) for the comparison at the end.
+
+Why one module of ~650 lines: replay and live are one workflow over the same session, setup,
+finish (references, camera, evidence of other runs) and report; split, each half would import the
+other's private steps. Every function stays under 120 lines.
 """
 from __future__ import annotations
 
@@ -267,6 +271,57 @@ def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_
     return replace(setup, config=resolve_solve_mode(solve, setup.stations, setup.config)), usd, evidence
 
 
+def _decode_all(setup: RunSetup, capture: Path, usd):
+    """The first pass of a refining replay: every sweep of the capture decoded into memory and paired
+    into frames (a log's sweep-angle frames as they are). Returns ``(sweeps or None, frames, decoder)``."""
+    import io
+
+    from ..live.pipeline import PosePipeline
+    from ..live.session import calibrated_setup, make_decoder
+
+    if usd is not None and usd["mode"] == "angles":
+        return None, list(usd["frames"]), usd["source"]
+    sts, opts, _ = calibrated_setup(setup)
+    dec = make_decoder(setup.protocol, setup.layout.n, sts or None, opts)
+    pairer = PosePipeline(setup.layout.positions, setup.config, sts or None).pairer
+    sweeps = []
+    data = usd.get("bytes") if usd is not None else None
+    with (io.BytesIO(data) if data is not None else open(capture, "rb")) as rd:
+        while True:
+            block = rd.read(_READ_BYTES)
+            if not block:
+                break
+            sweeps.extend(dec.feed(block))
+    sweeps.extend(dec.flush())
+    frames = [f for f in (pairer.push(m) for m in sweeps) if f is not None]
+    return sweeps, frames, dec
+
+
+def _refined(setup: RunSetup, frames, report_dir, fit_calibration: bool = False):
+    """``(setup with the stations refined from the frames when that helps, the refinement's report)``
+    (:func:`layoutkit.live.refine.refine_stations`; ``frames`` one capture's or a list of several);
+    ``stations_refined.json`` in the report folder."""
+    from dataclasses import replace
+
+    from ..live.refine import refine_stations
+    from ..live.session import calibrated_setup
+
+    sts, _, _ = calibrated_setup(setup)
+    c = setup.config
+    ref = refine_stations(frames, setup.layout.positions, sts, sigma=c.sigma_theta, window_s=c.window_s,
+                          fit_calibration=fit_calibration)
+    rep = dict(ref.report, applied=ref.applied, status=ref.status)
+    if not ref.applied:
+        return setup, rep
+    if report_dir is not None:
+        from ..io.stations import write_stations
+
+        Path(report_dir).mkdir(parents=True, exist_ok=True)
+        write_stations(Path(report_dir) / "stations_refined.json", list(ref.stations))
+        rep["file"] = str(Path(report_dir) / "stations_refined.json")
+    return replace(setup, stations=tuple(ref.stations)), rep
+
+
 def _feed_capture(s: LiveSession, capture: Path, usd, on_progress) -> None:
     """Decode and solve the whole capture (the raw bytes in blocks: memory stays flat whatever its
     length), or the frames of a Crazyflie log's sweep-angle events."""
@@ -295,7 +350,8 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
                    truth=None, reference=None, reference_units: str = "m", reference_offset: float | None = None,
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
                    camera_config=None, stations=None, system_config=None, solve: str | None = None,
-                   cfusdlog_source: str = "auto") -> dict:
+                   cfusdlog_source: str = "auto", refine_stations: bool = False, refine_from=(),
+                   refine_calibration: bool = False) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -316,7 +372,14 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     ``lhUartFrame`` events turned into the deck's bytes in memory (LH2), or its sweep-angle events
     (``lhAngle`` / ``estSweepAngle``, LH1 and LH2) grouped into frames. The log's own position
     estimates (crossing beam, state estimate) are compared with the joint poses
-    (``summary["firmware_vs_ours"]``, columns ``firmware_*`` in ``poses.csv``).
+    (``summary["firmware_vs_ours"]``, columns ``firmware_*`` in ``poses.csv``). refine_stations :
+    estimate the stations from the capture first (:func:`layoutkit.live.refine.refine_stations`:
+    slow windows seen by every station, bundle-adjusted) and solve with them when they explain the
+    angles better (``summary["station_refinement"]``; ``stations_refined.json`` in the report
+    folder); the capture is decoded once, into memory. refine_from : more captures of the same
+    station set-up whose slow windows join the refinement (a deck at rest in several places fixes
+    the stations; a capture in constant motion has no slow window of its own); refine_calibration :
+    also the observable calibration terms.
     """
     capture = Path(capture)
     if not capture.is_file():
@@ -330,10 +393,37 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
               "the capture's camera folder": beside if beside is not None and beside.is_dir() else None})
     firmware = (usd or {}).get("firmware") if setup.config.solve == "joint" else None
     poses = None if report_dir is None else Path(report_dir) / "poses.csv"
+    decoded = refinement = None
+    if refine_stations:
+        if len(setup.stations) < 2:
+            raise ValueError("--refine-stations: needs two or more stations with known poses (--system-config "
+                             "with geos, or --stations)")
+        decoded = _decode_all(setup, capture, usd)
+        sets = [decoded[1]]
+        for extra in refine_from or ():
+            extra = Path(extra)
+            if not extra.is_file():
+                raise ValueError(f"{extra}: no such capture file (--refine-from)")
+            x_setup, x_usd, _ = _replay_setup(extra, setup.layout, protocol=None, options=setup.config,
+                                              stations=stations, system_config=setup.system_config, solve=solve,
+                                              cfusdlog_source=cfusdlog_source)
+            sets.append(_decode_all(x_setup, extra, x_usd)[1])
+        setup, refinement = _refined(setup, sets, report_dir, refine_calibration)
+        if refine_from:
+            refinement["refined_from"] = [str(capture)] + [str(x) for x in refine_from]
     s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
                      keep_good=reference is not None or camera is not None)
-    _feed_capture(s, capture, usd, on_progress)
+    if decoded is None:
+        _feed_capture(s, capture, usd, on_progress)
+    else:
+        sweeps, frames, s.decoder = decoded
+        if sweeps is not None:
+            s.feed_sweeps(sweeps)
+        else:
+            s.feed_frames(frames)
     summary = s.finish()
+    if refinement is not None:
+        summary["station_refinement"] = refinement
     summary["capture"] = str(capture)
     summary["protocol"] = setup.protocol
     summary["evidence"] = evidence

@@ -309,5 +309,36 @@ def run_demo(out_dir, quick=True, echo=print, progress=None, seed: int = 0):
     spec = OptimizeSpec(k=12, objective="worst-adop", rho=RHO_PAPER, time_limit_s=60 if quick else None, seed=seed)
     problem = DesignProblem.for_spec(model_path("chen_target.stl"), env, spec,
                                      spacing=0.008 if quick else 0.005)
-    return run_optimize(problem, spec, out=out_dir / "layout.json", report=out_dir / "report", progress=progress,
-                        echo=echo)
+    summary = run_optimize(problem, spec, out=out_dir / "layout.json", report=out_dir / "report", progress=progress,
+                           echo=echo)
+    if (out_dir / "layout.json").is_file():
+        summary["versus_shipped"] = versus_layout(out_dir / "layout.json", model_path("chen_target.layout.json"),
+                                                  env, model_path("chen_target.stl"), spec.rho)
+        if (out_dir / "report").is_dir():
+            from ..io.atomic import atomic_write_text
+            from ..io.jsonfile import to_jsonable
+
+            atomic_write_text(out_dir / "report" / "versus_shipped.json",
+                              json.dumps(to_jsonable(summary["versus_shipped"]), indent=2) + "\n")
+    return summary
+
+
+def versus_layout(layout, other, envelope, mesh, rho: float) -> dict:
+    """The optimised ``layout`` beside ``other`` (e.g. the shipped hand layout) over the same envelope
+    poses, occlusion by ``mesh``: coverage and worst / median ADOP and worst PDOP of each, and the
+    poses each leaves uncovered (a worst ADOP over fewer covered poses is not a better layout)."""
+    from .score import score_layout
+
+    r = score_layout(layout, envelope, mesh=mesh, rho=rho, compare=other)
+    keys = ("poses", "covered_poses", "coverage_fraction", "worst_adop", "median_adop", "worst_pdop")
+    one = {k: r[k] for k in keys}
+    two = {k: r["compare"][k] for k in keys}
+    def said(name, r):
+        if not r["covered_poses"]:
+            return f"{name}: covers none of the {r['poses']} poses"
+        return f"{name}: {r['covered_poses']}/{r['poses']} poses covered, worst ADOP {r['worst_adop']:.4g} deg/rad"
+
+    lost = two["poses"] - two["covered_poses"]
+    return {"optimised": one | {"layout": str(layout)}, "other": two | {"layout": str(other)},
+            "message": (said("optimised", one) + "; " + said(Path(str(other)).name, two)
+                        + (f" ({lost} poses it cannot track at all)" if 0 < lost else ""))}

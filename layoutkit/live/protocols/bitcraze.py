@@ -49,7 +49,7 @@ reference encoders belong together and share the frame constants (the system-con
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

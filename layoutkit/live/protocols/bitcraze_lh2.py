@@ -295,6 +295,10 @@ class PhaseLh2:
                     blocks[nxt].append(p)
                 else:
                     self.stats.drop("LH2 pulse without channel near two channels' blocks")
+            elif any(q[0] == p[0] and abs(q[1] - p[1]) <= BLOCK_SPAN for b in known.values() for q in b):
+                # its sensor already has a decoded pulse in a block right here: a second hit the FPGA
+                # could not decode (a reflection; lh2_crossingBeam_jitter/log04's sensor 1, 1.5 mrad early)
+                self.stats.drop("LH2 second hit of a sensor without channel beside its decoded one (reflection?)")
             else:
                 blocks.setdefault(None, []).append(p)
         out = []
@@ -395,12 +399,13 @@ class PhaseLh2:
     # -- planes → rotations ------------------------------------------------------------------
     def _pair(self, ch: int, t0: float, offs: np.ndarray, source: str, ts: float) -> list:
         """A plane block → a rotation (as the firmware: the first block of a rotor zero waits, the
-        next block of the channel with the same rotor zero within :data:`PAIR_TOL` is its second
-        plane). A block left alone is emitted by itself, its plane from where it falls in the rotation
+        next block of the channel with the same rotor zero within :data:`PAIR_TOL`, crossing 0.05-0.62
+        turn later (the planes are a third of a turn apart, +/- the elevation), is its second plane). A block left alone is emitted by itself, its plane from where it falls in the rotation
         (:meth:`_lone_plane`). Each plane's offsets stay relative to its own block's ``t0`` (as the
         firmware); the rotation's ``t0`` is plane 0's."""
         pend = self._pending.pop(ch, None)
-        if pend is not None and abs(t0 - pend[0]) <= PAIR_TOL and ts > pend[3]:
+        P = LH2_CYCLE_PERIODS[ch]
+        if pend is not None and abs(t0 - pend[0]) <= PAIR_TOL and 0.05 < (ts - pend[3]) / P < 0.62:
             rot = np.stack([pend[1], offs], -1)
             self._remember(ch, pend[0], rot)
             return [Rotation(ch, pend[0], rot, pend[2] if pend[2] == source else "phase")]
@@ -408,7 +413,7 @@ class PhaseLh2:
         if pend is not None:
             self._pending[ch] = pend
             out += self._emit_pending(ch)
-        if (ts - t0) / LH2_CYCLE_PERIODS[ch] > 7 / 12:    # past any plane-0 crossing: plane 1 alone
+        if (ts - t0) / P > 7 / 12:    # past any plane-0 crossing: plane 1 alone
             out += self._lone(ch, t0, offs, source, 1)
         else:
             self._pending[ch] = (t0, offs, source, ts)

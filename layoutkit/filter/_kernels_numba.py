@@ -1,0 +1,612 @@
+"""numba kernels of the tracking filter (:mod:`layoutkit.filter.imm`; imported on first use only:
+importing numba and compiling is not work for the package's import time).
+
+Why one module of ~610 lines: the forward model, the predict/update, the gates and the IMM mixing
+run inside one compiled call per sweep and share its argument layout (``PAR_*``, ``OUT_*``). Every function works on one sweep
+with scalars and small arrays in registers; the numpy references they are tested against are
+:func:`layoutkit.lighthouse.measure_jacobian` (forward model) and
+:class:`layoutkit.filter.ekf.ErrorStateEKF` (predict / update).
+"""
+import math
+
+import numba
+import numpy as np
+
+_JIT = dict(cache=True, fastmath=False, nogil=True)
+LH2_TILT = math.pi / 6.0
+# libsurvive's LH2 curve series (layoutkit.lighthouse._LH2_CURVE_SERIES; the test checks they agree)
+F0, F1, F2, F3 = -8.0108022e-06, 0.0028679863, 5.3685255000000001e-06, 0.0076069798000000001
+
+
+@numba.njit(**_JIT)
+def _asin_d(u):
+    """asin(clip(u, -1, 1)) and d/du (0 where clipped)."""
+    if u >= 1.0:
+        return math.pi / 2, 0.0
+    if u <= -1.0:
+        return -math.pi / 2, 0.0
+    return math.asin(u), 1.0 / math.sqrt(1.0 - u * u)
+
+
+@numba.njit(**_JIT)
+def lh1_axis(x, y, z, k, c, corrected, g):
+    """LH1 axis ``k`` of a point (x, y, z) in the station frame with calibration ``c`` (7,)
+    (phase, tilt, curve, gib_phase, gib_mag, ...): the angle, and its gradient in ``g`` (3,)
+    (lighthouse._lh1_axis)."""
+    if k == 0:
+        a, o = x, y
+    else:
+        a, o = y, x
+    # gradients kept as (d/da, d/do, d/dz)
+    r2 = a * a + z * z
+    theta = math.atan2(z, a)
+    ta, to, tz = -z / r2, 0.0, a / r2
+    rho = math.sqrt(r2)
+    tt = math.tan(c[1])
+    u = tt * o / rho
+    ua = -tt * o * a / (r2 * rho)
+    uo = tt / rho
+    uz = -tt * o * z / (r2 * rho)
+    tilt, ds = _asin_d(u)
+    q2 = o * o + z * z
+    psi = math.atan2(o, z)
+    pa, po, pz = 0.0, z / q2, -o / q2
+    corr = theta + c[0] + tilt
+    ca, co, cz = ta + ds * ua, to + ds * uo, tz + ds * uz
+    base = corr + c[2] * psi * psi
+    ba, bo, bz = ca + 2.0 * c[2] * psi * pa, co + 2.0 * c[2] * psi * po, cz + 2.0 * c[2] * psi * pz
+    if corrected:
+        xi, xa, xo, xz = corr, ca, co, cz
+    else:
+        xi, xa, xo, xz = theta, ta, to, tz
+    arg = xi + c[3]
+    v = base + c[4] * math.sin(arg)
+    cg = c[4] * math.cos(arg)
+    ga, go, gz = ba + cg * xa, bo + cg * xo, bz + cg * xz
+    if k == 0:
+        g[0], g[1], g[2] = ga, go, gz
+    else:
+        g[0], g[1], g[2] = go, ga, gz
+    return v
+
+
+@numba.njit(**_JIT)
+def lh2_axis(x, y, z, k, c, corrected, g):
+    """LH2 light plane ``k`` (0: t = -30°, 1: t = +30°) of a point in the station frame with
+    calibration ``c`` (7,): the angle, and its gradient in ``g`` (3,) (lighthouse._lh2_axis)."""
+    t = (-LH2_TILT if k == 0 else LH2_TILT) - c[1]
+    r2 = x * x + z * z
+    az = math.atan2(x, z)
+    azx, azz = z / r2, -x / r2
+    rho = math.sqrt(r2)
+    r3 = math.sqrt(r2 + y * y)
+    tn, ct, st = math.tan(t), math.cos(t), math.sin(t)
+    A1 = tn * y / rho
+    a1x = -tn * y * x / (r2 * rho)
+    a1y = tn / rho
+    a1z = -tn * y * z / (r2 * rho)
+    s1, d1 = _asin_d(A1)
+    og = az + s1 - c[5]
+    K = c[2] + c[6] * math.cos(og)
+    kk = -c[6] * math.sin(og)
+    Kx, Ky, Kz = kk * (azx + d1 * a1x), kk * (d1 * a1y), kk * (azz + d1 * a1z)
+    w = -y / (r3 * ct)
+    f = y / (r3 * r3 * ct)
+    wx = f * x / r3
+    wy = -1.0 / (r3 * ct) + f * y / r3
+    wz = f * z / r3
+    s, dsw = _asin_d(w)
+    sx, sy, sz = dsw * wx, dsw * wy, dsw * wz
+    P = ((((F0 * s + F1) * s + F2) * s + F3) * s) * s
+    dP = (((5 * F0 * s + 4 * F1) * s + 3 * F2) * s + 2 * F3) * s
+    ddP = ((20 * F0 * s + 12 * F1) * s + 6 * F2) * s + 2 * F3
+    den = ct + dP * K * st
+    dnx = dP * st * Kx + K * st * ddP * sx
+    dny = dP * st * Ky + K * st * ddP * sy
+    dnz = dP * st * Kz + K * st * ddP * sz
+    if A1 >= 1.0:
+        A1c, inside = 1.0, 0.0
+    elif A1 <= -1.0:
+        A1c, inside = -1.0, 0.0
+    else:
+        A1c, inside = A1, 1.0
+    A2 = A1c + P * K / den
+    e1, e2, e3 = K / den, P / den, P * K / (den * den)
+    A2x = inside * a1x + e1 * dP * sx + e2 * Kx - e3 * dnx
+    A2y = inside * a1y + e1 * dP * sy + e2 * Ky - e3 * dny
+    A2z = inside * a1z + e1 * dP * sz + e2 * Kz - e3 * dnz
+    s2, d2 = _asin_d(A2)
+    beta = az + s2
+    bx, by, bz = azx + d2 * A2x, d2 * A2y, azz + d2 * A2z
+    if corrected:
+        xi, xx, xy, xz = beta, bx, by, bz
+    else:
+        xi, xx, xy, xz = az, azx, 0.0, azz
+    arg = xi + c[3]
+    v = beta + c[0] + c[4] * math.sin(arg)
+    cg = c[4] * math.cos(arg)
+    g[0], g[1], g[2] = bx + cg * xx, by + cg * xy, bz + cg * xz
+    return v
+
+
+@numba.njit(**_JIT)
+def sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows):
+    """Predicted angles ``z_pred (m,)`` of sensors ``idx`` (m,) on ``axis`` of one station and
+    their rows ``(m, 6)`` of d angle / d (left world rotation, world position) at the body pose
+    ``R (3, 3), p (3,)``; station ``Rs`` (station → world), ``ts`` (3,), ``lh2`` kind flag,
+    calibration ``c`` (7,) of that axis, ``corrected`` gib argument (filter.models + lighthouse)."""
+    g = np.empty(3)
+    for r in range(idx.shape[0]):
+        i = idx[r]
+        lx = R[0, 0] * pb[i, 0] + R[0, 1] * pb[i, 1] + R[0, 2] * pb[i, 2]
+        ly = R[1, 0] * pb[i, 0] + R[1, 1] * pb[i, 1] + R[1, 2] * pb[i, 2]
+        lz = R[2, 0] * pb[i, 0] + R[2, 1] * pb[i, 1] + R[2, 2] * pb[i, 2]
+        wx, wy, wz = lx + p[0] - ts[0], ly + p[1] - ts[1], lz + p[2] - ts[2]
+        x = Rs[0, 0] * wx + Rs[1, 0] * wy + Rs[2, 0] * wz
+        y = Rs[0, 1] * wx + Rs[1, 1] * wy + Rs[2, 1] * wz
+        z = Rs[0, 2] * wx + Rs[1, 2] * wy + Rs[2, 2] * wz
+        if lh2:
+            z_pred[r] = lh2_axis(x, y, z, axis, c, corrected, g)
+        else:
+            z_pred[r] = lh1_axis(x, y, z, axis, c, corrected, g)
+        ax = Rs[0, 0] * g[0] + Rs[0, 1] * g[1] + Rs[0, 2] * g[2]
+        ay = Rs[1, 0] * g[0] + Rs[1, 1] * g[1] + Rs[1, 2] * g[2]
+        az = Rs[2, 0] * g[0] + Rs[2, 1] * g[1] + Rs[2, 2] * g[2]
+        rows[r, 0] = ly * az - lz * ay
+        rows[r, 1] = lz * ax - lx * az
+        rows[r, 2] = lx * ay - ly * ax
+        rows[r, 3], rows[r, 4], rows[r, 5] = ax, ay, az
+
+
+@numba.njit(**_JIT)
+def quat_to_matrix(q, R):
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)
+
+
+@numba.njit(**_JIT)
+def quat_left_mul_rotvec(phi0, phi1, phi2, q):
+    """``q <- exp(phi) ⊗ q`` in place, normalised with w >= 0 (filter.so3)."""
+    th = math.sqrt(phi0 * phi0 + phi1 * phi1 + phi2 * phi2)
+    if th < 1e-6:
+        s = 0.5 - th * th / 48.0
+        c = 1.0 - th * th / 8.0
+    else:
+        s = math.sin(0.5 * th) / th
+        c = math.cos(0.5 * th)
+    ax, ay, az, aw = s * phi0, s * phi1, s * phi2, c
+    bx, by, bz, bw = q[0], q[1], q[2], q[3]
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    w = aw * bw - ax * bx - ay * by - az * bz
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0:
+        n = -n
+    q[0], q[1], q[2], q[3] = x / n, y / n, z / n, w / n
+
+
+@numba.njit(**_JIT)
+def quat_left_error(qa, qb, e):
+    """``e = log(qa ⊗ qb^-1)`` (3,) rad: the left (world) rotation from b to a."""
+    # qb^-1 = conj(qb)
+    bx, by, bz, bw = -qb[0], -qb[1], -qb[2], qb[3]
+    ax, ay, az, aw = qa[0], qa[1], qa[2], qa[3]
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    w = aw * bw - ax * bx - ay * by - az * bz
+    if w < 0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 / w if s < 1e-12 else 2.0 * math.atan2(s, w) / s
+    e[0], e[1], e[2] = k * x, k * y, k * z
+
+
+@numba.njit(**_JIT)
+def cv_predict(q, w, p, v, P, dt, qrot, qpos, T):
+    """Constant-velocity prediction of one model over ``dt`` s (ErrorStateEKF.predict): nominal
+    ``q <- exp(w dt) q``, ``p <- p + v dt``; ``P <- F P F^T + Q`` with the error-state transition
+    ``F`` (identity but the attitude block ``Phi = exp([w dt]x)`` and the dt couplings attitude/rate,
+    position/velocity) and the white-acceleration Q of PSDs ``qrot``, ``qpos`` (Bar-Shalom et al.
+    2001 eq. 6.2.2-12). ``T`` (12, 12) scratch."""
+    if dt <= 0.0:
+        return
+    phi0, phi1, phi2 = w[0] * dt, w[1] * dt, w[2] * dt
+    dq = np.empty(4)
+    dq[0], dq[1], dq[2], dq[3] = 0.0, 0.0, 0.0, 1.0
+    quat_left_mul_rotvec(phi0, phi1, phi2, dq)
+    quat_left_mul_rotvec(phi0, phi1, phi2, q)
+    for k in range(3):
+        p[k] += v[k] * dt
+    Ph = np.empty((3, 3))
+    quat_to_matrix(dq, Ph)
+    # T = F P: rows 0-2 = Phi P[0:3] + dt P[3:6]; rows 6-8 = P[6:9] + dt P[9:12]; others as P
+    for j in range(12):
+        for i in range(3):
+            T[i, j] = Ph[i, 0] * P[0, j] + Ph[i, 1] * P[1, j] + Ph[i, 2] * P[2, j] + dt * P[3 + i, j]
+            T[3 + i, j] = P[3 + i, j]
+            T[6 + i, j] = P[6 + i, j] + dt * P[9 + i, j]
+            T[9 + i, j] = P[9 + i, j]
+    # P = T F^T: columns likewise
+    for i in range(12):
+        for j in range(3):
+            P[i, j] = T[i, 0] * Ph[j, 0] + T[i, 1] * Ph[j, 1] + T[i, 2] * Ph[j, 2] + dt * T[i, 3 + j]
+            P[i, 3 + j] = T[i, 3 + j]
+            P[i, 6 + j] = T[i, 6 + j] + dt * T[i, 9 + j]
+            P[i, 9 + j] = T[i, 9 + j]
+    d3, d2, d1 = dt * dt * dt / 3.0, dt * dt / 2.0, dt
+    for k in range(3):
+        P[k, k] += qrot * d3
+        P[k, 3 + k] += qrot * d2
+        P[3 + k, k] += qrot * d2
+        P[3 + k, 3 + k] += qrot * d1
+        P[6 + k, 6 + k] += qpos * d3
+        P[6 + k, 9 + k] += qpos * d2
+        P[9 + k, 6 + k] += qpos * d2
+        P[9 + k, 9 + k] += qpos * d1
+
+
+@numba.njit(**_JIT)
+def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected, dl, sigma2, rho, y, H, HP, S,
+                     zp, rows):
+    """Innovations ``y (m,)``, rows ``H (m, 12)``, ``HP = H P (m, 12)`` and the innovation covariance
+    ``S (m, m)`` of one sweep for one model (ErrorStateEKF.update_sweep before the gates): each
+    angle predicted at its own hit time ``dl`` s after the state time (first order in the
+    velocity). ``zp (m,)``, ``rows (m, 6)`` scratch."""
+    m = idx.shape[0]
+    R = np.empty((3, 3))
+    quat_to_matrix(q, R)
+    sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, zp, rows)
+    for r in range(m):
+        jw = rows[r, 0] * w[0] + rows[r, 1] * w[1] + rows[r, 2] * w[2]
+        jv = rows[r, 3] * v[0] + rows[r, 4] * v[1] + rows[r, 5] * v[2]
+        d = z[r] - (zp[r] + dl[r] * (jw + jv)) + math.pi
+        y[r] = d - 2.0 * math.pi * math.floor(d / (2.0 * math.pi)) - math.pi
+        for k in range(3):
+            H[r, k] = rows[r, k]
+            H[r, 3 + k] = rows[r, k] * dl[r]
+            H[r, 6 + k] = rows[r, 3 + k]
+            H[r, 9 + k] = rows[r, 3 + k] * dl[r]
+    for r in range(m):
+        for j in range(12):
+            s = 0.0
+            for k in range(12):
+                s += H[r, k] * P[k, j]
+            HP[r, j] = s
+    for a in range(m):
+        for b in range(a + 1):
+            s = 0.0
+            for k in range(12):
+                s += HP[a, k] * H[b, k]
+            s += sigma2 * (rho + (1.0 - rho if a == b else 0.0))
+            S[a, b] = s
+            S[b, a] = s
+
+
+@numba.njit(**_JIT)
+def _chol_solve(keep, y, HP, S, L, X):
+    """Cholesky ``L`` of ``S`` over the kept angles and ``X = S^-1 [y, HP]`` (k, 13) of them.
+    Returns ``(k, nis, log det S)``; ``k = -1`` when S is not positive definite."""
+    m = keep.shape[0]
+    ix = np.empty(m, np.int64)
+    k = 0
+    for a in range(m):
+        if keep[a]:
+            ix[k] = a
+            k += 1
+    for a in range(k):
+        for b in range(a + 1):
+            s = S[ix[a], ix[b]]
+            for c in range(b):
+                s -= L[a, c] * L[b, c]
+            if a == b:
+                if not s > 0.0:
+                    return -1, np.nan, np.nan
+                L[a, a] = math.sqrt(s)
+            else:
+                L[a, b] = s / L[b, b]
+    for col in range(13):
+        # forward: L u = rhs
+        for a in range(k):
+            s = y[ix[a]] if col == 0 else HP[ix[a], col - 1]
+            for c in range(a):
+                s -= L[a, c] * X[c, col]
+            X[a, col] = s / L[a, a]
+        # back: L^T x = u
+        for a in range(k - 1, -1, -1):
+            s = X[a, col]
+            for c in range(a + 1, k):
+                s -= L[c, a] * X[c, col]
+            X[a, col] = s / L[a, a]
+    nis = 0.0
+    logdet = 0.0
+    for a in range(k):
+        nis += y[ix[a]] * X[a, 0]
+        logdet += 2.0 * math.log(L[a, a])
+    return k, nis, logdet
+
+
+@numba.njit(**_JIT)
+def _apply(keep, HP, X, q, w, p, v, P, dx):
+    """``dx = (HP)^T S^-1 y``, ``P -= (HP)^T S^-1 HP`` over the kept angles, injected into the nominal."""
+    m = keep.shape[0]
+    ix = np.empty(m, np.int64)
+    k = 0
+    for a in range(m):
+        if keep[a]:
+            ix[k] = a
+            k += 1
+    for i in range(12):
+        s = 0.0
+        for a in range(k):
+            s += HP[ix[a], i] * X[a, 0]
+        dx[i] = s
+    for i in range(12):
+        for j in range(i + 1):
+            s = 0.0
+            for a in range(k):
+                s += HP[ix[a], i] * X[a, 1 + j]
+            P[i, j] -= s
+            if i != j:
+                P[j, i] = P[i, j]
+    quat_left_mul_rotvec(dx[0], dx[1], dx[2], q)
+    for a in range(3):
+        w[a] += dx[3 + a]
+        p[a] += dx[6 + a]
+        v[a] += dx[9 + a]
+
+
+@numba.njit(**_JIT)
+def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
+              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt=0.0, freeze=False):
+    """One sweep through an interacting-multiple-model bank of ``r`` constant-velocity filters
+    (Blom & Bar-Shalom 1988): mix (when ``mix``), predict each model to ``t`` with its own PSDs,
+    gate, update every model with the kept angles, re-weight ``mu`` by the likelihoods, and write
+    the combined state into ``qc`` (4,), ``wc``, ``pc``, ``vc`` (3,), ``Pc`` (12, 12). Arrays per
+    model: Q (r, 4), W, Pn, V (r, 3), P (r, 12, 12); Pi (r, r) the per-sweep mode transition
+    matrix. Gates: an angle is kept when its normalised innovation is within the chi²(1) quantile
+    ``q1`` in at least one model; the sweep is rejected when its NIS exceeds ``qm[k]`` (chi²(k)
+    quantile) in every model. ``out`` (10,) <- used, rejected, sweep_rejected (0/1), NIS of the most
+    probable model, the combined pose correction (6,) (left rotation rad, position m). sweep_dt : s,
+    the sweep's own time minus ``t`` (<= 0: a sweep that arrives slightly out of time order is
+    applied at ``t`` with its hit times moved back by that much). freeze : keep ``mu`` (a body the
+    static detector says is at rest stays in the mode it was put in)."""
+    r = Q.shape[0]
+    m = idx.shape[0]
+    q_prev = qc.copy()
+    p_prev = pc.copy()
+    if mix and r > 1:
+        _imm_mix(Q, W, Pn, V, P, mu, Pi)
+    T = np.empty((12, 12))
+    for j in range(r):
+        cv_predict(Q[j], W[j], Pn[j], V[j], P[j], t - t_state, qrot[j], qpos[j], T)
+    for a in range(10):
+        out[a] = 0.0
+    out[3] = np.nan
+    if m > 0:
+        _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
+                    sweep_dt, freeze)
+    imm_combine(Q, W, Pn, V, P, mu, qc, wc, pc, vc, Pc)
+    if out[0] > 0:
+        er = np.empty(3)
+        quat_left_error(qc, q_prev, er)
+        for a in range(3):
+            out[4 + a] = er[a]
+            out[7 + a] = pc[a] - p_prev[a]
+
+
+@numba.njit(**_JIT)
+def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
+                sweep_dt, freeze):
+    r = Q.shape[0]
+    m = idx.shape[0]
+    dl = np.empty(m)
+    for a in range(m):
+        if lh2:
+            dl[a] = (z[a] + math.pi + (-math.pi / 3.0 if axis == 0 else math.pi / 3.0)) / omega + sweep_dt
+        else:
+            dl[a] = z[a] / omega + sweep_dt
+    Y = np.empty((r, m))
+    H = np.empty((r, m, 12))
+    HP = np.empty((r, m, 12))
+    S = np.empty((r, m, m))
+    zp = np.empty(m)
+    rows = np.empty((m, 6))
+    keep = np.zeros(m, np.bool_)
+    for j in range(r):
+        sweep_innovation(pb, idx, z, Q[j], W[j], Pn[j], V[j], P[j], Rs, ts, lh2, axis, c, corrected, dl, sigma2,
+                         rho, Y[j], H[j], HP[j], S[j], zp, rows)
+        for a in range(m):
+            if Y[j, a] * Y[j, a] <= q1 * S[j, a, a]:
+                keep[a] = True
+    k = 0
+    for a in range(m):
+        if keep[a]:
+            k += 1
+    out[1] = m - k
+    if k == 0:
+        out[2] = 1.0
+        return
+    L = np.empty((k, k))
+    X = np.empty((r, k, 13))
+    nis = np.full(r, np.inf)
+    logdet = np.zeros(r)
+    any_ok = False
+    for j in range(r):
+        kk, nis[j], logdet[j] = _chol_solve(keep, Y[j], HP[j], S[j], L, X[j])
+        if kk < 0:
+            nis[j] = np.inf
+        elif nis[j] <= qm[k]:
+            any_ok = True
+    jm = 0
+    for j in range(r):
+        if mu[j] > mu[jm]:
+            jm = j
+    out[3] = nis[jm]
+    if not any_ok:
+        out[2] = 1.0
+        return
+    dx = np.empty(12)
+    for j in range(r):
+        if np.isfinite(nis[j]):
+            _apply(keep, HP[j], X[j], Q[j], W[j], Pn[j], V[j], P[j], dx)
+    if r > 1 and not freeze:
+        # mode probabilities: mu_j ∝ mu_j Λ_j, Λ_j = N(y_j; 0, S_j) over the kept angles
+        lmax = -np.inf
+        ll = np.empty(r)
+        for j in range(r):
+            ll[j] = -0.5 * (nis[j] + logdet[j]) if np.isfinite(nis[j]) else -np.inf
+            if ll[j] > lmax:
+                lmax = ll[j]
+        tot = 0.0
+        for j in range(r):
+            mu[j] = max(mu[j] * math.exp(ll[j] - lmax), 1e-12)
+            tot += mu[j]
+        for j in range(r):
+            mu[j] /= tot
+        jm = 0
+        for j in range(r):
+            if mu[j] > mu[jm]:
+                jm = j
+        out[3] = nis[jm]
+    out[0] = k
+
+
+@numba.njit(**_JIT)
+def _imm_mix(Q, W, Pn, V, P, mu, Pi):
+    """IMM mixing step in the error state: model j starts from the mixture of all models with
+    weights ``mu_{i|j} ∝ Pi[i, j] mu_i``, attitudes mixed as left errors about model j's own."""
+    r = Q.shape[0]
+    cbar = np.zeros(r)
+    for j in range(r):
+        for i in range(r):
+            cbar[j] += Pi[i, j] * mu[i]
+    Q0, W0, Pn0, V0, P0 = Q.copy(), W.copy(), Pn.copy(), V.copy(), P.copy()
+    e = np.empty((r, 12))
+    er = np.empty(3)
+    wij = np.empty(r)
+    for j in range(r):
+        for i in range(r):
+            quat_left_error(Q0[i], Q0[j], er)
+            for a in range(3):
+                e[i, a] = er[a]
+                e[i, 3 + a] = W0[i, a] - W0[j, a]
+                e[i, 6 + a] = Pn0[i, a] - Pn0[j, a]
+                e[i, 9 + a] = V0[i, a] - V0[j, a]
+            wij[i] = Pi[i, j] * mu[i] / cbar[j]
+        mean = np.zeros(12)
+        for i in range(r):
+            for a in range(12):
+                mean[a] += wij[i] * e[i, a]
+        for a in range(12):
+            for b in range(a + 1):
+                s = 0.0
+                for i in range(r):
+                    s += wij[i] * (P0[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
+                P[j, a, b] = s
+                P[j, b, a] = s
+        Q[j] = Q0[j]
+        quat_left_mul_rotvec(mean[0], mean[1], mean[2], Q[j])
+        for a in range(3):
+            W[j, a] = W0[j, a] + mean[3 + a]
+            Pn[j, a] = Pn0[j, a] + mean[6 + a]
+            V[j, a] = V0[j, a] + mean[9 + a]
+    for j in range(r):
+        mu[j] = cbar[j]
+
+
+@numba.njit(**_JIT)
+def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
+    """The bank's output: the ``mu``-weighted mixture of the models (attitude about the most
+    probable model's), into ``q`` (4,), ``w``, ``p``, ``v`` (3,), ``Pc`` (12, 12)."""
+    r = Q.shape[0]
+    jm = 0
+    for j in range(r):
+        if mu[j] > mu[jm]:
+            jm = j
+    e = np.empty((r, 12))
+    er = np.empty(3)
+    mean = np.zeros(12)
+    for i in range(r):
+        quat_left_error(Q[i], Q[jm], er)
+        for a in range(3):
+            e[i, a] = er[a]
+            e[i, 3 + a] = W[i, a] - W[jm, a]
+            e[i, 6 + a] = Pn[i, a] - Pn[jm, a]
+            e[i, 9 + a] = V[i, a] - V[jm, a]
+        for a in range(12):
+            mean[a] += mu[i] * e[i, a]
+    for a in range(12):
+        for b in range(a + 1):
+            s = 0.0
+            for i in range(r):
+                s += mu[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
+            Pc[a, b] = s
+            Pc[b, a] = s
+    for a in range(4):
+        q[a] = Q[jm, a]
+    quat_left_mul_rotvec(mean[0], mean[1], mean[2], q)
+    for a in range(3):
+        w[a] = W[jm, a] + mean[3 + a]
+        p[a] = Pn[jm, a] + mean[6 + a]
+        v[a] = V[jm, a] + mean[9 + a]
+
+
+#: layout of the per-call parameter vector of :func:`imm_step`
+PAR_T_STATE, PAR_T, PAR_SIGMA2, PAR_RHO, PAR_Q1, PAR_OMEGA, PAR_LH2, PAR_AXIS, PAR_CORRECTED, PAR_MIX = range(10)
+PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_FREEZE, PAR_SIZE = 10, 17, 26, 29, 30, 31
+#: layout of :func:`imm_step`'s output vector
+OUT_STATE, OUT_P, OUT_SIZE = 10, 23, 167
+
+
+@numba.njit(**_JIT)
+def imm_step(X, P, M, Pi, pb, idx, z, par, qm, out):
+    """:func:`imm_sweep` with packed arguments (a compiled call's cost grows with its argument
+    count): X (r, 13) per-model nominal ``[q (4), w, p, v]``, P (r, 12, 12), M (r, 3)
+    ``[mu, psd_rot, psd_pos]`` (mu updated), Pi (r, r), par (PAR_SIZE,) (``PAR_*``: times, noise,
+    gate, rotor rate, kind, axis, gib argument, mix flag, calibration (7), station rotation (9,
+    row-major), translation (3)), qm (n + 1,) chi² quantiles per dof; out (OUT_SIZE,) <- the counts
+    and correction (10), the combined nominal (13) and covariance (144, row-major). The combined
+    state of the previous call is read from ``out`` too (the correction is relative to it)."""
+    r = X.shape[0]
+    Q = np.ascontiguousarray(X[:, 0:4])
+    W = np.ascontiguousarray(X[:, 4:7])
+    Pn = np.ascontiguousarray(X[:, 7:10])
+    V = np.ascontiguousarray(X[:, 10:13])
+    mu = np.ascontiguousarray(M[:, 0])
+    qrot = np.ascontiguousarray(M[:, 1])
+    qpos = np.ascontiguousarray(M[:, 2])
+    c = par[PAR_CAL:PAR_CAL + 7].copy()
+    Rs = par[PAR_RS:PAR_RS + 9].copy().reshape(3, 3)
+    ts = par[PAR_TS:PAR_TS + 3].copy()
+    qc = out[OUT_STATE:OUT_STATE + 4].copy()
+    wc = np.empty(3)
+    pc = out[OUT_STATE + 7:OUT_STATE + 10].copy()
+    vc = np.empty(3)
+    Pc = np.empty((12, 12))
+    imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, par[PAR_T_STATE], par[PAR_T], pb, idx, z, Rs, ts,
+              par[PAR_LH2] > 0.5, int(par[PAR_AXIS]), c, par[PAR_CORRECTED] > 0.5, par[PAR_OMEGA], par[PAR_SIGMA2],
+              par[PAR_RHO], par[PAR_Q1], qm, par[PAR_MIX] > 0.5, out, qc, wc, pc, vc, Pc, par[PAR_SWEEP_DT],
+              par[PAR_FREEZE] > 0.5)
+    for j in range(r):
+        for a in range(4):
+            X[j, a] = Q[j, a]
+        for a in range(3):
+            X[j, 4 + a] = W[j, a]
+            X[j, 7 + a] = Pn[j, a]
+            X[j, 10 + a] = V[j, a]
+        M[j, 0] = mu[j]
+    for a in range(4):
+        out[OUT_STATE + a] = qc[a]
+    for a in range(3):
+        out[OUT_STATE + 4 + a] = wc[a]
+        out[OUT_STATE + 7 + a] = pc[a]
+        out[OUT_STATE + 10 + a] = vc[a]
+    for a in range(12):
+        for b in range(12):
+            out[OUT_P + 12 * a + b] = Pc[a, b]

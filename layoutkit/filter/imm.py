@@ -1,0 +1,245 @@
+"""The tracking filter's fast, adaptive estimator: an interacting-multiple-model (IMM) bank of
+constant-velocity error-state EKFs, compiled with numba.
+
+Why several models: a deck at rest and a deck swung by hand or flown need process noises ~10⁹
+apart (a white-acceleration PSD of ~1e-6 m²/s³ holds a resting deck to its noise floor; a hand
+swing at 2–4 m/s with tens of m/s² needs ~1e2). One fixed value either starves the gates in motion
+(the innovations of a too-stiff model exceed them: ~90 % of the angles rejected on the Crazyflie
+move logs) or lets a resting pose wander. The IMM (Blom & Bar-Shalom 1988; Bar-Shalom, Li &
+Kirubarajan 2001, §11.6) runs ``r`` models whose PSDs span that range, mixes them before every
+sweep with the mode transition matrix, updates each with the sweep and re-weights them by their
+likelihoods — the process noise follows the motion, nothing is tuned per log. The output is the
+probability-weighted mixture (state and covariance with its spread term).
+
+Each model is exactly :class:`layoutkit.filter.ekf.ErrorStateEKF` with the constant-velocity model
+(the same state, error state, left attitude perturbation, Chen eq. 19 correlation, first-order
+sub-sweep motion, chi² gates); with one model (``EkfConfig.motion == "fixed"``) this class is that
+filter compiled (``tests/test_filter_imm.py`` checks both against each other on the same sweeps).
+Gates: an angle is kept when it passes the per-angle gate in at least one model; a sweep is
+rejected only when every model's NIS refuses it — the most agile model decides what counts as an
+outlier, so a fast motion never starves the gates while a reflection no model can explain is still
+dropped.
+
+Hit times: LH1 angle ``theta`` is hit ``theta / omega`` after the sync; LH2 plane ``k`` angle ``alpha``
+``(alpha + pi -/+ pi/3) / omega`` after the rotor zero (the decoder's ``a0 = off0 2 pi / P - pi + pi/3``,
+``a1 = off1 2 pi / P - pi - pi/3``; the pipeline's ``AngleFrame.t_axes``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..rotations import matrix_to_quaternion
+from ..units import RAD2DEG
+from .ekf import EkfConfig, SweepUpdate, start_covariance, chi2_quantile
+from .models import FORWARD_MODELS
+from .so3 import quat_to_matrix, quat_to_rotvec
+
+__all__ = ["ImmFilter"]
+
+
+def _kernels():
+    from . import _kernels_numba  # compiled on first use (cached on disk)
+
+    return _kernels_numba
+
+
+class ImmFilter:
+    """The IMM bank (module docstring) behind :class:`layoutkit.filter.tracker.SweepTracker`, with
+    :class:`~layoutkit.filter.ekf.ErrorStateEKF`'s interface (``initialize``, ``predict``,
+    ``update_sweep``, ``q``/``w``/``p``/``v``/``P`` of the combined state, ``pose_sigma``).
+
+    points_body : (n, 3) m; stations : list of :class:`~layoutkit.lighthouse.Station` (world poses,
+    kinds, calibrations); config : :class:`EkfConfig` — ``motion`` "adaptive" (the bank of
+    ``imm_psd_rot`` / ``imm_psd_pos``, per-sweep mode stay probability ``imm_stay``) or "fixed" (one
+    model with ``psd_rot`` / ``psd_pos``); ``model`` "station" (each station's calibration) or "plain".
+    """
+
+    def __init__(self, points_body, stations, config: EkfConfig | None = None):
+        c = self.config = config or EkfConfig()
+        if c.constant_acceleration:
+            raise ValueError("ImmFilter: constant-velocity models only (use ErrorStateEKF for constant_acceleration)")
+        self._k = K = _kernels()
+        self.points_body = np.ascontiguousarray(points_body, float)
+        self.stations = list(stations)
+        self.model = FORWARD_MODELS[c.model]
+        self.dim = 12
+        if c.motion == "adaptive":
+            qr, qp = np.asarray(c.imm_psd_rot, float), np.asarray(c.imm_psd_pos, float)
+        else:
+            qr, qp = np.array([c.psd_rot]), np.array([c.psd_pos])
+        r = len(qr)
+        self.Pi = np.full((r, r), (1.0 - c.imm_stay) / max(r - 1, 1))
+        np.fill_diagonal(self.Pi, c.imm_stay if r > 1 else 1.0)
+        self.M = np.column_stack([np.full(r, 1.0 / r), qr, qp])   # mu, psd_rot, psd_pos per model
+        self.X = np.tile([0.0, 0.0, 0.0, 1.0] + [0.0] * 9, (r, 1))   # q, w, p, v per model
+        self.Pm = np.tile(np.eye(12), (r, 1, 1))
+        self._out = np.zeros(K.OUT_SIZE)
+        self._out[K.OUT_STATE + 3] = 1.0
+        self._out[K.OUT_P:] = np.eye(12).ravel()
+        self.initialized = False
+        self.t = float("nan")
+        self._t_model = float("nan")
+        # per station: the parameter vector of the compiled step (calibration, pose, kind, rotor rate)
+        self._par = []
+        for st in self.stations:
+            cal = getattr(st, "calibration", None) if c.model == "station" else None
+            par = np.zeros((2, K.PAR_SIZE))
+            for axis in (0, 1):
+                v = par[axis]
+                v[K.PAR_SIGMA2], v[K.PAR_RHO] = c.sigma_theta ** 2, c.rho
+                v[K.PAR_Q1] = chi2_quantile(1.0 - c.gate_angle_p, 1)
+                v[K.PAR_OMEGA] = 2.0 * math.pi * st.rotor_rpm / 60.0 if c.hit_timing else math.inf
+                v[K.PAR_LH2] = float(st.kind == "lh2")
+                v[K.PAR_AXIS] = axis
+                v[K.PAR_CORRECTED] = float(cal is not None and cal.gib_argument == "corrected")
+                v[K.PAR_MIX] = 1.0
+                if cal is not None:
+                    v[K.PAR_CAL:K.PAR_CAL + 7] = cal.params[axis]
+                v[K.PAR_RS:K.PAR_RS + 9] = np.asarray(st.rotation, float).ravel()
+                v[K.PAR_TS:K.PAR_TS + 3] = np.asarray(st.translation, float)
+            self._par.append(par)
+        n = self.points_body.shape[0]
+        self._qm = np.array([np.inf] + [chi2_quantile(1.0 - c.gate_sweep_p, k) for k in range(1, n + 1)])
+        self.noise_scale = 1.0
+        self._adapt = c.motion == "adaptive" and c.noise_scale_max > 1.0 and c.noise_scale_rate > 0.0
+        self._view()
+
+    def _view(self) -> None:
+        """The combined state as arrays (views of the last output vector; a new vector per sweep)."""
+        o, K = self._out, self._k
+        self.q = o[K.OUT_STATE:K.OUT_STATE + 4]
+        self.w = o[K.OUT_STATE + 4:K.OUT_STATE + 7]
+        self.p = o[K.OUT_STATE + 7:K.OUT_STATE + 10]
+        self.v = o[K.OUT_STATE + 10:K.OUT_STATE + 13]
+        self.P = o[K.OUT_P:].reshape(12, 12)
+
+    # ----------------------------------------------------------------------------- state
+    @property
+    def rotation(self) -> np.ndarray:
+        return quat_to_matrix(self.q)
+
+    @property
+    def rotvec(self) -> np.ndarray:
+        return quat_to_rotvec(self.q)
+
+    def pose_sigma(self) -> np.ndarray:
+        """(6,) 1-sigma of ``(dphi rad, dp m)`` (world axes) of the combined state."""
+        d = np.diagonal(self.P)
+        return np.sqrt(np.maximum(d[[0, 1, 2, 6, 7, 8]], 0.0))
+
+    def pose_covariance(self) -> np.ndarray:
+        i = np.r_[0:3, 6:9]
+        return self.P[np.ix_(i, i)]
+
+    def sigma_deg_m(self):
+        s = self.pose_sigma()
+        return s[:3] * RAD2DEG, s[3:]
+
+    def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None,
+                   noise_scale: float | None = None) -> None:
+        """(Re)start every model at time ``t`` with the pose, its covariance ``pose_cov`` (6, 6)
+        (dphi, dp), zero (or the given) velocities with the configured prior sigmas — or, with
+        ``pose_cov`` (12, 12), the whole state's covariance (dphi, w, dp, v); equal mode
+        probabilities. noise_scale : the angle-noise scale to start from (adaptive mode; e.g. the
+        start solve's residual in sigma, squared: the model errors it saw)."""
+        P = start_covariance(self.config, pose_cov, 12)
+        x = np.concatenate([matrix_to_quaternion(rotation), np.zeros(3) if rate is None else rate,
+                            np.asarray(position, float), np.zeros(3) if velocity is None else velocity])
+        self.X[:] = x
+        self.Pm[:] = P
+        self.M[:, 0] = 1.0 / len(self.M)
+        out = np.zeros(self._k.OUT_SIZE)
+        out[self._k.OUT_STATE:self._k.OUT_STATE + 13] = x
+        out[self._k.OUT_P:] = P.ravel()
+        self._out = out
+        self._view()
+        self.t = self._t_model = float(t)
+        self.initialized = True
+        if self._adapt and noise_scale is not None and math.isfinite(noise_scale):
+            self._set_noise(max(self.noise_scale, min(max(noise_scale, 1.0), self.config.noise_scale_max)))
+
+    def predict(self, t: float, process_noise: bool = True) -> None:
+        """Move the filter's time to ``t`` (the models are propagated with the next update, after
+        the mixing step). ValueError when time runs backwards."""
+        if t < self.t:
+            raise ValueError(f"predict: time ran backwards ({t} < {self.t})")
+        self.t = float(t)
+
+    def update_sweep(self, station: int, axis: int, sensors, angles, hit_offsets=None,
+                     sweep_offset: float = 0.0) -> SweepUpdate:
+        """One sweep at the filter's time (after :meth:`predict`): mix, predict every model, gate,
+        update, re-weight, combine (:func:`layoutkit.filter._kernels_numba.imm_step`). ``hit_offsets``
+        is ignored (the kernel derives each angle's hit time from the station's rotor rate);
+        ``sweep_offset`` (s, <= 0): the sweep's time minus the filter's (a sweep slightly out of order)."""
+        d = np.diagonal(self.P)
+        sig0 = np.sqrt(np.maximum(d[[0, 1, 2, 6, 7, 8]], 0.0))
+        o = self._sweep(station, axis, sensors, angles, sweep_offset)
+        used, rejected, swr, nis = int(o[0]), int(o[1]), bool(o[2]), float(o[3])
+        if self._adapt:
+            self._match_noise(used or len(sensors), nis, swr)
+        if swr or used == 0:
+            return SweepUpdate(0, rejected, True, nis, 0, np.zeros(6), sig0)
+        return SweepUpdate(used, rejected, False, nis, used, o[4:10], sig0)
+
+    def _match_noise(self, dof: int, nis: float, rejected: bool) -> None:
+        """The angle-noise scale follows the innovations (EkfConfig ``noise_scale_*``): a sweep whose
+        every angle the gates refused counts with the cap (evidence the noise is too small)."""
+        c = self.config
+        r = 10.0 if (rejected and not math.isfinite(nis)) else min(nis / max(dof, 1), 10.0) if math.isfinite(nis) else None
+        if r is None:
+            return
+        self._set_noise(min(max(self.noise_scale * (1.0 + c.noise_scale_rate * (r - 1.0)), 1.0), c.noise_scale_max))
+
+    def _set_noise(self, s: float) -> None:
+        if s != self.noise_scale:
+            self.noise_scale = s
+            for par in self._par:
+                par[:, self._k.PAR_SIGMA2] = s * self.config.sigma_theta ** 2
+
+    def _sweep(self, station, axis, idx, z, sweep_offset=0.0):
+        """mix + predict to ``self.t`` + update with ``z`` + combine, in one compiled call."""
+        par = self._par[station][axis]
+        par[0], par[1] = self._t_model, self.t
+        par[self._k.PAR_SWEEP_DT] = sweep_offset
+        out = self._out.copy()
+        self._k.imm_step(self.X, self.Pm, self.M, self.Pi, self.points_body, np.asarray(idx, np.int64),
+                         np.asarray(z, float), par, self._qm, out)
+        self._out = out
+        self._view()
+        self._t_model = self.t
+        return out
+
+    def zero_velocity_update(self) -> None:  # the bank's low-noise model is the static case
+        raise ValueError("ImmFilter: no zero-velocity updates (the static case is the bank's quietest model)")
+
+    def hold_static(self, static: bool) -> None:
+        """The static detector's verdict (:class:`~layoutkit.filter.tracker.SweepTracker`): at rest
+        the bank is held in its quietest model (probability 1, not re-weighted by the sweeps — a
+        set-up's model errors would otherwise look like motion to the agile models and pull the pose
+        sweep by sweep); in motion the likelihoods decide again."""
+        was = bool(self._par[0][0, self._k.PAR_FREEZE])
+        if static == was and not static:
+            return  # in motion and staying so: nothing to change (called every sweep)
+        if static != was:
+            for par in self._par:
+                par[:, self._k.PAR_FREEZE] = float(static)
+        if static and len(self.M) > 1:
+            if not was:  # entering rest: every model continues from the bank's output (no jump)
+                K = self._k
+                self.X[:] = self._out[K.OUT_STATE:K.OUT_STATE + 13]
+                self.Pm[:] = self._out[K.OUT_P:].reshape(12, 12)
+            j = int(np.argmin(self.M[:, 1] + self.M[:, 2]))
+            self.M[:, 0] = 0.0
+            self.M[j, 0] = 1.0
+
+    def propagate(self) -> None:
+        """Bring the models to the filter's time without a measurement (mix + predict)."""
+        if self.t > self._t_model:
+            self._sweep(0, 0, np.zeros(0, np.int64), np.zeros(0))
+
+    @property
+    def mode_probabilities(self) -> np.ndarray:
+        """(r,) the models' current probabilities (order of ``imm_psd_*``)."""
+        return self.M[:, 0].copy()
