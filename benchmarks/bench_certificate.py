@@ -1,6 +1,12 @@
 """Certified gap against wall time on the issue's instance (issue 13, item 6).
 
     .venv/bin/python benchmarks/bench_certificate.py [--limits 60,120,300] [--off-limits 120]
+    .venv/bin/python benchmarks/bench_certificate.py --seeds 5 [--first-seed 101] [--limits 60,120,300]
+
+``--seeds N`` (issue 30, item 2): the family — N more instances drawn the same way with seeds
+``first_seed … first_seed + N - 1`` (none of them the tuned-on seed 7), one run per seed and limit, a
+per-seed table and, per limit, the median and worst gap; writes benchmarks/results/certificate_seeds.json
+(the single-instance file is left alone).
 
 Instance: ``benchmarks/bench_optimize.py`` part B — ``synthetic_instance(1000, 200, rng=7)``,
 k = 16, rho = 0.8717 (RHO_PAPER), worst ADOP, 4 lit at every pose. One ``pipeline`` run per time
@@ -50,8 +56,13 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--limits", default="60,120,300")
     ap.add_argument("--off-limits", default="120", help="time limits also run with branch_and_bound='off'")
+    ap.add_argument("--seeds", type=int, default=0, help="instances of the family (0: the issue's instance only)")
+    ap.add_argument("--first-seed", type=int, default=101)
     args = ap.parse_args()
     import cvxpy  # noqa: F401 - import outside the timed runs
+
+    if args.seeds:
+        return _family(args)
 
     inst = synthetic_instance(1000, 200, rng=7)
     rows = [_run(inst, float(x), "auto") for x in args.limits.split(",") if x]
@@ -60,6 +71,29 @@ def main():
     p = write_result("certificate", {"instance": "synthetic_instance(1000, 200, rng=7), k=16, rho=0.8717, worst-adop",
                                      "cpus": os.cpu_count(), "runs": rows, "max_rss_bytes": max_rss_bytes(),
                                      "max_rss_children_bytes": child})
+    print("->", p)
+
+
+def _family(args):
+    """One run per (seed, limit) on instances drawn like the issue's; median/worst gap per limit."""
+    import numpy as np
+
+    limits = [float(x) for x in args.limits.split(",") if x]
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    rows = []
+    for sd in seeds:
+        inst = synthetic_instance(1000, 200, rng=sd)
+        for tl in limits:
+            rows.append({"seed": sd, **_run(inst, tl, "auto")})
+    summary = {}
+    for tl in limits:
+        g = [r["gap"] for r in rows if r["time_limit_s"] == tl]
+        summary[f"{tl:g}"] = {"median_gap": float(np.median(g)), "worst_gap": float(np.max(g)), "seeds": len(g)}
+        print(f"limit {tl:g} s: median gap {100 * np.median(g):.2f} %, worst {100 * np.max(g):.2f} % over {len(g)} seeds")
+    p = write_result("certificate_seeds", {
+        "instance": "synthetic_instance(1000, 200, rng=seed), k=16, rho=0.8717, worst-adop", "seeds": seeds,
+        "cpus": os.cpu_count(), "runs": rows, "per_limit": summary, "max_rss_bytes": max_rss_bytes(),
+        "max_rss_children_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024})
     print("->", p)
 
 

@@ -24,7 +24,8 @@ __all__ = ["Layout", "load_layout", "save_layout", "KNOWN_KEYS", "KNOWN_SENSOR_K
 #: metadata (importers add their own) and pass; unknown per-sensor keys warn (typos such as 'postion').
 KNOWN_KEYS = frozenset({"units", "sensors", "name", "note", "mesh", "mesh_sha256", "kind", "spacing_m", "flat_only",
                         "keepout", "objective", "units_source", "rho", "value", "bound", "gap", "certified_by",
-                        "method", "min_visible", "candidate_ids", "dop_stats", "envelope", "spec", "provenance"})
+                        "method", "min_visible", "candidate_ids", "dop_stats", "envelope", "spec", "provenance",
+                        "design_value", "value_refers_to"})
 #: Per-sensor keys layoutkit reads or writes.
 KNOWN_SENSOR_KEYS = frozenset({"id", "position", "normal", "face", "part", "candidate"})
 #: Two sensors closer than this (m) are the same place: an error.

@@ -219,6 +219,36 @@ def _sensor_glyphs(positions, normals, radius, arrow_length, lit_percent=None):
     return spheres, arrows
 
 
+#: colour of the axis arrows of tilted sensors
+TILT_COLOR = "#d62728"
+
+
+def tilt_glyphs(positions, axes, tilt_deg, surface_normals, arrow_length):
+    """Arrow glyphs that show tilt: ``(plain, axis, normal)`` — along the axes of the untilted sensors, along
+    the axes of the tilted ones (``tilt_deg > 0``) and along the surface normals at the tilted ones (None
+    without ``surface_normals``). None if no sensor is tilted (``tilt_deg`` None or all 0)."""
+    import pyvista as pv
+
+    if tilt_deg is None:
+        return None
+    tl = np.asarray(tilt_deg, float)
+    on = tl > 0
+    if not on.any():
+        return None
+    P, A = np.asarray(positions, float), np.asarray(axes, float)
+
+    def arrows(idx, dirs):
+        if not np.any(idx):
+            return None
+        cloud = pv.PolyData(P[idx])
+        cloud["normals"] = dirs[idx]
+        return cloud.glyph(geom=pv.Arrow(start=(0, 0, 0), direction=(1, 0, 0), tip_length=0.25, tip_radius=0.07,
+                                         shaft_radius=0.025), orient="normals", scale=False, factor=arrow_length)
+
+    normal = None if surface_normals is None else arrows(on, np.asarray(surface_normals, float))
+    return arrows(~on, A), arrows(on, A), normal
+
+
 SCALE_BAR_COLOR = "#1f3a93"
 
 
@@ -293,7 +323,8 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
                         views=("iso", "front", "top", "side"), size=(1600, 1200), out_dir,
                         prefix: str = "layout", ids=None, title: "str | None" = None,
                         labels: bool = True, arrows: bool = True, sensor_radius: "float | None" = None,
-                        what: str = "sensors", anti_aliasing: bool = True) -> "list[Path]":
+                        what: str = "sensors", anti_aliasing: bool = True, tilt_deg=None,
+                        surface_normals=None) -> "list[Path]":
     """Pictures of a mesh with its candidate sites and a sensor layout from standard views.
 
     mesh : ``trimesh.Trimesh``, m, body frame. positions, normals : (n, 3), m / unit, body frame.
@@ -305,6 +336,9 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
     arrows : draw the normals. sensor_radius : m (default 1.4 % of the mesh diagonal).
     what : noun for the points in the caption (``"sensors"``, ``"candidate sites"``).
     anti_aliasing : 8× MSAA (about +0.7 s per 1600 × 1200 picture with the software renderer).
+    tilt_deg : (n,) tilt of each sensor's axis (``normals``) from the surface normal, deg (the optimiser's
+    ``x-tilt-deg``): tilted sensors get red axis arrows and, with ``surface_normals`` (n, 3), a grey arrow
+    along the surface normal at their site, so the tilt is seen (:func:`tilt_glyphs`).
     Returns the written paths in ``views`` order.
     """
     P, N = _check_sensors(positions, normals)
@@ -335,8 +369,14 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
     if P.shape[0]:
         spheres, arrow_glyphs = _sensor_glyphs(P, N, radius, 0.09 * diag,
                                                None if lit_fraction is None else 100.0 * lit_fraction)
-        if arrows:
+        tilted = tilt_glyphs(P, N, tilt_deg, surface_normals, 0.09 * diag) if arrows else None
+        if arrows and tilted is None:
             pl.add_mesh(arrow_glyphs, color="#303030", smooth_shading=True)
+        elif arrows:
+            plain, axis, normal = tilted
+            for glyphs, color in ((plain, "#303030"), (axis, TILT_COLOR), (normal, "#9a9a9a")):
+                if glyphs is not None and glyphs.n_points:
+                    pl.add_mesh(glyphs, color=color, smooth_shading=True)
         if lit_fraction is None:
             pl.add_mesh(spheres, color="#ff7f0e", smooth_shading=True)
         else:
@@ -352,6 +392,9 @@ def render_layout_views(mesh, positions, normals, lit_fraction=None, *, candidat
     head = title or "Photodiode layout"
     parts = ([f"{P.shape[0]} {what}"] if P.shape[0] else []) + (
         [f"{len(candidates)} candidate sites"] if candidates is not None else [])
+    if tilt_deg is not None and np.any(np.asarray(tilt_deg, float) > 0) and arrows:
+        tl = np.asarray(tilt_deg, float)
+        parts.append(f"{int((tl > 0).sum())} tilted up to {tl.max():.0f}° (red: sensor axis, grey: surface normal)")
     n_txt = ", ".join(parts) or "mesh only"
     pl.add_text(f"{head}\n{n_txt}", position="upper_left", font_size=max(10, h // 80), color="black")
 

@@ -38,7 +38,8 @@ code  name             meaning
 ====  ===============  ==========================================================================
 
 Single results use names: the optimiser (``"optimal"``, ``"ok"``, ``"infeasible"``,
-``"uncoverable"``, ``"no_feasible_found"``, ``"interrupted"``), coverage (``"ok"``,
+``"uncoverable"``, ``"no_feasible_found"``, ``"interrupted"``, ``"incomplete"``: a dense loop that ended
+with some of its poses short of lit sensors), coverage (``"ok"``,
 ``"infeasible"``, ``"uncoverable"``), camera frames (``"ok"``, ``"degenerate"``, ``"mirrored"``,
 ``"failed"`` and the detector's own names). Results that may be wrong say so
 (``ambiguous``, ``underdetermined``, ``inaccurate``, ``high_residual``, ``jump``, ``imprecise``).

@@ -28,7 +28,7 @@ def test_optimize_writes_layout_with_metadata(tmp_path, small_envelope):
     out = tmp_path / "lay.json"
     r = CliRunner().invoke(main, ["optimize", MESH, "-k", "12", "--envelope", small_envelope, "--out", str(out),
                                   "--report", str(tmp_path / "rep"), "--method", "greedy", "--spacing-mm", "12",
-                                  "--no-render", "--json"])
+                                  "--no-render", "--json", "--dense-poses", "0"])
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout)
     lay = load_layout(out)
@@ -44,7 +44,7 @@ def test_optimize_writes_layout_with_metadata(tmp_path, small_envelope):
 def test_impossible_request_message(tmp_path, small_envelope):
     """Too few sensors: exit 1 with the smallest k named."""
     r = CliRunner().invoke(main, ["optimize", MESH, "-k", "3", "--envelope", small_envelope, "--out",
-                                  str(tmp_path / "x.json"), "--spacing-mm", "12"])
+                                  str(tmp_path / "x.json"), "--spacing-mm", "12", "--dense-poses", "0"])
     assert r.exit_code == 1
     assert "infeasible: 3 sensors cannot keep 4 lit at every required pose: the smallest k that works is" in r.output
     assert not (tmp_path / "x.json").exists()

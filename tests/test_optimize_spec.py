@@ -140,7 +140,7 @@ def test_layout_alone_finds_mesh_envelope_and_settings(tmp_path, small_envelope)
     out = tmp_path / "lay.json"
     r = CliRunner().invoke(main, ["optimize", MESH, "-k", "10", "--envelope", small_envelope, "--out", str(out),
                                   "--spacing-mm", "14", "--method", "greedy", "--half-angle-deg", "55", "--rho", "0.5",
-                                  "--no-render", "--json"])
+                                  "--no-render", "--json", "--dense-poses", "0"])
     assert r.exit_code == 0, r.output
     lay = json.loads(out.read_text())
     assert lay["spec"]["half_angle_deg"] == 55.0 and lay["provenance"]["mesh"] == str(Path(MESH).resolve())

@@ -25,6 +25,8 @@ EXE = [sys.executable, "-m", "layoutkit"]
 #: (command, README text, test text): shorter runs, same commands and files.
 SHORTEN = [
     ("optimize", "--spacing-mm 8", "--spacing-mm 14 --no-render"),
+    ("optimize", "--time-limit-s 120", "--time-limit-s 20"),
+    ("score", "--draws 5", "--draws 2 --poses 300"),
     ("render", "--out-dir out/pics/", "--out-dir out/pics/ --size 320x240 --grid-deg 15 --views iso"),
     ("simulate", "--frames 10000", "--frames 300"),
     ("fake-fpga", "--duration 600", "--duration 3"),

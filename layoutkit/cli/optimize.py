@@ -52,7 +52,8 @@ def _tilt_toward(ctx, param, value):
 @click.option("--candidates", "candidates_path", default=None, type=click.Path(dir_okay=False),
               help="Candidate sites (layout JSON from `layoutkit candidates`).")
 @click.option("--spacing-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
-              help="Sample candidate sites this far apart, mm (default 1 % of the mesh size).")
+              help="Sample candidate sites this far apart, mm (default 1 % of the mesh size, coarser if that "
+                   "would give more than ~25 sites per sensor, at most 1500).")
 @click.option("--keepout-box", multiple=True, metavar="X0,Y0,Z0,X1,Y1,Z1",
               help="Keep-out box in the body frame, mm (repeatable; with --spacing-mm sampling).")
 @click.option("--fixed", default="", metavar="ID,...", help="Candidate ids placed in advance.")
@@ -77,9 +78,10 @@ def _tilt_toward(ctx, param, value):
               help="With --max-tilt-deg: tilt only in the plane of the normal and this body axis, towards it and "
                    "away from it ('station': the mean body-frame direction to the stations over the envelope); "
                    "default: 4 azimuths about the normal.")
-@click.option("--dense-poses", type=click.IntRange(min=1), default=None, metavar="N",
-              help="Adaptive pose generation against N extra envelope poses (dense set); report with a "
-                   "held-out set. --time-limit-s is then the budget of all rounds.")
+@click.option("--dense-poses", type=click.IntRange(min=0), default=None, metavar="N",
+              help="Adaptive pose generation against N extra envelope poses (dense set); the reported value is "
+                   "then the held-out estimate over fresh poses. Default: on, N chosen from the time limit "
+                   "(--time-limit-s is the budget of all rounds, default 300 s); 0: the design poses only.")
 @click.option("--branch-and-bound/--no-branch-and-bound", "bnb", default=True, show_default=True,
               help="Tighten the certified bound by branch-and-bound in a second process beside the search "
                    "(worst-case objectives with a time limit; docs/optimize.md).")
@@ -106,7 +108,7 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
             s = _optimize(mesh, envelope_path, spec, dict(candidates=candidates_path, units=units,
                                                           spacing=None if spacing_mm is None else spacing_mm * 1e-3,
                                                           keepout=_keepout(keepout_box)),
-                          out, report_dir, k_range, no_render, as_json)
+                          out, report_dir, k_range, no_render, as_json, auto_dense=dense_poses is None)
         except MeshUnitsWarning as exc:
             fail(f"{exc} (as --units {units}); give the right --units, or --allow-odd-size to go on")
     if as_json:
@@ -154,14 +156,21 @@ def _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fract
         fail(str(exc))
 
 
-def _optimize(mesh, envelope_path, spec, sources, out, report_dir, k_range, no_render, as_json):
-    """Load the problem once, run the workflow; a ValueError is a clear error (exit 2)."""
+def _optimize(mesh, envelope_path, spec, sources, out, report_dir, k_range, no_render, as_json, auto_dense):
+    """Load the problem once, run the workflow; a ValueError is a clear error (exit 2). ``auto_dense``: no
+    --dense-poses given, the dense loop's size and budget come from the envelope and the time limit."""
     from ..optimize import DesignProblem
+    from ..optimize.dense import default_dense
     from ..optimize.runcontrol import Interrupted
     from ..workflows.optimize import run_optimize
 
     try:
         problem = DesignProblem.for_spec(mesh, envelope_path, spec, **sources)
+        if auto_dense:
+            dense, budget, note = default_dense(problem.envelope, spec.time_limit_s)
+            if dense is not None:
+                spec = spec.replace(dense=dense, time_limit_s=budget)
+            click.echo(f"note: {note} (--dense-poses 0: the design poses only)", err=True)
         with _progress(as_json) as prog:
             try:
                 return run_optimize(problem, spec, out=out, report=report_dir, k_range=k_range, progress=prog,
@@ -181,17 +190,36 @@ def _print_summary(s):
     st = s["stats"]
     a, p = st["adop_deg_per_rad"], st["pdop_m_per_rad"]
     click.echo(f"{s['k']} of {s['candidates']} candidate sites over {s['poses']} poses ({s['method']}, rho {s['rho']})")
+    click.echo(f"  {s['objective']} = {s['value']:.5g}   ({s.get('value_refers_to', 'design poses')})")
+    if s.get("design_value") is not None and s["design_value"] != s["value"]:
+        click.echo(f"  the optimiser's own value over its working set: {s['design_value']:.5g}")
+    cert = s.get("certificate") or {}
     if s["certified_by"] == "none" or s["bound"] is None or s["bound"] != s["bound"]:
-        click.echo(f"  {s['objective']} = {s['value']:.5g}   bound: none ({s['message'].split('bound: none')[-1].strip(' ;')})")
+        click.echo(f"  bound: none ({s['message'].split('bound: none')[-1].strip(' ;')})")
     else:
-        click.echo(f"  {s['objective']} = {s['value']:.5g}   certified bound {s['bound']:.5g} ({s['certified_by']})"
-                   f"   gap {100 * s['gap']:.2f} %")
+        gap = s["gap"]
+        gtxt = "none" if gap is None else f"{100 * gap:.2f} %"
+        click.echo(f"  certified bound {s['bound']:.5g} ({s['certified_by']})   gap {gtxt}"
+                   + (f"   [{cert['verdict']}]" if cert.get("verdict") else ""))
+        if cert.get("statement"):
+            click.echo(f"    {cert['statement']}")
+    if cert.get("loose") and cert.get("why"):
+        click.echo(f"    {'loose' if cert.get('bound') is not None else 'why'}: {cert['why']}")
         if s.get("branch_and_bound"):
             b = s["branch_and_bound"]
             click.echo(f"  branch-and-bound: {b['nodes']} node relaxations, bound {b['root_bound']:.5g} (relaxation)"
                        f" -> {b['bound']:.5g}")
-    click.echo(f"  ADOP deg/rad  median {a['median']:.5g}  p95 {a['p95']:.5g}  max {a['max']:.5g}")
-    click.echo(f"  PDOP m/rad    median {p['median']:.5g}  p95 {p['p95']:.5g}  max {p['max']:.5g}")
+    h = s.get("heldout")
+    if h and h["uncovered"]:
+        click.secho(f"  warning: {h['uncovered']} of {h['poses']} fresh poses have fewer than {s['min_visible']} lit "
+                    "sensors (the value is over the covered ones)", fg="yellow")
+    if h:
+        click.echo(f"  held-out ({h['poses']} fresh poses, {len(h['draws'])} draws): worst ADOP {h['worst_adop']:.5g}, "
+                   f"p99 {h['p99_adop']:.5g}, covered {100 * h['covered_fraction']:.2f} % "
+                   f"(uncovered share <= {100 * h['uncovered_fraction_bound_95']:.2f} % at 95 %)")
+    where = "working set" if "dense" in (s.get("envelope_sets") or {}) else "design poses"
+    click.echo(f"  {where}: ADOP deg/rad  median {a['median']:.5g}  p95 {a['p95']:.5g}  max {a['max']:.5g}")
+    click.echo(f"  {where}: PDOP m/rad    median {p['median']:.5g}  p95 {p['p95']:.5g}  max {p['max']:.5g}")
     for row in s["k_sweep"]:
         gap = row["gap"]
         gtxt = f"{100 * gap:.1f} %" if isinstance(gap, float) and gap == gap else "none"
@@ -203,6 +231,8 @@ def _print_summary(s):
         click.echo("  worst/median ADOP by pose set (deg/rad):  " + "   ".join(
             f"{nm} ({v['poses']} poses) {v['worst_adop']:.5g} / {v['median_adop']:.5g}"
             for nm, v in sets.items() if v.get("worst_adop") is not None))
+    if s.get("tilt_estimate") and s["tilt_estimate"].get("note"):
+        click.echo(f"  tilt: {s['tilt_estimate']['note']}")
     click.echo(f"  {s['timings_s']['total_s']:.1f} s")
 
 

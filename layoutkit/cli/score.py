@@ -23,13 +23,16 @@ from .options import (coverage_option, envelope_option, explicit, half_angle_opt
 @click.option("--poses", "n_poses", type=click.IntRange(min=1), default=None,
               help="Number of envelope poses (overrides the envelope's count, e.g. a dense set).")
 @seed_option(default=None)
+@click.option("--draws", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Score on this many fresh draws of the envelope (--poses each, default 2000; the held-out draws "
+                   "of `layoutkit optimize`) instead of its own pose set: statistics over all, worst per draw.")
 @click.option("--compare", "compare_path", default=None, type=click.Path(dir_okay=False),
               help="Second layout scored over the same poses: side-by-side table (and CDF with --report).")
 @report_option
 @json_flag
 @click.pass_context
 def score_cmd(ctx, layout, envelope_path, mesh_path, units, rho, half_angle_deg, coverage, min_visible, n_poses,
-              seed, compare_path, report_dir, as_json):
+              seed, draws, compare_path, report_dir, as_json):
     """Score LAYOUT over the envelope: DOP distribution, coverage by rule, per-sensor usage.
 
     --seed replaces the envelope's pose seed (a held-out pose set). ADOP in deg/rad, PDOP in m/rad;
@@ -51,7 +54,7 @@ def score_cmd(ctx, layout, envelope_path, mesh_path, units, rho, half_angle_deg,
                                units=given("units", units), rho=given("rho", rho),
                                half_angle_deg=given("half_angle_deg", half_angle_deg),
                                min_visible=given("min_visible", min_visible), coverage=given("coverage", coverage),
-                               poses=n_poses, seed=seed, compare=compare_path, report=report_dir,
+                               poses=n_poses, seed=seed, compare=compare_path, report=report_dir, draws=draws,
                                progress=lambda n: bar.advance(task, n))
     except ValueError as exc:
         fail(str(exc))
@@ -69,20 +72,20 @@ def _fmt(v):
 
 
 def _print(r):
-    rows = [("poses", "poses"), ("covered poses", "covered_poses"), ("coverage fraction", "coverage_fraction"),
-            ("ADOP worst (deg/rad)", "worst_adop"), ("ADOP p99", "p99_adop"), ("ADOP p95", "p95_adop"),
-            ("ADOP median", "median_adop"), ("PDOP worst (m/rad)", "worst_pdop"), ("PDOP p95", "p95_pdop"),
-            ("PDOP median", "median_pdop")]
+    from ..workflows.score import COMPARISON_ROWS
+
     c = r.get("compare")
     click.echo(f"{r['layout']} over {r['envelope']} ({r['coverage_rule']}, >= {r['min_visible']} lit, rho {r['rho']}, "
-               f"occlusion: {r['occlusion']})")
-    head = f"{'':<22}{'layout':>14}" + (f"{'compare':>14}{'ratio':>9}" if c else "")
-    click.echo(head)
-    for lab, k in rows:
-        line = f"{lab:<22}{_fmt(r[k]):>14}"
+               f"occlusion: {r['occlusion']})" + (f", {len(r['draws'])} fresh draws" if r.get("draws") else ""))
+    rows = r["comparison"] if c else [{"quantity": lab, "layout": r[k]} for lab, k in COMPARISON_ROWS]
+    if not c:
+        rows += [{"quantity": f"draw {i} (seed {d['seed']}) ADOP worst", "layout": d["worst_adop"]}
+                 for i, d in enumerate(r.get("draws", []))]
+    click.echo(f"{'':<34}{'layout':>14}" + (f"{'compare':>14}{'ratio':>9}" if c else ""))
+    for row in rows:
+        line = f"{row['quantity']:<34}{_fmt(row['layout']):>14}"
         if c:
-            ratio = (c[k] / r[k]) if isinstance(r[k], float) and r[k] not in (0.0,) and isinstance(c[k], float) else None
-            line += f"{_fmt(c[k]):>14}{_fmt(ratio) if ratio is not None else '':>9}"
+            line += f"{_fmt(row['compare']):>14}{_fmt(row['ratio']) if row['ratio'] is not None else '':>9}"
         click.echo(line)
     used = sorted(r["per_sensor"], key=lambda u: u["lit_fraction"])
     click.echo("least used sensors: " + ", ".join(f"{u['id']} {100 * u['lit_fraction']:.0f} %" for u in used[:5]))

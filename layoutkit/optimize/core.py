@@ -47,7 +47,8 @@ class OptimizeResult:
         "relaxation" (joint), "branch-and-bound" (:mod:`layoutkit.optimize.bnb`), "per-pose
         relaxation", "trace" (closed form) or "exhaustive".
     success : a feasible layout was found; status : "optimal" (proven), "ok", "infeasible",
-        "uncoverable", "no_feasible_found"; message : plain-language summary.
+        "uncoverable", "no_feasible_found", "interrupted", "incomplete" (the dense loop ended with poses
+        short of lit sensors: optimize.dense); message : plain-language summary.
     adop, pdop : (P,) exact per-pose ADOP (deg/rad) and PDOP (m/rad); n_lit : (P,) lit counts.
     min_k : smallest k keeping m lit everywhere (set when infeasible); uncoverable : (U,) poses with
         fewer than m lit candidates at all. timings : seconds per stage. method, objective : names.
@@ -210,7 +211,7 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
     # evaluation after the deadline takes well under a second
     deadline = (math.inf if time_limit is None
                 else t0 + float(time_limit) - min(max(_FINISH_RESERVE_S, 0.08 * float(time_limit)), 2.0))
-    ctx = Context(rng=rng, deadline=deadline, progress=progress, **(ctx_options or {}))
+    ctx = Context(rng=rng, deadline=deadline, progress=progress, cover_start=cov.selection, **(ctx_options or {}))
     if not cov.decided:
         ctx.notes.append(cov.message)
     t1 = time.perf_counter()
@@ -233,8 +234,9 @@ def _optimize_core(jac, visible, k, objective, rho, min_visible, method, rng, fi
             return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout; {cov.message}", cov)
         kmin = cov.min_k if cov.min_k is not None else minimum_k(problem.lit, problem.m, n_cover, fixed, conflict)[0]
         cov = dataclasses.replace(cov, min_k=kmin)
+        hint = "give it more time (--time-limit-s)" if method == "pipeline" else "try method 'pipeline'"
         return fail("no_feasible_found", f"{why}method {method!r} found no feasible layout although one "
-                    f"exists (smallest k = {kmin}); try method 'pipeline'", cov)
+                    f"exists (smallest k = {kmin}); {hint}", cov)
     res = _finish(problem, obj, out, method, t0, t1, t2, ctx.notes, P)
     if ctx.interrupted:
         res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": ctx.interrupted},

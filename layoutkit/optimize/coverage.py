@@ -25,7 +25,9 @@ class CoverageReport:
     (None if no k can or it was not computed exactly); uncoverable : (U,) pose indices with fewer than m lit candidates at all;
     status : "ok" | "infeasible" | "uncoverable"; success : ``status == "ok"``; message :
     plain-language explanation; decided : False when the MILP stopped at its time limit before it could
-    prove or refute feasibility (``feasible`` is then True: not proven infeasible).
+    prove or refute feasibility (``feasible`` is then True: not proven infeasible); selection : a cover of
+    at most k sensors the MILP found (index array; None when feasibility was shown otherwise) — a start for
+    searches that have found none of their own.
     """
 
     feasible: bool
@@ -34,6 +36,7 @@ class CoverageReport:
     status: str
     message: str
     decided: bool = True
+    selection: "np.ndarray | None" = None
 
     @property
     def success(self) -> bool:
@@ -139,12 +142,12 @@ def analyse_coverage(lit, k, m, n_cover=None, fixed=(), conflict=None, witness=N
         g = greedy_cover_size(lit, m, fixed)
         if g is not None and g <= k:  # a greedy cover fits: feasible without the exact MILP (fast path)
             return CoverageReport(True, None, unc, "ok", f"coverage feasible (a greedy cover uses {g} sensors)")
-    kmin, _, klow = minimum_k(lit, m, n_cover, fixed, conflict, time_limit=time_limit, return_bound=True)
+    kmin, cover, klow = minimum_k(lit, m, n_cover, fixed, conflict, time_limit=time_limit, return_bound=True)
     if kmin is not None and kmin <= k:
         exact = klow == kmin
         return CoverageReport(True, kmin if exact else None, unc, "ok",
                               f"coverage feasible (smallest k = {kmin})" if exact else
-                              f"coverage feasible (a {kmin}-sensor cover exists)")
+                              f"coverage feasible (a {kmin}-sensor cover exists)", selection=cover)
     if klow is not None and klow <= k:  # time limit before the MILP decided: not proven infeasible
         return CoverageReport(True, None, unc, "ok",
                               f"coverage undecided: the set-multicover MILP stopped at its {time_limit:g} s "

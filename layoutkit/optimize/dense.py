@@ -44,7 +44,10 @@ import numpy as np
 
 from .poses import far_range_poses, farthest_point_poses, pose_descriptors, range_sweep_poses
 
-__all__ = ["dense_solve", "working_capacity", "WORKING_BYTES"]
+__all__ = ["dense_solve", "default_dense", "working_capacity", "WORKING_BYTES", "DEFAULT_DENSE_TIME_S"]
+
+#: the dense loop's budget (s) when the caller gives no time limit
+DEFAULT_DENSE_TIME_S = 300.0
 
 
 def _dense_value(obj, adop, pdop, cov, cov_all, need_all, uncoverable):
@@ -92,6 +95,26 @@ def _covered_only(problem, sel, R, t, min_visible, coverage, chunk=8192):
         vis = problem.visibility_at(sel, R[s0:s0 + chunk], t[s0:s0 + chunk])
         out[s0:s0 + chunk] = covered(layout_counts(vis, coverage), min_visible)
     return out
+
+
+def default_dense(envelope, time_limit_s=None):
+    """The dense loop a plain ``layoutkit optimize`` runs: ``(DenseSpec or None, budget s, note)``.
+
+    Its budget is the time limit (default :data:`DEFAULT_DENSE_TIME_S`); its size grows with the budget —
+    10 dense poses per second of budget, between 2,000 and 10,000 (the round-0 relaxation and search over
+    the working set must fit the budget; the working set is capped by memory anyway,
+    :func:`working_capacity`) — with 4 × as many coverage-only poses. The envelope's own poses are the seed of
+    the working set (``seed_poses=0``: round 0 is the pipeline on them, its relaxation finishes and certifies
+    a bound; the rounds after it add the violators of the dense set). A trajectory envelope is a fixed
+    pose list (no fresh poses to draw): no dense loop, and the note says so.
+    """
+    from .spec import DenseSpec
+
+    T = DEFAULT_DENSE_TIME_S if time_limit_s is None else float(time_limit_s)
+    if envelope is None or envelope.attitude == "trajectory":
+        return None, time_limit_s, "a trajectory envelope is a fixed pose list: optimised over its poses only"
+    n = int(min(10000, max(2000, round(10.0 * T))))
+    return DenseSpec(poses=n, seed_poses=0), T, f"dense loop by default: {n} dense poses, {T:g} s budget"
 
 
 def dense_solve(problem, spec, kw, *, echo=None):
@@ -182,7 +205,8 @@ class _DenseLoop:
         self.seed_idx = np.zeros(0, int)
         self.best = None
         self.hist = []
-        self.warm = self.active = self.z_relax = self.last_fail = None
+        self.active = self.z_relax = self.last_fail = None
+        self.warm = (kw.get("ctx_options") or {}).get("warm_start")  # round 0 may start from a given layout
         self.stall = 0
         self.grew = False  # the working set grew after the last round
         self.note = ""
@@ -461,6 +485,10 @@ class _DenseLoop:
             res = dataclasses.replace(res, bound=float(max(bounds)),
                                       certified_by=f"relaxation (dense round {fin[src]['round']})",
                                       gap=res.value / max(bounds) - 1)
+        if short and res.status in ("ok", "optimal"):  # an honest status: the loop ended short of coverage
+            res = dataclasses.replace(res, status="incomplete", message=res.message + (
+                f" [incomplete: the dense loop ended ({self.note or 'its rounds, budget or patience spent'}) "
+                f"with {short} of its poses below {self.m} lit sensors]"))
         if self.interrupted:
             res = dataclasses.replace(res, status="interrupted", info={**res.info, "interrupted": self.interrupted},
                                       message=res.message + " [interrupted: best dense round so far]")
@@ -477,5 +505,6 @@ class _DenseLoop:
                 "dense_covered": ev["cov"], "working_value": float(res.value),
                 "working_rotations": RD[work_rows], "working_translations": tD[work_rows],
                 "time_s": time.perf_counter() - self.t0, "uncoverable_dense_poses": int(self.uncoverable.sum()),
-                "uncovered_dense_poses": int(short), "note": self.note}
+                "uncovered_dense_poses": int(short), "note": self.note,
+                "relaxation_z": self.z_relax}  # the last relaxation's fractional z (the certificate's round)
         return res, info

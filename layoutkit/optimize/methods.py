@@ -39,6 +39,9 @@ class Context:
     warm_start: "np.ndarray | None" = None
     #: pose indices to start the relaxation's pose generation from
     active_poses: "np.ndarray | None" = None
+    #: a coverage-feasible selection of at most k sensors (the coverage MILP's cover): the pipeline's last
+    #: resort when its relaxation, roundings and greedy give no start within the time (a short budget)
+    cover_start: "np.ndarray | None" = None
     #: branch-and-bound on the relaxation (:mod:`layoutkit.optimize.bnb`) in a second process
     #: while the pipeline searches: "auto" (on for the worst case with a finite deadline; after the
     #: search it may keep the rest of the time while the gap exceeds ``bnb_gap``) or "off"
@@ -197,6 +200,24 @@ def _no_relaxation(problem: Problem, why: str, time_s: float = 0.0) -> RelaxResu
                        fallback_bound(problem))
 
 
+def _from_cover(problem: Problem, cover, z):
+    """A k-subset from a coverage-feasible ``cover`` (at most k indices): the cover, the fixed sensors, then the
+    highest-``z`` sites that conflict with none chosen; repaired. None without a cover or if that fails."""
+    if cover is None:
+        return None
+    sel = list(np.union1d(np.asarray(cover, int), problem.fixed))
+    z = np.zeros(problem.N) if z is None else np.asarray(z, float)
+    for j in np.argsort(-z, kind="stable"):
+        if len(sel) >= problem.k:
+            break
+        if j in sel or (problem.conflict is not None and problem.conflict[j, sel].any()):
+            continue
+        sel.append(int(j))
+    if len(sel) != problem.k:
+        return None
+    return repair(problem, np.asarray(sel, int), z)
+
+
 def _topk(problem: Problem, z):
     zz = z.copy()
     zz[problem.fixed] = np.inf
@@ -285,6 +306,12 @@ def _m_pipeline(problem: Problem, ctx: Context) -> MethodOutput:
         if subs:
             v, _ = evaluate_subsets(problem, np.array(subs))
             starts += [subs[i] for i in np.argsort(v)[:3]]
+        if not starts:
+            c = _from_cover(problem, ctx.cover_start, r.z)
+            if c is not None:
+                starts.append(c)
+                ctx.notes.append("no relaxation rounding or greedy start in time: searched from the coverage "
+                                 "MILP's cover")
         if not starts:
             if bnb is not None:
                 bnb.stop()

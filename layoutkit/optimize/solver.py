@@ -59,6 +59,7 @@ def solve(problem: DesignProblem, spec: OptimizeSpec, *, progress=None, rng=None
     if spec.dense is not None:
         from .dense import dense_solve
 
+        kw["min_visible"] = spec.min_visible + spec.dense.spare_lit  # the loop's margin (DenseSpec.spare_lit)
         res, info = dense_solve(problem, spec, kw, echo=echo)
         res = dataclasses.replace(res, info={**res.info, "dense": info})
     else:

@@ -191,6 +191,7 @@ DENSE_OPTIONS: dict[str, Callable[[Any], Any]] = {
     "coverage_dop": _bool,
     "far_range": _bool,
     "range_sweep": _bool,
+    "spare_lit": _number(0, integer=True),
 }
 
 
@@ -249,7 +250,10 @@ class DenseSpec:
     heldout_poses : fresh poses (seed + 2) the report scores the layout on; coverage_poses : poses
     (seed + 3) checked for coverage every round (None: 4 × ``poses``); rounds, add, seed_poses, min_sep,
     tol, patience, max_working, first_share, later_method, later_patience, later_two_swap, join_above,
-    coverage_dop, far_range, range_sweep : the loop's knobs."""
+    coverage_dop, far_range, range_sweep : the loop's knobs. spare_lit : lit sensors the loop requires at its
+    poses beyond ``min_visible`` (a margin: a fresh pose between sampled ones then has to lose
+    ``spare_lit + 1`` sensors to drop below ``min_visible``); the held-out estimate and the reports still
+    count coverage with ``min_visible``."""
 
     poses: int
     heldout_poses: int = 2000
@@ -269,6 +273,7 @@ class DenseSpec:
     coverage_dop: bool = False
     far_range: bool = False
     range_sweep: bool = False
+    spare_lit: int = 0
 
     def __post_init__(self):
         _validate(self, DENSE_OPTIONS)

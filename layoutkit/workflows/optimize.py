@@ -18,13 +18,20 @@ from ..units import RHO_PAPER
 __all__ = ["run_optimize", "write_report", "run_demo", "envelope_set_stats"]
 
 
-def run_optimize(problem, spec, *, out=None, report=None, k_range=None, progress=None, render=True, echo=print):
+def run_optimize(problem, spec, *, out=None, report=None, k_range=None, progress=None, render=True, echo=print,
+                 tilt_check=True):
     """Optimise ``spec.k`` sensors on ``problem``; write the layout JSON and a report; return a summary.
 
     problem : :class:`layoutkit.optimize.DesignProblem` (built for ``spec``:
     :meth:`~layoutkit.optimize.DesignProblem.for_spec`); spec : :class:`layoutkit.optimize.OptimizeSpec`
     (with ``dense``: adaptive pose generation, ``time_limit_s`` the budget of all rounds, reported with
-    design-, working-, dense- and held-out-set statistics). out : layout JSON path (it records the spec and
+    design-, working-, dense- and held-out-set statistics). Every successful run is scored on fresh poses
+    (``summary["heldout"]``, :func:`layoutkit.optimize.heldout.heldout_estimate`); with ``dense`` that
+    held-out estimate is the headline ``value`` (``design_value``: the optimiser's own, over its working set)
+    and ``bound``/``gap`` come with what they certify (``summary["certificate"]``,
+    :func:`layoutkit.optimize.certificate.certificate`). An untilted run also reports what tilt would reach
+    (``summary["tilt_estimate"]``, :mod:`layoutkit.optimize.tilt_estimate`; ``tilt_check=False`` skips it).
+    out : layout JSON path (it records the spec and
     the problem's provenance, so ``render`` and ``score`` find mesh and envelope from it); report : folder
     for plots, renders and summary.json; k_range : optional (k_min, k_max) — also the best layout for every
     k in the range (DOP vs k); progress : callable ``(stage, fraction, best)``; render : pyvista renders in
@@ -44,6 +51,7 @@ def run_optimize(problem, spec, *, out=None, report=None, k_range=None, progress
     if res.success:
         summary["tilted_sensors"] = int(np.sum(problem.tilt_deg[res.selected] > 0))
         summary["envelope_sets"] = envelope_set_stats(problem, spec, res)
+        _headline(problem, spec, res, summary, tilt_check and not interrupted, echo)
     if res.success and out is not None:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         from ..layout import save_layout
@@ -53,6 +61,41 @@ def run_optimize(problem, spec, *, out=None, report=None, k_range=None, progress
     if report is not None:
         summary["report"] = write_report(report, problem, res, summary, render=render, echo=echo)
     return summary
+
+
+def _headline(problem, spec, res, summary, tilt_check, echo):
+    """The held-out estimate, the certificate and the tilt estimate into ``summary`` (in place)."""
+    from ..optimize.certificate import certificate
+    from ..optimize.heldout import heldout_estimate
+
+    heldout = None
+    if problem.envelope is not None and problem.envelope.attitude != "trajectory":
+        heldout = heldout_estimate(problem, res.selected, objective=spec.objective, weights=spec.weights,
+                                   rho=spec.rho, min_visible=spec.min_visible, coverage=spec.coverage)
+        summary["heldout"] = heldout
+    cert = certificate(problem, spec, res, heldout)
+    summary["certificate"] = cert
+    summary["design_value"] = res.value
+    if spec.dense is not None and heldout is not None:
+        summary["value"] = heldout["value"]
+        summary["bound"], summary["gap"] = cert["bound"], cert["gap"]
+        summary["value_refers_to"] = (
+            f"held-out estimate: {spec.objective} over {heldout['poses']} fresh poses of the envelope "
+            f"({len(heldout['draws'])} draws; single draws {heldout['draw_value_min']:.5g}–{heldout['draw_value_max']:.5g}), "
+            f"{100 * heldout['covered_fraction']:.2f} % covered; with 95 % confidence at most "
+            f"{100 * heldout['exceed_fraction_bound_95']:.2f} % of the envelope is worse "
+            f"(design_value: the optimiser's own over its working set)")
+    else:
+        summary["value_refers_to"] = f"{spec.objective} over the {problem.P} design poses"
+    summary["gap_refers_to"] = cert["statement"] + (f"; loose: {cert['why']}" if cert["loose"] else "")
+    if tilt_check and spec.max_tilt_deg == 0 and heldout is not None and spec.dense is not None:
+        from ..optimize.tilt_estimate import tilt_estimate
+
+        est = tilt_estimate(problem, spec, res, heldout)
+        if est is not None:
+            summary["tilt_estimate"] = est
+            if echo is not None and est.get("helps"):
+                echo(f"note: {est['note']}")
 
 
 def _solve_all(problem, spec, k_range, progress):
@@ -109,7 +152,9 @@ def _summary(problem, spec, res, sweep, interrupted) -> dict:
 def _layout_metadata(problem, spec, res, summary) -> dict:
     """Top-level keys of the optimised layout JSON (docs/layout-format.md)."""
     return {"mesh_sha256": summary["mesh_sha256"], "units_source": problem.provenance.get("units", "m"),
-            "objective": res.objective, "rho": spec.rho, "value": res.value, "bound": res.bound, "gap": res.gap,
+            "objective": res.objective, "rho": spec.rho, "value": summary["value"], "bound": summary["bound"],
+            "gap": summary["gap"], "design_value": summary.get("design_value"),
+            "value_refers_to": summary.get("value_refers_to"),
             "certified_by": res.certified_by, "method": spec.method, "min_visible": spec.min_visible,
             "candidate_ids": summary["selected_ids"], "dop_stats": summary["stats"],
             "envelope": str(summary["envelope"]), "spec": spec.to_dict(), "provenance": problem.provenance}
@@ -158,7 +203,10 @@ def write_report(report_dir, problem, res, summary, render=True, echo=print):
     d.mkdir(parents=True, exist_ok=True)
     files = []
     if res.success:
-        t = problem.translations
+        dense = res.info.get("dense") or {}
+        # a dense run's per-pose arrays are over its working set (the poses the layout was tuned on)
+        t, which = ((dense["working_translations"], "working-set") if len(dense.get("working_translations", ()))
+                    == len(res.adop) and "working_translations" in dense else (problem.translations, "envelope"))
         ref = problem.stations[problem.envelope.reference_station if problem.envelope is not None else 0]
         rng_m = np.linalg.norm(t - ref.translation, axis=1)
         fig, ax = plt.subplots(1, 2, figsize=(12, 4.6))
@@ -182,7 +230,7 @@ def write_report(report_dir, problem, res, summary, render=True, echo=print):
         fig.suptitle(f"{res.objective} over the envelope: value {res.value:.4g}, bound {res.bound:.4g}, "
                      f"gap {100 * res.gap:.1f} %")
         p = d / "dop_over_envelope.png"
-        save_figure(fig, p, caption=f"{len(rng_m)} envelope poses of the optimised {len(res.selected)}-sensor layout; "
+        save_figure(fig, p, caption=f"{len(rng_m)} {which} poses of the optimised {len(res.selected)}-sensor layout; "
                     "colour: lit sensors; red circle: the worst pose (largest DOP); log scale.")
         files.append(p.name)
         fig, ax = plt.subplots(1, 2, figsize=(11, 4))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["RenderOptions", "parse_pose", "lit_fraction", "render_design"]
+__all__ = ["RenderOptions", "parse_pose", "lit_fraction", "render_design", "sensor_tilts"]
 
 
 @dataclass(frozen=True)
@@ -147,10 +147,14 @@ def render_design(mesh_path=None, *, out_dir, units: "str | None" = None, layout
             result["lit_fraction"] = dict(zip(lay.ids, frac.tolist()))
         meta_name = lay.metadata.get("name")  # not "layout layout" for a file called layout.json
         name = f"'{meta_name}'" if meta_name else f"from {Path(layout_path).name}"
+        tilt, surf = sensor_tilts(mesh, lay)
+        if tilt is not None:
+            result["tilted_sensors"] = int((tilt > 0).sum())
         result["paths"] += render.render_layout_views(
             mesh, lay.positions, lay.normals, frac, candidates=None if cand is None else cand.positions,
             views=options.views, size=options.size, out_dir=out_dir, prefix=stem, ids=lay.ids,
-            title=f"{stem}: layout {name}" + (" (colour: envelope coverage)" if frac is not None else ""))
+            title=f"{stem}: layout {name}" + (" (colour: envelope coverage)" if frac is not None else ""),
+            tilt_deg=tilt, surface_normals=surf)
     elif cand is not None and inp.envelope is not None:
         frac = lit_fraction(load_design(mesh, units, inp.envelope, cand, half_angle_deg=half)[0].visible)
         result["candidate_coverage"] = {"min": float(frac.min()), "median": float(np.median(frac)),
@@ -204,6 +208,19 @@ def render_design(mesh_path=None, *, out_dir, units: "str | None" = None, layout
 
     result["paths"] = [str(p) for p in result["paths"]]
     return result
+
+
+def sensor_tilts(mesh, layout):
+    """``(tilt_deg (n,), surface_normals (n, 3))`` of a layout's sensors: the tilt the optimiser recorded
+    (per-sensor ``x-tilt-deg``) and the normal of the mesh face nearest each sensor; ``(None, None)`` for a
+    layout without tilt records."""
+    if not any("x-tilt-deg" in e for e in layout.extra):
+        return None, None
+    import trimesh
+
+    tilt = np.array([float(e.get("x-tilt-deg", 0.0)) for e in layout.extra])
+    _, _, face = trimesh.proximity.closest_point(mesh, layout.positions)
+    return tilt, np.asarray(mesh.face_normals[face], float)
 
 
 def _diag(mesh) -> float:

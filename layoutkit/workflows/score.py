@@ -20,7 +20,7 @@ import numpy as np
 
 from ..units import RHO_PAPER
 
-__all__ = ["FROM_LAYOUT", "score_arrays", "score_layout", "write_score_report"]
+__all__ = ["FROM_LAYOUT", "score_arrays", "score_layout", "write_score_report", "comparison_table"]
 
 #: Above this many poses ``score_layout`` streams (chunks of :data:`CHUNK_POSES`).
 STREAM_POSES = 200_000
@@ -109,7 +109,7 @@ def _resolve(lay, where, envelope, mesh, units, settings):
 
 
 def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half_angle_deg=None, min_visible=None,
-                 coverage=None, poses=None, seed=None, compare=None, report=None, progress=None):
+                 coverage=None, poses=None, seed=None, compare=None, report=None, draws=0, progress=None):
     """Score ``layout`` (path or Layout) over ``envelope`` (path or Envelope).
 
     A layout written by ``layoutkit optimize`` records its envelope, mesh and settings: ``envelope=None``
@@ -118,9 +118,13 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
     0.8717, 60°, 4, any-station). ``result["sources"]`` says where each came from.
     mesh : optional mesh path / Trimesh for occlusion (``units`` of the file; None: acceptance cone and
     field of view only); poses, seed : override the envelope's pose count / seed (e.g. a dense or held-out
-    set). compare : a second layout scored over the same poses (``result["compare"]``). report : folder
-    for plots + JSON. Returns a JSON-able dict with at least worst_adop, median_adop, p95_adop (deg/rad),
-    worst_pdop (m/rad), coverage_fraction and poses. More than :data:`STREAM_POSES` poses are drawn and
+    set). draws : > 0 scores on that many fresh draws of the envelope instead (``poses`` each, default
+    2,000; seeds ``envelope.seed + 2 + 1000 i``, the held-out draws of ``layoutkit optimize``): the statistics
+    are over all of them and ``result["draws"]`` has each draw's worst ADOP and coverage. compare : a second
+    layout scored over the same poses (``result["compare"]``, and ``result["comparison"]``: one row per
+    quantity with both values and their ratio compare / layout). report : folder for plots + JSON. Returns a
+    JSON-able dict with at least worst_adop, median_adop, p95_adop (deg/rad), worst_pdop (m/rad),
+    coverage_fraction and poses. More than :data:`STREAM_POSES` poses (without ``draws``) are drawn and
     scored in chunks (:func:`_score_streamed`: memory flat, quantiles from a log histogram, the report's
     plots from the first chunk); ``progress(n)`` is told every chunk's pose count.
     """
@@ -129,6 +133,7 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
     from ..layout import Layout, load_layout
     from ..mesh import load_mesh, mesh_hash
     from ..optimize import DesignProblem
+    from ..optimize.heldout import HELDOUT_POSES_PER_DRAW
 
     lay = layout if isinstance(layout, Layout) else load_layout(layout)
     where = str(layout) if isinstance(layout, (str, Path)) else "layout"
@@ -142,22 +147,29 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
         if sources["mesh"] == "layout provenance" and want_hash and mesh_hash(mesh) != want_hash:
             raise ValueError(f"{where}: its mesh {mesh_name} changed since the layout was made (SHA-256 differs); "
                              "give --mesh explicitly to score on it anyway")
-    if poses is not None and int(poses) > STREAM_POSES:  # memory flat for any pose count
+    if poses is not None and int(poses) > STREAM_POSES and not draws:  # memory flat for any pose count
         env = envelope_set(envelope, 1, seed)[0]
         res, other, first = _score_streamed(lay, env, int(poses), mesh, st, compare, progress)
-        pb_R, pb_t = first
+        R, t = first
     else:
-        env, _, _ = envelope_set(envelope, poses, seed)
+        per = int(poses or HELDOUT_POSES_PER_DRAW)
+        if draws and int(draws) * per > STREAM_POSES:
+            raise ValueError(f"score: --draws {draws} x --poses {per} is more than {STREAM_POSES} poses "
+                             "held at once; give fewer draws, or one large --poses set (streamed)")
+        env, R, t, sizes = _pose_sets(envelope, poses, seed, draws)
         res = other = None
 
     def one(L):
-        pb = DesignProblem.load(mesh, env, candidates=L, half_angle_deg=st["half_angle_deg"])
-        return pb, score_arrays(L.positions, pb.visible, pb.rotations, pb.translations, pb.stations, rho=st["rho"],
-                                min_visible=st["min_visible"], coverage=st["coverage"], ids=L.ids)
+        pb = DesignProblem.load(mesh, None, candidates=L, half_angle_deg=st["half_angle_deg"], stations=env.stations)
+        vis = pb.visibility_at(None, R, t)
+        out = score_arrays(L.positions, vis, R, t, pb.stations, rho=st["rho"], min_visible=st["min_visible"],
+                           coverage=st["coverage"], ids=L.ids)
+        if draws:
+            out["draws"] = _per_draw(out, sizes, env)
+        return out
 
     if res is None:
-        pb, res = one(lay)
-        pb_R, pb_t = pb.rotations, pb.translations
+        res = one(lay)
     res.update({"layout": str(layout) if isinstance(layout, (str, Path)) else "(in memory)",
                 "envelope": str(envelope) if isinstance(envelope, (str, Path)) else env.name,
                 "envelope_seed": env.seed, "half_angle_deg": float(st["half_angle_deg"]),
@@ -166,13 +178,66 @@ def score_layout(layout, envelope=None, *, mesh=None, units=None, rho=None, half
     if compare is not None:
         if other is None:
             oth = compare if isinstance(compare, Layout) else load_layout(compare)
-            other = one(oth)[1]
+            other = one(oth)
         other["layout"] = str(compare) if isinstance(compare, (str, Path)) else "(in memory)"
     if report is not None:
-        res["report"] = write_score_report(report, res, other, pb_R, pb_t, env)
+        res["report"] = write_score_report(report, res, other, R, t, env)
     if other is not None:
         res["compare"] = {k: v for k, v in other.items() if not k.startswith("_")}
+        res["comparison"] = comparison_table(res, other)
     return res
+
+
+#: the quantities of the comparison table: (label, key)
+COMPARISON_ROWS = (("poses", "poses"), ("covered poses", "covered_poses"), ("coverage fraction", "coverage_fraction"),
+                   ("ADOP worst (deg/rad)", "worst_adop"), ("ADOP p99", "p99_adop"), ("ADOP p95", "p95_adop"),
+                   ("ADOP median", "median_adop"), ("PDOP worst (m/rad)", "worst_pdop"), ("PDOP p95", "p95_pdop"),
+                   ("PDOP median", "median_pdop"))
+
+
+def comparison_table(res, other) -> list:
+    """One row per quantity (and per draw's worst ADOP): ``{"quantity", "layout", "compare", "ratio"}`` with
+    ratio = compare / layout (None where undefined)."""
+    rows = [(lab, res.get(k), other.get(k)) for lab, k in COMPARISON_ROWS]
+    for i, (a, b) in enumerate(zip(res.get("draws", []), other.get("draws", []))):
+        rows.append((f"draw {i} (seed {a['seed']}) ADOP worst", a["worst_adop"], b["worst_adop"]))
+    out = []
+    for lab, a, b in rows:
+        ok = isinstance(a, (int, float)) and isinstance(b, (int, float)) and a not in (0, 0.0) and np.isfinite(a)
+        out.append({"quantity": lab, "layout": a, "compare": b, "ratio": float(b / a) if ok else None})
+    return out
+
+
+def _pose_sets(envelope, poses, seed, draws):
+    """``(Envelope, R, t, sizes)``: the envelope's pose set (``poses``/``seed`` overrides), or ``draws`` fresh
+    draws of ``poses`` (default 2,000) each, concatenated (``sizes``: poses per draw)."""
+    from ..envelope import envelope_set
+    from ..optimize.heldout import HELDOUT_POSES_PER_DRAW, heldout_seed
+
+    if not draws:
+        env, R, t = envelope_set(envelope, poses, seed)
+        return env, R, t, [len(R)]
+    if seed is not None:
+        raise ValueError("score: give either --seed (one pose set) or --draws (fresh draws with their own seeds)")
+    env = envelope_set(envelope, 1)[0]
+    if env.attitude == "trajectory":
+        raise ValueError("score --draws: a trajectory envelope is a fixed pose list; there are no fresh draws")
+    sets = [envelope_set(env, poses or HELDOUT_POSES_PER_DRAW, heldout_seed(env, i))[1:] for i in range(int(draws))]
+    env = envelope_set(env, poses or HELDOUT_POSES_PER_DRAW, heldout_seed(env, 0))[0]
+    return env, np.concatenate([r for r, _ in sets]), np.concatenate([t for _, t in sets]), [len(r) for r, _ in sets]
+
+
+def _per_draw(out, sizes, env):
+    """Worst ADOP and coverage of each draw (slices of the pooled arrays)."""
+    from ..optimize.heldout import heldout_seed
+
+    rows, s0 = [], 0
+    for i, n in enumerate(sizes):
+        a, cov = out["_adop"][s0:s0 + n], out["_covered"][s0:s0 + n]
+        rows.append({"seed": heldout_seed(env, i), "poses": int(n), "covered_fraction": float(cov.mean()),
+                     "worst_adop": float(a[cov].max()) if cov.any() else float("nan")})
+        s0 += n
+    return rows
 
 
 def write_score_report(report_dir, res, other, R, t, env):
