@@ -89,7 +89,7 @@ def test_optimize_report_figures_mark_worst_pose(tmp_path, saved):
 
     rng = np.random.default_rng(0)
     P = 40
-    res = SimpleNamespace(success=True, adop=rng.uniform(500, 3000, P), pdop=rng.uniform(10, 50, P),
+    res = SimpleNamespace(success=True, info={}, adop=rng.uniform(500, 3000, P), pdop=rng.uniform(10, 50, P),
                           n_lit=rng.integers(4, 9, P), objective="worst-adop", value=3000.0, bound=2800.0,
                           gap=0.07, selected=np.arange(12))
     problem = SimpleNamespace(translations=rng.normal(size=(P, 3)) + [0, 0, 3],

@@ -205,10 +205,10 @@ def _print_summary(s):
             click.echo(f"    {cert['statement']}")
     if cert.get("loose") and cert.get("why"):
         click.echo(f"    {'loose' if cert.get('bound') is not None else 'why'}: {cert['why']}")
-        if s.get("branch_and_bound"):
-            b = s["branch_and_bound"]
-            click.echo(f"  branch-and-bound: {b['nodes']} node relaxations, bound {b['root_bound']:.5g} (relaxation)"
-                       f" -> {b['bound']:.5g}")
+    if s.get("branch_and_bound"):
+        b = s["branch_and_bound"]
+        click.echo(f"  branch-and-bound: {b['nodes']} node relaxations, bound {b['root_bound']:.5g} (relaxation)"
+                   f" -> {b['bound']:.5g}")
     h = s.get("heldout")
     if h and h["uncovered"]:
         click.secho(f"  warning: {h['uncovered']} of {h['poses']} fresh poses have fewer than {s['min_visible']} lit "
