@@ -17,11 +17,11 @@ import os
 import shutil
 from pathlib import Path
 
-import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from cli_walk import leaf_commands
 from layoutkit.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,12 +58,8 @@ ROWS = {
 NOT_FILE_COMMANDS = {"demo", "live", "study chen2024", "study zhai2014", "study bitcraze-dataset"}
 
 
-def _commands(cmd=main, path=()):
-    if isinstance(cmd, click.Group):
-        for name, sub in sorted(cmd.commands.items()):
-            yield from _commands(sub, path + (name,))
-    else:
-        yield " ".join(path)
+def _commands():
+    return (" ".join(path) for path, _ in leaf_commands())
 
 
 def test_every_command_has_a_file_fuzz_row():

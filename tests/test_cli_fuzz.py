@@ -13,6 +13,7 @@ import click
 import pytest
 from click.testing import CliRunner
 
+from cli_walk import leaf_commands
 from layoutkit.cli import main
 from layoutkit.cli.options import Number
 
@@ -20,12 +21,8 @@ BAD = ("nan", "inf", "-inf", "NaN", "+inf")
 EDGE = ("0", "-1", "1e300")
 
 
-def _commands(cmd=main, path=()):
-    if isinstance(cmd, click.Group):
-        for name, sub in sorted(cmd.commands.items()):
-            yield from _commands(sub, path + (name,))
-    else:
-        yield path, cmd
+def _commands():
+    return leaf_commands()
 
 
 def _numeric(t) -> bool:

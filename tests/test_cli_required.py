@@ -12,15 +12,12 @@ import click
 import pytest
 from click.testing import CliRunner
 
+from cli_walk import leaf_commands
 from layoutkit.cli import main
 
 
-def _commands(cmd=main, path=()):
-    if isinstance(cmd, click.Group):
-        for name, sub in sorted(cmd.commands.items()):
-            yield from _commands(sub, path + (name,))
-    else:
-        yield path, cmd
+def _commands():
+    return leaf_commands()
 
 
 def _value(p, tmp_path) -> list[str]:
