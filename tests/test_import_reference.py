@@ -34,5 +34,5 @@ def test_pose_csv_and_errors(tmp_path):
     tb = read_poses(tmp_path / "o.csv")
     np.testing.assert_allclose(tb.rotvec[1], [0, 0, np.pi / 2], atol=1e-12)
     f.write_text("time,x,y,z\n0,1,2,3\n")
-    r = CliRunner().invoke(main, ["import", "reference", str(f), "--out", str(tmp_path / "o.csv")])
+    r = CliRunner().invoke(main, ["import", "reference", str(f), "--out", str(tmp_path / "o2.csv")])
     assert r.exit_code == 2 and "no 't' column" in r.output

@@ -248,3 +248,23 @@ def test_envelope_without_a_station_says_which_station_it_assumed(tmp_path, smal
     a, b = json.loads(r.stdout), json.loads(r2.stdout)
     assert (a["covered_poses"], a["worst_adop"], a["median_pdop"]) == (b["covered_poses"], b["worst_adop"],
                                                                         b["median_pdop"])
+
+
+def test_simulate_and_import_refuse_to_overwrite_another_runs_files(tmp_path):
+    """``simulate --out`` replaced an existing frame table (frames and the truth of an earlier run)
+    without a word. Now: exit 2 naming the file, the file byte-identical; ``--overwrite`` replaces it."""
+    out = tmp_path / "frames.csv"
+    first = _run(["simulate", "--layout", LAYOUT, "--frames", 5, "--out", out, "--seed", 1])
+    assert first.exit_code == 0
+    before = out.read_bytes()
+    again = _run(["simulate", "--layout", LAYOUT, "--frames", 5, "--out", out, "--seed", 2])
+    assert again.exit_code == 2 and f"error: {out}: already exists" in again.stderr and out.read_bytes() == before
+    forced = _run(["simulate", "--layout", LAYOUT, "--frames", 5, "--out", out, "--seed", 2, "--overwrite"])
+    assert forced.exit_code == 0 and out.read_bytes() != before
+    # the same rule for an imported reference
+    mocap, ref = tmp_path / "mocap.csv", tmp_path / "ref.csv"
+    mocap.write_text("t,x,y,z\n0.0,0.1,0.2,1.5\n0.1,0.1,0.2,1.6\n0.2,0.1,0.2,1.7\n")
+    assert _run(["import", "reference", mocap, "--out", ref]).exit_code == 0
+    kept = ref.read_bytes()
+    again = _run(["import", "reference", mocap, "--out", ref])
+    assert again.exit_code == 2 and f"error: {ref}: already exists" in again.stderr and ref.read_bytes() == kept

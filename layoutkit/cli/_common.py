@@ -43,3 +43,12 @@ def call_or_fail(fn, *args, **kwargs):
         return fn(*args, **kwargs)
     except ValueError as exc:
         fail(str(exc))
+
+
+def refuse_existing(path, overwrite: bool, what: str) -> None:
+    """End with exit 2 when ``path`` exists and ``--overwrite`` was not given: a derived file of an
+    earlier run (``what`` says what it holds) is never replaced silently (issue 29)."""
+    from pathlib import Path
+
+    if Path(path).exists() and not overwrite:
+        fail(f"{path}: already exists ({what}); give --overwrite to replace it, or another --out")

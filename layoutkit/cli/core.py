@@ -5,7 +5,7 @@ import click
 
 from ..units import ARCSEC
 from ._common import call_or_fail, echo_json, emit_json, fail
-from .options import NONNEGATIVE, POSITIVE
+from .options import NONNEGATIVE, POSITIVE, overwrite_option
 from .options import (data_dir_option, filter_options, half_angle_option, json_flag, json_out_option, layout_option,
                       out_dir_option, out_file_option, motion_compensation_option, registry_choice, rho_option,
                       seed_option, sigma_option, scheduler_option, solve_mode_option, stations_option,
@@ -68,8 +68,9 @@ def dop_cmd(layout_path, rotvec_deg, translation_m, lit, half_angle_deg, rho, si
 @click.option("--no-quantize", is_flag=True, help="Skip the 50 MHz counter quantisation.")
 @stations_option(help="Stations JSON (poses in one world frame, kind, calibration): one row per station and pose, "
                       "the angles through each station's forward model (calibrated when it carries a calibration).")
+@overwrite_option(what="an existing --out frame table")
 @json_flag(help="Print a JSON summary.")
-def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, stations_path, as_json):
+def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, stations_path, overwrite, as_json):
     """Simulate noisy sweep-angle frames at random static poses in front of one station.
 
     Poses: the paper's 3 m × 3 m area in front of the station, uniform attitudes, ≥ 4 sensors lit.
@@ -79,7 +80,9 @@ def simulate_cmd(layout_path, frames, seed, out, rho, sigma, no_quantize, statio
     station with those factory parameters reports; true poses in each row's station frame.
     """
     from ..workflows.frames import simulate_frame_file
+    from ._common import refuse_existing
 
+    refuse_existing(out, overwrite, "the frames and truth of an earlier run")
     lay = _layout(layout_path)
     summary = call_or_fail(simulate_frame_file, lay, frames, out, seed=seed, sigma=sigma, rho=rho,
                            quantize=not no_quantize, stations_path=stations_path)

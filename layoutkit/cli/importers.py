@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from ._common import echo_json, fail
-from .options import (Requires, flag_rules, json_flag, out_dir_option, out_file_option, stations_option,
+from .options import (Requires, flag_rules, json_flag, overwrite_option, out_dir_option, out_file_option, stations_option,
                       system_config_option, units_option)
 
 
@@ -129,11 +129,15 @@ def cfusdlog_cmd(log, out_dir, system_config, as_json):
 @click.argument("file", type=click.Path(dir_okay=False))
 @out_file_option(help="Pose table (CSV) to write.")
 @units_option(what="the positions in FILE")
+@overwrite_option(what="an existing --out pose table")
 @json_flag(help="Print a JSON summary.")
-def reference_cmd(file, out, units, as_json):
+def reference_cmd(file, out, units, overwrite, as_json):
     """A motion-capture reference (CSV or .npy): t plus attitude and position, or position only
     (t,x,y,z) → a pose table (status 0; position-only rows have empty rotation)."""
     from ..workflows.importers import import_reference
+    from ._common import refuse_existing
+
+    refuse_existing(out, overwrite, "a reference of an earlier import")
 
     s = _run(import_reference, file, out, units=units)
     if as_json:
