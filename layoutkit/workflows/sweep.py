@@ -328,43 +328,4 @@ def _plots(out: Path, cfg: SweepConfig, rows, front, echo) -> list[str]:
                             "cell beats with as few sensors (red).")
         files.append("pareto_worst_adop_vs_k.png")
     return files
-    names = cfg.axis_names or ("k",)
-    fig, axs = plt.subplots(1, len(names), figsize=(4.5 * len(names), 3.8), squeeze=False)
-    for ax, name in zip(axs[0], names):
-        vals = [r.get(name, r["k"]) for r in ok]
-        numeric = all(isinstance(v, (int, float)) for v in vals)
-        levels = sorted(set(vals)) if numeric else list(dict.fromkeys(vals))
-        x = np.array([v if numeric else levels.index(v) for v in vals], float)
-        y = np.array([r["value"] for r in ok])
-        ax.scatter(x, y, s=18, alpha=0.7, label="cells")
-        lx = np.array([lv if numeric else i for i, lv in enumerate(levels)], float)
-        ax.plot(lx, [y[x == v].min() for v in lx], "k.-", lw=1, label="best at this value")
-        if not numeric:
-            ax.set_xticks(lx, [Path(str(v)).stem for v in levels], rotation=20)
-        ax.set_xlabel(name)
-        ax.set_ylabel("objective")
-        ax.set_yscale("log")
-        ax.grid(alpha=0.3)
-    axs[0][0].legend(fontsize=8)
-    fig.suptitle(f"sweep {cfg.name}: objective of each cell against each axis")
-    fig.tight_layout()
-    _savefig(fig, out / "objective_vs_axes.png")
-    plt.close(fig)
-    files.append("objective_vs_axes.png")
-    pts = [(r["k"], r["worst_adop_deg_per_rad"]) for r in ok if r["worst_adop_deg_per_rad"] is not None]
-    if pts:
-        fig, ax = plt.subplots(figsize=(6, 4))
-        ax.scatter(*zip(*pts), s=18, c="0.6", label="cells")
-        ax.plot([p["k"] for p in front], [p["worst_adop_deg_per_rad"] for p in front], "o-", c="C3",
-                label="Pareto front")
-        ax.set_xlabel("sensors k")
-        ax.set_ylabel("worst ADOP over the envelope (deg/rad)")
-        ax.set_yscale("log")
-        ax.grid(alpha=0.3)
-        ax.legend()
-        fig.tight_layout()
-        _savefig(fig, out / "pareto_worst_adop_vs_k.png")
-        plt.close(fig)
-        files.append("pareto_worst_adop_vs_k.png")
-    return files
 
