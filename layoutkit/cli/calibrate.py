@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import echo_json, fail
+from ._common import call_or_fail, echo_json, fail
 from .options import json_flag, layout_option, out_dir_option, seed_option, sigma_option, stations_option
 
 
@@ -60,15 +60,12 @@ def calibrate_cmd(frames_paths, layout_path, stations_path, out_dir, reference_p
     if (station_prior_deg is None) != (station_prior_mm is None):
         fail("--station-prior-deg and --station-prior-mm go together")
     station_prior = None if station_prior_deg is None else (station_prior_deg * DEG, station_prior_mm * 1e-3)
-    try:
-        rep = calibrate_files(list(frames_paths), list(layout_path), stations_path, out_dir,
-                              reference_path=reference_path, sensor_offsets=sensor_offsets,
-                              sensor_timing=sensor_timing, sigma=sigma, offset_prior=offset_prior_mm * 1e-3,
-                              timing_prior=timing_prior_ns * 1e-9, calibration_prior=calibration_prior,
-                              station_prior=station_prior, max_samples=max_samples, seed=seed,
-                              cross_validation=cross_validation)
-    except ValueError as exc:
-        fail(str(exc))
+    rep = call_or_fail(calibrate_files, list(frames_paths), list(layout_path), stations_path, out_dir,
+                       reference_path=reference_path, sensor_offsets=sensor_offsets,
+                       sensor_timing=sensor_timing, sigma=sigma, offset_prior=offset_prior_mm * 1e-3,
+                       timing_prior=timing_prior_ns * 1e-9, calibration_prior=calibration_prior,
+                       station_prior=station_prior, max_samples=max_samples, seed=seed,
+                       cross_validation=cross_validation)
     if as_json:
         echo_json(rep)
     else:

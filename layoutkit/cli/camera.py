@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import echo_json, fail
+from ._common import call_or_fail, echo_json, fail
 from .options import POSITIVE, Conflict, Number, Requires, flag_rules
 from .options import camera_model_option, corner_sigma_option, json_flag, registry_choice
 
@@ -37,11 +37,8 @@ def camera_attitude(input, focal_length_px, principal_point, method, aspect_rati
         fail(f"--focal-length-px must be positive, got {focal_length_px}")
     from ..workflows.attitude import camera_attitude as run
 
-    try:
-        out = run(input, focal_length_px, principal_point=principal_point, method=method,
-                  aspect_ratio=aspect_ratio, fps=fps, max_frames=max_frames, threshold=threshold)
-    except ValueError as e:
-        fail(str(e))
+    out = call_or_fail(run, input, focal_length_px, principal_point=principal_point, method=method,
+                       aspect_ratio=aspect_ratio, fps=fps, max_frames=max_frames, threshold=threshold)
     if as_json:
         echo_json(out)
     else:
@@ -108,11 +105,8 @@ def calibrate_cmd(images, pattern, inner, square_mm, marker_mm, dictionary, mode
 
     if pattern == "charuco" and marker_mm is None:
         fail("--marker-mm: required with --pattern charuco")
-    try:
-        res = calibrate_images(images, out, pattern=pattern, inner=inner, square_mm=square_mm, model=model,
-                               drop_outliers=drop_outliers, figure=figure, marker_mm=marker_mm, dictionary=dictionary)
-    except ValueError as exc:
-        fail(str(exc))
+    res = call_or_fail(calibrate_images, images, out, pattern=pattern, inner=inner, square_mm=square_mm, model=model,
+                       drop_outliers=drop_outliers, figure=figure, marker_mm=marker_mm, dictionary=dictionary)
     if as_json:
         echo_json(res)
     else:
