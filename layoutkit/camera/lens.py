@@ -61,14 +61,8 @@ def undistort_pixels(pixels, K, dist, f: float | None = None) -> np.ndarray:
     p = as_array(pixels, "pixels", (..., 2)).astype(float)
     Km, D = _km(K, dist)
     P = _ideal_matrix(Km, f)
-    flat = p.reshape(-1, 2)
-    out = np.full_like(flat, np.nan)
-    ok = np.all(np.isfinite(flat), axis=1)
-    if ok.any():
-        u = cv2.undistortPoints(flat[ok].reshape(-1, 1, 2), Km, D if D.size else None, None, None, P,
-                                UNDISTORT_CRITERIA)
-        out[ok] = u.reshape(-1, 2)
-    return out.reshape(p.shape)
+    return _finite_rows(p, lambda xy: cv2.undistortPoints(xy.reshape(-1, 1, 2), Km, D if D.size else None, None,
+                                                          None, P, UNDISTORT_CRITERIA))
 
 
 def distort_pixels(ideal_px, K, dist, f: float | None = None) -> np.ndarray:
@@ -78,14 +72,19 @@ def distort_pixels(ideal_px, K, dist, f: float | None = None) -> np.ndarray:
     q = as_array(ideal_px, "ideal_px", (..., 2)).astype(float)
     Km, D = _km(K, dist)
     P = _ideal_matrix(Km, f)
-    flat = q.reshape(-1, 2)
+    return _finite_rows(q, lambda xy: cv2.projectPoints(np.column_stack([(xy - P[:2, 2]) / P[0, 0], np.ones(len(xy))]),
+                                                        np.zeros(3), np.zeros(3), Km, D if D.size else None)[0])
+
+
+def _finite_rows(points, fn) -> np.ndarray:
+    """``fn`` applied to the finite points of ``points (..., 2)`` (as an ``(m, 2)`` array; it returns m
+    points in any shape OpenCV gives); NaN where a coordinate is not finite. Returns ``(..., 2)``."""
+    flat = points.reshape(-1, 2)
     out = np.full_like(flat, np.nan)
     ok = np.all(np.isfinite(flat), axis=1)
     if ok.any():
-        rays = np.column_stack([(flat[ok] - P[:2, 2]) / P[0, 0], np.ones(int(ok.sum()))])
-        img, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), Km, D if D.size else None)
-        out[ok] = img.reshape(-1, 2)
-    return out.reshape(q.shape)
+        out[ok] = np.asarray(fn(flat[ok])).reshape(-1, 2)
+    return out.reshape(points.shape)
 
 
 def undistort_jacobian(pixels, K, dist, f: float | None = None, step_px: float = 1e-3) -> np.ndarray:
