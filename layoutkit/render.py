@@ -291,10 +291,8 @@ def _add_scale_bar(pl, mesh, center, view_direction, up, diag: float, h: int, *,
     a, b, length = scale_bar_geometry(mesh.vertices, center, view_direction, up, diag, gap=0.035 if tight else 0.08)
     pl.add_mesh(pv.Line(a, b).tube(radius=0.006 * diag), color=SCALE_BAR_COLOR, name="scale_bar",
                 smooth_shading=True, ambient=0.6)
-    v = np.asarray(view_direction, float)
-    right = np.cross(v, np.asarray(up, float))
-    right /= np.linalg.norm(right)
-    at = b + 0.03 * diag * right if tight else 0.5 * (a + b) - 0.05 * diag * np.cross(right, v)
+    right = (b - a) / length  # the screen's horizontal, as scale_bar_geometry laid the bar
+    at = b + 0.03 * diag * right if tight else 0.5 * (a + b) - 0.05 * diag * np.cross(right, view_direction)
     pl.add_point_labels([at], [length_text(length)], font_size=max(10, h // 80), text_color=SCALE_BAR_COLOR,
                         shape_opacity=0.0, show_points=False, always_visible=True, name="scale_bar_label")
 
