@@ -21,10 +21,6 @@ BAD = ("nan", "inf", "-inf", "NaN", "+inf")
 EDGE = ("0", "-1", "1e300")
 
 
-def _commands():
-    return leaf_commands()
-
-
 def _numeric(t) -> bool:
     if isinstance(t, click.Tuple):
         return any(_numeric(x) for x in t.types)
@@ -32,7 +28,7 @@ def _numeric(t) -> bool:
 
 
 def _cases():
-    for path, cmd in _commands():
+    for path, cmd in leaf_commands():
         for p in cmd.params:
             if isinstance(p, click.Option) and _numeric(p.type) and p.opts:
                 yield pytest.param(path, cmd, p, id=" ".join(path) + " " + p.opts[0])
@@ -47,7 +43,7 @@ def _args(p, value):
 
 
 def test_every_command_has_been_enumerated():
-    names = {" ".join(path) for path, _ in _commands()}
+    names = {" ".join(path) for path, _ in leaf_commands()}
     assert {"optimize", "score", "dop", "simulate", "fake-fpga", "replay", "live", "study chen2024"} <= names
     assert len(CASES) > 100  # commands x numeric options (134 when this test was written)
 
@@ -55,7 +51,7 @@ def test_every_command_has_been_enumerated():
 def test_every_float_option_is_a_finite_number():
     """The one boundary: no float parameter escapes :class:`Number` (a new command included)."""
     plain = []
-    for path, cmd in _commands():
+    for path, cmd in leaf_commands():
         for p in cmd.params:
             types = p.type.types if isinstance(p.type, click.Tuple) else [p.type]
             plain += [f"{' '.join(path)} {p.name}" for t in types

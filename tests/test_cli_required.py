@@ -16,10 +16,6 @@ from cli_walk import leaf_commands
 from layoutkit.cli import main
 
 
-def _commands():
-    return leaf_commands()
-
-
 def _value(p, tmp_path) -> list[str]:
     """A value the parameter's type parses (a real file or folder for paths)."""
     t = p.type
@@ -40,7 +36,7 @@ def _value(p, tmp_path) -> list[str]:
 
 
 CASES = [pytest.param(path, cmd, p, id=" ".join(path) + " " + p.opts[0])
-         for path, cmd in _commands() for p in cmd.params
+         for path, cmd in leaf_commands() for p in cmd.params
          if isinstance(p, click.Option) and p.required]
 
 

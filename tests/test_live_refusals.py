@@ -42,6 +42,14 @@ def _fake_out(d: Path, name: str, seed: int, *extra):
 
 # ------------------------------------------------------------------ item 3: evidence tied to its capture
 
+def _reap(*procs):
+    """Kill and wait for any of ``procs`` still running (a failed assertion leaves no orphans)."""
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
 def test_replay_refuses_the_truth_of_another_run(tmp_path):
     """It used to report "RMS 174.05 deg" with exit 0. Now exit 2, one error line naming the option,
     both files and both streams; the run's own truth is accepted (and said to be tied)."""
@@ -248,10 +256,7 @@ def test_live_still_waits_for_a_replug_after_the_first_connection(tmp_path):
         b.wait(timeout=60)
         out, err = live.communicate(timeout=60)
     finally:
-        for p in (a, live):
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        _reap(a, live)
     assert live.returncode == 0, err
     s = json.loads(out)
     assert s["source"]["connects"] == 2 and s["frames"] == 2 * 60, s["source"]
@@ -301,10 +306,7 @@ def test_fake_fpga_sigterm_while_streaming_ends_with_what_was_sent(tmp_path):
         _, err = sim.communicate(timeout=30)
         out, lerr = live.communicate(timeout=60)
     finally:
-        for p in (sim, live):
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        _reap(sim, live)
     assert sim.returncode == 143, err
     sent = int(err.split("stopped by SIGTERM after ")[1].split(" of ")[0])
     nbytes = int(err.split(" frames (")[1].split(" bytes)")[0].replace(",", ""))
