@@ -121,8 +121,14 @@ def _context():
     process itself aborts ("fork() called from a process already using GNU OpenMP") once an earlier
     test in it ran numba's parallel PnP kernel."""
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["layoutkit.cli", __name__])
+    ctx.set_forkserver_preload(["layoutkit.cli", __name__, *_HEAVY])
     return ctx
+
+
+#: what the commands import inside their bodies (~3 s a child would pay again for each of ~190 cases):
+#: imported once by the fork server; importing runs no compiled kernel, so no OpenMP runtime starts
+_HEAVY = ["cvxpy", "cv2", "matplotlib.pyplot", "pyvista", "dask.distributed", "trimesh", "scipy.optimize",
+          "scipy.spatial", "layoutkit.pnp_numba", "layoutkit.joint_numba", "layoutkit.filter._kernels_numba"]
 
 
 def _invoke(args, timeout=90.0):
