@@ -241,28 +241,35 @@ def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt
     return concat_results(parts)
 
 
+def _kernel_array(a, dtype) -> np.ndarray:
+    """``a`` as a C-contiguous, writeable array of ``dtype``: numba compiles a kernel once per
+    argument type, and a read-only view (``np.broadcast_to``, a buffer) is another type — each such
+    variant cost ~15 s of compilation in a fresh checkout."""
+    return np.require(a, dtype, ["C", "W"])
+
+
 class _Compiled:
     """The chunk's arrays for :mod:`layoutkit.joint_numba` (station poses, kinds, calibrations;
     motion as (F, S, 2) times and (F, 3) velocities, zeros without)."""
 
     def __init__(self, P, meas, mask, stations, dt, vel):
         F, S = meas.shape[:2]
-        self.P = np.ascontiguousarray(P, float)
-        self.SR = np.ascontiguousarray(np.stack([st.rotation for st in stations]), float)
-        self.ST = np.ascontiguousarray(np.stack([st.translation for st in stations]), float)
+        self.P = _kernel_array(P, float)
+        self.SR = _kernel_array(np.stack([st.rotation for st in stations]), float)
+        self.ST = _kernel_array(np.stack([st.translation for st in stations]), float)
         self.kinds = np.array([0 if st.kind == "lh1" else 1 for st in stations], np.int64)
-        self.cals = np.ascontiguousarray(np.stack([np.zeros((2, 7)) if st.calibration is None else
-                                                   st.calibration.params for st in stations]), float)
+        self.cals = _kernel_array(np.stack([np.zeros((2, 7)) if st.calibration is None else
+                                            st.calibration.params for st in stations]), float)
         self.corrected = np.array([st.calibration is not None and st.calibration.gib_argument == "corrected"
                                    for st in stations])
-        self.meas = np.ascontiguousarray(meas, float)
-        self.mask = np.ascontiguousarray(mask)
+        self.meas = _kernel_array(meas, float)
+        self.mask = _kernel_array(mask, bool)
         self.motion = dt is not None and vel is not None
         if self.motion:
             d = np.asarray(dt, float)
-            self.dt = np.ascontiguousarray(np.broadcast_to(d if d.ndim == 3 else d[..., None], (F, S, 2)))
-            self.omega = np.ascontiguousarray(vel[0], float)
-            self.vel = np.ascontiguousarray(vel[1], float)
+            self.dt = _kernel_array(np.broadcast_to(d if d.ndim == 3 else d[..., None], (F, S, 2)), float)
+            self.omega = _kernel_array(vel[0], float)
+            self.vel = _kernel_array(vel[1], float)
         else:
             self.dt, self.omega, self.vel = np.zeros((F, S, 2)), np.zeros((F, 3)), np.zeros((F, 3))
 
@@ -277,9 +284,9 @@ def _start_costs(P, meas, mask, stations, dt, vel, starts, kernel):
     if kernel is not None:
         from . import joint_numba
 
-        Rs = np.ascontiguousarray(np.stack([s[0] for s in starts]), float)
-        ts = np.ascontiguousarray(np.stack([s[1] for s in starts]), float)
-        ok = np.ascontiguousarray(np.stack([s[2] for s in starts]))
+        Rs = _kernel_array(np.stack([s[0] for s in starts]), float)
+        ts = _kernel_array(np.stack([s[1] for s in starts]), float)
+        ok = _kernel_array(np.stack([s[2] for s in starts]), bool)
         out = np.empty(ok.shape)
         joint_numba.start_costs(*kernel.args(), Rs, ts, ok, out)
         return out
@@ -303,8 +310,8 @@ def _lm_compiled(kernel, R0, t0, go, max_iterations):
     R, t = np.full((F, 3, 3), np.nan), np.full((F, 3), np.nan)
     cost, done, its = np.full(F, np.inf), np.zeros(F, bool), np.zeros(F, np.int64)
     A, zsum = np.zeros((F, 6, 6)), np.zeros((F, S, n))
-    joint_numba.solve_frames(*kernel.args(), np.ascontiguousarray(R0, float), np.ascontiguousarray(t0, float),
-                             np.ascontiguousarray(go), int(max_iterations), _RTOL, _ATOL, R, t, cost, done, its, A, zsum)
+    joint_numba.solve_frames(*kernel.args(), _kernel_array(R0, float), _kernel_array(t0, float),
+                             _kernel_array(go, bool), int(max_iterations), _RTOL, _ATOL, R, t, cost, done, its, A, zsum)
     return R, t, cost, done, its, A, zsum
 
 

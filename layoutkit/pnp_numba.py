@@ -1039,7 +1039,7 @@ def solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rh
     R0 (F, 3, 3), t0 (F, 3) the starts (read where has_init only: (1, 3, 3), (1, 3) when none has); sigma NaN for no ambiguity test; consts the thresholds of pnp_lh1 (in the order of
     :func:`layoutkit.pnp_lh1.solve_pnp_compiled`). Outputs as :class:`layoutkit.pnp_result.PnPResult`.
     """
-    _solve_range(0, cot.shape[0], P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+    _solve_range(np.int64(0), cot.shape[0], P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
                  R_out, t_out, status, resid, iters, altR, altt, altres)
 
 
