@@ -42,10 +42,15 @@ def rotvec_to_matrix(rotvec) -> np.ndarray:
     return out.reshape(rv.shape[:-1] + (3, 3))
 
 
-def matrix_to_rotvec(rotation) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` → rotation vectors ``(..., 3)`` rad, norm in [0, pi]."""
+def matrix_to_rotvec(rotation, *, assume_valid: bool = False) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` → rotation vectors ``(..., 3)`` rad, norm in [0, pi].
+
+    assume_valid : the matrices are proper rotations to rounding (products of rotations inside a
+    solver): scipy skips its orthonormalisation, half the time of a call; a matrix that is not a
+    rotation then gives a meaningless vector. Default: any matrix, projected to the nearest rotation.
+    """
     R = as_array(rotation, "rotation", (..., 3, 3))
-    out = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
+    out = Rotation.from_matrix(R.reshape(-1, 3, 3), assume_valid=assume_valid).as_rotvec()
     return out.reshape(R.shape[:-2] + (3,))
 
 

@@ -73,11 +73,12 @@ def wahba(a, b) -> np.ndarray:
 
 
 def relative_rotvec_pairs(R_a, R_b, *, min_angle: float = np.deg2rad(5.0), max_angle: float = np.deg2rad(170.0),
-                          lags=None):
+                          lags=None, valid: bool = False):
     """Rotation vectors of relative motions ``R_j R_i^T`` of both streams over several index lags.
 
     Returns ``(a (M, 3), b (M, 3))`` with the pairs whose stream-b angle lies in
     ``[min_angle, max_angle]`` (small motions are noise, near-180° ones are ill-conditioned).
+    valid : both streams are proper rotations to rounding (see :func:`layoutkit.geometry.matrix_to_rotvec`).
     """
     N = len(R_a)
     if lags is None:
@@ -86,8 +87,8 @@ def relative_rotvec_pairs(R_a, R_b, *, min_angle: float = np.deg2rad(5.0), max_a
     for lag in lags:
         if lag >= N:
             continue
-        a = matrix_to_rotvec(R_a[lag:] @ np.swapaxes(R_a[:-lag], -1, -2))
-        b = matrix_to_rotvec(R_b[lag:] @ np.swapaxes(R_b[:-lag], -1, -2))
+        a = matrix_to_rotvec(R_a[lag:] @ np.swapaxes(R_a[:-lag], -1, -2), assume_valid=valid)
+        b = matrix_to_rotvec(R_b[lag:] @ np.swapaxes(R_b[:-lag], -1, -2), assume_valid=valid)
         ang = np.linalg.norm(b, axis=-1)
         ok = (ang >= min_angle) & (ang <= max_angle)
         aa.append(a[ok])
@@ -135,6 +136,15 @@ class RotationPairFit:
         return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
 
+def _proper(R: np.ndarray) -> np.ndarray:
+    """``R (N, 3, 3)`` unchanged when every matrix is a rotation to 1e-9, else its nearest rotations."""
+    if R.ndim == 3 and len(R):
+        err = np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max()
+        if not np.isfinite(err) or err > 1e-9 or np.any(np.linalg.det(R) <= 0):
+            return nearest_rotation(R)
+    return R
+
+
 def _gauss_newton(Ra, Rb, X, Y, body_offset: bool, iterations: int):
     """Minimise ``sum |log(Ra_i^T X Rb_i Y)|^2`` over X (and Y) from a start, by Gauss-Newton.
 
@@ -147,7 +157,7 @@ def _gauss_newton(Ra, Rb, X, Y, body_offset: bool, iterations: int):
     N = len(Ra)
     RaT = np.swapaxes(Ra, -1, -2)
     for _ in range(max(iterations, 1)):
-        e = matrix_to_rotvec(RaT @ X @ Rb @ Y)  # (N, 3)
+        e = matrix_to_rotvec(RaT @ X @ Rb @ Y, assume_valid=True)  # (N, 3); rotations (fit_rotation_pair)
         if body_offset:
             J = np.concatenate([RaT, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=-1).reshape(3 * N, 6)
         else:
@@ -170,8 +180,10 @@ def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: flo
     require_motion : insist on relative motion about two axes before fitting (default: when
     ``body_offset``); without it and without motion, ``X`` starts from the chordal mean.
     """
-    Ra = np.asarray(R_a, float)
-    Rb = np.asarray(R_b, float)
+    # proper rotations from here on (matrices off by more than rounding are projected once), so the
+    # solver's many log maps may skip scipy's per-call orthonormalisation
+    Ra = _proper(np.asarray(R_a, float))
+    Rb = _proper(np.asarray(R_b, float))
     eye = np.eye(3)
     N = len(Ra)
 
@@ -183,7 +195,7 @@ def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: flo
     require_motion = body_offset if require_motion is None else require_motion
     X, Y = eye, eye
     if body_offset or require_motion:
-        a, b = relative_rotvec_pairs(Ra, Rb, min_angle=min_pair_angle)
+        a, b = relative_rotvec_pairs(Ra, Rb, min_angle=min_pair_angle, valid=True)
         two_axes = False
         if len(b) >= 2:
             sv = np.linalg.svd(b, compute_uv=False)
@@ -216,7 +228,7 @@ def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: flo
 def _fit_covariance(Ra, Rb, X, Y, body_offset):
     N = len(Ra)
     RaT = np.swapaxes(Ra, -1, -2)
-    e = matrix_to_rotvec(RaT @ X @ Rb @ Y)
+    e = matrix_to_rotvec(RaT @ X @ Rb @ Y, assume_valid=True)
     p = 6 if body_offset else 3
     if 3 * N <= p:
         return None
