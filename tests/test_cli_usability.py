@@ -208,7 +208,7 @@ def test_optimize_summary_starts_on_first_line(tmp_path, small_envelope):
     """The progress bar goes to stderr: stdout is the summary alone (no stray blank first line)."""
     r = CliRunner().invoke(main, ["optimize", MESH, "--sensors", "12", "--envelope", small_envelope,
                                   "--out", str(tmp_path / "x.json"), "--spacing-mm", "12", "--no-render",
-                                  "--dense-poses", "0"])
+                                  "--dense-poses", "0", "--method", "greedy"])
     assert r.exit_code == 0, r.output
     assert r.stdout.splitlines()[0].startswith("12 of ")
 
