@@ -22,7 +22,8 @@ Life cycle (docs/filter.md):
    of :class:`EkfConfig`, fewer than two consecutive sweeps were rejected and ``confirm_sweeps``
    sweeps were accepted since the start, else "uncertain".
 3. *lost*: ``lost_after`` consecutive rejected sweeps (the innovations say the state is wrong),
-   a pose sigma beyond ``lost_factor`` times the limits, or time running backwards → status
+   a pose sigma beyond ``lost_factor`` times the limits, or time running backwards for
+   ``lost_after`` sweeps in a row (a device reset; one late sweep is dropped) → status
    "lost" and back to 1 (the outputs keep coming, with status "lost", until a frame re-initialises).
 
 Static detector (``zupt``; always on in the adaptive mode, where it holds the bank in its quietest
@@ -135,6 +136,7 @@ class TrackerCounters:
     sweeps_rejected: int = 0
     zupts: int = 0
     pnp_tries: int = 0
+    sweeps_late: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -214,6 +216,7 @@ class SweepTracker:
         self._waiting_since = None  # when the tracker began waiting for a start (several stations)
         self._first = None  # (t, mean angle time, R, p, cov) of a joint start's first solve
         self._bad_run = 0
+        self._late_run = 0  # consecutive sweeps older than the filter by more than reorder_s
         self._bad_by_station: dict = {}
         self._lost = False
         self._last_same: dict = {}
@@ -448,7 +451,9 @@ class SweepTracker:
 
     # --------------------------------------------------------------------------- main
     def push(self, sweep) -> FilterOutput | None:
-        """Process one sweep; returns the filter state after it (None before the first init)."""
+        """Process one sweep; returns the filter state after it (None before the first init, and
+        for a sweep more than ``reorder_s`` older than the filter: dropped, ``counters.sweeps_late``;
+        ``lost_after`` such sweeps in a row are a device reset and restart the filter)."""
         c = self.config
         self.counters.sweeps += 1
         s = int(sweep.station)
@@ -466,7 +471,16 @@ class SweepTracker:
             # time is its zero, the sweep is complete only when the plane has passed): applied at the
             # filter's time with their hit times moved back
             late, t = t - ekf.t, ekf.t
-        if ekf.initialized and t < ekf.t:  # time ran backwards (device reset): start over
+        if ekf.initialized and t < ekf.t:
+            # a sweep too old to apply: the decoder holds a rotation's lone light plane until the
+            # channel's next block (up to a second when the station was hidden); dropped and counted.
+            # Time running backwards for lost_after sweeps in a row is a device reset: start over
+            self._late_run += 1
+            if self._late_run < c.lost_after:
+                self.counters.sweeps_late += 1
+                return None
+        self._late_run = 0
+        if ekf.initialized and t < ekf.t:
             self._declare_lost()
             ekf.initialized = False
             self._first = None
