@@ -199,24 +199,21 @@ class SweepTracker:
             from .imm import ImmFilter
 
             self.ekf = ImmFilter(self.points_body, self.stations, self.config)
-        self.init_max_residual_sigma = float(init_max_residual_sigma)
-        self.init_window_s = float(init_window_s)
+        self.init_max_residual_sigma, self.init_window_s = float(init_max_residual_sigma), float(init_window_s)
         self.init_retry_s = 0.5 * float(init_window_s)
         self.reorder_s = 0.05  # s, sweeps older than the filter by at most this are applied late, not a reset
         # s, oldest angle of a multi-station start: about one rotation of every station (a moving body
         # has moved little since; the single-station start waits up to init_window_s for 4 sensors)
         self.joint_init_window_s = min(self.init_window_s, 0.025)
         self.confirm_sweeps = int(confirm_sweeps)
-        self._confirm = 0
-        self._ambiguous = 0
+        self._confirm = self._ambiguous = 0
         self._amb = None  # (station, start R) of an ambiguous PnP start: not ok until told apart
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
         self._waiting_since = None  # when the tracker began waiting for a start (several stations)
         self._first = None  # (t, mean angle time, R, p, cov) of a joint start's first solve
-        self._bad_run = 0
-        self._late_run = 0  # consecutive sweeps older than the filter by more than reorder_s
+        self._bad_run = self._late_run = 0  # sweeps in a row: rejected; older than reorder_s
         self._bad_by_station: dict = {}
         self._lost = False
         self._last_same: dict = {}
@@ -451,9 +448,8 @@ class SweepTracker:
 
     # --------------------------------------------------------------------------- main
     def push(self, sweep) -> FilterOutput | None:
-        """Process one sweep; returns the filter state after it (None before the first init, and
-        for a sweep more than ``reorder_s`` older than the filter: dropped, ``counters.sweeps_late``;
-        ``lost_after`` such sweeps in a row are a device reset and restart the filter)."""
+        """Process one sweep; returns the filter state after it (None before the first init and for
+        a sweep more than ``reorder_s`` older than the filter: dropped, ``counters.sweeps_late``)."""
         c = self.config
         self.counters.sweeps += 1
         s = int(sweep.station)
@@ -472,9 +468,8 @@ class SweepTracker:
             # filter's time with their hit times moved back
             late, t = t - ekf.t, ekf.t
         if ekf.initialized and t < ekf.t:
-            # a sweep too old to apply: the decoder holds a rotation's lone light plane until the
-            # channel's next block (up to a second when the station was hidden); dropped and counted.
-            # Time running backwards for lost_after sweeps in a row is a device reset: start over
+            # too old to apply (the decoder holds a lone light plane until the channel's next block,
+            # up to ~1 s): dropped; lost_after such sweeps in a row are a device reset: start over
             self._late_run += 1
             if self._late_run < c.lost_after:
                 self.counters.sweeps_late += 1
@@ -484,11 +479,8 @@ class SweepTracker:
             self._declare_lost()
             ekf.initialized = False
             self._first = None
-            self._recent.clear()
-            self._last_same.clear()
-            self._static_T.clear()
-            self._static_m.clear()
-            self._static_per.clear()
+            for kept in (self._recent, self._last_same, self._static_T, self._static_m, self._static_per):
+                kept.clear()
         if c.zupt or self._hold:
             self._static_test((s, axis), t, ang)
         event = ""
