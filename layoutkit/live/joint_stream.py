@@ -233,8 +233,9 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         # across it (the angles of a moving deck measured up to 20 ms apart cannot fit one pose)
         sm = np.where(comp, 0.0, sm)
         if OUTLIER_P > 0:  # one outlying angle (a reflection) left out, in each window's own motion model
-            a, Rs, ts, rr, out = drop_one_outlier(P, a, Rs, ts, rr, ok & ~comp, stations, OUTLIER_P)
-            a, Rs, ts, rr, out_c = drop_one_outlier(P, a, Rs, ts, rr, ok & comp, stations, OUTLIER_P,
+            miss = config.max_residual_sigma * config.sigma_theta
+            a, Rs, ts, rr, out = drop_one_outlier(P, a, Rs, ts, rr, ok & ~comp, stations, OUTLIER_P, miss)
+            a, Rs, ts, rr, out_c = drop_one_outlier(P, a, Rs, ts, rr, ok & comp, stations, OUTLIER_P, miss,
                                                     dt=dt[idx], velocity=(w, v))
             if (out | out_c).any():  # the lit sets (precision, stations used) without the left-out angles
                 lit[idx] = np.all(np.isfinite(a), -1)
@@ -346,16 +347,18 @@ def _solve_from_starts_or_track(P, a, t, startable, state, config, stations, sol
 
 
 def drop_one_outlier(points_body, angles, rotation, translation, residual_rms, test, stations, p_false: float,
-                     dt=None, velocity=None):
+                     min_miss: float = 0.0, dt=None, velocity=None):
     """Leave one outlying angle out of the windows ``test``: the externally studentized residual test
     (Belsley, Kuh & Welsch 1980, §2.1; Cook & Weisberg 1982, §2.2.2) on each window's least-squares
     fit, linearised at its solved pose. With ``m`` angles, residuals ``e``, Jacobian ``J`` (m, 6) and
     leverages ``h = diag(J (J^T J)^-1 J^T)``, leaving angle ``j`` out lowers the sum of squares to
     ``SSR_j = SSR - e_j² / (1 - h_j)``; ``F_j = (SSR - SSR_j) / (SSR_j / (m - 7))`` is F(1, m - 7)
     distributed when no angle is an outlier, whatever the noise level (the set-up's model errors
-    scale both terms). A window whose largest ``F_j`` exceeds the ``1 - p_false`` quantile is solved
-    again without that angle (from its pose); the new pose replaces the old where that solve
-    converges. One angle at most per window (one reflecting sensor); windows with ``m - 7 < 2`` are
+    scale both terms). A window whose largest ``F_j`` exceeds the ``1 - p_false`` quantile, and whose
+    angle ``j`` alone misses by more than ``min_miss`` rad (``e_j² / (1 - h_j) > min_miss²``: the
+    pipeline passes the residual limit ``max_residual_sigma · sigma_theta``, so a fit whose residuals
+    are all at the noise level loses no angle), is solved again without that angle (from its pose);
+    the new pose replaces the old where that solve converges. One angle at most per window (one reflecting sensor); windows with ``m - 7 < 2`` are
     not tested.
 
     points_body (n, 3) m; angles (W, S, n, 2) rad; rotation (W, 3, 3), translation (W, 3) m (world),
@@ -386,7 +389,8 @@ def drop_one_outlier(points_body, angles, rotation, translation, residual_rms, t
     ssr = np.sum(e * e, 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         ssr_j = ssr[:, None] - e * e / (1.0 - h)
-        F = np.where(m & (h < 1.0 - 1e-9), (ssr[:, None] - ssr_j) / (ssr_j / np.maximum(dof, 1)[:, None]), 0.0)
+        big = m & (h < 1.0 - 1e-9) & (ssr[:, None] - ssr_j > min_miss ** 2)
+        F = np.where(big, (ssr[:, None] - ssr_j) / (ssr_j / np.maximum(dof, 1)[:, None]), 0.0)
     j = np.argmax(F, 1)
     q = f_dist.ppf(1.0 - p_false, 1, np.maximum(dof, 1))
     hit = np.flatnonzero(good & (F[np.arange(k.size), j] > q))
