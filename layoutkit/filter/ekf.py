@@ -210,8 +210,12 @@ def single_station_sigma(points_body, rotation, translation, stations, rho: floa
     of ``points_body (n, 3)`` lit; inf when no station sees the layout."""
     from ..dop import pose_dop
 
-    # one station at a time: each station's Jacobian only (the tracker evaluates this every 0.1 s)
-    d = np.array([float(pose_dop(points_body, rotation, translation, rho=rho, stations=[st]).pdop) for st in stations])
+    S, n = len(stations), len(points_body)
+    vis = np.zeros((S, S, n), bool)
+    for k in range(S):
+        vis[k, k] = True
+    d = np.asarray(pose_dop(points_body, np.broadcast_to(rotation, (S, 3, 3)), np.broadcast_to(translation, (S, 3)),
+                            rho=rho, visible=vis, stations=stations).pdop, float)
     d = d[np.isfinite(d)]
     return float(d.min()) * sigma_theta if d.size else math.inf
 
