@@ -295,3 +295,30 @@ def test_a_late_lone_plane_is_dropped_not_taken_for_a_device_reset():
     assert c_reset.inits == 2 and c_reset.sweeps_late == EkfConfig().lost_after - 1
     after = ok_reset[len(ok_clean):]
     assert len(after) > 0.5 * len(again) and np.max(after[:, 4]) < 5e-3
+
+
+@pytest.mark.parametrize("kind", ["lh1", "lh2"])
+def test_compiled_station_jacobians_give_the_one_station_limit_of_pose_dop(kind):
+    """Two implementations of one quantity: the one-station limit the tracker evaluates every 0.1 s
+    (``PDOP_1 · sigma_theta``, Chen eq. 24) from the filter's compiled Jacobians
+    (``ImmFilter.station_jacobians``, :func:`layoutkit.filter._kernels_numba.sweep_rows`) equals the
+    one of :func:`layoutkit.dop.pose_dop` (numpy, :func:`layoutkit.lighthouse.measure_jacobian`)
+    at random poses, calibrated stations of factory-like size, to 1e-8 relative."""
+    from layoutkit.filter.ekf import single_station_sigma
+    from layoutkit.filter.imm import ImmFilter
+    from layoutkit.geometry import rotvec_to_matrix
+    from layoutkit.simulate import stations_looking_at
+
+    rng = np.random.default_rng(3)
+    P = np.array([[-0.015, 0.0075, 0.0], [-0.015, -0.0075, 0.0], [0.015, 0.0075, 0.0], [0.015, -0.0075, 0.002]])
+    sts = stations_looking_at(np.array([[-1.6, -1.8, 2.4], [1.9, -1.4, 2.3]]), np.array([0.0, 0.0, 0.5]), kind=kind,
+                              calibrations=[_cal(kind, rng), _cal(kind, rng)])
+    f = ImmFilter(P, sts, EkfConfig())
+    n = 0
+    for _ in range(40):
+        R, t = rotvec_to_matrix(rng.normal(0, 0.4, 3)), rng.normal(0, 0.3, 3) + [0.0, 0.0, 0.5]
+        ref = single_station_sigma(P, R, t, sts, 0.87, 4e-5)
+        if np.isfinite(ref):
+            n += 1
+            assert single_station_sigma(P, R, t, sts, 0.87, 4e-5, f.station_jacobians(R, t)) == pytest.approx(ref, rel=1e-8)
+    assert n > 30

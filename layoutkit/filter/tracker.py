@@ -558,14 +558,14 @@ class SweepTracker:
         self._bad_by_station.clear()
 
     def _one_station_limit(self, t: float) -> float:
-        """m, ``PDOP_1 · sigma_theta`` of the best single station at the filter's pose, every sensor
-        lit (:attr:`EkfConfig.ok_beats_one_station`); re-evaluated after 0.1 s of stream time or a
-        (re)start."""
+        """m, ``PDOP_1 · sigma_theta`` of the best single station at the filter's pose, every sensor lit
+        (:attr:`EkfConfig.ok_beats_one_station`); re-evaluated after 0.1 s of stream time or a (re)start."""
         t0, lim = self._one_station
         if abs(t - t0) <= 0.1:
             return lim
-        lim = single_station_sigma(self.points_body, quat_to_matrix(self.ekf.q), self.ekf.p, self.stations,
-                                   self.config.rho, self.config.sigma_theta)
+        R, jac = quat_to_matrix(self.ekf.q), getattr(self.ekf, "station_jacobians", None)
+        lim = single_station_sigma(self.points_body, R, self.ekf.p, self.stations, self.config.rho,
+                                   self.config.sigma_theta, None if jac is None else jac(R, self.ekf.p))
         self._one_station = (t, lim)
         return lim
 
