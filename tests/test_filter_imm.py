@@ -250,3 +250,75 @@ def test_a_planar_ambiguous_start_is_not_ok_at_rest():
             att.append(np.degrees(np.linalg.norm((Rotation.from_quat(o.quaternion) * R0.inv()).as_rotvec())))
     assert tr.counters.inits >= 1 and ok_alone == 0
     assert len(att) > 50 and max(att[-20:]) < 1.0, att[-5:]
+
+
+def test_a_late_lone_plane_is_dropped_not_taken_for_a_device_reset():
+    """Construction with known truth. The deck decoder holds a rotation's lone light plane until the
+    channel's next block, so on the real hand-moved logs sweeps reach the filter 0.05-1 s after newer
+    ones (lh2_crossingBeam_move/log01: 38 pairs in 2 minutes); each was taken for a device reset and
+    restarted the filter (0.1-0.4 s without an ok pose each time). Here a 1.5 m/s swing with 10
+    sweeps re-sent 0.3 s late: the filter is never restarted and its ok outputs are exactly those of
+    the stream without them (the late sweeps dropped before touching the state, counted); a real
+    reset — the clock starting over for good — still restarts it, with ok poses after the restart."""
+    import dataclasses
+
+    from layoutkit.filter.tracker import SweepTracker
+
+    rng = np.random.default_rng(8)
+    P, sts, sweeps, truth = _stream("lh2", rng, T=3.0, swing_from=0.5, speed=1.5)
+    t_all = np.array([m.t for m in sweeps])
+    late_at = np.linspace(np.searchsorted(t_all, 1.0), np.searchsorted(t_all, 2.8), 10).astype(int)
+    stream = []
+    for i, (m, x) in enumerate(zip(sweeps, truth)):
+        stream.append((m, x))
+        if i in late_at:
+            stream.append((sweeps[np.searchsorted(t_all, m.t - 0.3)], None))
+
+    def run(items):
+        tr = SweepTracker(P, sts, EkfConfig())
+        ok = []
+        for m, x in items:
+            o = tr.push(m)
+            if o is not None and o.ok and x is not None:
+                ok.append((o.t, *o.translation, np.linalg.norm(o.translation - x)))
+        return tr.counters, np.array(ok)
+
+    c_clean, ok_clean = run(zip(sweeps, truth))
+    c_late, ok_late = run(stream)
+    assert c_clean.inits == c_late.inits == 1 and c_late.sweeps_late == 10 and c_clean.sweeps_late == 0
+    np.testing.assert_array_equal(ok_late, ok_clean)
+    assert len(ok_clean) > 0.8 * len(sweeps) and np.sqrt(np.mean(ok_clean[:, 4] ** 2)) < 2e-3
+
+    # a device reset: the clock starts over (the first second again, for good)
+    again = [(dataclasses.replace(m), x) for m, x in zip(sweeps, truth) if m.t < 1.0]
+    c_reset, ok_reset = run(list(zip(sweeps, truth)) + again)
+    assert c_reset.inits == 2 and c_reset.sweeps_late == EkfConfig().lost_after - 1
+    after = ok_reset[len(ok_clean):]
+    assert len(after) > 0.5 * len(again) and np.max(after[:, 4]) < 5e-3
+
+
+@pytest.mark.parametrize("kind", ["lh1", "lh2"])
+def test_compiled_station_jacobians_give_the_one_station_limit_of_pose_dop(kind):
+    """Two implementations of one quantity: the one-station limit the tracker evaluates every 0.1 s
+    (``PDOP_1 · sigma_theta``, Chen eq. 24) from the filter's compiled Jacobians
+    (``ImmFilter.station_jacobians``, :func:`layoutkit.filter._kernels_numba.sweep_rows`) equals the
+    one of :func:`layoutkit.dop.pose_dop` (numpy, :func:`layoutkit.lighthouse.measure_jacobian`)
+    at random poses, calibrated stations of factory-like size, to 1e-8 relative."""
+    from layoutkit.filter.ekf import single_station_sigma
+    from layoutkit.filter.imm import ImmFilter
+    from layoutkit.geometry import rotvec_to_matrix
+    from layoutkit.simulate import stations_looking_at
+
+    rng = np.random.default_rng(3)
+    P = np.array([[-0.015, 0.0075, 0.0], [-0.015, -0.0075, 0.0], [0.015, 0.0075, 0.0], [0.015, -0.0075, 0.002]])
+    sts = stations_looking_at(np.array([[-1.6, -1.8, 2.4], [1.9, -1.4, 2.3]]), np.array([0.0, 0.0, 0.5]), kind=kind,
+                              calibrations=[_cal(kind, rng), _cal(kind, rng)])
+    f = ImmFilter(P, sts, EkfConfig())
+    n = 0
+    for _ in range(40):
+        R, t = rotvec_to_matrix(rng.normal(0, 0.4, 3)), rng.normal(0, 0.3, 3) + [0.0, 0.0, 0.5]
+        ref = single_station_sigma(P, R, t, sts, 0.87, 4e-5)
+        if np.isfinite(ref):
+            n += 1
+            assert single_station_sigma(P, R, t, sts, 0.87, 4e-5, f.station_jacobians(R, t)) == pytest.approx(ref, rel=1e-8)
+    assert n > 30

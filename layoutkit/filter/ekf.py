@@ -204,11 +204,19 @@ def start_covariance(config: EkfConfig, cov, dim: int) -> np.ndarray:
     return P
 
 
-def single_station_sigma(points_body, rotation, translation, stations, rho: float, sigma_theta: float) -> float:
+def single_station_sigma(points_body, rotation, translation, stations, rho: float, sigma_theta: float,
+                         jacobians=None) -> float:
     """m, the best single station's predicted 1-sigma position (root trace, ``PDOP_1 · sigma_theta``,
     Chen eq. 24) at the pose ``rotation (3, 3)``, ``translation (3,)`` m (world) with every sensor
-    of ``points_body (n, 3)`` lit; inf when no station sees the layout."""
-    from ..dop import pose_dop
+    of ``points_body (n, 3)`` lit; inf when no station sees the layout. jacobians : optional (S, n,
+    2, 6) every station's angle Jacobian at that pose (``ImmFilter.station_jacobians``, compiled),
+    else :func:`layoutkit.dop.pose_dop` computes them."""
+    from ..dop import dop_from_jacobian, pose_dop
+
+    if jacobians is not None:
+        d = np.asarray(dop_from_jacobian(np.asarray(jacobians, float)[:, None], rho=rho).pdop, float)
+        d = d[np.isfinite(d)]
+        return float(d.min()) * sigma_theta if d.size else math.inf
 
     S, n = len(stations), len(points_body)
     vis = np.zeros((S, S, n), bool)

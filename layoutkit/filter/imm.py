@@ -234,6 +234,25 @@ class ImmFilter:
             self.M[:, 0] = 0.0
             self.M[j, 0] = 1.0
 
+    def station_jacobians(self, rotation, position) -> np.ndarray:
+        """(S, n, 2, 6) d angle / d (left world rotation rad, world position m) of every sensor, axis
+        and station at the body pose ``rotation (3, 3)``, ``position (3,)`` m — the compiled forward
+        model of the updates (:func:`layoutkit.filter._kernels_numba.sweep_rows`), the rows of
+        :func:`layoutkit.dop.pose_dop`'s Jacobian."""
+        K = self._k
+        n = self.points_body.shape[0]
+        idx = np.arange(n, dtype=np.int64)
+        R, p = np.ascontiguousarray(rotation, float), np.ascontiguousarray(position, float)
+        out, z, rows = np.empty((len(self._par), n, 2, 6)), np.empty(n), np.empty((n, 6))
+        for s, par in enumerate(self._par):
+            for axis in (0, 1):
+                v = par[axis]
+                K.sweep_rows(self.points_body, idx, R, p, v[K.PAR_RS:K.PAR_RS + 9].reshape(3, 3).copy(),
+                             v[K.PAR_TS:K.PAR_TS + 3].copy(), v[K.PAR_LH2] > 0.5, axis, v[K.PAR_CAL:K.PAR_CAL + 7].copy(),
+                             v[K.PAR_CORRECTED] > 0.5, z, rows)
+                out[s, :, axis] = rows
+        return out
+
     def propagate(self) -> None:
         """Bring the models to the filter's time without a measurement (mix + predict)."""
         if self.t > self._t_model:

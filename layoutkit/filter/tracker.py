@@ -22,7 +22,8 @@ Life cycle (docs/filter.md):
    of :class:`EkfConfig`, fewer than two consecutive sweeps were rejected and ``confirm_sweeps``
    sweeps were accepted since the start, else "uncertain".
 3. *lost*: ``lost_after`` consecutive rejected sweeps (the innovations say the state is wrong),
-   a pose sigma beyond ``lost_factor`` times the limits, or time running backwards → status
+   a pose sigma beyond ``lost_factor`` times the limits, or time running backwards for
+   ``lost_after`` sweeps in a row (a device reset; one late sweep is dropped) → status
    "lost" and back to 1 (the outputs keep coming, with status "lost", until a frame re-initialises).
 
 Static detector (``zupt``; always on in the adaptive mode, where it holds the bank in its quietest
@@ -135,6 +136,7 @@ class TrackerCounters:
     sweeps_rejected: int = 0
     zupts: int = 0
     pnp_tries: int = 0
+    sweeps_late: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -197,23 +199,21 @@ class SweepTracker:
             from .imm import ImmFilter
 
             self.ekf = ImmFilter(self.points_body, self.stations, self.config)
-        self.init_max_residual_sigma = float(init_max_residual_sigma)
-        self.init_window_s = float(init_window_s)
+        self.init_max_residual_sigma, self.init_window_s = float(init_max_residual_sigma), float(init_window_s)
         self.init_retry_s = 0.5 * float(init_window_s)
         self.reorder_s = 0.05  # s, sweeps older than the filter by at most this are applied late, not a reset
         # s, oldest angle of a multi-station start: about one rotation of every station (a moving body
         # has moved little since; the single-station start waits up to init_window_s for 4 sensors)
         self.joint_init_window_s = min(self.init_window_s, 0.025)
         self.confirm_sweeps = int(confirm_sweeps)
-        self._confirm = 0
-        self._ambiguous = 0
+        self._confirm = self._ambiguous = 0
         self._amb = None  # (station, start R) of an ambiguous PnP start: not ok until told apart
         self.counters = TrackerCounters()
         self._recent: dict = {}  # station -> (angles (n, 2), times (n, 2)) latest per sensor and axis
         self._tried: dict = {}  # station -> lit set of the last failed PnP start
         self._waiting_since = None  # when the tracker began waiting for a start (several stations)
         self._first = None  # (t, mean angle time, R, p, cov) of a joint start's first solve
-        self._bad_run = 0
+        self._bad_run = self._late_run = 0  # sweeps in a row: rejected; older than reorder_s
         self._bad_by_station: dict = {}
         self._lost = False
         self._last_same: dict = {}
@@ -448,7 +448,8 @@ class SweepTracker:
 
     # --------------------------------------------------------------------------- main
     def push(self, sweep) -> FilterOutput | None:
-        """Process one sweep; returns the filter state after it (None before the first init)."""
+        """Process one sweep; returns the filter state after it (None before the first init and for
+        a sweep more than ``reorder_s`` older than the filter: dropped, ``counters.sweeps_late``)."""
         c = self.config
         self.counters.sweeps += 1
         s = int(sweep.station)
@@ -466,15 +467,20 @@ class SweepTracker:
             # time is its zero, the sweep is complete only when the plane has passed): applied at the
             # filter's time with their hit times moved back
             late, t = t - ekf.t, ekf.t
-        if ekf.initialized and t < ekf.t:  # time ran backwards (device reset): start over
+        if ekf.initialized and t < ekf.t:
+            # too old to apply (the decoder holds a lone light plane until the channel's next block,
+            # up to ~1 s): dropped; lost_after such sweeps in a row are a device reset: start over
+            self._late_run += 1
+            if self._late_run < c.lost_after:
+                self.counters.sweeps_late += 1
+                return None
+        self._late_run = 0
+        if ekf.initialized and t < ekf.t:
             self._declare_lost()
             ekf.initialized = False
             self._first = None
-            self._recent.clear()
-            self._last_same.clear()
-            self._static_T.clear()
-            self._static_m.clear()
-            self._static_per.clear()
+            for kept in (self._recent, self._last_same, self._static_T, self._static_m, self._static_per):
+                kept.clear()
         if c.zupt or self._hold:
             self._static_test((s, axis), t, ang)
         event = ""
@@ -552,14 +558,14 @@ class SweepTracker:
         self._bad_by_station.clear()
 
     def _one_station_limit(self, t: float) -> float:
-        """m, ``PDOP_1 · sigma_theta`` of the best single station at the filter's pose, every sensor
-        lit (:attr:`EkfConfig.ok_beats_one_station`); re-evaluated after 0.1 s of stream time or a
-        (re)start."""
+        """m, ``PDOP_1 · sigma_theta`` of the best single station at the filter's pose, every sensor lit
+        (:attr:`EkfConfig.ok_beats_one_station`); re-evaluated after 0.1 s of stream time or a (re)start."""
         t0, lim = self._one_station
         if abs(t - t0) <= 0.1:
             return lim
-        lim = single_station_sigma(self.points_body, quat_to_matrix(self.ekf.q), self.ekf.p, self.stations,
-                                   self.config.rho, self.config.sigma_theta)
+        R, jac = quat_to_matrix(self.ekf.q), getattr(self.ekf, "station_jacobians", None)
+        lim = single_station_sigma(self.points_body, R, self.ekf.p, self.stations, self.config.rho,
+                                   self.config.sigma_theta, None if jac is None else jac(R, self.ekf.p))
         self._one_station = (t, lim)
         return lim
 

@@ -37,12 +37,16 @@ from .continuity import continuity_gate, motion_history, recent_velocity
 from .posechunk import PoseChunk, empty_pose_arrays
 
 __all__ = ["JOINT", "JointWindow", "JointWindower", "window_arrays", "solve_windows", "crossing_beam_windows",
-           "MOTION_MIN_SIGMA", "auto_sigma_limit"]
+           "MOTION_MIN_SIGMA", "OUTLIER_P", "auto_sigma_limit", "drop_one_outlier"]
 
 #: a window's motion is modelled (``motion_compensation``) when the known velocity changes its
 #: angles by more than this many sigma_theta (RMS over its measurement times): below, the
 #: uncompensated bias is negligible and the velocity estimate mostly noise (a deck at rest)
 MOTION_MIN_SIGMA = 0.25
+
+#: false-alarm probability of the one-outlier test of a window's angles (:func:`drop_one_outlier`);
+#: 0 turns it off
+OUTLIER_P = 1e-3
 
 
 @dataclass(frozen=True)
@@ -228,6 +232,14 @@ def solve_windows(points_body, windows, config, stations, state: dict | None = N
         # the residual limit follows sigma and, for a window solved as static, the known motion
         # across it (the angles of a moving deck measured up to 20 ms apart cannot fit one pose)
         sm = np.where(comp, 0.0, sm)
+        if OUTLIER_P > 0:  # one outlying angle (a reflection) left out, in each window's own motion model
+            miss = config.max_residual_sigma * config.sigma_theta
+            a, Rs, ts, rr, out = drop_one_outlier(P, a, Rs, ts, rr, ok & ~comp, stations, OUTLIER_P, miss)
+            a, Rs, ts, rr, out_c = drop_one_outlier(P, a, Rs, ts, rr, ok & comp, stations, OUTLIER_P, miss,
+                                                    dt=dt[idx], velocity=(w, v))
+            if (out | out_c).any():  # the lit sets (precision, stations used) without the left-out angles
+                lit[idx] = np.all(np.isfinite(a), -1)
+                n_lit[idx] = lit[idx].sum(axis=(1, 2))
         limit = config.max_residual_sigma * np.hypot(config.sigma_theta, sm)
         if ok.any():
             d = pose_dop(P, np.where(ok[:, None, None], Rs, np.eye(3)), np.where(ok[:, None], ts, 0.0),
@@ -332,6 +344,72 @@ def _solve_from_starts_or_track(P, a, t, startable, state, config, stations, sol
         Rs[g], ts[g], rr[g] = np.array(sol.rotation), np.array(sol.translation), np.array(sol.residual_rms)
         st[g] = np.asarray(sol.status)
     return Rs, ts, rr, st
+
+
+def drop_one_outlier(points_body, angles, rotation, translation, residual_rms, test, stations, p_false: float,
+                     min_miss: float = 0.0, dt=None, velocity=None):
+    """Leave one outlying angle out of the windows ``test``: the externally studentized residual test
+    (Belsley, Kuh & Welsch 1980, §2.1; Cook & Weisberg 1982, §2.2.2) on each window's least-squares
+    fit, linearised at its solved pose. With ``m`` angles, residuals ``e``, Jacobian ``J`` (m, 6) and
+    leverages ``h = diag(J (J^T J)^-1 J^T)``, leaving angle ``j`` out lowers the sum of squares to
+    ``SSR_j = SSR - e_j² / (1 - h_j)``; ``F_j = (SSR - SSR_j) / (SSR_j / (m - 7))`` is F(1, m - 7)
+    distributed when no angle is an outlier, whatever the noise level (the set-up's model errors
+    scale both terms). A window whose largest ``F_j`` exceeds the ``1 - p_false`` quantile, and whose
+    angle ``j`` alone misses by more than ``min_miss`` rad (``e_j² / (1 - h_j) > min_miss²``: the
+    pipeline passes the residual limit ``max_residual_sigma · sigma_theta``, so a fit whose residuals
+    are all at the noise level loses no angle), is solved again without that angle (from its pose);
+    the new pose replaces the old where that solve converges. One angle at most per window (one reflecting sensor); windows with ``m - 7 < 2`` are
+    not tested.
+
+    points_body (n, 3) m; angles (W, S, n, 2) rad; rotation (W, 3, 3), translation (W, 3) m (world),
+    residual_rms (W,) rad: the windows' solves; test (W,) bool; dt (W, S, 2) s and velocity
+    ``(w (W, 3), v (W, 3))``: the windows' motion model (:func:`layoutkit.joint.solve_joint`), or None
+    for windows solved as static. Returns ``(angles with the left-out
+    angles NaN, rotation, translation, residual_rms, left_out (W,) bool)`` (new arrays)."""
+    from scipy.stats import f as f_dist
+
+    from ..joint import model_angles_jacobian, solve_joint
+
+    a, R, t, rr = angles.copy(), rotation.copy(), translation.copy(), residual_rms.copy()
+    out = np.zeros(len(a), bool)
+    k = np.flatnonzero(test)
+    if k.size == 0:
+        return a, R, t, rr, out
+    mot = {} if dt is None else {"dt": np.asarray(dt)[k], "velocity": (velocity[0][k], velocity[1][k])}
+    pred, J, _ = model_angles_jacobian(points_body, R[k], t[k], stations, **mot)
+    m = np.isfinite(a[k]).reshape(k.size, -1)                                   # (K, M)
+    e = np.where(m, np.remainder(a[k].reshape(k.size, -1) - pred.reshape(k.size, -1) + np.pi, 2 * np.pi) - np.pi, 0.0)
+    Jm = np.where(m[..., None], J.reshape(k.size, -1, 6), 0.0)                  # (K, M, 6)
+    N = np.einsum("kmi,kmj->kij", Jm, Jm)
+    dof = m.sum(1) - 7
+    good = (dof >= 2) & (np.linalg.cond(N) < 1e12)
+    Ni = np.zeros_like(N)
+    Ni[good] = np.linalg.inv(N[good])
+    h = np.einsum("kmi,kij,kmj->km", Jm, Ni, Jm)
+    ssr = np.sum(e * e, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ssr_j = ssr[:, None] - e * e / (1.0 - h)
+        big = m & (h < 1.0 - 1e-9) & (ssr[:, None] - ssr_j > min_miss ** 2)
+        F = np.where(big, (ssr[:, None] - ssr_j) / (ssr_j / np.maximum(dof, 1)[:, None]), 0.0)
+    j = np.argmax(F, 1)
+    q = f_dist.ppf(1.0 - p_false, 1, np.maximum(dof, 1))
+    hit = np.flatnonzero(good & (F[np.arange(k.size), j] > q))
+    if hit.size == 0:
+        return a, R, t, rr, out
+    w = k[hit]
+    a2 = a[w].reshape(hit.size, -1)
+    a2[np.arange(hit.size), j[hit]] = np.nan
+    a2 = a2.reshape(a[w].shape)
+    if mot:
+        mot = {"dt": np.asarray(dt)[w], "velocity": (velocity[0][w], velocity[1][w])}
+    sol = solve_joint(points_body, a2, stations=stations, initial=(R[w], t[w]), **mot)
+    took = np.asarray(sol.status) == _status.OK
+    w = w[took]
+    a[w] = a2[took]
+    R[w], t[w], rr[w] = np.asarray(sol.rotation)[took], np.asarray(sol.translation)[took], \
+        np.asarray(sol.residual_rms)[took]
+    out[w] = True
+    return a, R, t, rr, out
 
 
 def _compensate(P, a, dt, Rs, ts, rr, use, w, v, stations, solve_joint):

@@ -52,6 +52,7 @@ class _Lines(io.TextIOBase):
 
     def __init__(self):
         self.buf, self.t, self.p, self.status, self.used, self.sigma, self.lines = "", [], [], [], [], [], 0
+        self.station, self.angles = [], []  # the filter's lines: the sweep's station and its angles (used + rejected)
 
     def writable(self):
         return True
@@ -75,12 +76,16 @@ class _Lines(io.TextIOBase):
                 else:
                     sig = d.get("sigma_position_m")
                 self.sigma.append(np.nan if sig is None else float(sig))
+                st = d.get("station")
+                self.station.append(st if isinstance(st, int) else -1)
+                self.angles.append(int(d.get("used") or 0) + int(d.get("rejected") or 0))
         return len(s)
 
     def arrays(self):
         return {"t": np.asarray(self.t, float), "p": np.asarray(self.p, float).reshape(-1, 3),
                 "status": np.asarray(self.status, str), "used": np.asarray(self.used, int),
-                "sigma": np.asarray(self.sigma, float)}
+                "sigma": np.asarray(self.sigma, float), "station": np.asarray(self.station, int),
+                "angles": np.asarray(self.angles, int)}
 
 
 def replay(log, yml, *, stations=None, filt=False, **kw):
@@ -143,6 +148,36 @@ def firmware_crossing_beam(log, yml):
             ws += win.push(f)
     ws += win.flush()
     return crossing_beam_windows(ws, sts, lay.n)
+
+
+def interval_causes(F, on: float, off: float, interval: float = 0.1) -> dict:
+    """Why the filter's 100 ms intervals of a log are not ok, from its JSON lines ``F`` (one per
+    sweep once started: station, status, angles the sweep carried): each interval of ``[on, off)``
+    is ``ok`` (an ok output), else by the stations whose sweeps carried angles in it (``none`` /
+    ``1 station`` / ``2 stations``; before the filter's first start and for sweeps it dropped as late:
+    ``none`` as well, no line; a lost filter's lines count as sweeps, it does not update) and
+    the filter's state (``lost``, else ``uncertain``). Counts, and the coverage over all intervals
+    and over the intervals with sweeps."""
+    n = int(np.floor((off - on) / interval))
+    k = np.floor((F["t"] - on) / interval).astype(np.int64)
+    use = (k >= 0) & (k < n)
+    ok = np.zeros(n, bool)
+    ok[k[use & (F["status"] == "ok")]] = True
+    seen = np.zeros((n, 2), bool)
+    # a lost filter does not update (used = rejected = 0): its lines count as sweeps of their station
+    lit = use & ((F["angles"] > 0) | (F["status"] == "lost")) & (F["station"] >= 0) & (F["station"] < 2)
+    seen[k[lit], F["station"][lit]] = True
+    lost = np.zeros(n, bool)
+    lost[k[use & (F["status"] == "lost")]] = True
+    ns = seen.sum(1)
+    out = {"intervals": n, "ok": int(ok.sum()), "with_sweeps_2_stations": int((ns == 2).sum()),
+           "with_sweeps_1_station": int((ns == 1).sum()), "without_sweeps": int((ns == 0).sum())}
+    for label, m in (("1 station", ns == 1), ("2 stations", ns == 2)):
+        out[f"not_ok_{label.replace(' ', '_')}_lost"] = int((~ok & m & lost).sum())
+        out[f"not_ok_{label.replace(' ', '_')}_uncertain"] = int((~ok & m & ~lost).sum())
+    out["coverage_all"] = round(float(ok.mean()), 4) if n else None
+    out["coverage_with_sweeps"] = round(float(ok.sum() / max((ns > 0).sum(), 1)), 4)
+    return out
 
 
 def mm(v):
@@ -236,6 +271,22 @@ def write_table(res: dict, out: Path) -> Path:
         L.append(f"| {name} | {e('joint')} | {e('filter')} | {e('fw_crossing_beam')} | {e('fw_ekf')} | "
                  f"{_f(r.get('joint_coverage_100ms'), 2)} / {_f(r.get('filter_coverage_100ms'), 2)} | "
                  f"{r.get('filter_inits')} | {_f(r.get('filter_error_over_sigma_rms'), 1)} |")
+    L += ["", "## Why the filter's 100 ms intervals are not ok (moving and flying logs)", "",
+          "Per interval of the log (between its markers): ok (an ok filter output), else by the stations whose sweeps "
+          "carried angles in it and whether the filter was lost there (`interval_causes`). *Uncertain* with 2 stations "
+          "= the filter's position 1-sigma above what one station would give (fast motion: the adaptive bank in its "
+          "agile model), or velocity not yet known after a start; with 1 station the range is not known to the ok "
+          "limit (those poses are 3x off when called ok).", "",
+          "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / lost "
+          "| not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
+    for name, r in logs.items():
+        c = r.get("filter_interval_causes")
+        if not c:
+            continue
+        L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
+                 f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
+                 f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
+                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
     L += ["", "## Filter speed (stream seconds per filter CPU second, this run's machine load)", "",
           "| log | stream s | filter CPU s | × real time |", "|---|---|---|---|"]
     for name, r in logs.items():
@@ -346,6 +397,7 @@ def main():
             if fw["ekf"] is not None and it.mode == "kalman":
                 row["fw_ekf_jitter_mm"] = mm(jitter(fw["ekf"][1]))
         elif it.mocap is not None and fw["markers"]:
+            row["filter_interval_causes"] = interval_causes(F, on, off)
             mc = np.load(it.mocap)
             series = {"joint": (tj, pj, None), "filter": (tf, pf, None)}
             if cb is not None:
