@@ -1,10 +1,33 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures, and the numba kernels compiled once before xdist's workers start."""
 import os
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+
+
+def pytest_configure(config):
+    """With pytest-xdist workers (``-n N``, N >= 2), compile the kernels first in two processes
+    (tests/_warm_kernels.py): in a fresh checkout both workers would otherwise compile the same
+    kernels at the same time. A few seconds when the cache is there; skipped with -n 0, in the
+    workers themselves, or with LAYOUTKIT_TEST_NO_WARM=1."""
+    n = getattr(config.option, "numprocesses", None)
+    if hasattr(config, "workerinput") or not n or os.environ.get("LAYOUTKIT_TEST_NO_WARM"):
+        return
+    t0 = time.monotonic()
+    script = Path(__file__).with_name("_warm_kernels.py")
+    procs = [subprocess.Popen([sys.executable, str(script), g], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True) for g in ("pose", "filter")]
+    failed = [(g, p.communicate()[1][-400:]) for g, p in zip(("pose", "filter"), procs) if p.wait() != 0]
+    for g, err in failed:  # the tests then compile what they need themselves (and fail where it is broken)
+        config.issue_config_time_warning(pytest.PytestWarning(f"kernel warm-up '{g}' failed: {err}"), stacklevel=2)
+    if time.monotonic() - t0 > 10:
+        print(f"numba kernels compiled in {time.monotonic() - t0:.0f} s (tests/_warm_kernels.py)", file=sys.stderr)
 
 
 @pytest.fixture

@@ -32,7 +32,7 @@ SHORTEN = [
     ("fake-fpga", "--duration 600", "--duration 3"),
     ("fake-fpga", "--duration 60", "--duration 4 --wait-reader 60"),
     ("live", "--report out/val-live/", "--report out/val-live/ --duration 30 --idle-timeout 1.5"),
-    ("chen2024", "--groups 50 --frames 3600", "--groups 2 --frames 30 --dynamic-seconds 1"),
+    ("chen2024", "--groups 50 --frames 3600", "--groups 2 --frames 30 --dynamic-seconds 1 --scheduler synchronous"),
     ("zhai2014", "study zhai2014", "study zhai2014 --quick"),
     ("sweep", "models/chen_sweep.toml", "models/chen_sweep_quick.toml --scheduler synchronous"),
     ("validate", "--frames 1000000", "--frames 3000 --scheduler synchronous"),
