@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test test-fast test-install bench clean
+.PHONY: venv demo test test-fast test-install durations bench clean
 
 venv: $(STAMP)
 
@@ -24,6 +24,10 @@ test: $(STAMP)
 # the development loop: slow tests deselected (< 1 min on 2 idle cores)
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q -m "not slow and not install"
+
+# re-measure tests/durations.json (which tests test-fast leaves out; the order files run in): the whole suite
+durations: $(STAMP)
+	LAYOUTKIT_TEST_DURATIONS=tests/durations.json $(BIN)/python -m pytest -n 2 -q
 
 # the wheel installed with every dependency into a fresh venv, then `layoutkit demo` (minutes)
 test-install: $(STAMP)

@@ -30,6 +30,48 @@ def pytest_configure(config):
         print(f"numba kernels compiled in {time.monotonic() - t0:.0f} s (tests/_warm_kernels.py)", file=sys.stderr)
 
 
+#: tests/durations.json: seconds per test id, measured by a whole run of the suite with
+#: ``LAYOUTKIT_TEST_DURATIONS=tests/durations.json`` (``make durations``); a test recorded at SLOW_S or
+#: more is marked ``slow`` (``make test-fast`` leaves it out), and files run longest first, so the two
+#: workers do not end on one long file. A test not in the file yet is not marked.
+DURATIONS = Path(__file__).with_name("durations.json")
+SLOW_S = 1.0
+_measured: dict = {}
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by the marks
+def pytest_collection_modifyitems(config, items):
+    import json
+
+    try:
+        known = json.loads(DURATIONS.read_text())
+    except (OSError, ValueError):
+        return
+    per_file: dict = {}
+    for it in items:
+        d = known.get(it.nodeid, 0.0)
+        if d >= SLOW_S:
+            it.add_marker(pytest.mark.slow)
+        per_file[it.nodeid.split("::")[0]] = per_file.get(it.nodeid.split("::")[0], 0.0) + d
+    order = {it.nodeid: k for k, it in enumerate(items)}
+    items.sort(key=lambda it: (-per_file[it.nodeid.split("::")[0]], order[it.nodeid]))
+
+
+def pytest_runtest_logreport(report):
+    if os.environ.get("LAYOUTKIT_TEST_DURATIONS"):
+        _measured[report.nodeid] = _measured.get(report.nodeid, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session, exitstatus):
+    out = os.environ.get("LAYOUTKIT_TEST_DURATIONS")
+    if out and _measured and not hasattr(session.config, "workerinput"):
+        import json
+
+        from layoutkit.io.atomic import atomic_write_text
+
+        atomic_write_text(out, json.dumps({k: round(v, 3) for k, v in sorted(_measured.items())}, indent=0) + "\n")
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
