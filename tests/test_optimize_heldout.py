@@ -95,7 +95,7 @@ def test_plain_optimize_is_dense_and_reports_the_heldout_estimate(tmp_path, smal
     (equal to an independent `score --draws 5` of the written layout), `design_value` the optimiser's own;
     the gap states its pose set. `--dense-poses 0`: the design-set value, as before."""
     out = tmp_path / "lay.json"
-    args = ["optimize", MESH, "-k", "10", "--envelope", small_envelope, "--spacing-mm", "16", "--time-limit-s", "20",
+    args = ["optimize", MESH, "-k", "10", "--envelope", small_envelope, "--spacing-mm", "16", "--time-limit-s", "8",
             "--method", "greedy", "--no-render", "--json"]
     r = CliRunner().invoke(main, args + ["--out", str(out)])
     assert r.exit_code == 0, r.output
@@ -172,7 +172,7 @@ def test_tilted_plain_call_json_keeps_the_interface_and_explains_its_bound(tmp_p
     bound, the candidate set names the tilt, and a loose bound says why and which verdict it has."""
     out = tmp_path / "lay.json"
     r = CliRunner().invoke(main, ["optimize", MESH, "--envelope", small_envelope, "--sensors", "10", "--spacing-mm",
-                                  "16", "--max-tilt-deg", "25", "--tilt-toward", "station", "--time-limit-s", "20",
+                                  "16", "--max-tilt-deg", "25", "--tilt-toward", "station", "--time-limit-s", "8",
                                   "--no-render", "--out", str(out), "--json"])
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout)
