@@ -8,7 +8,7 @@ import contextlib
 
 import click
 
-from ._common import echo_json, fail
+from ._common import call_or_fail, echo_json, fail
 from .options import (envelope_option, half_angle_option, json_flag, json_out_option, out_dir_option, rho_option,
                       scheduler_option, seed_option, sigma_option, units_option, workers_option)
 
@@ -78,10 +78,7 @@ def sweep_cmd(sweep_path, out_dir, scheduler, workers, as_json):
     from ..workflows.sweep_config import load_sweep
     from ..workflows.sweep import run_sweep
 
-    try:
-        cfg = load_sweep(sweep_path)
-    except ValueError as exc:
-        fail(str(exc))
+    cfg = call_or_fail(load_sweep, sweep_path)
     echo = lambda m: click.echo(m, err=True)  # noqa: E731
     with executor_from_flags(scheduler, workers, quiet=as_json) as ex:
         try:

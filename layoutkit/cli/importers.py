@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import echo_json, fail
+from ._common import call_or_fail, echo_json
 from .options import (Requires, flag_rules, json_flag, overwrite_option, out_dir_option, out_file_option, stations_option,
                       system_config_option, units_option)
 
@@ -12,13 +12,6 @@ from .options import (Requires, flag_rules, json_flag, overwrite_option, out_dir
 def import_group():
     """Bring in the field's formats: each writes layoutkit's own files (layout JSON, frame table,
     pose table, stations JSON, capture + sidecar) that every other command reads."""
-
-
-def _run(fn, *args, **kw):
-    try:
-        return fn(*args, **kw)
-    except ValueError as exc:
-        fail(str(exc))
 
 
 @import_group.command("vive-config", short_help="Vive/Index device JSON to a layout.")
@@ -30,7 +23,7 @@ def vive_config_cmd(file, out, as_json):
     metres, device frame) → layout JSON with ids, positions and normals."""
     from ..workflows.importers import import_vive_config
 
-    s = _run(import_vive_config, file, out)
+    s = call_or_fail(import_vive_config, file, out)
     if as_json:
         echo_json(s)
     else:
@@ -61,7 +54,7 @@ def libsurvive_cmd(recording, out_dir, device, config, imu_filter, stations_path
     from ..workflows.importers import import_libsurvive
 
     out = out_dir
-    s = _run(import_libsurvive, recording, out, device=device, config=config, imu_filter=imu_filter,
+    s = call_or_fail(import_libsurvive, recording, out, device=device, config=config, imu_filter=imu_filter,
              filter_stations=stations_path)
     if as_json:
         echo_json(s)
@@ -101,7 +94,7 @@ def cfusdlog_cmd(log, out_dir, system_config, as_json):
     estSweepAngle, LH1 or LH2), the firmware's own angles and position estimates as tables."""
     from ..workflows.importers import import_cfusdlog
 
-    s = _run(import_cfusdlog, log, out_dir, system_config=system_config)
+    s = call_or_fail(import_cfusdlog, log, out_dir, system_config=system_config)
     if as_json:
         echo_json(s)
         return
@@ -139,7 +132,7 @@ def reference_cmd(file, out, units, overwrite, as_json):
 
     refuse_existing(out, overwrite, "a reference of an earlier import")
 
-    s = _run(import_reference, file, out, units=units)
+    s = call_or_fail(import_reference, file, out, units=units)
     if as_json:
         echo_json(s)
     else:

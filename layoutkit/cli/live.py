@@ -58,7 +58,7 @@ def _camera_config(camera_device, focal_length_px, principal_point_px, camera_me
     camera side undistort (``--focal-length-px`` / ``--principal-point-px`` are then refused)."""
     from pathlib import Path
 
-    from ._common import fail
+    from ._common import call_or_fail, fail
 
     src = camera_device if camera_device is not None else folder
     if src is None:
@@ -243,7 +243,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     capture) the camera frames are solved too and compared with the poses (summary "camera").
     """
     from ..workflows.live import camera_folder_for, replay_capture
-    from ._common import fail
+    from ._common import call_or_fail, fail
 
     opts = _options(rho, sigma, live=False, motion_compensation=motion_compensation,
                     filter_settings=filter_settings, max_sigma_position=max_sigma_position)
@@ -350,7 +350,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baud
     raw in RECORD.camera/ before solving) and the dashboard shows their disagreement.
     """
     from ..workflows.live import run_live
-    from ._common import fail
+    from ._common import call_or_fail, fail
 
     if layout_path is None:
         fail("--layout is required for live runs")
@@ -358,10 +358,7 @@ def live_cmd(port, record, overwrite, duration, idle_timeout, port_timeout, baud
         fail(f"--duration: expected a positive number of seconds, got {duration}")
     opts = _options(rho, sigma, live=True, motion_compensation=motion_compensation,
                     filter_settings=filter_settings, max_sigma_position=max_sigma_position)
-    try:
-        cfg, stations = _stations_arg(stations_path, system_config)
-    except ValueError as exc:
-        fail(str(exc))
+    cfg, stations = call_or_fail(_stations_arg, stations_path, system_config)
     kw = dict(protocol=protocol or "layoutkit", options=opts, record=record, duration=duration, truth=truth,
               reference=reference, reference_units=reference_units, reference_offset=reference_offset, camera=camera,
               json_out=sys.stdout if json_lines else None, report_dir=report_dir, baudrate=baudrate,

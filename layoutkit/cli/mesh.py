@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import echo_json, emit_json, fail
+from ._common import call_or_fail, echo_json, emit_json, fail
 from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option, length_mm_option,
                       min_visible_option, out_file_option, seed_option, units_option)
 
@@ -23,10 +23,7 @@ def mesh_info_cmd(mesh, units, as_json):
     """Size, face count, watertightness, parts and warnings of a mesh file (STL/OBJ/PLY/OFF/GLB/GLTF)."""
     from ..workflows.design import mesh_info
 
-    try:
-        info = mesh_info(mesh, units)
-    except ValueError as exc:
-        fail(str(exc))
+    info = call_or_fail(mesh_info, mesh, units)
     if as_json:
         echo_json(info)
         return
@@ -106,11 +103,8 @@ def visibility_cmd(mesh, units, layout_path, envelope_path, half_angle_deg, max_
     """Which sensors are lit over the envelope: per-sensor lit fraction, min lit count, poses below --min-visible."""
     from ..workflows.design import visibility_report
 
-    try:
-        rep = visibility_report(mesh, layout_path, envelope_path, units=units, sensor_half_angle_deg=half_angle_deg,
-                                max_range=max_range_m, min_lit=min_visible)
-    except ValueError as exc:
-        fail(str(exc))
+    rep = call_or_fail(visibility_report, mesh, layout_path, envelope_path, units=units,
+                       sensor_half_angle_deg=half_angle_deg, max_range=max_range_m, min_lit=min_visible)
     if emit_json(rep, as_json, json_out):
         return
     _warn(rep["warnings"])
