@@ -210,7 +210,7 @@ class _ServerSolver:
 
 def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked child
     """Node relaxations for the B&B child (:class:`layoutkit.optimize.bnb.NodeServer`) until its pipe closes."""
-    worker_setup(nice=10)
+    worker_setup(nice=0)  # the parent only waits once the search is done: this is its core, at its priority
     server = NodeServer(problem)
     while True:
         try:
