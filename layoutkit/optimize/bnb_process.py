@@ -2,7 +2,7 @@
 shared-memory certificate (:mod:`layoutkit.optimize.bnb` does the tree; this module the processes).
 
 Processes: the B&B child (niced) runs :func:`layoutkit.optimize.bnb.branch_and_bound` and publishes
-its bound through shared memory; once the search is done, a forked node server solves one child of
+its bound through shared memory; once the search is done, a forked node server (at the parent's priority: the parent only waits) solves one child of
 every disjunction for it (both cores on the tree); the parent only waits, and kills both at the end.
 Every published bound is valid on its own, so either process may be killed at any moment.
 """
