@@ -2,8 +2,9 @@
 shared-memory certificate (:mod:`layoutkit.optimize.bnb` does the tree; this module the processes).
 
 Processes: the B&B child (niced) runs :func:`layoutkit.optimize.bnb.branch_and_bound` and publishes
-its bound through shared memory; once the search is done, a forked node server (at the parent's priority: the parent only waits) solves one child of
-every disjunction for it (both cores on the tree); the parent only waits, and kills both at the end.
+its bound through shared memory; once the search is done, a forked node server (at the parent's
+priority) solves one child of every disjunction for it (both cores on the tree); the parent only
+waits, and kills both at the end.
 Every published bound is valid on its own, so either process may be killed at any moment.
 """
 from __future__ import annotations
