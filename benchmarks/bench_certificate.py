@@ -65,6 +65,8 @@ def main():
     ap.add_argument("--off-limits", default="120", help="time limits also run with branch_and_bound='off'")
     ap.add_argument("--seeds", type=int, default=0, help="instances of the family (0: the issue's instance only)")
     ap.add_argument("--first-seed", type=int, default=101)
+    ap.add_argument("--result-name", default="certificate_seeds",
+                    help="--seeds: results/<name>.json (e.g. a held-out family of seeds beside the must-show's)")
     args = ap.parse_args()
     import cvxpy  # noqa: F401 - import outside the timed runs
 
@@ -104,7 +106,7 @@ def _family(args):
     for sd in seeds:
         print(f"| {sd} | " + " | ".join(f"{100 * r['gap']:.2f} %" for tl in limits for r in rows
                                        if r["seed"] == sd and r["time_limit_s"] == tl) + " |")
-    p = write_result("certificate_seeds", {
+    p = write_result(args.result_name, {
         "instance": "synthetic_instance(1000, 200, rng=seed), k=16, rho=0.8717, worst-adop", "seeds": seeds,
         "cpus": os.cpu_count(), "runs": rows, "per_limit": summary, "max_rss_bytes": max_rss_bytes(),
         "max_rss_children_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024})
