@@ -14,8 +14,8 @@ limit (the limit includes the relaxation and the branch-and-bound of :mod:`layou
 which runs in a second process beside the search and, once the search is done, gets node
 relaxations solved by the parent too), and one run per ``--off-limits`` entry with
 ``branch_and_bound="off"`` (relaxation bound only) as the same-run anchor. Value, certified bound,
-gap, who certified it, B&B node count and wall time of each; the load average before each run
-(the machine has 2 cores: figures measured under load say so). Writes
+gap, who certified it, B&B node count, why B&B stopped and its bound history, wall and CPU time of each;
+the load average before and after each run (the machine has 2 cores: figures measured under load say so). Writes
 benchmarks/results/certificate.json.
 """
 from __future__ import annotations
@@ -37,18 +37,25 @@ from layoutkit.units import RHO_PAPER  # noqa: E402
 
 def _run(inst, tl, bnb):
     load = os.getloadavg()[0]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), os.times()
     r = optimize_layout(**inst, k=16, rho=RHO_PAPER, time_limit=tl, rng=0, branch_and_bound=bnb)
-    wall = time.perf_counter() - t0
+    wall, c1 = time.perf_counter() - t0, os.times()
     b = r.info.get("branch_and_bound", {})
     row = {"time_limit_s": tl, "branch_and_bound": bnb, "wall_s": wall, "value": r.value, "bound": r.bound,
            "gap": r.gap, "certified_by": r.certified_by, "root_bound": b.get("root_bound"),
            "bnb_nodes": b.get("nodes"), "bnb_open_nodes": b.get("open_nodes"),
            "bnb_nodes_solved_by_parent": b.get("served_by_parent"), "search_s": r.info.get("search_s"),
-           "relaxation_s": r.timings.get("relaxation_s"), "load_avg_1min_before": load,
+           "relaxation_s": r.timings.get("relaxation_s"), "bnb_stopped": b.get("stopped"),
+           "bnb_stopped_at_s": b.get("stopped_at_s"), "bnb_history": b.get("history"),
+           # CPU seconds this run got (parent; forked relaxation / B&B / node-server children): on a shared
+           # machine the wall-clock limit buys fewer node relaxations than on a quiet one
+           "cpu_parent_s": (c1.user - c0.user) + (c1.system - c0.system),
+           "cpu_children_s": (c1.children_user - c0.children_user) + (c1.children_system - c0.children_system),
+           "load_avg_1min_before": load, "load_avg_1min_after": os.getloadavg()[0],
            "status": r.status, "message": r.message}
     print(f"limit {tl:.0f} s, B&B {bnb}: wall {wall:.1f} s, value {r.value:.2f}, bound {r.bound:.2f} "
-          f"({r.certified_by}, {b.get('nodes', 0)} nodes), gap {100 * r.gap:.2f} %, load {load:.1f}", flush=True)
+          f"({r.certified_by}, {b.get('nodes', 0)} nodes), gap {100 * r.gap:.2f} %, load {load:.1f}; "
+          f"B&B stopped: {b.get('stopped')}", flush=True)
     return row
 
 
@@ -58,6 +65,8 @@ def main():
     ap.add_argument("--off-limits", default="120", help="time limits also run with branch_and_bound='off'")
     ap.add_argument("--seeds", type=int, default=0, help="instances of the family (0: the issue's instance only)")
     ap.add_argument("--first-seed", type=int, default=101)
+    ap.add_argument("--result-name", default="certificate_seeds",
+                    help="--seeds: results/<name>.json (e.g. a held-out family of seeds beside the must-show's)")
     args = ap.parse_args()
     import cvxpy  # noqa: F401 - import outside the timed runs
 
@@ -88,9 +97,16 @@ def _family(args):
     summary = {}
     for tl in limits:
         g = [r["gap"] for r in rows if r["time_limit_s"] == tl]
-        summary[f"{tl:g}"] = {"median_gap": float(np.median(g)), "worst_gap": float(np.max(g)), "seeds": len(g)}
+        early = [{"seed": r["seed"], "wall_s": r["wall_s"], "bnb_stopped": r["bnb_stopped"]} for r in rows
+                 if r["time_limit_s"] == tl and r["wall_s"] < 0.9 * tl]
+        summary[f"{tl:g}"] = {"median_gap": float(np.median(g)), "worst_gap": float(np.max(g)), "seeds": len(g),
+                              "ended_before_90pct_of_limit": early}
         print(f"limit {tl:g} s: median gap {100 * np.median(g):.2f} %, worst {100 * np.max(g):.2f} % over {len(g)} seeds")
-    p = write_result("certificate_seeds", {
+    print("| seed | " + " | ".join(f"gap at {tl:g} s" for tl in limits) + " |")
+    for sd in seeds:
+        print(f"| {sd} | " + " | ".join(f"{100 * r['gap']:.2f} %" for tl in limits for r in rows
+                                       if r["seed"] == sd and r["time_limit_s"] == tl) + " |")
+    p = write_result(args.result_name, {
         "instance": "synthetic_instance(1000, 200, rng=seed), k=16, rho=0.8717, worst-adop", "seeds": seeds,
         "cpus": os.cpu_count(), "runs": rows, "per_limit": summary, "max_rss_bytes": max_rss_bytes(),
         "max_rss_children_bytes": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024})

@@ -245,6 +245,9 @@ def test_pipeline_reports_branch_and_bound_certificate():
     assert on.certified_by == "branch-and-bound" and "branch-and-bound" in on.message
     assert on.bound <= ex.value * (1 + 1e-9) and on.gap <= 0.01
     assert on.info["branch_and_bound"]["bound"] == pytest.approx(on.bound)
+    # why it stopped is part of the result: the gap reached (<= 1 %) or the tree exhausted, nothing else here
+    stopped = on.info["branch_and_bound"]["stopped"]
+    assert stopped.startswith(("gap reached", "tree exhausted")) and f"stopped: {stopped}" in on.message
     # a second run in the same process gets its bound too (the node server runs in its own process:
     # solver threads started in this one once made the forks of later runs hang)
     on2 = optimize_stations(jac, inst["visible"][:, None], K, rho=RHO_PAPER, time_limit=60, rng=0,

@@ -2,8 +2,9 @@
 shared-memory certificate (:mod:`layoutkit.optimize.bnb` does the tree; this module the processes).
 
 Processes: the B&B child (niced) runs :func:`layoutkit.optimize.bnb.branch_and_bound` and publishes
-its bound through shared memory; once the search is done, a forked node server solves one child of
-every disjunction for it (both cores on the tree); the parent only waits, and kills both at the end.
+its bound through shared memory; once the search is done, a forked node server (at the parent's
+priority) solves one child of every disjunction for it (both cores on the tree); the parent only
+waits, and kills both at the end.
 Every published bound is valid on its own, so either process may be killed at any moment.
 """
 from __future__ import annotations
@@ -80,27 +81,40 @@ class _BnbChild:
     def finish(self, problem: Problem, ctx, best, bv, r: RelaxResult, t_start: float):
         """Wait (while the gap exceeds ``ctx.bnb_gap``, for at most ``ctx.bnb_wait`` times the time
         since ``t_start``, within the deadline, unless interrupted), stop the child, and fold its
-        bound into the result."""
+        bound into the result. Past that wait the tree keeps the time while it progresses
+        (:func:`_stalled`). Why B&B stopped is ``summary["stopped"]`` and part of the notes."""
         now = time.perf_counter()
         until = min(ctx.deadline, now + max(ctx.bnb_wait * (now - t_start), 2.0))
-        history = []  # (time, bound) while waiting
+        history = []  # (time since t_start, bound, nodes) while waiting
+        why = None
 
         def progressing(t):
+            nonlocal why
             lb = max(self.state[0], self.root)
-            history.append((t, lb))
+            history.append((t - t_start, lb, float(self.state[2])))
             if t < until:
                 return True
             if t >= ctx.deadline:
+                why = "deadline"
                 return False
-            old = [b for (s, b) in history if s <= t - ctx.bnb_window]
-            if not old:
-                return True
-            return lb - old[-1] >= ctx.bnb_progress * (bv - lb)
+            why = _stalled(history, ctx, bv)
+            return why is None
 
         try:
-            if ctx.interrupted is None and best is not None:
-                while (not self.done() and bv > (1 + ctx.bnb_gap) * max(self.state[0], self.root)
-                       and progressing(time.perf_counter())):
+            if ctx.interrupted is not None:
+                why = f"interrupted ({ctx.interrupted})"
+            elif best is None:
+                why = "no layout to certify"
+            else:
+                while True:
+                    if self.done():
+                        why = self.end_reason()
+                        break
+                    if bv <= (1 + ctx.bnb_gap) * max(self.state[0], self.root):
+                        why = f"gap reached (<= {100 * ctx.bnb_gap:g} %)"
+                        break
+                    if not progressing(time.perf_counter()):
+                        break
                     if self.server is None:  # the search is done: its core solves nodes for the tree too,
                         # in a forked process (solver thread pools in this process would not survive the
                         # forks of later runs)
@@ -112,6 +126,7 @@ class _BnbChild:
         except (Interrupted, KeyboardInterrupt) as exc:
             ctx.interrupted = getattr(exc, "signame", "SIGINT")
             ctx.notes.append(f"interrupted by {ctx.interrupted}: best layout found so far")
+            why = f"interrupted ({ctx.interrupted})"
         finally:
             self.state[6] = 0.0
             self.stop()
@@ -120,16 +135,62 @@ class _BnbChild:
         lb, v, nodes, n_open = (float(x) for x in self.state[:4])
         root = self.root if np.isfinite(self.root) else lb
         self.summary = {"nodes": int(nodes), "open_nodes": int(n_open), "root_bound": root,
-                        "bound": max(lb, root), "complete": bool(self.state[4] > 1),
-                        "served_by_parent": int(self.state[7])}  # by the node server, on the parent's core
+                        "bound": max(lb, root), "complete": self.state[4] == _END_CODES["complete"],
+                        "served_by_parent": int(self.state[7]),  # by the node server, on the parent's core
+                        "stopped": why, "stopped_at_s": time.perf_counter() - t_start,
+                        "history": _thin(history)}
         if np.isfinite(max(lb, root)):
             ctx.notes.append(f"branch-and-bound: {int(nodes)} node relaxations, bound {root:.6g} -> "
-                             f"{max(lb, root):.6g}")
+                             f"{max(lb, root):.6g}, stopped: {why}")
         else:
             ctx.notes.append("branch-and-bound: no bound (its root relaxation did not finish before the deadline)")
         if np.isfinite(lb) and (lb > r.bound or not np.isfinite(r.bound)):
             r = dataclasses.replace(r, bound=lb, certified_by="branch-and-bound")
         return best, bv, r
+
+    def end_reason(self) -> str:
+        """Why the child ended by itself: its branch_and_bound status, or how the process died."""
+        code = self.state[4]
+        for name, c in _END_CODES.items():
+            if code == c:
+                return {"complete": "tree exhausted (the bound is the optimum over the candidate set)",
+                        "stuck": "no expandable open node left (the bound is the smallest stuck node's)",
+                        }.get(name, f"branch-and-bound ended: {name}")
+        self.proc.join(timeout=1.0)
+        return f"branch-and-bound process died (exit code {self.proc.exitcode}) before finishing"
+
+
+#: ``state[4]`` of the B&B child when it ended by itself: its :class:`layoutkit.optimize.bnb.BnbResult` status
+_END_CODES = {"deadline": 1.0, "complete": 2.0, "stuck": 3.0, "gap reached": 4.0, "node limit": 5.0}
+
+
+def _stalled(history, ctx, bv):
+    """Why the tree counts as stalled at ``history[-1]`` (None while it progresses): over the last
+    ``max(ctx.bnb_window, ctx.bnb_window_frac * elapsed)`` seconds its bound closed less than
+    ``ctx.bnb_progress`` of the remaining gap although it solved at least ``ctx.bnb_min_nodes``
+    node relaxations. A best-first bound rises in steps (the smallest open bound moves only once
+    every node near it is expanded), so the window grows with the run; a tree that got no CPU
+    (a loaded machine, the child is niced) is starved, not stalled, and keeps its time."""
+    t, lb, nodes = history[-1]
+    window = max(ctx.bnb_window, ctx.bnb_window_frac * t)
+    old = [h for h in history if h[0] <= t - window]
+    if not old:
+        return None
+    _, lb0, n0 = old[-1]
+    if nodes - n0 < ctx.bnb_min_nodes:
+        return None
+    if lb - lb0 >= ctx.bnb_progress * (bv - lb):
+        return None
+    return (f"stalled: bound rose {lb - lb0:.4g} in the last {window:.0f} s ({nodes - n0:.0f} node relaxations), "
+            f"less than {100 * ctx.bnb_progress:g} % of the remaining gap {bv - lb:.4g}")
+
+
+def _thin(history, n=60):
+    """At most ``n`` evenly spaced samples of the wait's (time, bound, nodes) history, the last kept."""
+    if len(history) <= n:
+        return [list(h) for h in history]
+    idx = np.unique(np.r_[np.linspace(0, len(history) - 1, n).astype(int), len(history) - 1])
+    return [list(history[i]) for i in idx]
 
 
 class _ServerSolver:
@@ -150,7 +211,7 @@ class _ServerSolver:
 
 def _serve_child(problem, conn, state):  # pragma: no cover - runs in a forked child
     """Node relaxations for the B&B child (:class:`layoutkit.optimize.bnb.NodeServer`) until its pipe closes."""
-    worker_setup(nice=10)
+    worker_setup(nice=0)  # the parent only waits once the search is done: this is its core, at its priority
     server = NodeServer(problem)
     while True:
         try:
@@ -176,4 +237,4 @@ def _bnb_child(problem, deadline, state, sel, conn):  # pragma: no cover - runs 
     res = branch_and_bound(problem, deadline=deadline, on_bound=publish, external=lambda: state[5],
                            remote=_ServerSolver(conn, state))
     publish(res.bound, res.value, res.nodes, res.open_nodes, res.incumbent)
-    state[4] = 2.0 if res.complete else 1.0
+    state[4] = _END_CODES.get(res.status, 1.0)

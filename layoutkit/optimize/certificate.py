@@ -160,7 +160,8 @@ def _why(problem, spec, res, bound, gap, value, dense, heldout, struct) -> str:
                      f"set); the bound is {src}")
     elif bnb:
         parts.append(f"branch-and-bound raised the bound from {bnb['root_bound']:.5g} to {bnb['bound']:.5g} in "
-                     f"{bnb['nodes']} node relaxations before it stopped")
+                     f"{bnb['nodes']} node relaxations before it stopped"
+                     + (f" ({bnb['stopped']})" if bnb.get("stopped") else ""))
     elif spec.objective.startswith("worst") and spec.coverage_fraction >= 1:
         parts.append("branch-and-bound did not run (it needs a time limit of at least 5 s; --branch-and-bound)")
     else:

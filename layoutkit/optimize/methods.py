@@ -48,12 +48,15 @@ class Context:
     bnb: str = "auto"
     #: after the search, B&B keeps running only while the gap exceeds this, for at most
     #: ``bnb_wait`` times the time spent so far (at least 2 s) and never past the deadline; past
-    #: that, on until the deadline while its bound still closes at least ``bnb_progress`` of the
-    #: remaining gap per ``bnb_window`` seconds (a stalled tree stops, a converging one finishes)
+    #: that, on until the deadline unless it stalls: its bound closed less than ``bnb_progress`` of
+    #: the remaining gap over the last ``max(bnb_window, bnb_window_frac * elapsed)`` seconds in
+    #: which it solved at least ``bnb_min_nodes`` node relaxations (:func:`bnb_process._stalled`)
     bnb_gap: float = 0.01
     bnb_wait: float = 1.0
     bnb_progress: float = 0.005
     bnb_window: float = 10.0
+    bnb_window_frac: float = 0.5
+    bnb_min_nodes: int = 50
     #: B&B is started only if the time limit leaves at least this many seconds (a shorter run
     #: would only share its cores with a tree that cannot get far)
     bnb_min_s: float = 5.0
