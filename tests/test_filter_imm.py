@@ -423,13 +423,15 @@ def test_json_line_carries_the_outputs_own_numbers():
     """Identity check of the per-sweep JSON line (``FilterOutput.record``, computed without the
     property arrays): its rotvec, translation and 1-sigma values are the ones :attr:`rotvec`,
     :attr:`translation`, :attr:`cov_rot_deg` and :attr:`cov_pos_m` give, bit for bit, on a tracked
-    stream at rest and in motion."""
+    stream at rest and in motion; an update's ``prior_sigma`` (written by the compiled step) is
+    ``sqrt(max(diag P, 0))`` of the previous output's covariance, bit for bit."""
     from layoutkit.filter.tracker import SweepTracker
 
     rng = np.random.default_rng(7)
     P, sts, sweeps, _ = _stream("lh2", rng, T=1.0, swing_from=0.5, speed=1.0)
     tr = SweepTracker(P, sts, EkfConfig())
-    n = 0
+    n = n_prior = 0
+    prev = None
     for m in sweeps:
         o = tr.push(m)
         if o is None:
@@ -438,5 +440,10 @@ def test_json_line_carries_the_outputs_own_numbers():
         for key, ref in (("rotvec", o.rotvec), ("translation", o.translation), ("cov_rot_deg", o.cov_rot_deg),
                          ("cov_pos_m", o.cov_pos_m)):
             assert r[key] == [float(v) for v in ref], key
+        if o.prior_sigma is not None and prev is not None and o.event != "init":
+            ref = np.sqrt(np.maximum(np.diagonal(prev.state_cov)[[0, 1, 2, 6, 7, 8]], 0.0))
+            np.testing.assert_array_equal(o.prior_sigma, ref)
+            n_prior += 1
+        prev = o
         n += 1
-    assert n > 100 and tr.counters.ok > 0
+    assert n > 100 and n_prior > 100 and tr.counters.ok > 0

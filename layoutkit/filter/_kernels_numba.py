@@ -600,7 +600,7 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
 PAR_T_STATE, PAR_T, PAR_SIGMA2, PAR_RHO, PAR_Q1, PAR_OMEGA, PAR_LH2, PAR_AXIS, PAR_CORRECTED, PAR_MIX = range(10)
 PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_FREEZE, PAR_SIZE = 10, 17, 26, 29, 30, 31
 #: layout of :func:`imm_step`'s output vector
-OUT_STATE, OUT_P, OUT_SIZE = 10, 23, 167
+OUT_STATE, OUT_P, OUT_SIG, OUT_SIZE = 10, 23, 167, 173
 
 
 @numba.njit(**_JIT)
@@ -610,8 +610,13 @@ def imm_step(X, P, M, Pi, pb, idx, z, par, qm, out):
     ``[mu, psd_rot, psd_pos]`` (mu updated), Pi (r, r), par (PAR_SIZE,) (``PAR_*``: times, noise,
     gate, rotor rate, kind, axis, gib argument, mix flag, calibration (7), station rotation (9,
     row-major), translation (3)), qm (n + 1,) chi² quantiles per dof; out (OUT_SIZE,) <- the counts
-    and correction (10), the combined nominal (13) and covariance (144, row-major). The combined
-    state of the previous call is read from ``out`` too (the correction is relative to it)."""
+    and correction (10), the combined nominal (13) and covariance (144, row-major), and the pose
+    1-sigma ``(dphi rad, dp m)`` (6,) before the step (``sqrt(max(diag P, 0))`` of the incoming
+    covariance, NaN kept). The combined state of the previous call is read from ``out`` too (the
+    correction is relative to it)."""
+    for k in range(6):
+        x = out[OUT_P + 13 * (k if k < 3 else k + 3)]
+        out[OUT_SIG + k] = math.sqrt(x if (x >= 0.0 or x != x) else 0.0)
     r = X.shape[0]
     Q = np.ascontiguousarray(X[:, 0:4])
     W = np.ascontiguousarray(X[:, 4:7])

@@ -77,7 +77,7 @@ class ImmFilter:
         self.Pm = np.tile(np.eye(12), (r, 1, 1))
         self._out = np.zeros(K.OUT_SIZE)
         self._out[K.OUT_STATE + 3] = 1.0
-        self._out[K.OUT_P:] = np.eye(12).ravel()
+        self._out[K.OUT_P:K.OUT_P + 144] = np.eye(12).ravel()
         self.initialized = False
         self.t = float("nan")
         self._t_model = float("nan")
@@ -102,9 +102,7 @@ class ImmFilter:
             self._par.append(par)
         n = self.points_body.shape[0]
         self._qm = np.array([np.inf] + [chi2_quantile(1.0 - c.gate_sweep_p, k) for k in range(1, n + 1)])
-        # per-sweep constants (the hot path): where the pose variances sit in the output vector (the
-        # diagonal of P at (dphi, dp)); the bank's quietest model (the PSD columns of M never change)
-        self._sig_idx = K.OUT_P + 13 * np.array([0, 1, 2, 6, 7, 8])
+        # the bank's quietest model (the PSD columns of M never change)
         self._quiet = int(np.argmin(self.M[:, 1] + self.M[:, 2]))
         self._frozen = False  # mirrors PAR_FREEZE of every parameter vector (hold_static)
         self.noise_scale = 1.0
@@ -118,7 +116,7 @@ class ImmFilter:
         self.w = o[K.OUT_STATE + 4:K.OUT_STATE + 7]
         self.p = o[K.OUT_STATE + 7:K.OUT_STATE + 10]
         self.v = o[K.OUT_STATE + 10:K.OUT_STATE + 13]
-        self.P = o[K.OUT_P:].reshape(12, 12)
+        self.P = o[K.OUT_P:K.OUT_P + 144].reshape(12, 12)
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -157,7 +155,7 @@ class ImmFilter:
         self.M[:, 0] = 1.0 / len(self.M)
         out = np.zeros(self._k.OUT_SIZE)
         out[self._k.OUT_STATE:self._k.OUT_STATE + 13] = x
-        out[self._k.OUT_P:] = P.ravel()
+        out[self._k.OUT_P:self._k.OUT_P + 144] = P.ravel()
         self._out = out
         self._view()
         self.t = self._t_model = float(t)
@@ -178,8 +176,8 @@ class ImmFilter:
         update, re-weight, combine (:func:`layoutkit.filter._kernels_numba.imm_step`). ``hit_offsets``
         is ignored (the kernel derives each angle's hit time from the station's rotor rate);
         ``sweep_offset`` (s, <= 0): the sweep's time minus the filter's (a sweep slightly out of order)."""
-        sig0 = np.sqrt(np.maximum(self._out[self._sig_idx], 0.0))  # diag(P) at (dphi, dp), P a view of _out
         o = self._sweep(station, axis, sensors, angles, sweep_offset)
+        sig0 = o[self._k.OUT_SIG:self._k.OUT_SIG + 6]  # the pose 1-sigma before the step (the kernel's)
         used, rejected, swr, nis = o[:4].tolist()
         used, rejected, swr = int(used), int(rejected), bool(swr)
         if self._adapt:
@@ -236,7 +234,7 @@ class ImmFilter:
             if not was:  # entering rest: every model continues from the bank's output (no jump)
                 K = self._k
                 self.X[:] = self._out[K.OUT_STATE:K.OUT_STATE + 13]
-                self.Pm[:] = self._out[K.OUT_P:].reshape(12, 12)
+                self.Pm[:] = self._out[K.OUT_P:K.OUT_P + 144].reshape(12, 12)
             self.M[:, 0] = 0.0
             self.M[self._quiet, 0] = 1.0
 

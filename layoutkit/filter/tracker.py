@@ -427,9 +427,12 @@ class SweepTracker:
             return
         # adaptive mode: no same-rotor correlation assumed (a real station's is not the paper's; the
         # per-angle variance 2 sigma² of a difference holds whatever it is)
-        rho = c.rho if c.motion == "fixed" else 0.0
-        s = d.sum()
-        T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
+        if c.motion == "fixed":
+            rho = c.rho
+            s = d.sum()
+            T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
+        else:  # rho = 0: the correlation term is exactly +0 (the same T, without the sum)
+            T = float(d @ d) / (1.0 * 2.0 * c.sigma_theta ** 2)
         self._static_T.append(T)
         self._static_m.append(m)
         self._static_per.append(T / m)
