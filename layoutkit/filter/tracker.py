@@ -55,7 +55,7 @@ STATUSES = ("ok", "uncertain", "lost")
 _POSE_DIAG = np.array([0, 1, 2, 6, 7, 8])  # (dphi, dp) in the error state's diagonal
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class FilterOutput:
     """The filter state after one sweep.
 
