@@ -114,8 +114,7 @@ class FilterOutput:
         return np.sqrt(np.diagonal(self.state_cov)[6:9])
 
     def record(self) -> dict:
-        """The JSON-lines object (``--filter ekf --json-lines``; the values of :attr:`rotvec`,
-        :attr:`cov_rot_deg` and :attr:`cov_pos_m`, computed here without their arrays: every sweep)."""
+        """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays)."""
         sd = np.sqrt(np.diagonal(self.state_cov)[_POSE_DIAG]).tolist()
         return {"t": self.t, "status": self.status,
                 "rotvec": rotvec_floats(self.quaternion), "translation": np.asarray(self.translation, float).tolist(),
@@ -230,8 +229,7 @@ class SweepTracker:
         # 20 pairs of sweeps (~0.1 s of two LH2 stations): a start settles at rest quickly
         self.static_window = min(self.config.zupt_window, 20)
         self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
-        # the compiled bank derives each angle's hit time itself (ImmFilter.update_sweep ignores hit_offsets)
-        self._own_offsets = hasattr(self.ekf, "propagate")
+        self._own_offsets = hasattr(self.ekf, "propagate")  # the compiled bank: hit times from its rotor rate
         self._one_station = (-math.inf, math.inf)  # (t evaluated, m): ok_beats_one_station's limit
 
     # --------------------------------------------------------------------------- helpers
@@ -425,14 +423,11 @@ class SweepTracker:
         m = d.size
         if m == 0:
             return
-        # adaptive mode: no same-rotor correlation assumed (a real station's is not the paper's; the
-        # per-angle variance 2 sigma² of a difference holds whatever it is)
         if c.motion == "fixed":
-            rho = c.rho
-            s = d.sum()
+            rho, s = c.rho, d.sum()
             T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
-        else:  # rho = 0: the correlation term is exactly +0 (the same T, without the sum)
-            T = float(d @ d) / (1.0 * 2.0 * c.sigma_theta ** 2)
+        else:  # adaptive: rho = 0 (a real rotor's correlation is not the paper's; 2 sigma² per difference holds)
+            T = float(d @ d) / (1.0 * 2.0 * c.sigma_theta ** 2)  # the rho term is exactly +0 here
         self._static_T.append(T)
         self._static_m.append(m)
         self._static_per.append(T / m)
@@ -509,13 +504,11 @@ class SweepTracker:
                 idx = np.isfinite(ang).nonzero()[0]
                 if idx.size:
                     a = ang[idx]
-                    if self._own_offsets:  # the compiled bank: hit times from its rotor rate
+                    if self._own_offsets:  # the compiled bank ignores hit offsets (ImmFilter.update_sweep)
                         upd = ekf.update_sweep(s, axis, idx, a, None, late)
                     else:
                         offs = self._hit_offsets(st, getattr(sweep, "kind", st.kind) or st.kind, a, axis)
-                        if late:
-                            offs = (0.0 if offs is None else offs) + late
-                        upd = ekf.update_sweep(s, axis, idx, a, offs)
+                        upd = ekf.update_sweep(s, axis, idx, a, (0.0 if offs is None else offs) + late if late else offs)
                     self._account(upd, s)
                     if self._amb is not None and upd.used >= 2 and not upd.sweep_rejected:
                         self._resolve_ambiguity(s)
