@@ -322,3 +322,128 @@ def test_compiled_station_jacobians_give_the_one_station_limit_of_pose_dop(kind)
             n += 1
             assert single_station_sigma(P, R, t, sts, 0.87, 4e-5, f.station_jacobians(R, t)) == pytest.approx(ref, rel=1e-8)
     assert n > 30
+
+
+def _bank(rng, r=4):
+    """A random bank of ``r`` models: unit quaternions near each other, rates, positions,
+    velocities and SPD covariances (r, 12, 12)."""
+    Q = np.tile([0.1, -0.2, 0.3, 0.9], (r, 1)) + rng.normal(scale=0.05, size=(r, 4))
+    Q /= np.linalg.norm(Q, axis=1, keepdims=True)
+    W, Pn, V = rng.normal(size=(r, 3)), rng.normal(size=(r, 3)), rng.normal(size=(r, 3))
+    A = rng.normal(scale=1e-2, size=(r, 12, 12))
+    P = A @ np.swapaxes(A, 1, 2) + 1e-6 * np.eye(12)
+    return Q, W, Pn, V, P
+
+
+def _mix_reference(Q, W, Pn, V, P, mu, Pi):
+    """IMM mixing (Bar-Shalom, Li & Kirubarajan 2001 §11.6.6) in the error state, every model's
+    term summed in index order — the full sums the compiled step must reproduce bit for bit."""
+    from layoutkit.filter import _kernels_numba as K
+
+    r = len(mu)
+    cbar = [sum(Pi[i, j] * mu[i] for i in range(r)) for j in range(r)]
+    Qo, Wo, Po, Vo, PPo = Q.copy(), W.copy(), Pn.copy(), V.copy(), P.copy()
+    for j in range(r):
+        e = np.empty((r, 12))
+        er = np.empty(3)
+        w = [Pi[i, j] * mu[i] / cbar[j] for i in range(r)]
+        for i in range(r):
+            K.quat_left_error(Q[i], Q[j], er)
+            e[i] = np.r_[er, W[i] - W[j], Pn[i] - Pn[j], V[i] - V[j]]
+        mean = [0.0] * 12
+        for i in range(r):
+            for a in range(12):
+                mean[a] += w[i] * e[i, a]
+        for a in range(12):
+            for b in range(a + 1):
+                s = 0.0
+                for i in range(r):
+                    s += w[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
+                PPo[j, a, b] = PPo[j, b, a] = s
+        Qo[j] = Q[j]
+        K.quat_left_mul_rotvec(mean[0], mean[1], mean[2], Qo[j])
+        Wo[j], Po[j], Vo[j] = W[j] + mean[3:6], Pn[j] + mean[6:9], V[j] + mean[9:12]
+    return Qo, Wo, Po, Vo, PPo, np.array(cbar)
+
+
+@pytest.mark.parametrize("mu", [[0.0, 0.0, 1.0, 0.0], [0.1, 0.2, 0.3, 0.4]])
+def test_mixing_and_combining_a_held_bank_equal_the_full_sums_bit_for_bit(mu):
+    """Exact-arithmetic proof: a bank held in one model (``hold_static``: probabilities exactly 1 and 0)
+    mixes and combines only that model in the compiled step; the zero-weight terms it leaves out add
+    exactly +-0, so the result equals the full sums over every model bit for bit (and with no zero
+    weight nothing is left out). A NaN in a zero-weight model still poisons the result, as in the
+    full sums (the skip needs every value bounded)."""
+    from layoutkit.filter import _kernels_numba as K
+
+    rng = np.random.default_rng(11)
+    Q, W, Pn, V, P = _bank(rng)
+    mu = np.array(mu)
+    Pi = np.full((4, 4), 0.01 / 3)
+    np.fill_diagonal(Pi, 0.99)
+    ref = _mix_reference(Q, W, Pn, V, P, mu, Pi)
+    got = [x.copy() for x in (Q, W, Pn, V, P, mu)]
+    K._imm_mix(*got, Pi)
+    for g, x in zip(got, ref):
+        np.testing.assert_array_equal(g, x)
+    # combine: the mu-weighted mixture about the most probable model, every term summed in order
+    q, w, p, v, Pc = np.empty(4), np.empty(3), np.empty(3), np.empty(3), np.empty((12, 12))
+    K.imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc)
+    jm = int(np.argmax(mu))
+    e = np.empty((4, 12))
+    er = np.empty(3)
+    for i in range(4):
+        K.quat_left_error(Q[i], Q[jm], er)
+        e[i] = np.r_[er, W[i] - W[jm], Pn[i] - Pn[jm], V[i] - V[jm]]
+    mean = [0.0] * 12
+    for i in range(4):
+        for a in range(12):
+            mean[a] += mu[i] * e[i, a]
+    Pref = np.empty((12, 12))
+    for a in range(12):
+        for b in range(a + 1):
+            s = 0.0
+            for i in range(4):
+                s += mu[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
+            Pref[a, b] = Pref[b, a] = s
+    qref = Q[jm].copy()
+    K.quat_left_mul_rotvec(mean[0], mean[1], mean[2], qref)
+    np.testing.assert_array_equal(Pc, Pref)
+    np.testing.assert_array_equal(q, qref)
+    np.testing.assert_array_equal(np.r_[w, p, v], np.r_[W[jm] + mean[3:6], Pn[jm] + mean[6:9], V[jm] + mean[9:12]])
+    if mu[0] == 0.0:
+        P[0, 5, 5] = np.nan  # a broken model of weight 0: the full sums are NaN, so must the step's be
+        K.imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc)
+        assert np.isnan(Pc[5, 5])
+        got = [x.copy() for x in (Q, W, Pn, V, P, mu)]
+        K._imm_mix(*got, Pi)
+        assert np.isnan(got[4][2, 5, 5])
+
+
+def test_json_line_carries_the_outputs_own_numbers():
+    """Identity check of the per-sweep JSON line (``FilterOutput.record``, computed without the
+    property arrays): its rotvec, translation and 1-sigma values are the ones :attr:`rotvec`,
+    :attr:`translation`, :attr:`cov_rot_deg` and :attr:`cov_pos_m` give, bit for bit, on a tracked
+    stream at rest and in motion; an update's ``prior_sigma`` (written by the compiled step) is
+    ``sqrt(max(diag P, 0))`` of the previous output's covariance, bit for bit."""
+    from layoutkit.filter.tracker import SweepTracker
+
+    rng = np.random.default_rng(7)
+    P, sts, sweeps, _ = _stream("lh2", rng, T=1.0, swing_from=0.5, speed=1.0)
+    tr = SweepTracker(P, sts, EkfConfig())
+    n = n_prior = 0
+    prev = None
+    for m in sweeps:
+        o = tr.push(m)
+        if o is None:
+            continue
+        r = o.record()
+        for key, ref in (("rotvec", o.rotvec), ("translation", o.translation), ("cov_rot_deg", o.cov_rot_deg),
+                         ("cov_pos_m", o.cov_pos_m)):
+            assert r[key] == [float(v) for v in ref], key
+        if o.prior_sigma is not None and prev is not None and o.event != "init":
+            ref = np.sqrt(np.maximum(np.diagonal(prev.state_cov)[[0, 1, 2, 6, 7, 8]], 0.0))
+            np.testing.assert_array_equal(o.prior_sigma, ref)
+            n_prior += 1
+        prev = o
+        n += 1
+    assert n > 100 and n_prior > 100 and tr.counters.ok > 0

@@ -478,6 +478,28 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
 
 
 @numba.njit(**_JIT)
+def _bounded(Q, W, Pn, V, P):
+    """Every model's state and covariance within +-1e100 (so no NaN/inf): a term of weight
+    exactly 0 then adds exactly +-0 to the sums of :func:`_imm_mix` and :func:`imm_combine`
+    (their differences and products stay finite), and skipping it changes no bit of the result
+    (the sums start at +0 and never become -0). A bank held in one model (``hold_static``:
+    probabilities exactly 1 and 0) thus mixes and combines only that model."""
+    r = Q.shape[0]
+    for i in range(r):
+        for a in range(4):
+            if not abs(Q[i, a]) < 1e100:
+                return False
+        for a in range(3):
+            if not (abs(W[i, a]) < 1e100 and abs(Pn[i, a]) < 1e100 and abs(V[i, a]) < 1e100):
+                return False
+        for a in range(12):
+            for b in range(12):
+                if not abs(P[i, a, b]) < 1e100:
+                    return False
+    return True
+
+
+@numba.njit(**_JIT)
 def _imm_mix(Q, W, Pn, V, P, mu, Pi):
     """IMM mixing step in the error state: model j starts from the mixture of all models with
     weights ``mu_{i|j} ∝ Pi[i, j] mu_i``, attitudes mixed as left errors about model j's own."""
@@ -490,23 +512,32 @@ def _imm_mix(Q, W, Pn, V, P, mu, Pi):
     e = np.empty((r, 12))
     er = np.empty(3)
     wij = np.empty(r)
+    skip_zero = _bounded(Q0, W0, Pn0, V0, P0)  # weight-0 terms add exactly +-0: leave them out
+    use = np.empty(r, np.int64)
     for j in range(r):
+        nu = 0
         for i in range(r):
+            wij[i] = Pi[i, j] * mu[i] / cbar[j]
+            if skip_zero and wij[i] == 0.0:
+                continue
+            use[nu] = i
+            nu += 1
             quat_left_error(Q0[i], Q0[j], er)
             for a in range(3):
                 e[i, a] = er[a]
                 e[i, 3 + a] = W0[i, a] - W0[j, a]
                 e[i, 6 + a] = Pn0[i, a] - Pn0[j, a]
                 e[i, 9 + a] = V0[i, a] - V0[j, a]
-            wij[i] = Pi[i, j] * mu[i] / cbar[j]
         mean = np.zeros(12)
-        for i in range(r):
+        for u in range(nu):
+            i = use[u]
             for a in range(12):
                 mean[a] += wij[i] * e[i, a]
         for a in range(12):
             for b in range(a + 1):
                 s = 0.0
-                for i in range(r):
+                for u in range(nu):
+                    i = use[u]
                     s += wij[i] * (P0[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
                 P[j, a, b] = s
                 P[j, b, a] = s
@@ -532,7 +563,14 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
     e = np.empty((r, 12))
     er = np.empty(3)
     mean = np.zeros(12)
+    skip_zero = _bounded(Q, W, Pn, V, P)  # weight-0 models add exactly +-0 (_bounded): leave them out
+    use = np.empty(r, np.int64)
+    nu = 0
     for i in range(r):
+        if skip_zero and mu[i] == 0.0:
+            continue
+        use[nu] = i
+        nu += 1
         quat_left_error(Q[i], Q[jm], er)
         for a in range(3):
             e[i, a] = er[a]
@@ -544,7 +582,8 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
     for a in range(12):
         for b in range(a + 1):
             s = 0.0
-            for i in range(r):
+            for u in range(nu):
+                i = use[u]
                 s += mu[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
             Pc[a, b] = s
             Pc[b, a] = s
@@ -561,7 +600,7 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
 PAR_T_STATE, PAR_T, PAR_SIGMA2, PAR_RHO, PAR_Q1, PAR_OMEGA, PAR_LH2, PAR_AXIS, PAR_CORRECTED, PAR_MIX = range(10)
 PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_FREEZE, PAR_SIZE = 10, 17, 26, 29, 30, 31
 #: layout of :func:`imm_step`'s output vector
-OUT_STATE, OUT_P, OUT_SIZE = 10, 23, 167
+OUT_STATE, OUT_P, OUT_SIG, OUT_SIZE = 10, 23, 167, 173
 
 
 @numba.njit(**_JIT)
@@ -571,8 +610,13 @@ def imm_step(X, P, M, Pi, pb, idx, z, par, qm, out):
     ``[mu, psd_rot, psd_pos]`` (mu updated), Pi (r, r), par (PAR_SIZE,) (``PAR_*``: times, noise,
     gate, rotor rate, kind, axis, gib argument, mix flag, calibration (7), station rotation (9,
     row-major), translation (3)), qm (n + 1,) chi² quantiles per dof; out (OUT_SIZE,) <- the counts
-    and correction (10), the combined nominal (13) and covariance (144, row-major). The combined
-    state of the previous call is read from ``out`` too (the correction is relative to it)."""
+    and correction (10), the combined nominal (13) and covariance (144, row-major), and the pose
+    1-sigma ``(dphi rad, dp m)`` (6,) before the step (``sqrt(max(diag P, 0))`` of the incoming
+    covariance, NaN kept). The combined state of the previous call is read from ``out`` too (the
+    correction is relative to it)."""
+    for k in range(6):
+        x = out[OUT_P + 13 * (k if k < 3 else k + 3)]
+        out[OUT_SIG + k] = math.sqrt(x if (x >= 0.0 or x != x) else 0.0)
     r = X.shape[0]
     Q = np.ascontiguousarray(X[:, 0:4])
     W = np.ascontiguousarray(X[:, 4:7])

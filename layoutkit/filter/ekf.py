@@ -160,7 +160,7 @@ class EkfConfig:
         return 18 if self.constant_acceleration else 12
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class SweepUpdate:
     """Outcome of one sweep update.
 

@@ -77,7 +77,7 @@ class ImmFilter:
         self.Pm = np.tile(np.eye(12), (r, 1, 1))
         self._out = np.zeros(K.OUT_SIZE)
         self._out[K.OUT_STATE + 3] = 1.0
-        self._out[K.OUT_P:] = np.eye(12).ravel()
+        self._out[K.OUT_P:K.OUT_P + 144] = np.eye(12).ravel()
         self.initialized = False
         self.t = float("nan")
         self._t_model = float("nan")
@@ -102,6 +102,9 @@ class ImmFilter:
             self._par.append(par)
         n = self.points_body.shape[0]
         self._qm = np.array([np.inf] + [chi2_quantile(1.0 - c.gate_sweep_p, k) for k in range(1, n + 1)])
+        # the bank's quietest model (the PSD columns of M never change)
+        self._quiet = int(np.argmin(self.M[:, 1] + self.M[:, 2]))
+        self._frozen = False  # mirrors PAR_FREEZE of every parameter vector (hold_static)
         self.noise_scale = 1.0
         self._adapt = c.motion == "adaptive" and c.noise_scale_max > 1.0 and c.noise_scale_rate > 0.0
         self._view()
@@ -113,7 +116,7 @@ class ImmFilter:
         self.w = o[K.OUT_STATE + 4:K.OUT_STATE + 7]
         self.p = o[K.OUT_STATE + 7:K.OUT_STATE + 10]
         self.v = o[K.OUT_STATE + 10:K.OUT_STATE + 13]
-        self.P = o[K.OUT_P:].reshape(12, 12)
+        self.P = o[K.OUT_P:K.OUT_P + 144].reshape(12, 12)
 
     # ----------------------------------------------------------------------------- state
     @property
@@ -152,7 +155,7 @@ class ImmFilter:
         self.M[:, 0] = 1.0 / len(self.M)
         out = np.zeros(self._k.OUT_SIZE)
         out[self._k.OUT_STATE:self._k.OUT_STATE + 13] = x
-        out[self._k.OUT_P:] = P.ravel()
+        out[self._k.OUT_P:self._k.OUT_P + 144] = P.ravel()
         self._out = out
         self._view()
         self.t = self._t_model = float(t)
@@ -173,10 +176,10 @@ class ImmFilter:
         update, re-weight, combine (:func:`layoutkit.filter._kernels_numba.imm_step`). ``hit_offsets``
         is ignored (the kernel derives each angle's hit time from the station's rotor rate);
         ``sweep_offset`` (s, <= 0): the sweep's time minus the filter's (a sweep slightly out of order)."""
-        d = np.diagonal(self.P)
-        sig0 = np.sqrt(np.maximum(d[[0, 1, 2, 6, 7, 8]], 0.0))
         o = self._sweep(station, axis, sensors, angles, sweep_offset)
-        used, rejected, swr, nis = int(o[0]), int(o[1]), bool(o[2]), float(o[3])
+        sig0 = o[self._k.OUT_SIG:self._k.OUT_SIG + 6]  # the pose 1-sigma before the step (the kernel's)
+        used, rejected, swr, nis = o[:4].tolist()
+        used, rejected, swr = int(used), int(rejected), bool(swr)
         if self._adapt:
             self._match_noise(used or len(sensors), nis, swr)
         if swr or used == 0:
@@ -200,12 +203,13 @@ class ImmFilter:
 
     def _sweep(self, station, axis, idx, z, sweep_offset=0.0):
         """mix + predict to ``self.t`` + update with ``z`` + combine, in one compiled call."""
+        K = self._k
         par = self._par[station][axis]
         par[0], par[1] = self._t_model, self.t
-        par[self._k.PAR_SWEEP_DT] = sweep_offset
+        par[K.PAR_SWEEP_DT] = sweep_offset
         out = self._out.copy()
-        self._k.imm_step(self.X, self.Pm, self.M, self.Pi, self.points_body, np.asarray(idx, np.int64),
-                         np.asarray(z, float), par, self._qm, out)
+        K.imm_step(self.X, self.Pm, self.M, self.Pi, self.points_body, np.asarray(idx, np.int64),
+                   np.asarray(z, float), par, self._qm, out)
         self._out = out
         self._view()
         self._t_model = self.t
@@ -219,20 +223,20 @@ class ImmFilter:
         the bank is held in its quietest model (probability 1, not re-weighted by the sweeps — a
         set-up's model errors would otherwise look like motion to the agile models and pull the pose
         sweep by sweep); in motion the likelihoods decide again."""
-        was = bool(self._par[0][0, self._k.PAR_FREEZE])
+        was = self._frozen
         if static == was and not static:
             return  # in motion and staying so: nothing to change (called every sweep)
         if static != was:
+            self._frozen = static = bool(static)
             for par in self._par:
                 par[:, self._k.PAR_FREEZE] = float(static)
         if static and len(self.M) > 1:
             if not was:  # entering rest: every model continues from the bank's output (no jump)
                 K = self._k
                 self.X[:] = self._out[K.OUT_STATE:K.OUT_STATE + 13]
-                self.Pm[:] = self._out[K.OUT_P:].reshape(12, 12)
-            j = int(np.argmin(self.M[:, 1] + self.M[:, 2]))
+                self.Pm[:] = self._out[K.OUT_P:K.OUT_P + 144].reshape(12, 12)
             self.M[:, 0] = 0.0
-            self.M[j, 0] = 1.0
+            self.M[self._quiet, 0] = 1.0
 
     def station_jacobians(self, rotation, position) -> np.ndarray:
         """(S, n, 2, 6) d angle / d (left world rotation rad, world position m) of every sensor, axis

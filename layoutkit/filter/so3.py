@@ -13,7 +13,7 @@ import numpy as np
 
 from ..rotations import matrix_to_quaternion
 
-__all__ = ["quat_from_rotvec", "quat_mul", "quat_to_matrix", "quat_from_matrix", "quat_to_rotvec"]
+__all__ = ["quat_from_rotvec", "quat_mul", "quat_to_matrix", "quat_from_matrix", "quat_to_rotvec", "rotvec_floats"]
 
 
 def quat_from_rotvec(phi) -> np.ndarray:
@@ -63,10 +63,15 @@ def quat_from_matrix(R) -> np.ndarray:
 
 def quat_to_rotvec(q) -> np.ndarray:
     """Unit quaternion ``[x, y, z, w]`` (w >= 0) → rotation vector (3,) rad, norm in [0, pi]."""
+    return np.array(rotvec_floats(q))
+
+
+def rotvec_floats(q) -> list:
+    """:func:`quat_to_rotvec` as a list of 3 floats (the per-sweep JSON line: no array round trip)."""
     x, y, z, w = np.asarray(q, float).tolist()
     s = math.sqrt(x * x + y * y + z * z)
     if s < 1e-12:
         k = 2.0 / w if w != 0 else 0.0
     else:
         k = 2.0 * math.atan2(s, w) / s
-    return np.array([k * x, k * y, k * z])
+    return [k * x, k * y, k * z]

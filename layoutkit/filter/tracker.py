@@ -46,15 +46,16 @@ import numpy as np
 from ..lighthouse import Station, to_sweep_angles
 from ..units import RAD2DEG
 from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
-from .so3 import quat_to_matrix, quat_to_rotvec
+from .so3 import quat_to_matrix, quat_to_rotvec, rotvec_floats
 
 __all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance", "joint_pose_covariance"]
 
 #: Output statuses: "ok" = tracking within the configured sigma limits.
 STATUSES = ("ok", "uncertain", "lost")
+_POSE_DIAG = np.array([0, 1, 2, 6, 7, 8])  # (dphi, dp) in the error state's diagonal
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class FilterOutput:
     """The filter state after one sweep.
 
@@ -113,10 +114,11 @@ class FilterOutput:
         return np.sqrt(np.diagonal(self.state_cov)[6:9])
 
     def record(self) -> dict:
-        """The JSON-lines object (``--filter ekf --json-lines``)."""
+        """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays)."""
+        sd = np.sqrt(np.diagonal(self.state_cov)[_POSE_DIAG]).tolist()
         return {"t": self.t, "status": self.status,
-                "rotvec": [float(v) for v in self.rotvec], "translation": [float(v) for v in self.translation],
-                "cov_rot_deg": [float(v) for v in self.cov_rot_deg], "cov_pos_m": [float(v) for v in self.cov_pos_m],
+                "rotvec": rotvec_floats(self.quaternion), "translation": np.asarray(self.translation, float).tolist(),
+                "cov_rot_deg": [sd[0] * RAD2DEG, sd[1] * RAD2DEG, sd[2] * RAD2DEG], "cov_pos_m": sd[3:],
                 "station": self.station, "axis": self.axis, "used": self.used, "rejected": self.rejected,
                 "nis": None if not math.isfinite(self.nis) else self.nis, "dof": self.dof,
                 "static": self.static, "event": self.event}
@@ -227,6 +229,7 @@ class SweepTracker:
         # 20 pairs of sweeps (~0.1 s of two LH2 stations): a start settles at rest quickly
         self.static_window = min(self.config.zupt_window, 20)
         self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
+        self._own_offsets = hasattr(self.ekf, "propagate")  # the compiled bank: hit times from its rotor rate
         self._one_station = (-math.inf, math.inf)  # (t evaluated, m): ok_beats_one_station's limit
 
     # --------------------------------------------------------------------------- helpers
@@ -420,11 +423,11 @@ class SweepTracker:
         m = d.size
         if m == 0:
             return
-        # adaptive mode: no same-rotor correlation assumed (a real station's is not the paper's; the
-        # per-angle variance 2 sigma² of a difference holds whatever it is)
-        rho = c.rho if c.motion == "fixed" else 0.0
-        s = d.sum()
-        T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
+        if c.motion == "fixed":
+            rho, s = c.rho, d.sum()
+            T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
+        else:  # adaptive: rho = 0 (a real rotor's correlation is not the paper's; 2 sigma² per difference holds)
+            T = float(d @ d) / (1.0 * 2.0 * c.sigma_theta ** 2)  # the rho term is exactly +0 here
         self._static_T.append(T)
         self._static_m.append(m)
         self._static_per.append(T / m)
@@ -456,7 +459,6 @@ class SweepTracker:
         st = self._station(s)
         axis = int(sweep.axis)
         t = float(sweep.t)
-        kind = getattr(sweep, "kind", st.kind) or st.kind
         ang = np.asarray(sweep.angles, float)
         if ang.shape != (self.n,):
             raise ValueError(f"sweep angles: expected shape ({self.n},), got {ang.shape}")
@@ -499,20 +501,18 @@ class SweepTracker:
                 ekf.hold_static(self.static)
             ekf.predict(t, process_noise=not (c.zupt and self.static))
             if not self._lost:
-                idx = np.flatnonzero(np.isfinite(ang))
+                idx = np.isfinite(ang).nonzero()[0]
                 if idx.size:
                     a = ang[idx]
-                    offs = self._hit_offsets(st, kind, a, axis)
-                    if late:
-                        upd = (ekf.update_sweep(s, axis, idx, a, None if offs is None else offs + late, late)
-                               if hasattr(ekf, "propagate") else ekf.update_sweep(s, axis, idx, a,
-                                                                                  (0.0 if offs is None else offs) + late))
+                    if self._own_offsets:  # the compiled bank ignores hit offsets (ImmFilter.update_sweep)
+                        upd = ekf.update_sweep(s, axis, idx, a, None, late)
                     else:
-                        upd = ekf.update_sweep(s, axis, idx, a, offs)
+                        offs = self._hit_offsets(st, getattr(sweep, "kind", st.kind) or st.kind, a, axis)
+                        upd = ekf.update_sweep(s, axis, idx, a, (0.0 if offs is None else offs) + late if late else offs)
                     self._account(upd, s)
                     if self._amb is not None and upd.used >= 2 and not upd.sweep_rejected:
                         self._resolve_ambiguity(s)
-                elif hasattr(ekf, "propagate"):
+                elif self._own_offsets:
                     ekf.propagate()
                 if c.zupt and self.static:
                     ekf.zero_velocity_update()
@@ -573,7 +573,7 @@ class SweepTracker:
         c = self.config
         ekf = self.ekf
         P = ekf.P  # never modified in place by the filter: safe to hand out
-        d = np.diagonal(P)
+        d = P.diagonal().tolist()
         big_pos = math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m
         big = max(math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg, big_pos)
         # lost when the position is beyond recovery; an attitude the sweeps leave unobserved about one
