@@ -35,7 +35,7 @@ def pytest_configure(config):
 #: more is marked ``slow`` (``make test-fast`` leaves it out), and files run longest first, so the two
 #: workers do not end on one long file. A test not in the file yet is not marked.
 DURATIONS = Path(__file__).with_name("durations.json")
-SLOW_S = 1.0
+SLOW_S = 0.5
 _measured: dict = {}
 
 
