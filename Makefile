@@ -17,11 +17,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m layoutkit demo --out-dir out/demo
 
-# the whole suite, slow tests included (what CI runs; <= 4 min on 2 idle cores)
+# the whole suite, slow tests included (what CI runs; ~6 min on 2 idle cores, +1 min in a fresh checkout)
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q
 
-# the development loop: slow tests deselected (< 1 min on 2 idle cores)
+# the development loop: slow tests deselected, by mark or by tests/durations.json (< 1 min on 2 idle cores)
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q -m "not slow and not install"
 
