@@ -500,6 +500,42 @@ def _bounded(Q, W, Pn, V, P):
 
 
 @numba.njit(**_JIT)
+def _moment_match(Q, W, Pn, V, P, wt, ref, skip_zero, e, er, use, mean, C):
+    """Weighted mean and covariance of the models in model ``ref``'s error state: deviations
+    ``e[i] = [left attitude error of i about ref, w_i - w_ref, p_i - p_ref, v_i - v_ref]``, into
+    ``mean`` (12,) ``= sum wt_i e_i`` and ``C`` (12, 12) ``= sum wt_i (P_i + (e_i - mean)(e_i - mean)^T)``.
+    With ``skip_zero`` (:func:`_bounded`) the models of weight 0 are left out: they add exactly +-0.
+    e (r, 12), er (3,), use (r,) scratch."""
+    r = Q.shape[0]
+    nu = 0
+    for i in range(r):
+        if skip_zero and wt[i] == 0.0:
+            continue
+        use[nu] = i
+        nu += 1
+        quat_left_error(Q[i], Q[ref], er)
+        for a in range(3):
+            e[i, a] = er[a]
+            e[i, 3 + a] = W[i, a] - W[ref, a]
+            e[i, 6 + a] = Pn[i, a] - Pn[ref, a]
+            e[i, 9 + a] = V[i, a] - V[ref, a]
+    for a in range(12):
+        mean[a] = 0.0
+    for u in range(nu):
+        i = use[u]
+        for a in range(12):
+            mean[a] += wt[i] * e[i, a]
+    for a in range(12):
+        for b in range(a + 1):
+            s = 0.0
+            for u in range(nu):
+                i = use[u]
+                s += wt[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
+            C[a, b] = s
+            C[b, a] = s
+
+
+@numba.njit(**_JIT)
 def _imm_mix(Q, W, Pn, V, P, mu, Pi):
     """IMM mixing step in the error state: model j starts from the mixture of all models with
     weights ``mu_{i|j} ∝ Pi[i, j] mu_i``, attitudes mixed as left errors about model j's own."""
@@ -512,35 +548,13 @@ def _imm_mix(Q, W, Pn, V, P, mu, Pi):
     e = np.empty((r, 12))
     er = np.empty(3)
     wij = np.empty(r)
-    skip_zero = _bounded(Q0, W0, Pn0, V0, P0)  # weight-0 terms add exactly +-0: leave them out
     use = np.empty(r, np.int64)
+    mean = np.empty(12)
+    skip_zero = _bounded(Q0, W0, Pn0, V0, P0)
     for j in range(r):
-        nu = 0
         for i in range(r):
             wij[i] = Pi[i, j] * mu[i] / cbar[j]
-            if skip_zero and wij[i] == 0.0:
-                continue
-            use[nu] = i
-            nu += 1
-            quat_left_error(Q0[i], Q0[j], er)
-            for a in range(3):
-                e[i, a] = er[a]
-                e[i, 3 + a] = W0[i, a] - W0[j, a]
-                e[i, 6 + a] = Pn0[i, a] - Pn0[j, a]
-                e[i, 9 + a] = V0[i, a] - V0[j, a]
-        mean = np.zeros(12)
-        for u in range(nu):
-            i = use[u]
-            for a in range(12):
-                mean[a] += wij[i] * e[i, a]
-        for a in range(12):
-            for b in range(a + 1):
-                s = 0.0
-                for u in range(nu):
-                    i = use[u]
-                    s += wij[i] * (P0[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
-                P[j, a, b] = s
-                P[j, b, a] = s
+        _moment_match(Q0, W0, Pn0, V0, P0, wij, j, skip_zero, e, er, use, mean, P[j])
         Q[j] = Q0[j]
         quat_left_mul_rotvec(mean[0], mean[1], mean[2], Q[j])
         for a in range(3):
@@ -560,33 +574,9 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
     for j in range(r):
         if mu[j] > mu[jm]:
             jm = j
-    e = np.empty((r, 12))
-    er = np.empty(3)
-    mean = np.zeros(12)
-    skip_zero = _bounded(Q, W, Pn, V, P)  # weight-0 models add exactly +-0 (_bounded): leave them out
-    use = np.empty(r, np.int64)
-    nu = 0
-    for i in range(r):
-        if skip_zero and mu[i] == 0.0:
-            continue
-        use[nu] = i
-        nu += 1
-        quat_left_error(Q[i], Q[jm], er)
-        for a in range(3):
-            e[i, a] = er[a]
-            e[i, 3 + a] = W[i, a] - W[jm, a]
-            e[i, 6 + a] = Pn[i, a] - Pn[jm, a]
-            e[i, 9 + a] = V[i, a] - V[jm, a]
-        for a in range(12):
-            mean[a] += mu[i] * e[i, a]
-    for a in range(12):
-        for b in range(a + 1):
-            s = 0.0
-            for u in range(nu):
-                i = use[u]
-                s += mu[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
-            Pc[a, b] = s
-            Pc[b, a] = s
+    mean = np.empty(12)
+    _moment_match(Q, W, Pn, V, P, mu, jm, _bounded(Q, W, Pn, V, P), np.empty((r, 12)), np.empty(3),
+                  np.empty(r, np.int64), mean, Pc)
     for a in range(4):
         q[a] = Q[jm, a]
     quat_left_mul_rotvec(mean[0], mean[1], mean[2], q)
