@@ -260,7 +260,40 @@ def two_point_start(a, b, max_speed: float, max_rate: float):
     return v, w, P
 
 
-class ErrorStateEKF:
+class PoseStateView:
+    """The pose read-outs shared by :class:`ErrorStateEKF` and :class:`~layoutkit.filter.imm.ImmFilter`:
+    a nominal attitude ``q`` (x, y, z, w) and an error-state covariance ``P`` with the attitude error
+    at rows 0:3 and the position at 6:9."""
+
+    _pose_idx = np.r_[0:3, 6:9]
+    _pose_idx.flags.writeable = False
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3, 3) body-to-world rotation."""
+        return quat_to_matrix(self.q)
+
+    @property
+    def rotvec(self) -> np.ndarray:
+        """(3,) rad rotation vector of the attitude."""
+        return quat_to_rotvec(self.q)
+
+    def pose_sigma(self) -> np.ndarray:
+        """(6,) 1-sigma of ``(dphi rad, dp m)`` (world axes)."""
+        return np.sqrt(np.maximum(np.diagonal(self.P)[self._pose_idx], 0.0))
+
+    def pose_covariance(self) -> np.ndarray:
+        """(6, 6) covariance of ``(dphi rad, dp m)``."""
+        i = self._pose_idx
+        return self.P[i][:, i]
+
+    def sigma_deg_m(self):
+        """1-sigma attitude (3,) deg and position (3,) m (the ``cov_rot_deg`` / ``cov_pos_m`` fields)."""
+        s = self.pose_sigma()
+        return s[:3] * RAD2DEG, s[3:]
+
+
+class ErrorStateEKF(PoseStateView):
     """The filter state and its two operations, :meth:`predict` and :meth:`update_sweep`.
 
     points_body : (n, 3) m sensor positions; stations : list of :class:`Station` (world poses);
@@ -298,7 +331,6 @@ class ErrorStateEKF:
                 q2[i0 + k, i1 + k] = q2[i1 + k, i0 + k] = q
                 q1[i1 + k, i1 + k] = q
         self._q_cv = (q3, q2, q1)
-        self._pose_idx = np.r_[0:3, 6:9]
         # entries of F equal to dt (and dt²/2 with the CA model): attitude/rate, position/velocity, ...
         pairs = [(k, 3 + k) for k in range(3)] + [(6 + k, 9 + k) for k in range(3)]
         hpairs = []
@@ -308,26 +340,8 @@ class ErrorStateEKF:
         self._dt_idx = tuple(np.array(pairs).T)
         self._h_idx = tuple(np.array(hpairs).T) if hpairs else None
 
-    # ----------------------------------------------------------------------------- state
-    @property
-    def rotation(self) -> np.ndarray:
-        """(3, 3) body-to-world rotation."""
-        return quat_to_matrix(self.q)
-
-    @property
-    def rotvec(self) -> np.ndarray:
-        """(3,) rad rotation vector of the attitude."""
-        return quat_to_rotvec(self.q)
-
-    def pose_sigma(self) -> np.ndarray:
-        """(6,) 1-sigma of ``(dphi rad, dp m)`` (world axes)."""
-        return np.sqrt(np.maximum(np.diagonal(self.P)[self._pose_idx], 0.0))
-
-    def pose_covariance(self) -> np.ndarray:
-        """(6, 6) covariance of ``(dphi rad, dp m)``."""
-        i = self._pose_idx
-        return self.P[i][:, i]
-
+    # ----------------------------------------------------------------------------- state (rotation,
+    # rotvec, pose_sigma, pose_covariance, sigma_deg_m: PoseStateView)
     def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None) -> None:
         """Start (or restart) at time ``t`` s with pose ``(rotation (3, 3), position (3,) m)`` of
         covariance ``pose_cov (6, 6)`` (dphi, dp) and zero (or the given) velocities with the
@@ -507,8 +521,3 @@ class ErrorStateEKF:
         if self.config.constant_acceleration:
             self.alpha = self.alpha + dx[12:15]
             self.a = self.a + dx[15:18]
-
-    def sigma_deg_m(self):
-        """1-sigma attitude (3,) deg and position (3,) m (the ``cov_rot_deg`` / ``cov_pos_m`` fields)."""
-        s = self.pose_sigma()
-        return s[:3] * RAD2DEG, s[3:]

@@ -31,10 +31,8 @@ import math
 import numpy as np
 
 from ..rotations import matrix_to_quaternion
-from ..units import RAD2DEG
-from .ekf import EkfConfig, SweepUpdate, start_covariance, chi2_quantile
+from .ekf import EkfConfig, PoseStateView, SweepUpdate, start_covariance, chi2_quantile
 from .models import FORWARD_MODELS
-from .so3 import quat_to_matrix, quat_to_rotvec
 
 __all__ = ["ImmFilter"]
 
@@ -45,7 +43,7 @@ def _kernels():
     return _kernels_numba
 
 
-class ImmFilter:
+class ImmFilter(PoseStateView):
     """The IMM bank (module docstring) behind :class:`layoutkit.filter.tracker.SweepTracker`, with
     :class:`~layoutkit.filter.ekf.ErrorStateEKF`'s interface (``initialize``, ``predict``,
     ``update_sweep``, ``q``/``w``/``p``/``v``/``P`` of the combined state, ``pose_sigma``).
@@ -118,27 +116,8 @@ class ImmFilter:
         self.v = o[K.OUT_STATE + 10:K.OUT_STATE + 13]
         self.P = o[K.OUT_P:K.OUT_P + 144].reshape(12, 12)
 
-    # ----------------------------------------------------------------------------- state
-    @property
-    def rotation(self) -> np.ndarray:
-        return quat_to_matrix(self.q)
-
-    @property
-    def rotvec(self) -> np.ndarray:
-        return quat_to_rotvec(self.q)
-
-    def pose_sigma(self) -> np.ndarray:
-        """(6,) 1-sigma of ``(dphi rad, dp m)`` (world axes) of the combined state."""
-        d = np.diagonal(self.P)
-        return np.sqrt(np.maximum(d[[0, 1, 2, 6, 7, 8]], 0.0))
-
-    def pose_covariance(self) -> np.ndarray:
-        i = np.r_[0:3, 6:9]
-        return self.P[np.ix_(i, i)]
-
-    def sigma_deg_m(self):
-        s = self.pose_sigma()
-        return s[:3] * RAD2DEG, s[3:]
+    # ----------------------------------------------------------------------------- state (rotation,
+    # rotvec, pose_sigma, pose_covariance, sigma_deg_m of the combined state: PoseStateView)
 
     def initialize(self, t: float, rotation, position, pose_cov, velocity=None, rate=None,
                    noise_scale: float | None = None) -> None:
