@@ -254,6 +254,8 @@ def test_live_still_waits_for_a_replug_after_the_first_connection(tmp_path):
                                     str(link), "--speed", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         _device_line(b)
         b.wait(timeout=60)
+        time.sleep(1.0)           # the last bytes read; then Ctrl-C rather than 20 s of --idle-timeout
+        live.send_signal(signal.SIGINT)
         out, err = live.communicate(timeout=60)
     finally:
         _reap(a, live)
@@ -326,29 +328,41 @@ def test_sigint_to_live_record_solves_every_captured_frame(tmp_path):
     capture is a prefix of the simulator's stream, so the simulator's truth is tied to it."""
     from layoutkit.workflows.live import replay_capture
 
-    for k, delay in enumerate((1.0, 1.7, 2.4)):
-        w = tmp_path / f"run{k}"
-        w.mkdir()
-        truth = w / "truth.csv"
-        sim = subprocess.Popen(EXE + ["fake-fpga", "--layout", str(LAYOUT), "--duration", "30", "--seed", str(10 + k),
-                                      "--truth", str(truth)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        port = _device_line(sim)
-        cap = w / "c.lkcap"
-        live = subprocess.Popen(EXE + ["live", "--layout", str(LAYOUT), "--port", port, "--record", str(cap),
-                                       "--report", str(w / "rep"), "--no-dashboard", "--json"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            deadline = time.monotonic() + 60
-            while (not cap.exists() or cap.stat().st_size < 2000) and time.monotonic() < deadline:
-                time.sleep(0.02)
-            time.sleep(delay)
-            live.send_signal(signal.SIGINT)
-            out, err = live.communicate(timeout=120)
-        finally:
-            for p in (sim, live):
+    runs = []                     # the three runs at once: each waits on its own stream, not on the others
+    try:
+        for k, delay in enumerate((1.0, 1.7, 2.4)):
+            w = tmp_path / f"run{k}"
+            w.mkdir()
+            truth = w / "truth.csv"
+            sim = subprocess.Popen(EXE + ["fake-fpga", "--layout", str(LAYOUT), "--duration", "30", "--seed",
+                                          str(10 + k), "--truth", str(truth)],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            port = _device_line(sim)
+            cap = w / "c.lkcap"
+            live = subprocess.Popen(EXE + ["live", "--layout", str(LAYOUT), "--port", port, "--record", str(cap),
+                                           "--report", str(w / "rep"), "--no-dashboard", "--json"],
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            runs.append(dict(k=k, delay=delay, w=w, truth=truth, cap=cap, sim=sim, live=live, at=None))
+        deadline = time.monotonic() + 60
+        while any(r["at"] != 0.0 for r in runs) and time.monotonic() < deadline:   # 0.0: signal sent
+            now = time.monotonic()
+            for r in runs:
+                if r["at"] is None and r["cap"].exists() and r["cap"].stat().st_size >= 2000:
+                    r["at"] = now + r["delay"]          # the signal `delay` s after the capture holds 2 kB
+                elif r["at"] is not None and 0 < r["at"] <= now:
+                    r["live"].send_signal(signal.SIGINT)
+                    r["at"] = 0.0
+            time.sleep(0.02)
+        for r in runs:
+            r["out"], r["err"] = r["live"].communicate(timeout=120)
+    finally:
+        for r in runs:
+            for p in (r["sim"], r["live"]):
                 if p.poll() is None:
                     p.send_signal(signal.SIGTERM)
                     p.wait(timeout=30)
+    for r in runs:
+        k, w, cap, truth, live, out, err = r["k"], r["w"], r["cap"], r["truth"], r["live"], r["out"], r["err"]
         assert live.returncode == 0, err
         s = json.loads(out)
         assert s["stopped_by"] == "SIGINT" and s["interrupted"]

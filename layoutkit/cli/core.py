@@ -250,7 +250,7 @@ def study_chen(groups, frames, chunk_frames, seed, dynamic_seconds, sensor_error
 
 
 @study_group.command("zhai2014", short_help="Zhai (2014) rectangle-face attitude fly-around.")
-@click.option("--quick", is_flag=True, help="Smoke run: 5 s samples, fewer repeats (well under a minute).")
+@click.option("--quick", is_flag=True, help="Smoke run: 10 s samples, fewer repeats (well under a minute).")
 @seed_option(default=2014)
 @out_dir_option(default="out/zhai2014", aliases=("--out",), help="Folder for the figures, table.md and results.json.")
 @json_flag(help="Print the summary JSON to stdout (instead of progress lines).")

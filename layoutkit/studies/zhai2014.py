@@ -448,14 +448,14 @@ def main(out_dir="studies/zhai2014_flyaround", quick: bool = False, seed: int = 
     """Run the Zhai (2014) fly-around study; write figures (PNG) and ``results.json`` / ``table.md``.
 
     Full run: 1 s samples (839 + 721 frames), sensitivity with 20 repeats, 36-frame detector sweep
-    (a few minutes). ``quick``: 5 s samples, 4 repeats, 8 detector frames (well under a minute) —
-    a smoke run: the filters are tuned for the full run's 1 Hz samples (at 5 s steps alpha = 1, i.e.
+    (a few minutes). ``quick``: 10 s samples, 4 repeats, 8 detector frames (well under a minute) —
+    a smoke run: the filters are tuned for the full run's 1 Hz samples (at 10 s steps alpha = 1, i.e.
     no smoothing), so the quick "+filter" rows are not representative.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    step = 5.0 if quick else 1.0
+    step = 10.0 if quick else 1.0
     t_start = time.perf_counter()
     summary = {"quick": quick, "seed": seed, "paper": PAPER_RESULTS, "cases": {},
                "setup": {"distance_m": DISTANCE_M, "focal_length_m": FOCAL_M, "pixel_m": PIXEL_M,
