@@ -128,10 +128,10 @@ def _write(path, lay, a):
                 w.writerow([repr(0.02 * k + 0.004 * s), str(s)] + ["" if not np.isfinite(x) else repr(float(x)) for x in row])
 
 
-def _two_devices(tmp_path, rng, truth, n=12, **kw):
+def _two_devices(tmp_path, rng, truth, n=12, samples=60, **kw):
     files = []
     for name, center in (("A", (-0.3, 0.0, 0.0)), ("B", (0.3, 0.2, 0.0))):
-        lay, a = _device(rng, truth, n, 60, center=center, **kw)
+        lay, a = _device(rng, truth, n, samples, center=center, **kw)
         (tmp_path / name).mkdir()
         (tmp_path / name / "layout.json").write_text(__import__("json").dumps(lay.to_dict()))
         _write(tmp_path / name / "frames.csv", lay, a)
@@ -177,9 +177,9 @@ def test_a_station_change_that_only_absorbs_one_device_is_not_written(tmp_path, 
 
     truth = stations_looking_at(STATION_POSITIONS, (0, 0, 0), kind="lh1")
     write_stations(tmp_path / "stations.json", truth)
-    files = _two_devices(tmp_path, rng, truth, n=32, moving=False, offsets=1e-3)
+    files = _two_devices(tmp_path, rng, truth, n=32, samples=20, moving=False, offsets=1e-3)
     rep = calibrate_files([f for f, _ in files], [lp for _, lp in files], tmp_path / "stations.json", tmp_path / "out",
-                          sigma=2e-5, max_samples=60, layout_sigma=1e-5)
+                          sigma=2e-5, max_samples=20, layout_sigma=1e-5)
     worse = [f for f in rep["transfer"]["folds"] if f["verdict"] == "worse"]
     assert worse and rep["transfer"]["status"] == "does_not_transfer"
     assert all(f["held_out"] in rep["transfer"]["message"] for f in worse)
