@@ -24,6 +24,9 @@ joint solve, the device's *nominal* layout unless said otherwise).
 3. **What one static device determines**: station 1's pose fitted on each device alone (free),
    its change from ``LH_POSE`` and its sd (noise + the layout consider term of ``layout_sigma``);
    whether the two devices' estimates agree within those sds.
+   Then station 1's attitude alone (its position held: prior 1e-9 m) and its position alone
+   (attitude held), each fitted on both devices and on each alone: does the better-determined
+   part transfer where the 6-DoF fit does not?
 4. **Each device's sensor offsets as prior-constrained unknowns** (``offset_prior`` = the hardware
    tolerance: two Vive HMDs' factory layouts differ by 0.22 mm RMS), both devices in the fit, station
    prior free and the rule's: each device's joint residual with the nominal layout and with its own
@@ -155,6 +158,18 @@ def determined_alone(devs, stations, mw):
     return out
 
 
+def subsets(devs, stations, mw):
+    """Section 3, second half: station 1's attitude only / position only (the other held by a 1e-9 prior)."""
+    rows = []
+    for label, pr in (("attitude only", (np.deg2rad(1.0), 1e-9)), ("position only", (1e-9, 0.05))):
+        for subset in (("HMD", "T20"), ("HMD",), ("T20",)):
+            f, _, _ = fit(devs, stations, subset, max_windows=mw, station_prior=pr, hold_station_prior=False)
+            f["label"] = label
+            print(label, f, flush=True)
+            rows.append(f)
+    return rows
+
+
 def with_offsets(devs, stations, mw, prior):
     """Section 4: each device's offsets as unknowns (prior: the hardware tolerance), stations free or
     under the rule's prior (MAP), fitted on both devices and on each alone (the held-out device with
@@ -228,6 +243,7 @@ def main():
         result["alone"] = determined_alone(devs, stations, a.max_windows)
         print(json.dumps(result["alone"], default=float), flush=True)
         rule = [(float(np.rad2deg(att)), pos * 1e3)]
+        result["subsets"] = subsets(devs, stations, a.max_windows)
         global PRIORS
         PRIORS = sorted(PRIORS[:-1] + rule) + [None]
         result["sweep"] = sweep(devs, stations, a.max_windows)
@@ -272,6 +288,12 @@ def write_markdown(r, path):
         L.append(f"| {k} ({u}) | {h['change'] * sc:.3g} ± {_f(None if h['sd'] is None else h['sd'] * sc)} | "
                  f"{t['change'] * sc:.3g} ± {_f(None if t['sd'] is None else t['sd'] * sc)} | "
                  f"{_f(r['alone']['disagreement_sigmas'][k])} |")
+    L += ["", "Station 1's attitude only (position held) / position only (attitude held), MAP with a 1° / 50 mm prior on "
+          "the free part:", "", "| part | fit on | HMD | T20 | station 1 change (deg, mm) |", "|---|---|---|---|---|"]
+    for f in r.get("subsets", []):
+        j, ch = f.get("joint_rad", {}), f.get("station1_change_deg_mm")
+        L.append(f"| {f['label']} | {'+'.join(f['fit_on'])} | {_f(j.get('HMD'))} | {_f(j.get('T20'))} | "
+                 f"{'–' if ch is None else f'{ch[0]:.3g}, {ch[1]:.3g}'} |")
     L += ["", f"Each device's sensor offsets as unknowns (prior {HMD_OFFSET_TOLERANCE * 1e3:g} mm per coordinate, "
           "the hardware tolerance), calibration terms free:", "",
           "| stations | fit on | HMD nominal layout | HMD own layout | T20 nominal | T20 own | station 1 change (deg, mm) | "
