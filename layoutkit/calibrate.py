@@ -616,7 +616,7 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                   solver: str = "schur", jacobian: str = "analytic", before=None,
                   layout_sigma: float | None = None, pose_of=None, sensor_timing: bool = False,
                   timing_prior: float = 1e-7, sensor_labels=None, adjusted_sensors=None,
-                  station_prior=None) -> BundleResult:
+                  station_prior=None, hold_station_prior: bool = True) -> BundleResult:
     """Bundle adjustment of K samples seen by S stations (module docstring).
 
     points_body : (n, 3) m, the layout as measured; angles : (K, S, n, 2) rad, measured (distorted)
@@ -649,6 +649,11 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     station_prior : optional ``(rad, m)`` prior sd of each free station's pose around its start (the
         start is itself a solution, e.g. libsurvive's ``LH_POSE``): directions the data do not
         determine stay where they were instead of absorbing the devices' own errors. None: free.
+    hold_station_prior : with ``station_prior``, hold a station term whose posterior sd exceeds
+        ``UNOBSERVABLE_RATIO`` x its prior at the start (True, the default), or keep every station term
+        adjusted as a prior-constrained unknown (False: the maximum a posteriori estimate, the prior
+        pulling each term toward the given pose by its information; such a term is reported
+        ``prior_dominated`` rather than held).
     """
     from scipy.optimize import least_squares
 
@@ -783,7 +788,7 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                 newly.add((s, ax, j))
                 weak.add((s, ax, j))
         newly_st = set()
-        if st_prior is not None:                       # the same rule for station poses with a prior
+        if st_prior is not None and hold_station_prior:  # the same rule for station poses with a prior
             for (s, c), col in pb.st_col.items():
                 gi = col - 6 * K
                 lim = UNOBSERVABLE_RATIO * st_prior[c // 3]
@@ -814,9 +819,12 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
                 val = sol.x[c0] if q < 3 else TS[s, q - 3]
                 st0 = 0.0 if q < 3 else TS0[s, q - 3]
                 bad = bool(null[gi])
+                dominated = (st_prior is not None and not hold_station_prior and not bad
+                             and std[gi] > UNOBSERVABLE_RATIO * st_prior[q // 3])
                 params.append(ParameterEstimate(f"station {stations[s].id} pose {names_st[q]}", float(val),
                                                 None if bad else float(std[gi]), float(st0), "rad" if q < 3 else "m",
-                                                "unobservable" if bad else "ok", float(corr[gi])))
+                                                "unobservable" if bad else PRIOR_DOMINATED if dominated else "ok",
+                                                float(corr[gi])))
 
     def fitted_status(s, value, start, sd):
         """'suspect' when a station that came with a (factory) calibration lands far from it."""
@@ -899,9 +907,13 @@ def bundle_adjust(points_body, angles, stations, *, sigma: float, initial_poses,
     msg = (f"{sol.message.strip()} ({sol.nfev} evaluations); residual scale {np.sqrt(s2):.3g} sigma; "
            f"{cnt['unobservable']} parameter(s) unobservable, {cnt['weakly_observable']} weakly observable "
            f"(held at their start), {cnt['suspect']} suspect")
-    if cnt[PRIOR_DOMINATED]:
-        msg += (f"; {cnt[PRIOR_DOMINATED]} sensor term(s) adjusted but set mostly by their prior "
+    n_st_pd = sum(p.status == PRIOR_DOMINATED and p.name.startswith("station") for p in params)
+    if cnt[PRIOR_DOMINATED] - n_st_pd:
+        msg += (f"; {cnt[PRIOR_DOMINATED] - n_st_pd} sensor term(s) adjusted but set mostly by their prior "
                 f"(sd > {UNOBSERVABLE_RATIO:g} prior: {PRIOR_DOMINATED})")
+    if n_st_pd:
+        msg += (f"; {n_st_pd} station pose term(s) adjusted under the station prior but set mostly by it "
+                f"({PRIOR_DOMINATED})")
     if pb.N == 6 * K:                                          # nothing left to adjust: say so, never "ok"
         status = "nothing_determined"
         n_weak = len(weak) + len(st_weak)

@@ -32,6 +32,10 @@ from .options import json_flag, layout_option, out_dir_option, seed_option, sigm
                    "free). Components the data do not determine are then held (docs/calibration.md).")
 @click.option("--station-prior-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
               help="1-sigma of the station positions around the given ones, mm (with --station-prior-deg).")
+@click.option("--station-prior-map", is_flag=True,
+              help="With --station-prior-deg/-mm: keep every station term adjusted under the prior (the maximum a "
+                   "posteriori estimate, terms the prior dominates reported prior_dominated) instead of holding "
+                   "the ones the data do not determine (docs/calibration.md).")
 @click.option("--cross-validation/--no-cross-validation", default=True, show_default=True,
               help="Refit leaving each device out (several devices) and on the first half of the windows; a "
                    "calibration that makes a held-out evaluation worse is not written as stations.json.")
@@ -42,7 +46,7 @@ from .options import json_flag, layout_option, out_dir_option, seed_option, sigm
 @json_flag(help="Print the report JSON.")
 def calibrate_cmd(frames_paths, layout_path, stations_path, out_dir, reference_path, sensor_offsets, sensor_timing,
                   offset_prior_mm, timing_prior_ns, calibration_prior, station_prior_deg, station_prior_mm,
-                  cross_validation, sigma, max_samples, seed, as_json):
+                  station_prior_map, cross_validation, sigma, max_samples, seed, as_json):
     """Bundle-adjust station poses and calibration (and each device's sensor terms) over FRAMES.
 
     Several frame tables (devices of one recording, one world frame) are adjusted together: the
@@ -59,12 +63,14 @@ def calibrate_cmd(frames_paths, layout_path, stations_path, out_dir, reference_p
 
     if (station_prior_deg is None) != (station_prior_mm is None):
         fail("--station-prior-deg and --station-prior-mm go together")
+    if station_prior_map and station_prior_deg is None:
+        fail("--station-prior-map needs --station-prior-deg and --station-prior-mm (the prior it keeps)")
     station_prior = None if station_prior_deg is None else (station_prior_deg * DEG, station_prior_mm * 1e-3)
     rep = call_or_fail(calibrate_files, list(frames_paths), list(layout_path), stations_path, out_dir,
                        reference_path=reference_path, sensor_offsets=sensor_offsets,
                        sensor_timing=sensor_timing, sigma=sigma, offset_prior=offset_prior_mm * 1e-3,
                        timing_prior=timing_prior_ns * 1e-9, calibration_prior=calibration_prior,
-                       station_prior=station_prior, max_samples=max_samples, seed=seed,
+                       station_prior=station_prior, hold_station_prior=not station_prior_map, max_samples=max_samples, seed=seed,
                        cross_validation=cross_validation)
     if as_json:
         echo_json(rep)
@@ -92,7 +98,9 @@ def _print(rep: dict) -> None:
         click.echo(f"held out {f['held_out']}: {fmt(f['factory_rad'])} -> {fmt(f['calibrated_rad'])} rad "
                    f"({f['verdict']})")
     pd = rep.get("prior_dominated") or []
-    pd = f", {len(pd)} sensor term(s) adjusted but set mostly by their prior" if pd else ""
+    n_st = sum(1 for n in pd if n.startswith("station"))
+    pd = ((f", {len(pd) - n_st} sensor term(s) adjusted but set mostly by their prior" if len(pd) > n_st else "")
+          + (f", {n_st} station pose term(s) adjusted but set mostly by the station prior" if n_st else ""))
     click.echo(f"{len(rep['unobservable'])} parameter(s) unobservable, {len(rep['weakly_observable'])} weakly "
                f"observable (held at their start){pd}; wrote {rep['outputs']['stations']} "
                f"({rep['stations_written']}), {rep['outputs']['report']}")

@@ -120,7 +120,8 @@ def _nothing_to_calibrate(frames_paths, stations_path, stations, res, reference_
 def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, reference_path=None,
                     sensor_offsets: bool = False, sensor_timing: bool = False, sigma: float,
                     offset_prior: float = 1e-3, offset_bound: float = 5e-3, calibration_prior: float = 0.1,
-                    timing_prior: float = 1e-7, station_prior=None, layout_sigma: float | None = None,
+                    timing_prior: float = 1e-7, station_prior=None, hold_station_prior: bool = True,
+                    layout_sigma: float | None = None,
                     window_s: float | None = None, reference_tolerance_s: float = 0.01,
                     reference_sigma=(1e-3, 1e-3), max_samples: int | None = None, seed: int = 0,
                     cross_validation: bool = True, segments: bool = True) -> dict:
@@ -133,7 +134,8 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
     station poses and calibration; each device's sensor offsets / latency with ``sensor_offsets`` /
     ``sensor_timing``); a device at rest gives one pose per static segment (``segments``).
     station_prior : ``(rad, m)`` prior sd of the station poses around the given ones (None: free);
-    components the data do not determine are held there (docs/calibration.md).
+    components the data do not determine are held there (docs/calibration.md), or with
+    ``hold_station_prior=False`` every component stays adjusted under the prior (the MAP estimate).
     cross_validation : the device and time folds of
     :func:`~layoutkit.workflows.calibrate_devices.cross_validate`; when a held-out evaluation gets
     worse, ``stations.json`` holds the given (factory) stations, ``stations_fitted.json`` the fit, and
@@ -180,7 +182,7 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
                              f"({d.start.message}); nothing to calibrate")
     ba_kw = dict(sensor_offsets=sensor_offsets, sensor_timing=sensor_timing, offset_prior=offset_prior,
                  offset_bound=offset_bound, calibration_prior=calibration_prior, timing_prior=timing_prior,
-                 station_prior=station_prior, layout_sigma=layout_sigma)
+                 station_prior=station_prior, hold_station_prior=hold_station_prior, layout_sigma=layout_sigma)
     selects = None
     if reference_path is not None:
         d = devs[0]
@@ -256,6 +258,7 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
         "sigma_rad": float(sigma), "window_s": float(win),
         "sensor_offsets": bool(sensor_offsets), "sensor_timing": bool(sensor_timing),
         "station_prior": None if station_prior is None else [float(x) for x in station_prior],
+        "station_prior_mode": None if station_prior is None else ("hold" if hold_station_prior else "map"),
         "reference": None if reference_path is None else str(reference_path),
         "gauge": "reference poses" if reference_path is not None else f"station {stations[0].id} pose held as given",
         "success": bool(res.success), "status": res.status, "message": res.message,
@@ -269,7 +272,8 @@ def calibrate_files(frames_path, layout_path, stations_path, out_dir, *, referen
         "transfer": transfer,
         "stations_written": ("given (the fit did not transfer; the fit is in stations_fitted.json)" if worse
                              else "fitted" if any(p.name.startswith("station") and p.status in ("ok", "suspect")
-                                                  for p in res.parameters)
+                                                  or (p.name.startswith("station") and p.status == "prior_dominated"
+                                                      and p.value != p.start) for p in res.parameters)
                              else "fitted (= the given: the data determine no station term)"),
         "determined": determined,
         "parameters": [{"name": p.name, "value": p.value, "std": p.std, "start": p.start, "unit": p.unit,
