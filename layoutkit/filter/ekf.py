@@ -83,10 +83,10 @@ class EkfConfig:
     hit_time_noise : the innovation covariance also holds the white acceleration of the motion
         model between the state time and the angles' hit times (:func:`hit_time_covariance`;
         constant velocity only): the prediction to the hit times (LH2: up to ~20 ms after the
-        rotor's zero) is first order in the velocity and otherwise takes the acceleration over
-        those milliseconds for angle noise. Off by default: on the Bitcraze hand-moved logs it
-        keeps 5x more angles but, with the paper's rho, lowers the ok share (the filter then
-        knows its position less well) — see ``adaptive_rho``.
+        rotor's zero) is first order in the velocity, and without the term a fast-moving filter
+        claims too small a 1-sigma (simulated 2.5 m/s swing: ok outputs up to 5.7 of their own
+        1-sigma off, 3.2 with it; tests/test_filter_imm.py). On the Bitcraze hand-moved logs it
+        keeps ~5x more angles, restarts less, and moves the ok share by -1.5..+2 points.
     init_sigma_rate : rad/s, init_sigma_speed : m/s — prior 1-sigma of the velocities at
         (re-)initialisation (they start at zero; the defaults admit a hand-swung or flying body:
         the first sweeps then determine the velocity); init_inflation : factor on the PnP pose

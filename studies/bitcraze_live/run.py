@@ -24,6 +24,10 @@ the same decoded angles, :func:`layoutkit.live.joint_stream.crossing_beam_window
 and its share of 100 ms intervals tracking. Moving and flight logs: RMS error vs motion capture of
 the joint ok poses, the filter's ok poses, the firmware's crossing beam and EKF; coverage. The
 filter's real-time factor (stream seconds per filter CPU second).
+
+``--filter-set KEY=VALUE`` (repeatable) replays the filter with other EkfConfig keywords, e.g. the
+measured alternative in ``adaptive_rho0/`` (``--filter-set adaptive_rho=0 --out OUT`` on the moving,
+flight and three static logs; docs/live.md says why it is not the default).
 """
 from __future__ import annotations
 
@@ -310,9 +314,11 @@ def write_table(res: dict, out: Path) -> Path:
     L += ["", "## Why the filter's 100 ms intervals are not ok (moving and flying logs)", "",
           "Per interval of the log (between its markers): ok (an ok filter output), else by the stations whose sweeps "
           "carried angles in it and whether the filter was lost there (`interval_causes`). *Uncertain* with 2 stations "
-          "= the filter's position 1-sigma above what one station would give (fast motion: the adaptive bank in its "
-          "agile model), or velocity not yet known after a start; with 1 station the range is not known to the ok "
-          "limit (those poses are 3x off when called ok).", "",
+          "= the filter's position 1-sigma above what one station would give at the session's sigma/rho (all but 0-6 "
+          "per log; its angle-noise scale, fitted to the innovations, sits near its cap in this fast motion: "
+          "docs/live.md), or velocity not yet known after a start; with 1 station the range is not known to the ok "
+          "limit. The last two columns check the ok outputs: their error vs motion capture by the stations their "
+          "interval had (`ok_errors_by_interval_stations`; err/σ with the root-trace 1-sigma).", "",
           "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / lost "
           "| not ok, 2 stations: uncertain / lost | ok outputs in 1-station intervals: n, RMS / p95 err mm, err/σ | "
           "in 2-station intervals |", "|---|---|---|---|---|---|---|---|"]
