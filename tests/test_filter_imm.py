@@ -7,7 +7,11 @@ arguments, to 1e-12; (2) one compiled model (``motion="fixed"``) and the numpy
 :class:`ErrorStateEKF` fed the same sweeps end in the same state (1e-9); (3) simulation with known
 truth: on a body that rests and then swings at metres per second, the adaptive bank tracks both
 (its RMS error at rest within 1.5x of the fixed stiff filter's, in motion far below the stiff
-filter's and with its gates keeping > 90 % of the angles) with no setting changed.
+filter's and with its gates keeping > 90 % of the angles) with no setting changed; (4) Monte-Carlo:
+the hit-time covariance of a white acceleration against integrated random paths; (5) simulation
+with known truth: ok outputs consistent with their own 1-sigma through a one-station span of a
+fast swing, the one-station limit against pose_dop at the true pose, the fitted noise scale
+against the simulated angle correlation.
 """
 from __future__ import annotations
 
@@ -46,9 +50,10 @@ def test_compiled_forward_model_equals_the_reference(kind, gib):
             np.testing.assert_allclose(g, dp[i, k], rtol=1e-9, atol=1e-12)
 
 
-def _stream(kind, rng, T=3.0, swing_from=None, speed=2.5):
+def _stream(kind, rng, T=3.0, swing_from=None, speed=2.5, noise_rho=0.87):
     """Sweeps of a 4-sensor deck seen by two stations (world frame), truth poses at the sweep times;
-    at rest, then (after ``swing_from`` s) swung on a 0.3 m circle at ``speed`` m/s."""
+    at rest, then (after ``swing_from`` s) swung on a 0.3 m circle at ``speed`` m/s; angle noise
+    4e-5 rad with same-rotor correlation ``noise_rho`` (Chen eq. 19)."""
     from layoutkit.geometry import look_at_rotation, rotvec_to_matrix
     from layoutkit.lighthouse import measure
     from layoutkit.live.frames import SweepMeasurement
@@ -91,18 +96,19 @@ def _stream(kind, rng, T=3.0, swing_from=None, speed=2.5):
             Ri, pi_ = pose(t0 + dl[i])
             psi = ((P[i] @ Ri.T + pi_) - st.translation) @ st.rotation
             out[i] = measure(psi[None], st.calibration)[0, axis]
-        out = out + sample_angle_noise((1, 4), 4e-5, 0.87, rng)[0, :, axis]
+        out = out + sample_angle_noise((1, 4), 4e-5, noise_rho, rng)[0, :, axis]
         sweeps.append(SweepMeasurement(t0, s, axis, out, kind=kind))
         truth.append(pose(t0)[1] + pose(t0)[0] @ P.mean(0))
     return P, sts, sweeps, np.array(truth)
 
 
-def test_one_compiled_model_equals_the_numpy_filter():
+@pytest.mark.parametrize("hit_noise", [False, True])
+def test_one_compiled_model_equals_the_numpy_filter(hit_noise):
     rng = np.random.default_rng(5)
     P, sts, sweeps, _ = _stream("lh2", rng, T=1.0, swing_from=0.3, speed=1.0)
     from layoutkit.filter.imm import ImmFilter
 
-    cfg = EkfConfig(motion="fixed", psd_rot=1e-2, psd_pos=1e-2)
+    cfg = EkfConfig(motion="fixed", psd_rot=1e-2, psd_pos=1e-2, hit_time_noise=hit_noise)
     a, b = ErrorStateEKF(P, sts, cfg), ImmFilter(P, sts, cfg)
     Rt = np.eye(3)
     for f in (a, b):
@@ -121,6 +127,66 @@ def test_one_compiled_model_equals_the_numpy_filter():
     np.testing.assert_allclose(b.v, a.v, atol=1e-7)
     np.testing.assert_allclose(b.q, a.q, atol=1e-9)
     np.testing.assert_allclose(b.P, a.P, rtol=1e-6, atol=1e-15)
+    if hit_noise:  # the term is not a no-op here: without it the same sweeps end elsewhere
+        c = ErrorStateEKF(P, sts, EkfConfig(motion="fixed", psd_rot=1e-2, psd_pos=1e-2, hit_time_noise=False))
+        c.initialize(sweeps[0].t, Rt, np.array([0.0, 0.0, 0.0]), np.eye(6) * 1e-6)
+        for m in sweeps[1:]:
+            idx = np.flatnonzero(np.isfinite(m.angles))
+            c.predict(m.t)
+            c.update_sweep(m.station, m.axis, idx, m.angles[idx], offs(sts[m.station], "lh2", m.angles[idx], m.axis))
+        assert np.abs(c.P - a.P).max() > 1e-4 * np.abs(a.P).max()  # 100x the parity tolerance above
+
+
+def test_hit_time_covariance_is_the_integrated_white_acceleration():
+    """Monte-Carlo against the closed form: a white acceleration of unit PSD, integrated twice on a
+    fine grid (20,000 paths, 10 µs steps), gives positions at hit times 4, 11 and 17 ms after the
+    state time (and, on an independent path, 3 and 9 ms before it: a late sweep) whose sample
+    covariance equals :func:`hit_time_covariance` (``lo² hi / 2 - lo³ / 6``; 0 across the state
+    time) within 4 % of the diagonal; the compiled per-pair kernel is the same formula to 1e-18."""
+    from layoutkit.filter import _kernels_numba as K
+    from layoutkit.filter.ekf import hit_time_covariance
+
+    rng = np.random.default_rng(4)
+    dt, n, N = 1e-5, 1800, 20000
+    d = np.array([0.004, 0.011, 0.017, -0.003, -0.009])
+    x = np.empty((N, d.size))
+    for side, cols in ((1, [0, 1, 2]), (-1, [3, 4])):
+        a = rng.normal(scale=1.0 / np.sqrt(dt), size=(N, n))
+        v = np.cumsum(a, 1) * dt
+        pos = np.cumsum(v, 1) * dt
+        for c in cols:
+            x[:, c] = pos[:, int(round(abs(d[c]) / dt)) - 1]
+    C = hit_time_covariance(d)
+    emp = np.cov(x.T)
+    scale = np.sqrt(np.outer(np.diag(C), np.diag(C)))
+    assert np.max(np.abs(emp - C) / scale) < 0.04, (emp / scale).round(3)
+    assert C[0, 3] == 0.0 and C[2, 4] == 0.0 and C[0, 0] == pytest.approx(0.004 ** 3 / 3, rel=1e-12)
+    for i in range(d.size):
+        for j in range(d.size):
+            assert abs(K.hit_time_noise(d[i], d[j]) - C[i, j]) < 1e-18
+
+
+def test_the_fitted_noise_scale_tells_which_angle_correlation_the_data_have():
+    """Simulation with known noise: a deck at rest whose angles carry noise of sigma_theta with a
+    same-rotor correlation of 0.2 (what consecutive sweeps of the Bitcraze static LH2 logs show,
+    0.1-0.6) or of the paper's 0.87. The adaptive bank fits its angle-noise scale to the innovations
+    (EkfConfig.noise_scale_*): assuming the paper's correlation on 0.2-correlated data it inflates
+    the noise (the sweeps' angle differences are ~3x larger than 0.87 allows), assuming none
+    (``adaptive_rho = 0``) it keeps ~1; on 0.87-correlated data the paper's model keeps ~1. The
+    scale is a test of the noise model, the reason ``adaptive_rho`` exists."""
+    from layoutkit.filter.tracker import SweepTracker
+
+    scale = {}
+    for data_rho in (0.2, 0.87):
+        P, sts, sweeps, _ = _stream("lh2", np.random.default_rng(17), T=2.0, noise_rho=data_rho)
+        for model_rho in (None, 0.0):
+            tr = SweepTracker(P, sts, EkfConfig(adaptive_rho=model_rho))
+            for m in sweeps:
+                tr.push(m)
+            scale[data_rho, model_rho] = tr.ekf.noise_scale
+    print(scale)
+    assert scale[0.2, 0.0] < 1.6 and scale[0.87, None] < 1.6
+    assert scale[0.2, None] > 2.5 * scale[0.2, 0.0]
 
 
 def _run(cfg, P, sts, sweeps, truth):
@@ -189,10 +255,12 @@ def test_two_point_start_knows_the_velocity(speed):
 def test_ok_needs_a_position_known_better_than_one_station():
     """Construction (Chen eq. 24, computed here at the TRUE pose, independently of the filter): a
     joint start, then station 1 goes dark while the deck swings at 2.5 m/s before station 0 alone.
-    With ``ok_beats_one_station`` every ok output's position 1-sigma (root trace) is within 10 % of
-    what the best single station gives at the true pose with every sensor lit (PDOP · sigma_theta;
-    the filter evaluates it at its own pose every 0.1 s); without the rule the filter calls poses
-    ok at twice that."""
+    With ``ok_beats_one_station`` every ok output's position 1-sigma (root trace) is within what
+    the best single station gives at the true pose with every sensor lit (PDOP · sigma_theta) — up
+    to how much that limit itself changes over the 0.1 s the filter keeps it (it is evaluated at the
+    filter's pose every 0.1 s of stream; the bound per output is the largest ratio of the true-pose
+    limit over the preceding 0.11 s to its value now, plus 2 %); without the rule the filter calls
+    poses ok at twice that."""
     from dataclasses import replace
 
     from layoutkit.dop import pose_dop
@@ -201,26 +269,70 @@ def test_ok_needs_a_position_known_better_than_one_station():
 
     rng = np.random.default_rng(5)
     P, sts, sweeps, truth = _stream("lh2", rng, T=2.5, swing_from=0.6, speed=2.5)
-    vis = np.zeros((1, 2, 4), bool)
-    vis[0, 0] = True
+    t_all = np.array([m.t for m in sweeps])
+    vis = np.zeros((len(sweeps), 2, 4), bool)
+    vis[:, 0] = True
     cfg = EkfConfig()
     worst, n_ok = {}, {}
     for rule in (True, False):
         tr = SweepTracker(P, sts, replace(cfg, ok_beats_one_station=rule))
-        ratios = []
+        t_ok, sig, rot = [], [], []
         for m, x in zip(sweeps, truth):
             if int(m.station) == 1 and m.t > 0.4:
                 continue
             o = tr.push(m)
             if o is None or m.t < 0.6 or not o.ok:
                 continue
-            lim = float(pose_dop(P, rotvec_to_matrix(o.rotvec)[None], np.asarray(x)[None], rho=cfg.rho, visible=vis,
-                                 stations=sts).pdop[0]) * cfg.sigma_theta
-            ratios.append(float(np.sqrt(np.sum(o.cov_pos_m ** 2))) / lim)
-        worst[rule], n_ok[rule] = max(ratios), len(ratios)
+            t_ok.append(m.t)
+            sig.append(float(np.sqrt(np.sum(o.cov_pos_m ** 2))))
+            rot.append(rotvec_to_matrix(o.rotvec))
+        # the limit at the true position along the whole stream (the filter's attitude at each ok output)
+        k = np.searchsorted(t_all, t_ok)
+        lim = np.asarray(pose_dop(P, np.array(rot), truth[k], rho=cfg.rho, visible=vis[:len(k)],
+                                  stations=sts).pdop) * cfg.sigma_theta
+        lag = np.array([lim[(np.asarray(t_ok) >= t - 0.11) & (np.asarray(t_ok) <= t)].max() / lim[i]
+                        for i, t in enumerate(t_ok)])
+        worst[rule], n_ok[rule] = float(np.max(np.asarray(sig) / (lim * lag))), len(sig)
+    print(worst, n_ok)
     assert n_ok[True] > 50
-    assert worst[True] <= 1.1, worst
+    assert worst[True] <= 1.02, worst
     assert worst[False] > 1.5, worst
+
+
+def test_ok_outputs_are_consistent_through_a_one_station_span_of_a_fast_swing():
+    """Simulation with known truth: the deck swings at 2.5 m/s on a 0.3 m circle (~20 m/s²) and
+    station 1 is occluded for 300 ms. The ok outputs' errors, per axis in units of their own
+    1-sigma, are those of a calibrated Gaussian — RMS 0.5-1.3 and none beyond 4 (~700 draws) —
+    through the two-station swing and the one-station span alike, and most of the span stays ok
+    (the other station's fix carried by the motion model). Without the acceleration over the hit
+    times in the innovation covariance (``hit_time_noise=False``: LH2 planes are hit up to ~20 ms
+    after the rotor's zero) the same outputs claim a 1-sigma about half their error (max > 4.5)."""
+    from dataclasses import replace
+
+    from layoutkit.filter.tracker import SweepTracker
+
+    rng = np.random.default_rng(1)
+    P, sts, sweeps, truth = _stream("lh2", rng, T=2.2, swing_from=0.5, speed=2.5)
+    z = {}
+    for hit_noise in (True, False):
+        tr = SweepTracker(P, sts, replace(EkfConfig(), hit_time_noise=hit_noise))
+        zs, dark_ok = [], 0
+        for m, x in zip(sweeps, truth):
+            dark = 1.5 <= m.t < 1.8
+            if dark and int(m.station) == 1:
+                continue
+            o = tr.push(m)
+            if o is None or not o.ok or m.t < 0.8:
+                continue
+            zs.append((o.translation - x) / o.cov_pos_m)
+            dark_ok += dark
+        z[hit_noise] = np.abs(np.array(zs))
+        if hit_noise:
+            assert dark_ok >= 20, dark_ok  # of the span's 30 sweeps of station 0
+    rms, worst = float(np.sqrt(np.mean(z[True] ** 2))), float(z[True].max())
+    print(f"z RMS {rms:.2f} max {worst:.2f} (without the term: max {z[False].max():.2f}), {z[True].size} draws")
+    assert 0.5 < rms < 1.3 and worst < 4.0
+    assert z[False].max() > 4.5
 
 
 def test_a_planar_ambiguous_start_is_not_ok_at_rest():

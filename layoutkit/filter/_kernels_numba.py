@@ -253,11 +253,12 @@ def cv_predict(q, w, p, v, P, dt, qrot, qpos, T):
 
 @numba.njit(**_JIT)
 def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected, dl, sigma2, rho, y, H, HP, S,
-                     zp, rows):
+                     zp, rows, qrot=0.0, qpos=0.0):
     """Innovations ``y (m,)``, rows ``H (m, 12)``, ``HP = H P (m, 12)`` and the innovation covariance
     ``S (m, m)`` of one sweep for one model (ErrorStateEKF.update_sweep before the gates): each
     angle predicted at its own hit time ``dl`` s after the state time (first order in the
-    velocity). ``zp (m,)``, ``rows (m, 6)`` scratch."""
+    velocity), ``S`` with the model's process noise over those offsets
+    (:func:`hit_time_noise`; ``qrot`` rad²/s³, ``qpos`` m²/s³). ``zp (m,)``, ``rows (m, 6)`` scratch."""
     m = idx.shape[0]
     R = np.empty((3, 3))
     quat_to_matrix(q, R)
@@ -284,8 +285,30 @@ def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected,
             for k in range(12):
                 s += HP[a, k] * H[b, k]
             s += sigma2 * (rho + (1.0 - rho if a == b else 0.0))
+            if qrot > 0.0 or qpos > 0.0:
+                cab = hit_time_noise(dl[a], dl[b])
+                if cab > 0.0:
+                    s += cab * (qrot * (rows[a, 0] * rows[b, 0] + rows[a, 1] * rows[b, 1] + rows[a, 2] * rows[b, 2])
+                                + qpos * (rows[a, 3] * rows[b, 3] + rows[a, 4] * rows[b, 4] + rows[a, 5] * rows[b, 5]))
             S[a, b] = s
             S[b, a] = s
+
+
+@numba.njit(**_JIT)
+def hit_time_noise(da, db):
+    """s³, covariance factor of the white-acceleration process noise between the state time and
+    two hit times ``da``, ``db`` s after it: the integrated motion ``x(d) = int_0^d (d - s) a(s) ds``
+    of a white acceleration of unit PSD has ``Cov(x(da), x(db)) = lo² hi / 2 - lo³ / 6`` with
+    ``lo = min(|da|, |db|)``, ``hi = max`` (``d³ / 3`` for ``da = db``; Bar-Shalom, Li & Kirubarajan
+    2001 eq. 6.2.2-12's position term); 0 when the two lie on opposite sides of the state time
+    (independent noise). The extrapolation of a sweep's angles to their hit times (first order in
+    the velocity) misses this motion; with it in ``S`` the innovations of a moving body are not
+    taken for angle noise."""
+    if da * db <= 0.0:
+        return 0.0
+    x, y = abs(da), abs(db)
+    lo, hi = (x, y) if x < y else (y, x)
+    return lo * lo * hi / 2.0 - lo * lo * lo / 6.0
 
 
 @numba.njit(**_JIT)
@@ -363,7 +386,7 @@ def _apply(keep, HP, X, q, w, p, v, P, dx):
 
 @numba.njit(**_JIT)
 def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
-              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt=0.0, freeze=False):
+              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt=0.0, freeze=False, hit_noise=True):
     """One sweep through an interacting-multiple-model bank of ``r`` constant-velocity filters
     (Blom & Bar-Shalom 1988): mix (when ``mix``), predict each model to ``t`` with its own PSDs,
     gate, update every model with the kept angles, re-weight ``mu`` by the likelihoods, and write
@@ -375,7 +398,8 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
     probable model, the combined pose correction (6,) (left rotation rad, position m). sweep_dt : s,
     the sweep's own time minus ``t`` (<= 0: a sweep that arrives slightly out of time order is
     applied at ``t`` with its hit times moved back by that much). freeze : keep ``mu`` (a body the
-    static detector says is at rest stays in the mode it was put in)."""
+    static detector says is at rest stays in the mode it was put in). hit_noise : each model's
+    white acceleration over the angles' hit-time offsets in ``S`` (:func:`hit_time_noise`)."""
     r = Q.shape[0]
     m = idx.shape[0]
     q_prev = qc.copy()
@@ -390,7 +414,7 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
     out[3] = np.nan
     if m > 0:
         _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
-                    sweep_dt, freeze)
+                    sweep_dt, freeze, qrot, qpos, hit_noise)
     imm_combine(Q, W, Pn, V, P, mu, qc, wc, pc, vc, Pc)
     if out[0] > 0:
         er = np.empty(3)
@@ -402,7 +426,7 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
 
 @numba.njit(**_JIT)
 def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
-                sweep_dt, freeze):
+                sweep_dt, freeze, qrot, qpos, hit_noise):
     r = Q.shape[0]
     m = idx.shape[0]
     dl = np.empty(m)
@@ -420,7 +444,8 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
     keep = np.zeros(m, np.bool_)
     for j in range(r):
         sweep_innovation(pb, idx, z, Q[j], W[j], Pn[j], V[j], P[j], Rs, ts, lh2, axis, c, corrected, dl, sigma2,
-                         rho, Y[j], H[j], HP[j], S[j], zp, rows)
+                         rho, Y[j], H[j], HP[j], S[j], zp, rows, qrot[j] if hit_noise else 0.0,
+                         qpos[j] if hit_noise else 0.0)
         for a in range(m):
             if Y[j, a] * Y[j, a] <= q1 * S[j, a, a]:
                 keep[a] = True
@@ -588,7 +613,7 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
 
 #: layout of the per-call parameter vector of :func:`imm_step`
 PAR_T_STATE, PAR_T, PAR_SIGMA2, PAR_RHO, PAR_Q1, PAR_OMEGA, PAR_LH2, PAR_AXIS, PAR_CORRECTED, PAR_MIX = range(10)
-PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_FREEZE, PAR_SIZE = 10, 17, 26, 29, 30, 31
+PAR_CAL, PAR_RS, PAR_TS, PAR_SWEEP_DT, PAR_FREEZE, PAR_HIT_NOISE, PAR_SIZE = 10, 17, 26, 29, 30, 31, 32
 #: layout of :func:`imm_step`'s output vector
 OUT_STATE, OUT_P, OUT_SIG, OUT_SIZE = 10, 23, 167, 173
 
@@ -626,7 +651,7 @@ def imm_step(X, P, M, Pi, pb, idx, z, par, qm, out):
     imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, par[PAR_T_STATE], par[PAR_T], pb, idx, z, Rs, ts,
               par[PAR_LH2] > 0.5, int(par[PAR_AXIS]), c, par[PAR_CORRECTED] > 0.5, par[PAR_OMEGA], par[PAR_SIGMA2],
               par[PAR_RHO], par[PAR_Q1], qm, par[PAR_MIX] > 0.5, out, qc, wc, pc, vc, Pc, par[PAR_SWEEP_DT],
-              par[PAR_FREEZE] > 0.5)
+              par[PAR_FREEZE] > 0.5, par[PAR_HIT_NOISE] > 0.5)
     for j in range(r):
         for a in range(4):
             X[j, a] = Q[j, a]

@@ -86,13 +86,14 @@ class ImmFilter(PoseStateView):
             par = np.zeros((2, K.PAR_SIZE))
             for axis in (0, 1):
                 v = par[axis]
-                v[K.PAR_SIGMA2], v[K.PAR_RHO] = c.sigma_theta ** 2, c.rho
+                v[K.PAR_SIGMA2], v[K.PAR_RHO] = c.sigma_theta ** 2, c.update_rho
                 v[K.PAR_Q1] = chi2_quantile(1.0 - c.gate_angle_p, 1)
                 v[K.PAR_OMEGA] = 2.0 * math.pi * st.rotor_rpm / 60.0 if c.hit_timing else math.inf
                 v[K.PAR_LH2] = float(st.kind == "lh2")
                 v[K.PAR_AXIS] = axis
                 v[K.PAR_CORRECTED] = float(cal is not None and cal.gib_argument == "corrected")
                 v[K.PAR_MIX] = 1.0
+                v[K.PAR_HIT_NOISE] = float(c.hit_time_noise)
                 if cal is not None:
                     v[K.PAR_CAL:K.PAR_CAL + 7] = cal.params[axis]
                 v[K.PAR_RS:K.PAR_RS + 9] = np.asarray(st.rotation, float).ravel()

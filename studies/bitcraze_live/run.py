@@ -24,6 +24,10 @@ the same decoded angles, :func:`layoutkit.live.joint_stream.crossing_beam_window
 and its share of 100 ms intervals tracking. Moving and flight logs: RMS error vs motion capture of
 the joint ok poses, the filter's ok poses, the firmware's crossing beam and EKF; coverage. The
 filter's real-time factor (stream seconds per filter CPU second).
+
+``--filter-set KEY=VALUE`` (repeatable) replays the filter with other EkfConfig keywords, e.g. the
+measured alternative in ``adaptive_rho0/`` (``--filter-set adaptive_rho=0 --out OUT`` on the moving,
+flight and three static logs; docs/live.md says why it is not the default).
 """
 from __future__ import annotations
 
@@ -88,16 +92,17 @@ class _Lines(io.TextIOBase):
                 "angles": np.asarray(self.angles, int)}
 
 
-def replay(log, yml, *, stations=None, filt=False, **kw):
+def replay(log, yml, *, stations=None, filt=False, filter_settings=None, **kw):
     """``layoutkit replay LOG --system-config YML --solve joint [--stations S] [--filter ekf]``:
-    (summary, the sink's arrays, wall seconds)."""
+    (summary, the sink's arrays, wall seconds). filter_settings : EkfConfig keywords beside the
+    session's sigma / rho (``--filter-set``; default none: the filter's defaults)."""
     from layoutkit.filter import EkfConfig
     from layoutkit.live.pipeline import LiveConfig
     from layoutkit.workflows.live import replay_capture
 
     cfg = LiveConfig()
     if filt:
-        cfg = replace(cfg, filter=EkfConfig(sigma_theta=cfg.sigma_theta, rho=cfg.rho))
+        cfg = replace(cfg, filter=EkfConfig(sigma_theta=cfg.sigma_theta, rho=cfg.rho, **(filter_settings or {})))
     sink = _Lines()
     t0 = time.perf_counter()
     with contextlib.redirect_stderr(io.StringIO()):
@@ -150,6 +155,42 @@ def firmware_crossing_beam(log, yml):
     return crossing_beam_windows(ws, sts, lay.n)
 
 
+def _interval_stations(F, on: float, off: float, interval: float = 0.1):
+    """Per line of the filter's JSON lines ``F`` its 100 ms interval of ``[on, off)`` (``k``, -1
+    outside), and per interval the number of stations whose sweeps carried angles in it (a lost
+    filter's lines count: it does not update)."""
+    n = int(np.floor((off - on) / interval))
+    k = np.floor((F["t"] - on) / interval).astype(np.int64)
+    use = (k >= 0) & (k < n)
+    seen = np.zeros((n, 2), bool)
+    lit = use & ((F["angles"] > 0) | (F["status"] == "lost")) & (F["station"] >= 0) & (F["station"] < 2)
+    seen[k[lit], F["station"][lit]] = True
+    return np.where(use, k, -1), seen.sum(1)
+
+
+def ok_errors_by_interval_stations(F, e_ok, on: float, off: float) -> dict:
+    """The honesty check of the filter's ok outputs: their errors vs motion capture ``e_ok`` (m, one
+    per ok line of ``F``, NaN where the motion capture has none), split by how many stations' sweeps
+    the output's 100 ms interval had (1: the filter carries the other station's fix with its motion
+    model; its ok status claims a position known better than one station gives). Per split: outputs,
+    RMS and 95th percentile error (mm) and the RMS of error / predicted 1-sigma (root trace)."""
+    k, ns = _interval_stations(F, on, off)
+    okF = F["status"] == "ok"
+    kk, sg = k[okF], F["sigma"][okF]
+    out = {}
+    for label, want in (("1_station", 1), ("2_stations", 2)):
+        m = (kk >= 0) & np.isfinite(e_ok)
+        m[m] = ns[kk[m]] == want
+        if m.sum() < 3:
+            out[label] = {"n": int(m.sum())}
+            continue
+        e = e_ok[m]
+        q = np.isfinite(sg[m])
+        out[label] = {"n": int(m.sum()), "rms_mm": mm(np.sqrt(np.mean(e ** 2))), "p95_mm": mm(np.percentile(e, 95)),
+                      "err_over_sigma_rms": round(float(np.sqrt(np.mean((e[q] / sg[m][q]) ** 2))), 2) if q.any() else None}
+    return out
+
+
 def interval_causes(F, on: float, off: float, interval: float = 0.1) -> dict:
     """Why the filter's 100 ms intervals of a log are not ok, from its JSON lines ``F`` (one per
     sweep once started: station, status, angles the sweep carried): each interval of ``[on, off)``
@@ -159,17 +200,13 @@ def interval_causes(F, on: float, off: float, interval: float = 0.1) -> dict:
     the filter's state (``lost``, else ``uncertain``). Counts, and the coverage over all intervals
     and over the intervals with sweeps."""
     n = int(np.floor((off - on) / interval))
-    k = np.floor((F["t"] - on) / interval).astype(np.int64)
-    use = (k >= 0) & (k < n)
+    # a lost filter does not update (used = rejected = 0): its lines count as sweeps of their station
+    k, ns = _interval_stations(F, on, off, interval)
+    use = k >= 0
     ok = np.zeros(n, bool)
     ok[k[use & (F["status"] == "ok")]] = True
-    seen = np.zeros((n, 2), bool)
-    # a lost filter does not update (used = rejected = 0): its lines count as sweeps of their station
-    lit = use & ((F["angles"] > 0) | (F["status"] == "lost")) & (F["station"] >= 0) & (F["station"] < 2)
-    seen[k[lit], F["station"][lit]] = True
     lost = np.zeros(n, bool)
     lost[k[use & (F["status"] == "lost")]] = True
-    ns = seen.sum(1)
     out = {"intervals": n, "ok": int(ok.sum()), "with_sweeps_2_stations": int((ns == 2).sum()),
            "with_sweeps_1_station": int((ns == 1).sum()), "without_sweeps": int((ns == 0).sum())}
     for label, m in (("1 station", ns == 1), ("2 stations", ns == 2)):
@@ -216,6 +253,9 @@ def write_table(res: dict, out: Path) -> Path:
          "`layoutkit.studies.bitcraze_dataset`).", ""]
     if res.get("note"):
         L += [f"Run note: {res['note']}", ""]
+    if res.get("filter_settings"):
+        L += ["Filter settings beyond the defaults (`--filter-set`): " +
+              ", ".join(f"`{k}={json.dumps(v)}`" for k, v in res["filter_settings"].items()), ""]
     cal = (res.get("calibration") or {})
     ref = cal.get("refinement") or {}
     L += ["## Stations from the data (item 3)", "", f"`{cal.get('command', '')}`", ""]
@@ -274,19 +314,28 @@ def write_table(res: dict, out: Path) -> Path:
     L += ["", "## Why the filter's 100 ms intervals are not ok (moving and flying logs)", "",
           "Per interval of the log (between its markers): ok (an ok filter output), else by the stations whose sweeps "
           "carried angles in it and whether the filter was lost there (`interval_causes`). *Uncertain* with 2 stations "
-          "= the filter's position 1-sigma above what one station would give (fast motion: the adaptive bank in its "
-          "agile model), or velocity not yet known after a start; with 1 station the range is not known to the ok "
-          "limit (those poses are 3x off when called ok).", "",
+          "= the filter's position 1-sigma above what one station would give at the session's sigma/rho (all but 0-6 "
+          "per log; its angle-noise scale, fitted to the innovations, sits near its cap in this fast motion: "
+          "docs/live.md), or velocity not yet known after a start; with 1 station the range is not known to the ok "
+          "limit. The last two columns check the ok outputs: their error vs motion capture by the stations their "
+          "interval had (`ok_errors_by_interval_stations`; err/σ with the root-trace 1-sigma).", "",
           "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / lost "
-          "| not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
+          "| not ok, 2 stations: uncertain / lost | ok outputs in 1-station intervals: n, RMS / p95 err mm, err/σ | "
+          "in 2-station intervals |", "|---|---|---|---|---|---|---|---|"]
+
+    def hon(x):
+        return "–" if not x or x.get("rms_mm") is None else (
+            f"{x['n']}, {_f(x['rms_mm'])} / {_f(x['p95_mm'])}, {_f(x.get('err_over_sigma_rms'))}")
     for name, r in logs.items():
         c = r.get("filter_interval_causes")
         if not c:
             continue
+        h = r.get("filter_ok_errors_by_interval_stations") or {}
         L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
                  f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
                  f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
-                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
+                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} | "
+                 f"{hon(h.get('1_station'))} | {hon(h.get('2_stations'))} |")
     L += ["", "## Filter speed (stream seconds per filter CPU second, this run's machine load)", "",
           "| log | stream s | filter CPU s | × real time |", "|---|---|---|---|"]
     for name, r in logs.items():
@@ -316,8 +365,20 @@ def main():
                     help="use OUT/calibration/stations_refined.json as it is (skip step 1)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/table.md from OUT/results.json")
     ap.add_argument("--note", help="a line recorded in results.json and the table (e.g. which code ran)")
+    ap.add_argument("--filter-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an EkfConfig keyword for the filter's replays, VALUE as JSON (e.g. adaptive_rho=0, "
+                         "hit_time_noise=false); repeatable; recorded in results.json")
     a = ap.parse_args()
     out = Path(a.out)
+    settings = {}
+    for kv in a.filter_set:
+        key, sep, val = kv.partition("=")
+        if not sep:
+            ap.error(f"--filter-set {kv!r}: expected KEY=VALUE")
+        try:
+            settings[key] = json.loads(val)
+        except json.JSONDecodeError:
+            ap.error(f"--filter-set {kv!r}: VALUE is not JSON (numbers, true/false, null, [lists])")
     if a.table_only:
         res = json.loads((out / "results.json").read_text())
         if a.note:
@@ -329,7 +390,7 @@ def main():
     lh2 = [it for it in items if it.kind == "lh2"]
     static = [it for it in lh2 if it.scenario == "jitter"]
     res = {"data": "bitcraze/positioning_dataset (not stored: no licence)", "logs": {}, "skipped": skipped,
-           "note": a.note}
+           "note": a.note, "filter_settings": settings}
     try:
         import os
 
@@ -361,7 +422,7 @@ def main():
         fw = firmware_series(it.log)
         row = {"set": it.set, "scenario": it.scenario}
         sj, J, wj = replay(it.log, it.system_config, stations=stations)
-        sf, F, wf = replay(it.log, it.system_config, stations=stations, filt=True)
+        sf, F, wf = replay(it.log, it.system_config, stations=stations, filt=True, filter_settings=settings)
         g = _groups(J)
         okJ, okF = g["ok"], F["status"] == "ok"
         tj, pj, tf, pf = J["t"][okJ], J["p"][okJ], F["t"][okF], F["p"][okF]
@@ -425,6 +486,7 @@ def main():
                     k = np.isfinite(e) & np.isfinite(sg)
                     # the filter's 1-sigma is per axis: |e|^2 / sum sigma_i^2 averages 1 when consistent
                     row["filter_error_over_sigma_rms"] = round(float(np.sqrt(np.mean((e[k] / sg[k]) ** 2))), 2)
+                    row["filter_ok_errors_by_interval_stations"] = ok_errors_by_interval_stations(F, e, on, off)
         res["logs"][it.name] = row
         print(it.name, json.dumps(row), flush=True)
         (out / "results.json").write_text(json.dumps(res, indent=2, default=float) + "\n")
