@@ -31,17 +31,17 @@ import numba
 import numpy as np
 from numba import prange
 
+from .lm_numba import JIT, LEAF, exp_rot, make_refine
+
 # status codes (layoutkit.status; numba needs plain ints)
 OK, TOO_FEW, DEGENERATE, NOT_CONVERGED, BEHIND, AMBIGUOUS, NO_START = 0, 1, 2, 3, 4, 5, 7
 
-# fastmath: fused multiply-add, reciprocals and signed zeros only (no NaN / infinity assumptions: NaN
-# marks unseen sensors and failed frames); poses move by ~5e-15 against strict IEEE order, 11 % faster.
-_JIT = dict(cache=True, fastmath={"contract", "arcp", "nsz"}, nogil=True, error_model="numpy")
-# Functions below the batch loop allocate nothing and keep no array: compiled without the reference
-# counting runtime (numba's private ``_nrt`` flag), so a call does not incref/decref each array argument
-# (~640 runtime calls per frame at n = 12, 27 % of the time measured with perf); only _scratch and the
-# batch loops, which allocate, keep it.
-_LEAF = dict(_JIT, _nrt=False)
+# the flags of the LM core (layoutkit.lm_numba): fastmath without NaN / infinity assumptions (NaN marks
+# unseen sensors and failed frames; poses move by ~5e-15 against strict IEEE order, 11 % faster); the
+# functions below the batch loop allocate nothing and are compiled without the reference-counting
+# runtime (_LEAF); only _scratch and the batch loops, which allocate, keep it.
+_JIT, _LEAF = JIT, LEAF
+_RTOL, _ATOL = 1e-6, 1e-26  # the LM's tolerances: those of the reference, pnp_lh1._RTOL and _ATOL
 _VEC = dict(_LEAF, fastmath={"contract", "arcp", "nsz", "reassoc"})
 
 
@@ -62,39 +62,6 @@ def _atan_ratio(num, den):
             return q * (1.0 - q2 * (1.0 / 3.0 - q2 * (0.2 - q2 * (1.0 / 7.0 - q2 * (1.0 / 9.0 - q2 * (
                 1.0 / 11.0 - q2 * (1.0 / 13.0)))))))
     return math.atan2(num, den)
-
-
-@numba.njit(**_LEAF)
-def _exp_rot(x, y, z, E):
-    """E (9,) = exp([phi]x), phi = (x, y, z) rad, row-major (Rodrigues, series for small angles)."""
-    th2 = x * x + y * y + z * z
-    if th2 < 1e-8:
-        a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
-        b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
-    else:
-        th = math.sqrt(th2)
-        a = math.sin(th) / th
-        b = (1.0 - math.cos(th)) / (th * th)
-    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
-    ax, ay, az = a * x, a * y, a * z
-    E[0] = 1.0 - b * (y * y + z * z)
-    E[1] = bxy - az
-    E[2] = bxz + ay
-    E[3] = bxy + az
-    E[4] = 1.0 - b * (x * x + z * z)
-    E[5] = byz - ax
-    E[6] = bxz - ay
-    E[7] = byz + ax
-    E[8] = 1.0 - b * (x * x + y * y)
-
-
-@numba.njit(**_LEAF)
-def _compose(E, r, out):
-    """out = E @ R, all (9,) row-major."""
-    for i in range(3):
-        e0, e1, e2 = E[3 * i], E[3 * i + 1], E[3 * i + 2]
-        for j in range(3):
-            out[3 * i + j] = e0 * r[j] + e1 * r[3 + j] + e2 * r[6 + j]
 
 
 @numba.njit(**_LEAF)
@@ -326,129 +293,29 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
 
 
 @numba.njit(**_LEAF)
-def _factor(A, lam, L, inv):
-    """Unrolled Cholesky of A + lam diag(A) (upper triangle of A), as pnp_lh1._cholesky_factor:
-    L[i, c] (i > c), inv[c] = 1 / L[c, c]; False where a pivot is not positive."""
-    scale = A[0, 0]
-    for i in range(1, 6):
-        if A[i, i] > scale:
-            scale = A[i, i]
-    if not scale > 1e-300:  # np.maximum(.., 1e-300) (NaN propagates there: keep NaN)
-        scale = 1e-300 if scale == scale else scale
-    ok = True
-    for c in range(6):
-        s = A[c, c] * (1.0 + lam)
-        for k in range(c):
-            s -= L[c, k] * L[c, k]
-        good = s > 1e-14 * scale
-        if not good:
-            ok = False
-        inv[c] = 1.0 / math.sqrt(s if good else scale)
-        for i in range(c + 1, 6):
-            s2 = A[c, i]
-            for k in range(c):
-                s2 -= L[i, k] * L[c, k]
-            L[i, c] = s2 * inv[c]
-    return ok
+def _pnp_pass(ctx, r, t, mode, A, g, depth):
+    """:func:`_pass` as the LM core's model (:func:`layoutkit.lm_numba.make_refine`): ctx = the frame's
+    sensor arrays and their count."""
+    Px, Py, Pz, ux, uy, wx, wy, n = ctx
+    return _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth)
 
 
-@numba.njit(**_LEAF)
-def _apply(L, inv, g, y, x):
-    for i in range(6):
-        s = g[i]
-        for k in range(i):
-            s -= L[i, k] * y[k]
-        y[i] = s * inv[i]
-    for i in range(5, -1, -1):
-        s = y[i]
-        for k in range(i + 1, 6):
-            s -= L[k, i] * x[k]
-        x[i] = s * inv[i]
+_lm_refine = make_refine(_pnp_pass, "pnp")
 
 
 # ------------------------------------------------------------------------------ refinement
 
 @numba.njit(**_LEAF)
 def _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out):
-    """Levenberg–Marquardt from (r (9,), t (3,)), updated in place; the per-frame form of
-    :func:`layoutkit.pnp_lh1._refine` — the same steps, tolerances and factor reuse (a step is first
-    tried with the previous iteration's factor; converged when it lowers the cost by less than the
-    tolerance) — with each pose's residuals, gradient (and Gram matrix) from one fused
-    :func:`_pass`. out[0:6] = cost, iterations, converged, ok, zmin, zmax (z of the last evaluated
-    pose, as the reference)."""
+    """Levenberg–Marquardt from (r (9,), t (3,)), updated in place: the shared core
+    :func:`layoutkit.lm_numba.make_refine` (the per-frame form of :func:`layoutkit.pnp_lh1._refine`: the same
+    steps, tolerances and factor reuse) with each pose's residuals, gradient (and Gram matrix) from one
+    fused :func:`_pass`. out[0:6] = cost, iterations, converged, ok, zmin, zmax (z of the last
+    evaluated pose, as the reference)."""
     sc = _views(wk)
-    A, L, inv, g, g2, y, step, E, rn, tn, dep, dep2 = (sc.A, sc.L, sc.inv, sc.g, sc.g2, sc.y, sc.step, sc.E,
-                                                      sc.rn, sc.tn, sc.dep, sc.dep2)
-    cost = _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, 2, A, g, dep)
-    gram_here = True  # A is the Gram matrix at the current pose
-    lam = 1e-6
-    iters = 0
-    conv = False
-    ok = True
-    have_fac = False
-    for _ in range(max_iterations):
-        tol = 1e-6 * cost + 1e-26 * 0.5 * na
-        small = False
-        okc = True
-        if have_fac:
-            _apply(L, inv, g, y, step)
-            dl = 0.0
-            for k in range(6):
-                dl += step[k] * g[k]
-            small = dl <= tol
-        if not small:
-            if not gram_here:
-                _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, 2, A, g, dep2)
-                gram_here = True
-            okc = _factor(A, lam, L, inv)
-            _apply(L, inv, g, y, step)
-            dl = 0.0
-            for k in range(6):
-                dl += step[k] * g[k]
-            small = okc and dl <= tol
-            have_fac = True
-        _exp_rot(step[0], step[1], step[2], E)
-        _compose(E, r, rn)
-        for k in range(3):
-            tn[k] = t[k] + step[3 + k]
-        acc = False
-        if okc and not small:
-            cn = _pass(Px, Py, Pz, ux, uy, wx, wy, n, rn, tn, 1, A, g2, dep2)
-            if cn <= cost:
-                acc = True
-                cost = cn
-                for k in range(6):
-                    g[k] = g2[k]
-                dep[0], dep[1] = dep2[0], dep2[1]
-                gram_here = False
-        if small:
-            c2 = cost - dl
-            cost = c2 if c2 > 0.0 else 0.0
-        if acc or small:
-            for k in range(9):
-                r[k] = rn[k]
-            for k in range(3):
-                t[k] = tn[k]
-        if acc:
-            lnew = lam * 0.1
-            if lnew < 1e-12:
-                lnew = 1e-12
-        elif okc and not small:
-            lnew = lam * 10.0
-        else:
-            lnew = lam
-        lam = lnew
-        iters += 1
-        if small:
-            conv = True
-        if not okc:
-            ok = False
-        if small or not okc or lnew > 1e10:
-            break
-    out[0] = cost
-    out[1] = iters
-    out[2] = 1.0 if conv else 0.0
-    out[3] = 1.0 if ok else 0.0
+    dep, dep2 = sc.dep, sc.dep2
+    _lm_refine((Px, Py, Pz, ux, uy, wx, wy, n), r, t, na, _RTOL, _ATOL, max_iterations, wk.M6, wk.LB,
+           dep, dep2, out)
     out[4] = dep[0]
     out[5] = dep[1]
 
@@ -733,7 +600,7 @@ def _ippe_pair(Px, Py, Pz, ux, uy, w, n, nl, c, ra, ta, rb, tb, wk):
     ang = math.acos(cosang)
     dn = an if an > 0 else 1.0
     E = sc.E
-    _exp_rot(-q / dn * ang, p / dn * ang, 0.0, E)
+    exp_rot(-q / dn * ang, p / dn * ang, 0.0, E)
     Rv00, Rv01, Rv02, Rv10, Rv11, Rv12, Rv20, Rv21, Rv22 = E[0], E[1], E[2], E[3], E[4], E[5], E[6], E[7], E[8]
     b00 = Rv00 - p * Rv20
     b01 = Rv01 - p * Rv21
@@ -953,16 +820,18 @@ Scratch = namedtuple("Scratch", ["rx", "ry", "zz", "rx2", "ry2", "zz2", "qx", "q
                                  "step", "E", "rn", "tn", "rc", "tc", "out", "oR", "ot", "c", "c2", "S", "Sa", "S3",
                                  "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2", "h8"])
 Best = namedtuple("Best", ["best_R", "best_t", "alt_R", "alt_t", "vals"])
-#: The scratch memory of one thread, in five arrays: V (9, n) per-sensor vectors, M6 (2, 6, 6) the
-#: normal matrix and its factor, A8 (8, 8) IPPE's normal matrix, S3 (3, 3), B (26, 9) small vectors.
+#: The scratch memory of one thread, in six arrays: V (9, n) per-sensor vectors, M6 (2, 6, 6) the
+#: normal matrix and its factor, A8 (8, 8) IPPE's normal matrix, S3 (3, 3), B (26, 9) small vectors,
+#: LB (8, 9) the LM core's small vectors (layoutkit.lm_numba.refine).
 #: Functions take this and name its parts with :func:`_views` (inlined; unused views cost nothing):
 #: passing 39 separate arrays by value cost ~300 words of argument copying per call.
-Work = namedtuple("Work", ["V", "M6", "A8", "S3", "B"])
+Work = namedtuple("Work", ["V", "M6", "A8", "S3", "B", "LB"])
 
 
 @numba.njit(**_JIT)
 def _scratch(n):
-    return Work(np.zeros((9, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((26, 9)))
+    return Work(np.zeros((9, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((26, 9)),
+                np.zeros((8, 9)))
 
 
 @numba.njit(**_LEAF)
