@@ -194,7 +194,7 @@ def _model_pass(P, r, t, SR, ST, kinds, cals, corrected, meas, mask, dt, omega, 
     return cost
 
 
-@numba.njit(**_LEAF)
+@numba.njit(inline="always", **_LEAF)
 def _joint_pass(ctx, r, t, mode, A, g, zsum):
     """:func:`_model_pass` as the LM core's model (:func:`layoutkit.lm_numba.make_refine`): ctx = one
     frame's model data and scratch."""

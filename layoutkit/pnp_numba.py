@@ -192,14 +192,19 @@ def _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
 
 
 @numba.njit(**_LEAF)
-def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
+def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     """One pass over the sensors at the pose (see :func:`_pass_exact`): the vectorised series pass
-    when every seen residual is in its range, else the exact one. depth (2,) = smallest and largest
-    z of the seen sensors."""
+    when every seen residual is in its range, else the exact one."""
     cost, ok = _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
     if not ok:
-        return _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth)
-    r6, r7, r8, t2 = r[6], r[7], r[8], t[2]
+        return _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
+    return cost
+
+
+@numba.njit(**_LEAF)
+def _depth(Px, Py, Pz, wx, wy, n, pose, depth):
+    """depth (2,) = smallest and largest z of the seen sensors at pose (12,) = (r (9,), t (3,))."""
+    r6, r7, r8, t2 = pose[6], pose[7], pose[8], pose[11]
     zmin, zmax = np.inf, -np.inf
     for i in range(n):
         if wx[i] > 0.0 or wy[i] > 0.0:
@@ -209,15 +214,14 @@ def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
             if z > zmax:
                 zmax = z
     depth[0], depth[1] = zmin, zmax
-    return cost
 
 
 @numba.njit(**_LEAF)
-def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
+def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     """One pass over the sensors at the pose (r (9,), t (3,)): returns the cost (sum of squared angle
     residuals, as :func:`_eval`); mode >= 1 also the gradient g (6,) = J^T r, mode 2 also the upper
     triangle of A = J^T J (6, 6) — the Jacobian rows of :func:`layoutkit.pnp_lh1._jacobian` (left
-    perturbation, Chen eqs. 10-14). depth (2,) = smallest and largest z of the seen sensors.
+    perturbation, Chen eqs. 10-14).
     Fused so that the residuals are computed once per pose; the pose, gradient and Gram matrix are
     held in registers over the loop."""
     r0, r1, r2, r3, r4, r5, r6, r7, r8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
@@ -226,7 +230,6 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
     a00 = a01 = a02 = a03 = a04 = a05 = a11 = a12 = a13 = a14 = a15 = 0.0
     a22 = a23 = a24 = a25 = a33 = a35 = a44 = a45 = a55 = 0.0
     cost = 0.0
-    zmin, zmax = np.inf, -np.inf
     for i in range(n):
         hx, hy = wx[i] > 0.0, wy[i] > 0.0
         X, Y, Z = Px[i], Py[i], Pz[i]
@@ -234,11 +237,6 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
         ly = r3 * X + r4 * Y + r5 * Z
         lz = r6 * X + r7 * Y + r8 * Z
         x, y, z = lx + t0, ly + t1, lz + t2
-        if hx or hy:
-            if z < zmin:
-                zmin = z
-            if z > zmax:
-                zmax = z
         ex = _atan_ratio(x - ux[i] * z, z + ux[i] * x) if hx else 0.0
         ey = _atan_ratio(y - uy[i] * z, z + uy[i] * y) if hy else 0.0
         cost += ex * ex + ey * ey
@@ -279,7 +277,6 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
             a44 += k4 * k4
             a45 += k4 * k5
             a55 += j5 * j5 + k5 * k5
-    depth[0], depth[1] = zmin, zmax
     if mode >= 1:
         g[0], g[1], g[2], g[3], g[4], g[5] = g0, g1, g2, g3, g4, g5
     if mode == 2:
@@ -292,12 +289,17 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
     return cost
 
 
-@numba.njit(**_LEAF)
-def _pnp_pass(ctx, r, t, mode, A, g, depth):
+@numba.njit(inline="always", **_LEAF)
+def _pnp_pass(ctx, r, t, mode, A, g, pose):
     """:func:`_pass` as the LM core's model (:func:`layoutkit.lm_numba.make_refine`): ctx = the frame's
-    sensor arrays and their count."""
+    sensor arrays and their count; the by-product is the evaluated pose, pose (12,) = (r, t), whose
+    depths :func:`_refine` computes once, for the last accepted one."""
     Px, Py, Pz, ux, uy, wx, wy, n = ctx
-    return _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth)
+    for k in range(9):
+        pose[k] = r[k]
+    for k in range(3):
+        pose[9 + k] = t[k]
+    return _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
 
 
 _lm_refine = make_refine(_pnp_pass, "pnp")
@@ -313,11 +315,10 @@ def _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out):
     fused :func:`_pass`. out[0:6] = cost, iterations, converged, ok, zmin, zmax (z of the last
     evaluated pose, as the reference)."""
     sc = _views(wk)
-    dep, dep2 = sc.dep, sc.dep2
+    pose, pose2 = sc.dep, sc.dep2
     _lm_refine((Px, Py, Pz, ux, uy, wx, wy, n), r, t, na, _RTOL, _ATOL, max_iterations, wk.M6, wk.LB,
-           dep, dep2, out)
-    out[4] = dep[0]
-    out[5] = dep[1]
+               pose, pose2, out)
+    _depth(Px, Py, Pz, wx, wy, n, pose, out[4:6])
 
 
 # ------------------------------------------------------------------------------ starts
@@ -383,11 +384,12 @@ def _unit3(a, b, c):
 
 
 @numba.njit(**_VEC)
-def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk):
-    """POSIT in the virtual camera (pnp_lh1._posit, two iterations) → r (9,), t (3,)."""
+def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk, have_geo):
+    """POSIT in the virtual camera (pnp_lh1._posit, two iterations) → r (9,), t (3,). have_geo: the
+    centred points and the inverse scatter in ``wk`` are this geometry's (computed here otherwise)."""
     sc = _views(wk)
     vxs, vys = sc.rx2, sc.ry2
-    Qx, Qy, Qz = sc.qx, sc.qy, sc.qz
+    Qx, Qy, Qz, Si = sc.px, sc.py, sc.pz, sc.si
     su = sv = 0.0
     for i in range(n):
         su += w[i] * ux[i]
@@ -401,20 +403,23 @@ def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk):
         ibz = 1.0 / (Rc6 * ux[i] + Rc7 * uy[i] + cz)
         vxs[i] = w[i] * ((Rc0 * ux[i] + Rc1 * uy[i] + vy) * ibz)
         vys[i] = w[i] * ((Rc3 * ux[i] + Rc4 * uy[i] - vx) * ibz)
-        Qx[i] = (Px[i] - c[0]) * w[i]
-        Qy[i] = (Py[i] - c[1]) * w[i]
-        Qz[i] = (Pz[i] - c[2]) * w[i]
-    S00, S11, S22, S01, S02, S12 = S[0], S[1], S[2], S[3], S[4], S[5]
-    C00 = S11 * S22 - S12 * S12
-    C01 = S02 * S12 - S01 * S22
-    C02 = S01 * S12 - S02 * S11
-    C11 = S00 * S22 - S02 * S02
-    C12 = S01 * S02 - S00 * S12
-    C22 = S00 * S11 - S01 * S01
-    idet = 1.0 / (S00 * C00 + S01 * C01 + S02 * C02)
-    Si0, Si1, Si2 = C00 * idet, C01 * idet, C02 * idet
-    Si3, Si4, Si5 = C01 * idet, C11 * idet, C12 * idet
-    Si6, Si7, Si8 = C02 * idet, C12 * idet, C22 * idet
+    if not have_geo:
+        for i in range(n):
+            Qx[i] = (Px[i] - c[0]) * w[i]
+            Qy[i] = (Py[i] - c[1]) * w[i]
+            Qz[i] = (Pz[i] - c[2]) * w[i]
+        S00, S11, S22, S01, S02, S12 = S[0], S[1], S[2], S[3], S[4], S[5]
+        C00 = S11 * S22 - S12 * S12
+        C01 = S02 * S12 - S01 * S22
+        C02 = S01 * S12 - S02 * S11
+        C11 = S00 * S22 - S02 * S02
+        C12 = S01 * S02 - S00 * S12
+        C22 = S00 * S11 - S01 * S01
+        idet = 1.0 / (S00 * C00 + S01 * C01 + S02 * C02)
+        Si[0], Si[1], Si[2] = C00 * idet, C01 * idet, C02 * idet
+        Si[3], Si[4], Si[5] = C01 * idet, C11 * idet, C12 * idet
+        Si[6], Si[7], Si[8] = C02 * idet, C12 * idet, C22 * idet
+    Si0, Si1, Si2, Si3, Si4, Si5, Si6, Si7, Si8 = Si[0], Si[1], Si[2], Si[3], Si[4], Si[5], Si[6], Si[7], Si[8]
     nlm = nl if nl > 1.0 else 1.0
     r10 = r11 = r12 = r20 = r21 = r22 = r30 = r31 = r32 = iZ = 0.0
     sax = say = 0.0
@@ -730,29 +735,37 @@ def _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, r0, t0, max_iterations, t
 
 @numba.njit(**_LEAF)
 def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_iterations, sigma, rho,
-                 consts, wk, bs, res):
-    """One frame (pnp_lh1.solve_pnp_lm). res[:] = status, residual, iterations, alt residual."""
+                 consts, wk, bs, res, same):
+    """One frame (pnp_lh1.solve_pnp_lm). res[:] = status, residual, iterations, alt residual.
+    same: the points and lit pattern are those of the previous frame solved with ``wk``, whose
+    geometry (counts, centroid, scatter, planarity, collinearity, size, POSIT's centred points and
+    inverse scatter) is reused — the same values, computed once per run of such frames."""
     sc = _views(wk)
     min_angles, min_sensors, min_start, planar_thr, coplanar_thr, collinear_thr, retry_res, cos_d, amb_lr = (
         consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6], consts[7], consts[8])
-    nl = na = ns = 0.0
-    for i in range(n):
-        nl += w[i]
-        na += wx[i] + wy[i]
-        ns += wany[i]
-    c, S, Sa = sc.c, sc.S, sc.Sa
-    _scatter(Px, Py, Pz, w, n, c, S)
-    e_lo, _, e_hi = _sym3_eigvals(S[0], S[1], S[2], S[3], S[4], S[5])
-    planarity = math.sqrt((e_lo if e_lo > 0.0 else 0.0) / (e_hi if e_hi > 1e-300 else 1e-300))
-    if ns == nl:  # every seen sensor has both angles: wany = w, the same scatter
-        for k in range(6):
-            Sa[k] = S[k]
+    c, S, Sa, geo = sc.c, sc.S, sc.Sa, sc.geo
+    if same:
+        nl, na, ns, planarity, collinear, size = geo[0], geo[1], geo[2], geo[3], geo[4] > 0.5, geo[5]
     else:
-        _scatter(Px, Py, Pz, wany, n, sc.c2, Sa)
-    minors = Sa[0] * Sa[1] - Sa[3] * Sa[3] + Sa[0] * Sa[2] - Sa[4] * Sa[4] + Sa[1] * Sa[2] - Sa[5] * Sa[5]
-    trace = Sa[0] + Sa[1] + Sa[2]
-    collinear = minors <= collinear_thr * collinear_thr * trace * trace
-    size = math.sqrt((trace if trace > 0.0 else 0.0) / (ns if ns > 1.0 else 1.0))
+        nl = na = ns = 0.0
+        for i in range(n):
+            nl += w[i]
+            na += wx[i] + wy[i]
+            ns += wany[i]
+        _scatter(Px, Py, Pz, w, n, c, S)
+        e_lo, _, e_hi = _sym3_eigvals(S[0], S[1], S[2], S[3], S[4], S[5])
+        planarity = math.sqrt((e_lo if e_lo > 0.0 else 0.0) / (e_hi if e_hi > 1e-300 else 1e-300))
+        if ns == nl:  # every seen sensor has both angles: wany = w, the same scatter
+            for k in range(6):
+                Sa[k] = S[k]
+        else:
+            _scatter(Px, Py, Pz, wany, n, sc.c2, Sa)
+        minors = Sa[0] * Sa[1] - Sa[3] * Sa[3] + Sa[0] * Sa[2] - Sa[4] * Sa[4] + Sa[1] * Sa[2] - Sa[5] * Sa[5]
+        trace = Sa[0] + Sa[1] + Sa[2]
+        collinear = minors <= collinear_thr * collinear_thr * trace * trace
+        size = math.sqrt((trace if trace > 0.0 else 0.0) / (ns if ns > 1.0 else 1.0))
+        geo[0], geo[1], geo[2], geo[3], geo[4], geo[5] = nl, na, ns, planarity, 1.0 if collinear else 0.0, size
+        geo[6] = 0.0  # POSIT's centred points / inverse scatter not yet computed for this geometry
     best_R, best_t, alt_R, alt_t, bv = bs.best_R, bs.best_t, bs.alt_R, bs.alt_t, bs.vals
     for k in range(9):
         best_R[k] = np.nan
@@ -781,7 +794,8 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
                 bv[3] = NO_START
             cold = False
         if cold and planarity > coplanar_thr:
-            _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, sc.r0, sc.t0, wk)
+            _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, sc.r0, sc.t0, wk, geo[6] > 0.5)
+            geo[6] = 1.0
             _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, sc.r0, sc.t0, max_iterations, track_alt, cos_d, wk, bs)
         if cold:
             retry = retry_res if not (sigma == sigma and sigma != 0.0) else min(retry_res, 5.0 * sigma)
@@ -818,10 +832,11 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
 
 Scratch = namedtuple("Scratch", ["rx", "ry", "zz", "rx2", "ry2", "zz2", "qx", "qy", "qz", "A", "L", "inv", "g", "y",
                                  "step", "E", "rn", "tn", "rc", "tc", "out", "oR", "ot", "c", "c2", "S", "Sa", "S3",
-                                 "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2", "h8"])
+                                 "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2", "h8", "geo", "si",
+                                 "px", "py", "pz"])
 Best = namedtuple("Best", ["best_R", "best_t", "alt_R", "alt_t", "vals"])
-#: The scratch memory of one thread, in six arrays: V (9, n) per-sensor vectors, M6 (2, 6, 6) the
-#: normal matrix and its factor, A8 (8, 8) IPPE's normal matrix, S3 (3, 3), B (26, 9) small vectors,
+#: The scratch memory of one thread, in six arrays: V (12, n) per-sensor vectors, M6 (2, 6, 6) the
+#: normal matrix and its factor, A8 (8, 8) IPPE's normal matrix, S3 (3, 3), B (28, 12) small vectors,
 #: LB (8, 9) the LM core's small vectors (layoutkit.lm_numba.refine).
 #: Functions take this and name its parts with :func:`_views` (inlined; unused views cost nothing):
 #: passing 39 separate arrays by value cost ~300 words of argument copying per call.
@@ -830,7 +845,7 @@ Work = namedtuple("Work", ["V", "M6", "A8", "S3", "B", "LB"])
 
 @numba.njit(**_JIT)
 def _scratch(n):
-    return Work(np.zeros((9, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((26, 9)),
+    return Work(np.zeros((12, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((28, 12)),
                 np.zeros((8, 9)))
 
 
@@ -840,7 +855,8 @@ def _views(wk):
     V, M6, B = wk.V, wk.M6, wk.B
     return Scratch(V[0], V[1], V[2], V[3], V[4], V[5], V[6], V[7], V[8], M6[0], M6[1], B[0], B[1], B[2],
                    B[3], B[4], B[5], B[6], B[7], B[8], B[9], B[10], B[11], B[12], B[13], B[14], B[15], wk.S3,
-                   wk.A8, B[16], B[17], B[18], B[19], B[20], B[21], B[22], B[23], B[24], B[25])
+                   wk.A8, B[16], B[17], B[18], B[19], B[20], B[21], B[22], B[23], B[24], B[25], B[26], B[27],
+                   V[9], V[10], V[11])
 
 
 @numba.njit(**_JIT)
@@ -863,6 +879,13 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
         for i in range(n):
             Px[i], Py[i], Pz[i] = P[0, i, 0], P[0, i, 1], P[0, i, 2]
     for f in range(lo, hi):
+        # the body's geometry is the previous frame's when the body is shared and the same angles are lit
+        same = shared and f > lo
+        if same:
+            for i in range(n):
+                if lit[f, i, 0] != lit[f - 1, i, 0] or lit[f, i, 1] != lit[f - 1, i, 1]:
+                    same = False
+                    break
         for i in range(n):
             lx, ly = lit[f, i, 0], lit[f, i, 1]
             wx[i] = 1.0 if lx else 0.0
@@ -884,7 +907,7 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
                     r0[3 * a + c] = R0[f, a, c]
                 tt0[a] = t0[f, a]
         amb = _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, m, r0, tt0, hi_, max_iterations, sigma, rho,
-                           consts, wk, bs, res)
+                           consts, wk, bs, res, same)
         status[f] = int(res[0])
         resid[f] = res[1]
         iters[f] = int(res[2])
