@@ -7,7 +7,7 @@ with the calibration's phase, tilt, curve, gib and ogee terms and their derivati
 to the point, docs/calibration.md eqs. C1, C2), optional motion compensation (each station and axis
 at its own time: ``R' = exp([omega dt]x) R``, ``t' = t + v dt``) and the wrapped angle residuals,
 plugged into the Levenberg–Marquardt core the single-station PnP kernel uses
-(:func:`layoutkit.lm_numba.make_refine`: one rotation update, one damped 6 × 6 Cholesky, one damping
+(:func:`layoutkit.lm_numba.make_refine`: one rotation update, one damped 6 × 6 LDL^T solve, one damping
 and stop rule, with the joint solve's tolerances). Per frame the residuals, gradient (and Gram matrix)
 come from one pass over the stations and sensors. The status decisions (singular, behind, redundancy) stay in
 :mod:`layoutkit.joint`, on the Gram matrix and depths this kernel returns.

@@ -3,7 +3,7 @@
 One compiled LM serves :mod:`layoutkit.pnp_numba` (one ideal LH1 station) and :mod:`layoutkit.joint_numba`
 (several calibrated LH1 / LH2 stations, motion compensation): the same rotation update
 (:func:`exp_rot`, Rodrigues, left perturbation ``R <- exp([dphi]x) R``, ``t <- t + dt``, design §2),
-the same damped normal equations (unrolled 6 × 6 Cholesky of ``A + lam diag(A)``, :func:`factor`,
+the same damped normal equations (unrolled 6 × 6 LDL^T factor of ``A + lam diag(A)``, :func:`factor`,
 :func:`apply`) and the same damping and stop rule (:func:`refine`: a step is first tried with the
 previous iteration's factor; converged when the Gauss–Newton step's predicted decrease is below
 ``rtol cost + atol m / 2``, that last step taken without a new evaluation; damping ×0.1 on an
@@ -72,8 +72,10 @@ def compose(E, r, out):
 
 @numba.njit(**LEAF)
 def factor(A, lam, L, inv):
-    """Unrolled Cholesky of A + lam diag(A) (upper triangle of A), as pnp_lh1._cholesky_factor:
-    L[i, c] (i > c), inv[c] = 1 / L[c, c]; False where a pivot is not above 1e-14 max diag(A)."""
+    """LDL^T factor of A + lam diag(A) (upper triangle of A read), unrolled, without square roots (the
+    Cholesky factor of pnp_lh1._cholesky_factor is L sqrt(D); the pivots d_c are its L[c, c]^2): L[i, c]
+    (i > c) the unit lower factor, L[c, i] = L[i, c] d_c, inv[c] = 1 / d_c; False where a pivot is not
+    above 1e-14 max diag(A) (singular or rank-deficient normal equations)."""
     scale = A[0, 0]
     for i in range(1, 6):
         if A[i, i] > scale:
@@ -84,32 +86,33 @@ def factor(A, lam, L, inv):
     for c in range(6):
         s = A[c, c] * (1.0 + lam)
         for k in range(c):
-            s -= L[c, k] * L[c, k]
+            s -= L[c, k] * L[k, c]
         good = s > 1e-14 * scale
         if not good:
             ok = False
-        inv[c] = 1.0 / math.sqrt(s if good else scale)
+        inv[c] = 1.0 / (s if good else scale)
         for i in range(c + 1, 6):
             s2 = A[c, i]
             for k in range(c):
-                s2 -= L[i, k] * L[c, k]
+                s2 -= L[i, k] * L[k, c]
+            L[c, i] = s2
             L[i, c] = s2 * inv[c]
     return ok
 
 
 @numba.njit(**LEAF)
 def apply(L, inv, g, y, x):
-    """x (6,) = (L L^T)^-1 g with a factor from :func:`factor` (y (6,) scratch)."""
+    """x (6,) = (L D L^T)^-1 g with a factor from :func:`factor` (y (6,) scratch)."""
     for i in range(6):
         s = g[i]
         for k in range(i):
             s -= L[i, k] * y[k]
-        y[i] = s * inv[i]
+        y[i] = s
     for i in range(5, -1, -1):
-        s = y[i]
+        s = y[i] * inv[i]
         for k in range(i + 1, 6):
             s -= L[k, i] * x[k]
-        x[i] = s * inv[i]
+        x[i] = s
 
 
 def make_refine(pass_fn, name):

@@ -9,7 +9,7 @@ The same algorithm, step for step, as :func:`layoutkit.pnp_lh1.solve_pnp_lm` (wh
 reference the tests hold this kernel to: same poses to rounding, same statuses): per frame the
 minimum rule and the collinearity test, the start from ``initial``, the POSIT start in the virtual
 camera, the IPPE pair for (near-)coplanar or poorly fitted frames, each refined by the same
-Levenberg–Marquardt (unrolled 6 × 6 Cholesky of ``A + lam diag(A)``, the previous factor reused to
+Levenberg–Marquardt (unrolled 6 × 6 LDL^T factor of ``A + lam diag(A)``, the previous factor reused to
 test convergence, the same tolerances), the best / runner-up bookkeeping and the likelihood-ratio
 ambiguity test. Differences: scalar code per frame instead of frames-last arrays (no temporaries),
 frames spread over threads (``prange`` over blocks of frames, each block with its own scratch); the
@@ -938,8 +938,14 @@ def solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rh
 @numba.njit(parallel=True, **_JIT)
 def solve_batch_parallel(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
                          R_out, t_out, status, resid, iters, altR, altt, altres):
-    """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads."""
+    """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads (on one thread,
+    the whole batch as one range: no per-block scratch, the geometry reused across blocks; 4 % per frame
+    at n = 12)."""
     F = cot.shape[0]
+    if numba.get_num_threads() == 1:
+        _solve_range(np.int64(0), F, P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+                     R_out, t_out, status, resid, iters, altR, altt, altres)
+        return
     nb = (F + block - 1) // block
     for b in prange(nb):
         _solve_range(b * block, min(F, (b + 1) * block), P, shared, cot, lit, R0, t0, has_init, max_iterations,
