@@ -935,17 +935,25 @@ def solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rh
                  R_out, t_out, status, resid, iters, altR, altt, altres)
 
 
-@numba.njit(parallel=True, **_JIT)
 def solve_batch_parallel(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
                          R_out, t_out, status, resid, iters, altR, altt, altres):
-    """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads (on one thread,
-    the whole batch as one range: no per-block scratch, the geometry reused across blocks; 4 % per frame
-    at n = 12)."""
-    F = cot.shape[0]
+    """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads; on one thread
+    :func:`solve_batch` itself (the whole batch as one range: no per-block scratch, the geometry reused
+    across blocks; 4 % per frame at n = 12). (The thread count is read here: read inside the kernel it
+    is a runtime address, which numba cannot cache.)"""
     if numba.get_num_threads() == 1:
-        _solve_range(np.int64(0), F, P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
-                     R_out, t_out, status, resid, iters, altR, altt, altres)
-        return
+        solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+                    R_out, t_out, status, resid, iters, altR, altt, altres)
+    else:
+        _solve_blocks(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
+                      R_out, t_out, status, resid, iters, altR, altt, altres)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _solve_blocks(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
+                  R_out, t_out, status, resid, iters, altR, altt, altres):
+    """Blocks of ``block`` frames spread over numba's threads, each with its own scratch."""
+    F = cot.shape[0]
     nb = (F + block - 1) // block
     for b in prange(nb):
         _solve_range(b * block, min(F, (b + 1) * block), P, shared, cot, lit, R0, t0, has_init, max_iterations,
