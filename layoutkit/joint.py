@@ -171,11 +171,11 @@ def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
     ``A + lam diag(A)``; converged when the step's predicted decrease ``step . g`` is at most
     ``_RTOL cost + _ATOL m / 2`` (that step taken without an evaluation); damping ×0.1 on an accepted
     step (``cost_new <= cost``, floor 1e-12), ×10 on a rejected one, given up above 1e10 or when the
-    factor fails. Returns R, t, the cost, converged, iterations, the station-frame points and the
-    Jacobian, all at the final pose."""
+    factor fails. Returns R, t, the cost, converged, iterations, and the station-frame points and the
+    Jacobian of the last accepted evaluated pose (the converged step after it is below the tolerance)."""
     F = R.shape[0]
     R, t = R.copy(), t.copy()
-    cost, r, J, _ = _cost(P, R, t, stations, meas, mask, dt, vel, True)
+    cost, r, J, ps = _cost(P, R, t, stations, meas, mask, dt, vel, True)
     m = mask.sum(axis=(1, 2, 3))
     lam = np.full(F, 1e-6)
     its = np.zeros(F, int)
@@ -216,11 +216,11 @@ def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
         if todo.any():
             ti = act[todo]
             d, v = sub(ti)
-            cn, rn, Jn, _ = _cost(P, Rn[todo], tn[todo], stations, meas[ti], mask[ti], d, v, True)
+            cn, rn, Jn, psn = _cost(P, Rn[todo], tn[todo], stations, meas[ti], mask[ti], d, v, True)
             better = cn <= cost[ti]
             acc[todo] = better
             j = ti[better]
-            cost[j], r[j], J[j] = cn[better], rn[better], Jn[better]
+            cost[j], r[j], J[j], ps[j] = cn[better], rn[better], Jn[better], psn[better]
         cost[act[small]] = np.maximum(ca[small] - dl[small], 0.0)
         take = acc | small
         R[act[take]], t[act[take]] = Rn[take], tn[take]
@@ -229,7 +229,6 @@ def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
         its[act] += 1
         conv[act[small]] = True
         act = act[~(small | ~okc | (lnew > 1e10))]
-    cost, r, J, ps = _cost(P, R, t, stations, meas, mask, dt, vel, True)   # at the final pose
     return R, t, cost, conv, its, ps, J
 
 

@@ -203,7 +203,7 @@ def _joint_pass(ctx, r, t, mode, A, g, zsum):
                        zsum, sc)
 
 
-_lm_refine = make_refine(_joint_pass, "joint")
+_lm_refine = make_refine(_joint_pass, "joint", trial_gram=True)
 
 
 @numba.njit(**_JIT)
@@ -215,9 +215,9 @@ def _pass_scratch(n):
 def solve_frames(P, SR, ST, kinds, cals, corrected, meas, mask, dt, omega, vel, motion, R0, t0, go, max_iterations,
                  rtol, atol, R_out, t_out, cost, done, its, A_out, zsum):
     """Every frame with ``go`` from its start (R0 (F, 3, 3), t0 (F, 3)) by the shared LM core
-    (:func:`layoutkit.lm_numba.make_refine`, tolerances rtol, atol); outputs in place: the pose, and at
-    the final pose the cost, the Gram matrix A_out (F, 6, 6) and the depth sums zsum (F, S, n);
-    done = converged, its = iterations.
+    (:func:`layoutkit.lm_numba.make_refine`, tolerances rtol, atol); outputs in place: the pose and cost,
+    the Gram matrix A_out (F, 6, 6) and the depth sums zsum (F, S, n) of the last accepted evaluated
+    pose; done = converged, its = iterations.
 
     P (n, 3) body; SR (S, 3, 3), ST (S, 3) station poses; kinds (S,) 0 LH1 / 1 LH2; cals (S, 2, 7);
     corrected (S,) gib argument; meas (F, S, n, 2) rad, mask (F, S, n, 2); dt (F, S, 2) s, omega,
@@ -228,8 +228,8 @@ def solve_frames(P, SR, ST, kinds, cals, corrected, meas, mask, dt, omega, vel, 
         if not go[f]:
             continue
         sc = _pass_scratch(n)
-        M6, B, out = np.zeros((2, 6, 6)), np.zeros((8, 9)), np.zeros(4)
-        aux, aux2, g = np.zeros(S * n), np.zeros(S * n), np.zeros(6)
+        M6, B, out = np.zeros((3, 6, 6)), np.zeros((8, 9)), np.zeros(4)
+        aux, aux2 = np.zeros(S * n), np.zeros(S * n)
         r, t = np.empty(9), np.empty(3)
         for a in range(3):
             for b in range(3):
@@ -243,14 +243,11 @@ def solve_frames(P, SR, ST, kinds, cals, corrected, meas, mask, dt, omega, vel, 
                         m += 1.0
         ctx = (P, SR, ST, kinds, cals, corrected, meas[f], mask[f], dt[f], omega[f], vel[f], motion, sc)
         _lm_refine(ctx, r, t, m, rtol, atol, max_iterations, M6, B, aux, aux2, out)
-        # the Gram matrix (singular test), depths (behind test) and cost at the final pose, which the
-        # LM's last (converged) step reaches without an evaluation
-        Af = A_out[f]
-        c = _model_pass(P, r, t, SR, ST, kinds, cals, corrected, meas[f], mask[f], dt[f], omega[f], vel[f], motion,
-                        2, Af, g, aux, sc)
+        # the Gram matrix (singular test) and depths (behind test) of the last accepted evaluated pose
+        # (the converged step after it is below the tolerance)
         for p in range(6):
-            for q in range(p):
-                Af[p, q] = Af[q, p]
+            for q in range(6):
+                A_out[f, p, q] = M6[0, p, q] if q >= p else M6[0, q, p]
         for s in range(S):
             for i in range(n):
                 zsum[f, s, i] = aux[s * n + i]
@@ -258,7 +255,7 @@ def solve_frames(P, SR, ST, kinds, cals, corrected, meas, mask, dt, omega, vel, 
             for b in range(3):
                 R_out[f, a, b] = r[3 * a + b]
             t_out[f, a] = t[a]
-        cost[f] = c
+        cost[f] = out[0]
         done[f] = out[2] > 0.5
         its[f] = int(out[1])
 

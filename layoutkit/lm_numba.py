@@ -115,21 +115,27 @@ def apply(L, inv, g, y, x):
         x[i] = s
 
 
-def make_refine(pass_fn, name):
+def make_refine(pass_fn, name, trial_gram=False):
     """The LM core compiled for one model ``pass_fn`` (a compiled function, see the module docstring),
     cached on disk under ``refine_<name>``: the model is a constant of the closure, so its calls are
     direct (a compiled function passed as an argument would be a runtime address, which numba cannot
     cache). Inlined into its caller at numba's IR level (``inline="always"``; the caller is the one
     place each solver calls it): as a separate function the PnP kernel was ~6-9 % slower per frame at
-    n = 12 (interleaved A/B, one thread)."""
+    n = 12 (interleaved A/B, one thread). ``trial_gram``: the trial poses are evaluated with the Gram
+    matrix (mode 2, into M6[2]), kept when the step is accepted — for models whose residuals cost far
+    more than the Gram matrix (the joint solve's calibrated forward models), where a second pass at the
+    accepted pose would cost a whole model evaluation; the same steps and results.
+    """
 
     def refine(ctx, r, t, na, rtol, atol, max_iterations, M6, B, aux, aux2, out):
         """Levenberg–Marquardt from (r (9,), t (3,)), updated in place (the rule in the module docstring;
         numpy reference :func:`layoutkit.pnp_lh1._refine`). na: number of residuals (for ``atol``).
-        M6 (2, 6, 6) scratch (Gram matrix, factor), B (8, >= 9) scratch (rows :data:`B_INV` ...), aux / aux2
+        M6 (2, 6, 6) scratch (Gram matrix, factor; (3, 6, 6) with ``trial_gram``), B (8, >= 9) scratch (rows :data:`B_INV` ...), aux / aux2
         the pass's by-product at the current / trial pose (aux: that of the last evaluated accepted pose).
-        out[0:4] = cost, iterations, converged, ok (normal equations solvable)."""
+        out[0:4] = cost, iterations, converged, ok (normal equations solvable). At the end A = M6[0] is the
+        Gram matrix of the last accepted evaluated pose when ``trial_gram`` (aux's pose)."""
         A, L = M6[0], M6[1]
+        A2 = M6[2] if trial_gram else M6[0]
         inv, g, g2, y, step, E, rn, tn = B[B_INV], B[B_G], B[B_G2], B[B_Y], B[B_STEP], B[B_E], B[B_RN], B[B_TN]
         cost = pass_fn(ctx, r, t, 2, A, g, aux)
         gram_here = True  # A is the Gram matrix at the current pose
@@ -165,7 +171,10 @@ def make_refine(pass_fn, name):
                 tn[k] = t[k] + step[3 + k]
             acc = False
             if okc and not small:
-                cn = pass_fn(ctx, rn, tn, 1, A, g2, aux2)
+                if trial_gram:
+                    cn = pass_fn(ctx, rn, tn, 2, A2, g2, aux2)
+                else:
+                    cn = pass_fn(ctx, rn, tn, 1, A, g2, aux2)
                 if cn <= cost:
                     acc = True
                     cost = cn
@@ -173,7 +182,11 @@ def make_refine(pass_fn, name):
                         g[k] = g2[k]
                     for k in range(aux.shape[0]):
                         aux[k] = aux2[k]
-                    gram_here = False
+                    if trial_gram:
+                        for p in range(6):
+                            for q in range(p, 6):
+                                A[p, q] = A2[p, q]
+                    gram_here = trial_gram
             if small:
                 c2 = cost - dl
                 cost = c2 if c2 > 0.0 else 0.0
