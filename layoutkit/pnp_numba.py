@@ -886,20 +886,25 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
                 if lit[f, i, 0] != lit[f - 1, i, 0] or lit[f, i, 1] != lit[f - 1, i, 1]:
                     same = False
                     break
-        for i in range(n):
-            lx, ly = lit[f, i, 0], lit[f, i, 1]
-            wx[i] = 1.0 if lx else 0.0
-            wy[i] = 1.0 if ly else 0.0
-            w[i] = wx[i] * wy[i]
-            wany[i] = 1.0 if (lx or ly) else 0.0
-            ux[i] = cot[f, i, 0] if lx else 0.0
-            uy[i] = cot[f, i, 1] if ly else 0.0
-            if shared:
-                pass
-            elif lx or ly:
-                Px[i], Py[i], Pz[i] = P[f, i, 0], P[f, i, 1], P[f, i, 2]
-            else:  # an unseen sensor's (maybe non-finite) point never enters, as pnp_lh1._Frames
-                Px[i] = Py[i] = Pz[i] = 0.0
+        if same:  # the weights are the previous frame's: only the measurements change
+            for i in range(n):
+                ux[i] = cot[f, i, 0] if wx[i] > 0.0 else 0.0
+                uy[i] = cot[f, i, 1] if wy[i] > 0.0 else 0.0
+        else:
+            for i in range(n):
+                lx, ly = lit[f, i, 0], lit[f, i, 1]
+                wx[i] = 1.0 if lx else 0.0
+                wy[i] = 1.0 if ly else 0.0
+                w[i] = wx[i] * wy[i]
+                wany[i] = 1.0 if (lx or ly) else 0.0
+                ux[i] = cot[f, i, 0] if lx else 0.0
+                uy[i] = cot[f, i, 1] if ly else 0.0
+                if shared:
+                    pass
+                elif lx or ly:
+                    Px[i], Py[i], Pz[i] = P[f, i, 0], P[f, i, 1], P[f, i, 2]
+                else:  # an unseen sensor's (maybe non-finite) point never enters, as pnp_lh1._Frames
+                    Px[i] = Py[i] = Pz[i] = 0.0
         hi_ = has_init[f]
         if hi_:
             for a in range(3):
