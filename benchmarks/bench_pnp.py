@@ -22,7 +22,9 @@ the 120 deg field of view, with the paper's angle noise (sigma = 4.014e-5 rad):
    ~4.9 kflop at n = 12: POSIT, one Gram build, two residual passes; transcendental calls not
    counted); the peak is measured in the same run by a compiled loop of independent scalar
    multiply-add chains (:func:`scalar_peak_flops`), the rate scalar per-frame code can reach;
-5. peak memory (tracemalloc) of a large batch.
+5. the joint (several stations) solve's speed on one thread (:func:`joint_speed`: Crazyflie deck, two
+   calibrated LH2 stations) against its numpy reference in the same run;
+6. peak memory (tracemalloc) of a large batch.
 
 Run ``python benchmarks/bench_pnp.py`` (a few minutes) or ``--quick`` (well under a minute).
 Writes ``benchmarks/results/pnp.json`` (``pnp_quick.json`` with ``--quick``). The machine's load
@@ -343,6 +345,69 @@ def scalar_peak_flops(seconds: float = 0.3) -> float:
 
 # ------------------------------------------------------------------------------- main
 
+def joint_speed(F, rounds, rng):
+    """The joint (several stations) solve, ``layoutkit.joint.solve_joint``, on one thread: the Crazyflie
+    deck's 4 sensors (models/crazyflie_lighthouse_deck.layout.json) seen by two LH2 stations ~3 m
+    away with factory-magnitude calibrations (phase 0.05, tilt 0.01, curve 0.003, gib / ogee 0.02 rad),
+    angle noise 1e-4 rad; F frames, solves/s of the compiled kernel (``lm``: per-station starts, start
+    selection and LM) and of its LM alone from given starts (the true pose moved by 0.5 deg, 5 mm),
+    against the numpy reference (``lm-numpy``) in the same run (interleaved rounds, medians)."""
+    import numba
+
+    from layoutkit.geometry import look_at_rotation
+    from layoutkit.layout import load_layout
+    from layoutkit.joint import solve_joint
+    from layoutkit.lighthouse import CALIBRATION_PARAMS, Calibration
+    from layoutkit.simulate import simulate_station_angles, stations_looking_at
+
+    P = load_layout(Path(__file__).resolve().parents[1] / "models" / "crazyflie_lighthouse_deck.layout.json").positions
+    mag = {"phase": 0.05, "tilt": 0.01, "curve": 0.003, "gib_phase": np.pi, "gib_mag": 0.02, "ogee_phase": np.pi,
+           "ogee_mag": 0.02}
+    cals = [Calibration(np.array([[rng.uniform(-1, 1) * mag[k] for k in CALIBRATION_PARAMS] for _ in range(2)]),
+                        "lh2", gib) for gib in ("ideal", "corrected")]
+    sts = stations_looking_at([[-2.0, -1.0, 2.0], [2.0, -1.2, 2.0]], (0, 0, 0), kind="lh2", calibrations=cals)
+    R = rotvec_to_matrix(rng.normal(0, 0.2, (F, 3))) @ look_at_rotation([0.0, 0.0, 1.0]).T
+    t = rng.uniform(-0.3, 0.3, (F, 3))
+    ang = simulate_station_angles(P, R, t, sts, sigma=1e-4, rho=0.0, rng=rng)
+    R0 = np.matmul(rotvec_to_matrix(rng.normal(0.0, np.deg2rad(0.5) / np.sqrt(3), (F, 3))), R)
+    t0 = t + rng.normal(0.0, 0.005 / np.sqrt(3), (F, 3))
+    methods = {"compiled": lambda: solve_joint(P, ang, stations=sts),
+               "compiled_lm_from_start": lambda: solve_joint(P, ang, stations=sts, initial=(R0, t0)),
+               "numpy": lambda: solve_joint(P, ang, stations=sts, method="lm-numpy"),
+               "numpy_lm_from_start": lambda: solve_joint(P, ang, stations=sts, initial=(R0, t0), method="lm-numpy")}
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        last = {k: f() for k, f in methods.items()}  # compile (or load the cache) outside the timing
+        cpu = {k: [] for k in methods}
+        for _ in range(rounds):
+            for k, f in methods.items():
+                c0 = time.process_time()
+                last[k] = f()
+                cpu[k].append(time.process_time() - c0)
+    finally:
+        numba.set_num_threads(threads)
+    row = {"frames": F, "rounds": rounds, "threads": 1, "sensors": len(P), "stations": 2}
+    for k in methods:
+        med = float(np.median(cpu[k]))
+        r = last[k]
+        ok = r.success
+        err = np.linalg.norm(r.translation[ok] - t[ok], axis=1)
+        row[k] = {"cpu_median_s": med, "cpu_best_s": float(np.min(cpu[k])), "solves_per_s": F / med,
+                  "round_cpu_s": cpu[k], "ok": int(ok.sum()), "iterations_mean": float(r.iterations[ok].mean()),
+                  "position_rms_m": float(np.sqrt(np.mean(err ** 2)))}
+    row["ratio_vs_numpy"] = row["numpy"]["cpu_median_s"] / row["compiled"]["cpu_median_s"]
+    row["lm_ratio_vs_numpy"] = row["numpy_lm_from_start"]["cpu_median_s"] / row["compiled_lm_from_start"]["cpu_median_s"]
+    return row
+
+
+def print_joint(row):
+    print(f"joint, deck + 2 LH2 stations, one thread: {row['compiled']['solves_per_s']:.0f} solves/s "
+          f"({row['ratio_vs_numpy']:.1f}x the numpy reference), LM alone from a start "
+          f"{row['compiled_lm_from_start']['solves_per_s']:.0f}/s ({row['lm_ratio_vs_numpy']:.1f}x); iterations "
+          f"{row['compiled']['iterations_mean']:.2f}, ok {row['compiled']['ok']}/{row['frames']}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short run (a few seconds)")
@@ -350,7 +415,15 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=None, help="JSON output path")
     ap.add_argument("--figure", type=Path, default=None,
                     help="also write a PNG of RMS error vs the Cramer-Rao bound (e.g. docs/images/pnp_efficiency.png)")
+    ap.add_argument("--joint-only", action="store_true",
+                    help="only the joint solve's speed row (printed; written only with --out)")
     args = ap.parse_args(argv)
+    if args.joint_only:
+        row = joint_speed(2000 if args.quick else 10000, 5, np.random.default_rng(args.seed))
+        print_joint(row)
+        if args.out is not None:
+            args.out.write_text(json.dumps({"joint": row}, indent=2))
+        return row
     import cv2
 
     cv2.setNumThreads(1)
@@ -454,6 +527,10 @@ def main(argv=None):
         out["load_average_1_5_15min"] = list(os.getloadavg())
     except OSError:
         pass
+
+    # the joint (several stations) solve on the same LM core, one thread
+    out["joint"] = joint_speed(n_speed, rounds, rng)
+    print_joint(out["joint"])
 
     # peak memory of one large batch (chunked, so flat in F)
     Fm = 50000 if q else 200000

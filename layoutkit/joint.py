@@ -41,8 +41,8 @@ __all__ = ["solve_joint", "JOINT_METHODS", "model_angles_jacobian", "group_windo
 # from fewer than MIN_ANGLES + MIN_REDUNDANCY angles over all stations is ``STATUS_LOW_REDUNDANCY``
 # (the redundancy rule of :mod:`layoutkit.status`).
 DEFAULT_CHUNK = 2048
-_RTOL = 1e-8      # converged when an accepted step lowers the cost by less than this fraction
-_ATOL = 1e-26     # ... or by less than this (rad², per angle)
+_RTOL = 1e-8      # converged when the LM step's predicted decrease is below this fraction of the cost
+_ATOL = 1e-26     # ... plus this (rad², per two angles): the noise-free floor
 
 
 def _wrap(a):
@@ -136,44 +136,100 @@ def _cost(P, R, t, stations, meas, mask, dt, vel, jacobian):
     return np.sum(r * r, axis=(1, 2, 3)), r, J, ps
 
 
+def _factor(A, lam):
+    """Cholesky factor of ``M = A + lam diag(A)`` per frame (A (f, 6, 6), numpy): L (f, 6, 6) and ok (f,),
+    False where a pivot L[c, c]^2 is not above 1e-14 max diag(A) (the compiled core's test)."""
+    M = A + lam[:, None, None] * (np.eye(6) * np.diagonal(A, axis1=1, axis2=2)[:, None, :])
+    scale = np.maximum(np.max(np.diagonal(A, axis1=1, axis2=2), 1), 1e-300)
+    L = np.full(A.shape, np.nan)
+    ok = np.zeros(len(A), bool)
+    good = np.flatnonzero(np.all(np.isfinite(M), (1, 2)))
+    try:
+        L[good] = np.linalg.cholesky(M[good])
+        ok[good] = True
+    except np.linalg.LinAlgError:                # one frame is not positive definite: frame by frame
+        for i in good:
+            try:
+                L[i] = np.linalg.cholesky(M[i])
+                ok[i] = True
+            except np.linalg.LinAlgError:
+                pass
+    ok &= np.all(np.diagonal(L, axis1=1, axis2=2) ** 2 > 1e-14 * scale[:, None], 1)
+    return L, ok
+
+
+def _apply(L, g):
+    """(L L^T)^-1 g per frame (L (f, 6, 6) from :func:`_factor`, g (f, 6)) → (f, 6)."""
+    y = np.linalg.solve(L, g[..., None])
+    return np.linalg.solve(np.swapaxes(L, 1, 2), y)[..., 0]
+
+
 def _lm(P, R, t, stations, meas, mask, dt, vel, max_iterations):
+    """Batched Levenberg–Marquardt over the frames from (R, t): the numpy reference of the compiled
+    solve, with the rule of the shared LM core (:func:`layoutkit.lm_numba.make_refine`, as
+    :func:`layoutkit.pnp_lh1._refine`): a step is first tried with the previous iteration's factor of
+    ``A + lam diag(A)``; converged when the step's predicted decrease ``step . g`` is at most
+    ``_RTOL cost + _ATOL m / 2`` (that step taken without an evaluation); damping ×0.1 on an accepted
+    step (``cost_new <= cost``, floor 1e-12), ×10 on a rejected one, given up above 1e10 or when the
+    factor fails. Returns R, t, the cost, converged, iterations, and the station-frame points and the
+    Jacobian of the last accepted evaluated pose (the converged step after it is below the tolerance)."""
     F = R.shape[0]
+    R, t = R.copy(), t.copy()
     cost, r, J, ps = _cost(P, R, t, stations, meas, mask, dt, vel, True)
     m = mask.sum(axis=(1, 2, 3))
-    lam = np.full(F, 1e-3)
-    done = np.zeros(F, bool)
+    lam = np.full(F, 1e-6)
     its = np.zeros(F, int)
-    I6 = np.eye(6)
+    conv = np.zeros(F, bool)
+    Lf, have = np.zeros((F, 6, 6)), np.zeros(F, bool)
+    act = np.arange(F)
+
+    def sub(idx):
+        return (None if dt is None else dt[idx], None if vel is None else (vel[0][idx], vel[1][idx]))
+
     for _ in range(max_iterations):
-        act = ~done
-        if not act.any():
+        if act.size == 0:
             break
-        Jm = J[act] * mask[act][..., None]
-        Jv = Jm.reshape(Jm.shape[0], -1, 6)
-        A = np.swapaxes(Jv, 1, 2) @ Jv
-        g = np.einsum("fki,fk->fi", Jv, r[act].reshape(Jv.shape[0], -1))
-        D = np.diagonal(A, axis1=1, axis2=2)
-        M = A + lam[act][:, None, None] * (D[:, :, None] * I6 + 1e-12 * np.trace(A, axis1=1, axis2=2)[:, None, None] * I6)
-        try:
-            step = np.linalg.solve(M, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.stack([np.linalg.lstsq(Mi, gi, rcond=None)[0] for Mi, gi in zip(M, g)])
-        Rn = rotvec_to_matrix(step[:, :3]) @ R[act]
+        ca, la = cost[act], lam[act]
+        tol = _RTOL * ca + _ATOL * 0.5 * m[act]
+        Jm = (J[act] * mask[act][..., None]).reshape(act.size, -1, 6)
+        g = np.einsum("fki,fk->fi", Jm, r[act].reshape(act.size, -1))
+        step, dl = np.zeros((act.size, 6)), np.zeros(act.size)
+        small, okc = np.zeros(act.size, bool), np.ones(act.size, bool)
+        h = have[act]
+        if h.any():                                   # the previous factor first
+            step[h] = _apply(Lf[act[h]], g[h])
+            dl[h] = np.sum(step[h] * g[h], 1)
+            small[h] = dl[h] <= tol[h]
+        need = ~small
+        if need.any():                                # else a new factor at the current pose
+            A = np.swapaxes(Jm[need], 1, 2) @ Jm[need]
+            L, okf = _factor(A, la[need])
+            step[need] = np.where(okf[:, None], _apply(np.where(okf[:, None, None], L, np.eye(6)), g[need]), np.nan)
+            dl[need] = np.sum(step[need] * g[need], 1)
+            small[need] = okf & (dl[need] <= tol[need])
+            okc[need] = okf
+            Lf[act[need]], have[act[need]] = L, True
+        Rn = rotvec_to_matrix(np.nan_to_num(step[:, :3])) @ R[act]
         tn = t[act] + step[:, 3:]
-        sub = (None if dt is None else dt[act], None if vel is None else (vel[0][act], vel[1][act]))
-        cn, rn, Jn, psn = _cost(P, Rn, tn, stations, meas[act], mask[act], sub[0], sub[1], True)
-        idx = np.flatnonzero(act)
-        better = cn < cost[act]
-        its[idx] += 1
-        gain = cost[act] - cn
-        conv = better & ((gain <= _RTOL * cost[act]) | (gain <= _ATOL * np.maximum(m[act], 1)))
-        tiny = better & (np.linalg.norm(step, axis=1) < 1e-9)     # rad / m: far below any noise
-        tiny |= ~better & (cost[act] <= _ATOL * np.maximum(m[act], 1))  # at the rounding floor (noise-free)
-        acc = idx[better]
-        R[acc], t[acc], cost[acc], r[acc], J[acc], ps[acc] = Rn[better], tn[better], cn[better], rn[better], Jn[better], psn[better]
-        lam[idx] = np.where(better, np.maximum(lam[idx] / 10.0, 1e-9), lam[idx] * 10.0)
-        done[idx[conv | tiny | (lam[idx] > 1e8)]] = True
-    return R, t, cost, done, its, ps, J
+        todo = okc & ~small
+        acc = np.zeros(act.size, bool)
+        if todo.any():
+            ti = act[todo]
+            d, v = sub(ti)
+            cn, rn, Jn, psn = _cost(P, Rn[todo], tn[todo], stations, meas[ti], mask[ti], d, v, True)
+            better = cn <= cost[ti]
+            acc[todo] = better
+            j = ti[better]
+            cost[j], r[j], J[j], ps[j] = cn[better], rn[better], Jn[better], psn[better]
+        cost[act[small]] = np.maximum(ca[small] - dl[small], 0.0)
+        take = acc | small
+        R[act[take]], t[act[take]] = Rn[take], tn[take]
+        lnew = np.where(acc, np.maximum(la * 0.1, 1e-12), np.where(todo, la * 10.0, la))
+        lam[act] = lnew
+        its[act] += 1
+        conv[act[small]] = True
+        act = act[~(small | ~okc | (lnew > 1e10))]
+    return R, t, cost, conv, its, ps, J
 
 
 def solve_joint(points_body, angles, visible=None, *, stations, initial=None, dt=None, velocity=None,

@@ -9,7 +9,7 @@ The same algorithm, step for step, as :func:`layoutkit.pnp_lh1.solve_pnp_lm` (wh
 reference the tests hold this kernel to: same poses to rounding, same statuses): per frame the
 minimum rule and the collinearity test, the start from ``initial``, the POSIT start in the virtual
 camera, the IPPE pair for (near-)coplanar or poorly fitted frames, each refined by the same
-Levenberg–Marquardt (unrolled 6 × 6 Cholesky of ``A + lam diag(A)``, the previous factor reused to
+Levenberg–Marquardt (unrolled 6 × 6 LDL^T factor of ``A + lam diag(A)``, the previous factor reused to
 test convergence, the same tolerances), the best / runner-up bookkeeping and the likelihood-ratio
 ambiguity test. Differences: scalar code per frame instead of frames-last arrays (no temporaries),
 frames spread over threads (``prange`` over blocks of frames, each block with its own scratch); the
@@ -31,17 +31,17 @@ import numba
 import numpy as np
 from numba import prange
 
+from .lm_numba import JIT, LEAF, exp_rot, make_refine
+
 # status codes (layoutkit.status; numba needs plain ints)
 OK, TOO_FEW, DEGENERATE, NOT_CONVERGED, BEHIND, AMBIGUOUS, NO_START = 0, 1, 2, 3, 4, 5, 7
 
-# fastmath: fused multiply-add, reciprocals and signed zeros only (no NaN / infinity assumptions: NaN
-# marks unseen sensors and failed frames); poses move by ~5e-15 against strict IEEE order, 11 % faster.
-_JIT = dict(cache=True, fastmath={"contract", "arcp", "nsz"}, nogil=True, error_model="numpy")
-# Functions below the batch loop allocate nothing and keep no array: compiled without the reference
-# counting runtime (numba's private ``_nrt`` flag), so a call does not incref/decref each array argument
-# (~640 runtime calls per frame at n = 12, 27 % of the time measured with perf); only _scratch and the
-# batch loops, which allocate, keep it.
-_LEAF = dict(_JIT, _nrt=False)
+# the flags of the LM core (layoutkit.lm_numba): fastmath without NaN / infinity assumptions (NaN marks
+# unseen sensors and failed frames; poses move by ~5e-15 against strict IEEE order, 11 % faster); the
+# functions below the batch loop allocate nothing and are compiled without the reference-counting
+# runtime (_LEAF); only _scratch and the batch loops, which allocate, keep it.
+_JIT, _LEAF = JIT, LEAF
+_RTOL, _ATOL = 1e-6, 1e-26  # the LM's tolerances: those of the reference, pnp_lh1._RTOL and _ATOL
 _VEC = dict(_LEAF, fastmath={"contract", "arcp", "nsz", "reassoc"})
 
 
@@ -62,39 +62,6 @@ def _atan_ratio(num, den):
             return q * (1.0 - q2 * (1.0 / 3.0 - q2 * (0.2 - q2 * (1.0 / 7.0 - q2 * (1.0 / 9.0 - q2 * (
                 1.0 / 11.0 - q2 * (1.0 / 13.0)))))))
     return math.atan2(num, den)
-
-
-@numba.njit(**_LEAF)
-def _exp_rot(x, y, z, E):
-    """E (9,) = exp([phi]x), phi = (x, y, z) rad, row-major (Rodrigues, series for small angles)."""
-    th2 = x * x + y * y + z * z
-    if th2 < 1e-8:
-        a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
-        b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
-    else:
-        th = math.sqrt(th2)
-        a = math.sin(th) / th
-        b = (1.0 - math.cos(th)) / (th * th)
-    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
-    ax, ay, az = a * x, a * y, a * z
-    E[0] = 1.0 - b * (y * y + z * z)
-    E[1] = bxy - az
-    E[2] = bxz + ay
-    E[3] = bxy + az
-    E[4] = 1.0 - b * (x * x + z * z)
-    E[5] = byz - ax
-    E[6] = bxz - ay
-    E[7] = byz + ax
-    E[8] = 1.0 - b * (x * x + y * y)
-
-
-@numba.njit(**_LEAF)
-def _compose(E, r, out):
-    """out = E @ R, all (9,) row-major."""
-    for i in range(3):
-        e0, e1, e2 = E[3 * i], E[3 * i + 1], E[3 * i + 2]
-        for j in range(3):
-            out[3 * i + j] = e0 * r[j] + e1 * r[3 + j] + e2 * r[6 + j]
 
 
 @numba.njit(**_LEAF)
@@ -225,14 +192,19 @@ def _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
 
 
 @numba.njit(**_LEAF)
-def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
+def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     """One pass over the sensors at the pose (see :func:`_pass_exact`): the vectorised series pass
-    when every seen residual is in its range, else the exact one. depth (2,) = smallest and largest
-    z of the seen sensors."""
+    when every seen residual is in its range, else the exact one."""
     cost, ok = _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
     if not ok:
-        return _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth)
-    r6, r7, r8, t2 = r[6], r[7], r[8], t[2]
+        return _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
+    return cost
+
+
+@numba.njit(**_LEAF)
+def _depth(Px, Py, Pz, wx, wy, n, pose, depth):
+    """depth (2,) = smallest and largest z of the seen sensors at pose (12,) = (r (9,), t (3,))."""
+    r6, r7, r8, t2 = pose[6], pose[7], pose[8], pose[11]
     zmin, zmax = np.inf, -np.inf
     for i in range(n):
         if wx[i] > 0.0 or wy[i] > 0.0:
@@ -242,15 +214,14 @@ def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
             if z > zmax:
                 zmax = z
     depth[0], depth[1] = zmin, zmax
-    return cost
 
 
 @numba.njit(**_LEAF)
-def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
+def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     """One pass over the sensors at the pose (r (9,), t (3,)): returns the cost (sum of squared angle
     residuals, as :func:`_eval`); mode >= 1 also the gradient g (6,) = J^T r, mode 2 also the upper
     triangle of A = J^T J (6, 6) — the Jacobian rows of :func:`layoutkit.pnp_lh1._jacobian` (left
-    perturbation, Chen eqs. 10-14). depth (2,) = smallest and largest z of the seen sensors.
+    perturbation, Chen eqs. 10-14).
     Fused so that the residuals are computed once per pose; the pose, gradient and Gram matrix are
     held in registers over the loop."""
     r0, r1, r2, r3, r4, r5, r6, r7, r8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
@@ -259,7 +230,6 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
     a00 = a01 = a02 = a03 = a04 = a05 = a11 = a12 = a13 = a14 = a15 = 0.0
     a22 = a23 = a24 = a25 = a33 = a35 = a44 = a45 = a55 = 0.0
     cost = 0.0
-    zmin, zmax = np.inf, -np.inf
     for i in range(n):
         hx, hy = wx[i] > 0.0, wy[i] > 0.0
         X, Y, Z = Px[i], Py[i], Pz[i]
@@ -267,11 +237,6 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
         ly = r3 * X + r4 * Y + r5 * Z
         lz = r6 * X + r7 * Y + r8 * Z
         x, y, z = lx + t0, ly + t1, lz + t2
-        if hx or hy:
-            if z < zmin:
-                zmin = z
-            if z > zmax:
-                zmax = z
         ex = _atan_ratio(x - ux[i] * z, z + ux[i] * x) if hx else 0.0
         ey = _atan_ratio(y - uy[i] * z, z + uy[i] * y) if hy else 0.0
         cost += ex * ex + ey * ey
@@ -312,7 +277,6 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
             a44 += k4 * k4
             a45 += k4 * k5
             a55 += j5 * j5 + k5 * k5
-    depth[0], depth[1] = zmin, zmax
     if mode >= 1:
         g[0], g[1], g[2], g[3], g[4], g[5] = g0, g1, g2, g3, g4, g5
     if mode == 2:
@@ -325,132 +289,36 @@ def _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g, depth):
     return cost
 
 
-@numba.njit(**_LEAF)
-def _factor(A, lam, L, inv):
-    """Unrolled Cholesky of A + lam diag(A) (upper triangle of A), as pnp_lh1._cholesky_factor:
-    L[i, c] (i > c), inv[c] = 1 / L[c, c]; False where a pivot is not positive."""
-    scale = A[0, 0]
-    for i in range(1, 6):
-        if A[i, i] > scale:
-            scale = A[i, i]
-    if not scale > 1e-300:  # np.maximum(.., 1e-300) (NaN propagates there: keep NaN)
-        scale = 1e-300 if scale == scale else scale
-    ok = True
-    for c in range(6):
-        s = A[c, c] * (1.0 + lam)
-        for k in range(c):
-            s -= L[c, k] * L[c, k]
-        good = s > 1e-14 * scale
-        if not good:
-            ok = False
-        inv[c] = 1.0 / math.sqrt(s if good else scale)
-        for i in range(c + 1, 6):
-            s2 = A[c, i]
-            for k in range(c):
-                s2 -= L[i, k] * L[c, k]
-            L[i, c] = s2 * inv[c]
-    return ok
+@numba.njit(inline="always", **_LEAF)
+def _pnp_pass(ctx, r, t, mode, A, g, pose):
+    """:func:`_pass` as the LM core's model (:func:`layoutkit.lm_numba.make_refine`): ctx = the frame's
+    sensor arrays and their count; the by-product is the evaluated pose, pose (12,) = (r, t), whose
+    depths :func:`_refine` computes once, for the last accepted one."""
+    Px, Py, Pz, ux, uy, wx, wy, n = ctx
+    for k in range(9):
+        pose[k] = r[k]
+    for k in range(3):
+        pose[9 + k] = t[k]
+    return _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
 
 
-@numba.njit(**_LEAF)
-def _apply(L, inv, g, y, x):
-    for i in range(6):
-        s = g[i]
-        for k in range(i):
-            s -= L[i, k] * y[k]
-        y[i] = s * inv[i]
-    for i in range(5, -1, -1):
-        s = y[i]
-        for k in range(i + 1, 6):
-            s -= L[k, i] * x[k]
-        x[i] = s * inv[i]
+_lm_refine = make_refine(_pnp_pass, "pnp")
 
 
 # ------------------------------------------------------------------------------ refinement
 
 @numba.njit(**_LEAF)
 def _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out):
-    """Levenberg–Marquardt from (r (9,), t (3,)), updated in place; the per-frame form of
-    :func:`layoutkit.pnp_lh1._refine` — the same steps, tolerances and factor reuse (a step is first
-    tried with the previous iteration's factor; converged when it lowers the cost by less than the
-    tolerance) — with each pose's residuals, gradient (and Gram matrix) from one fused
-    :func:`_pass`. out[0:6] = cost, iterations, converged, ok, zmin, zmax (z of the last evaluated
-    pose, as the reference)."""
+    """Levenberg–Marquardt from (r (9,), t (3,)), updated in place: the shared core
+    :func:`layoutkit.lm_numba.make_refine` (the per-frame form of :func:`layoutkit.pnp_lh1._refine`: the same
+    steps, tolerances and factor reuse) with each pose's residuals, gradient (and Gram matrix) from one
+    fused :func:`_pass`. out[0:6] = cost, iterations, converged, ok, zmin, zmax (z of the last
+    evaluated pose, as the reference)."""
     sc = _views(wk)
-    A, L, inv, g, g2, y, step, E, rn, tn, dep, dep2 = (sc.A, sc.L, sc.inv, sc.g, sc.g2, sc.y, sc.step, sc.E,
-                                                      sc.rn, sc.tn, sc.dep, sc.dep2)
-    cost = _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, 2, A, g, dep)
-    gram_here = True  # A is the Gram matrix at the current pose
-    lam = 1e-6
-    iters = 0
-    conv = False
-    ok = True
-    have_fac = False
-    for _ in range(max_iterations):
-        tol = 1e-6 * cost + 1e-26 * 0.5 * na
-        small = False
-        okc = True
-        if have_fac:
-            _apply(L, inv, g, y, step)
-            dl = 0.0
-            for k in range(6):
-                dl += step[k] * g[k]
-            small = dl <= tol
-        if not small:
-            if not gram_here:
-                _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, 2, A, g, dep2)
-                gram_here = True
-            okc = _factor(A, lam, L, inv)
-            _apply(L, inv, g, y, step)
-            dl = 0.0
-            for k in range(6):
-                dl += step[k] * g[k]
-            small = okc and dl <= tol
-            have_fac = True
-        _exp_rot(step[0], step[1], step[2], E)
-        _compose(E, r, rn)
-        for k in range(3):
-            tn[k] = t[k] + step[3 + k]
-        acc = False
-        if okc and not small:
-            cn = _pass(Px, Py, Pz, ux, uy, wx, wy, n, rn, tn, 1, A, g2, dep2)
-            if cn <= cost:
-                acc = True
-                cost = cn
-                for k in range(6):
-                    g[k] = g2[k]
-                dep[0], dep[1] = dep2[0], dep2[1]
-                gram_here = False
-        if small:
-            c2 = cost - dl
-            cost = c2 if c2 > 0.0 else 0.0
-        if acc or small:
-            for k in range(9):
-                r[k] = rn[k]
-            for k in range(3):
-                t[k] = tn[k]
-        if acc:
-            lnew = lam * 0.1
-            if lnew < 1e-12:
-                lnew = 1e-12
-        elif okc and not small:
-            lnew = lam * 10.0
-        else:
-            lnew = lam
-        lam = lnew
-        iters += 1
-        if small:
-            conv = True
-        if not okc:
-            ok = False
-        if small or not okc or lnew > 1e10:
-            break
-    out[0] = cost
-    out[1] = iters
-    out[2] = 1.0 if conv else 0.0
-    out[3] = 1.0 if ok else 0.0
-    out[4] = dep[0]
-    out[5] = dep[1]
+    pose, pose2 = sc.dep, sc.dep2
+    _lm_refine((Px, Py, Pz, ux, uy, wx, wy, n), r, t, na, _RTOL, _ATOL, max_iterations, wk.M6, wk.LB,
+               pose, pose2, out)
+    _depth(Px, Py, Pz, wx, wy, n, pose, out[4:6])
 
 
 # ------------------------------------------------------------------------------ starts
@@ -516,11 +384,12 @@ def _unit3(a, b, c):
 
 
 @numba.njit(**_VEC)
-def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk):
-    """POSIT in the virtual camera (pnp_lh1._posit, two iterations) → r (9,), t (3,)."""
+def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk, have_geo):
+    """POSIT in the virtual camera (pnp_lh1._posit, two iterations) → r (9,), t (3,). have_geo: the
+    centred points and the inverse scatter in ``wk`` are this geometry's (computed here otherwise)."""
     sc = _views(wk)
     vxs, vys = sc.rx2, sc.ry2
-    Qx, Qy, Qz = sc.qx, sc.qy, sc.qz
+    Qx, Qy, Qz, Si = sc.px, sc.py, sc.pz, sc.si
     su = sv = 0.0
     for i in range(n):
         su += w[i] * ux[i]
@@ -534,20 +403,23 @@ def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk):
         ibz = 1.0 / (Rc6 * ux[i] + Rc7 * uy[i] + cz)
         vxs[i] = w[i] * ((Rc0 * ux[i] + Rc1 * uy[i] + vy) * ibz)
         vys[i] = w[i] * ((Rc3 * ux[i] + Rc4 * uy[i] - vx) * ibz)
-        Qx[i] = (Px[i] - c[0]) * w[i]
-        Qy[i] = (Py[i] - c[1]) * w[i]
-        Qz[i] = (Pz[i] - c[2]) * w[i]
-    S00, S11, S22, S01, S02, S12 = S[0], S[1], S[2], S[3], S[4], S[5]
-    C00 = S11 * S22 - S12 * S12
-    C01 = S02 * S12 - S01 * S22
-    C02 = S01 * S12 - S02 * S11
-    C11 = S00 * S22 - S02 * S02
-    C12 = S01 * S02 - S00 * S12
-    C22 = S00 * S11 - S01 * S01
-    idet = 1.0 / (S00 * C00 + S01 * C01 + S02 * C02)
-    Si0, Si1, Si2 = C00 * idet, C01 * idet, C02 * idet
-    Si3, Si4, Si5 = C01 * idet, C11 * idet, C12 * idet
-    Si6, Si7, Si8 = C02 * idet, C12 * idet, C22 * idet
+    if not have_geo:
+        for i in range(n):
+            Qx[i] = (Px[i] - c[0]) * w[i]
+            Qy[i] = (Py[i] - c[1]) * w[i]
+            Qz[i] = (Pz[i] - c[2]) * w[i]
+        S00, S11, S22, S01, S02, S12 = S[0], S[1], S[2], S[3], S[4], S[5]
+        C00 = S11 * S22 - S12 * S12
+        C01 = S02 * S12 - S01 * S22
+        C02 = S01 * S12 - S02 * S11
+        C11 = S00 * S22 - S02 * S02
+        C12 = S01 * S02 - S00 * S12
+        C22 = S00 * S11 - S01 * S01
+        idet = 1.0 / (S00 * C00 + S01 * C01 + S02 * C02)
+        Si[0], Si[1], Si[2] = C00 * idet, C01 * idet, C02 * idet
+        Si[3], Si[4], Si[5] = C01 * idet, C11 * idet, C12 * idet
+        Si[6], Si[7], Si[8] = C02 * idet, C12 * idet, C22 * idet
+    Si0, Si1, Si2, Si3, Si4, Si5, Si6, Si7, Si8 = Si[0], Si[1], Si[2], Si[3], Si[4], Si[5], Si[6], Si[7], Si[8]
     nlm = nl if nl > 1.0 else 1.0
     r10 = r11 = r12 = r20 = r21 = r22 = r30 = r31 = r32 = iZ = 0.0
     sax = say = 0.0
@@ -733,7 +605,7 @@ def _ippe_pair(Px, Py, Pz, ux, uy, w, n, nl, c, ra, ta, rb, tb, wk):
     ang = math.acos(cosang)
     dn = an if an > 0 else 1.0
     E = sc.E
-    _exp_rot(-q / dn * ang, p / dn * ang, 0.0, E)
+    exp_rot(-q / dn * ang, p / dn * ang, 0.0, E)
     Rv00, Rv01, Rv02, Rv10, Rv11, Rv12, Rv20, Rv21, Rv22 = E[0], E[1], E[2], E[3], E[4], E[5], E[6], E[7], E[8]
     b00 = Rv00 - p * Rv20
     b01 = Rv01 - p * Rv21
@@ -863,29 +735,37 @@ def _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, r0, t0, max_iterations, t
 
 @numba.njit(**_LEAF)
 def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_iterations, sigma, rho,
-                 consts, wk, bs, res):
-    """One frame (pnp_lh1.solve_pnp_lm). res[:] = status, residual, iterations, alt residual."""
+                 consts, wk, bs, res, same):
+    """One frame (pnp_lh1.solve_pnp_lm). res[:] = status, residual, iterations, alt residual.
+    same: the points and lit pattern are those of the previous frame solved with ``wk``, whose
+    geometry (counts, centroid, scatter, planarity, collinearity, size, POSIT's centred points and
+    inverse scatter) is reused — the same values, computed once per run of such frames."""
     sc = _views(wk)
     min_angles, min_sensors, min_start, planar_thr, coplanar_thr, collinear_thr, retry_res, cos_d, amb_lr = (
         consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6], consts[7], consts[8])
-    nl = na = ns = 0.0
-    for i in range(n):
-        nl += w[i]
-        na += wx[i] + wy[i]
-        ns += wany[i]
-    c, S, Sa = sc.c, sc.S, sc.Sa
-    _scatter(Px, Py, Pz, w, n, c, S)
-    e_lo, _, e_hi = _sym3_eigvals(S[0], S[1], S[2], S[3], S[4], S[5])
-    planarity = math.sqrt((e_lo if e_lo > 0.0 else 0.0) / (e_hi if e_hi > 1e-300 else 1e-300))
-    if ns == nl:  # every seen sensor has both angles: wany = w, the same scatter
-        for k in range(6):
-            Sa[k] = S[k]
+    c, S, Sa, geo = sc.c, sc.S, sc.Sa, sc.geo
+    if same:
+        nl, na, ns, planarity, collinear, size = geo[0], geo[1], geo[2], geo[3], geo[4] > 0.5, geo[5]
     else:
-        _scatter(Px, Py, Pz, wany, n, sc.c2, Sa)
-    minors = Sa[0] * Sa[1] - Sa[3] * Sa[3] + Sa[0] * Sa[2] - Sa[4] * Sa[4] + Sa[1] * Sa[2] - Sa[5] * Sa[5]
-    trace = Sa[0] + Sa[1] + Sa[2]
-    collinear = minors <= collinear_thr * collinear_thr * trace * trace
-    size = math.sqrt((trace if trace > 0.0 else 0.0) / (ns if ns > 1.0 else 1.0))
+        nl = na = ns = 0.0
+        for i in range(n):
+            nl += w[i]
+            na += wx[i] + wy[i]
+            ns += wany[i]
+        _scatter(Px, Py, Pz, w, n, c, S)
+        e_lo, _, e_hi = _sym3_eigvals(S[0], S[1], S[2], S[3], S[4], S[5])
+        planarity = math.sqrt((e_lo if e_lo > 0.0 else 0.0) / (e_hi if e_hi > 1e-300 else 1e-300))
+        if ns == nl:  # every seen sensor has both angles: wany = w, the same scatter
+            for k in range(6):
+                Sa[k] = S[k]
+        else:
+            _scatter(Px, Py, Pz, wany, n, sc.c2, Sa)
+        minors = Sa[0] * Sa[1] - Sa[3] * Sa[3] + Sa[0] * Sa[2] - Sa[4] * Sa[4] + Sa[1] * Sa[2] - Sa[5] * Sa[5]
+        trace = Sa[0] + Sa[1] + Sa[2]
+        collinear = minors <= collinear_thr * collinear_thr * trace * trace
+        size = math.sqrt((trace if trace > 0.0 else 0.0) / (ns if ns > 1.0 else 1.0))
+        geo[0], geo[1], geo[2], geo[3], geo[4], geo[5] = nl, na, ns, planarity, 1.0 if collinear else 0.0, size
+        geo[6] = 0.0  # POSIT's centred points / inverse scatter not yet computed for this geometry
     best_R, best_t, alt_R, alt_t, bv = bs.best_R, bs.best_t, bs.alt_R, bs.alt_t, bs.vals
     for k in range(9):
         best_R[k] = np.nan
@@ -914,7 +794,8 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
                 bv[3] = NO_START
             cold = False
         if cold and planarity > coplanar_thr:
-            _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, sc.r0, sc.t0, wk)
+            _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, sc.r0, sc.t0, wk, geo[6] > 0.5)
+            geo[6] = 1.0
             _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, sc.r0, sc.t0, max_iterations, track_alt, cos_d, wk, bs)
         if cold:
             retry = retry_res if not (sigma == sigma and sigma != 0.0) else min(retry_res, 5.0 * sigma)
@@ -951,18 +832,21 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
 
 Scratch = namedtuple("Scratch", ["rx", "ry", "zz", "rx2", "ry2", "zz2", "qx", "qy", "qz", "A", "L", "inv", "g", "y",
                                  "step", "E", "rn", "tn", "rc", "tc", "out", "oR", "ot", "c", "c2", "S", "Sa", "S3",
-                                 "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2", "h8"])
+                                 "A8", "b8", "row8", "r0", "t0", "r1", "t1", "g2", "dep", "dep2", "h8", "geo", "si",
+                                 "px", "py", "pz"])
 Best = namedtuple("Best", ["best_R", "best_t", "alt_R", "alt_t", "vals"])
-#: The scratch memory of one thread, in five arrays: V (9, n) per-sensor vectors, M6 (2, 6, 6) the
-#: normal matrix and its factor, A8 (8, 8) IPPE's normal matrix, S3 (3, 3), B (26, 9) small vectors.
+#: The scratch memory of one thread, in six arrays: V (12, n) per-sensor vectors, M6 (2, 6, 6) the
+#: normal matrix and its factor, A8 (8, 8) IPPE's normal matrix, S3 (3, 3), B (28, 12) small vectors,
+#: LB (8, 9) the LM core's small vectors (layoutkit.lm_numba.refine).
 #: Functions take this and name its parts with :func:`_views` (inlined; unused views cost nothing):
 #: passing 39 separate arrays by value cost ~300 words of argument copying per call.
-Work = namedtuple("Work", ["V", "M6", "A8", "S3", "B"])
+Work = namedtuple("Work", ["V", "M6", "A8", "S3", "B", "LB"])
 
 
 @numba.njit(**_JIT)
 def _scratch(n):
-    return Work(np.zeros((9, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((26, 9)))
+    return Work(np.zeros((12, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((28, 12)),
+                np.zeros((8, 9)))
 
 
 @numba.njit(**_LEAF)
@@ -971,7 +855,8 @@ def _views(wk):
     V, M6, B = wk.V, wk.M6, wk.B
     return Scratch(V[0], V[1], V[2], V[3], V[4], V[5], V[6], V[7], V[8], M6[0], M6[1], B[0], B[1], B[2],
                    B[3], B[4], B[5], B[6], B[7], B[8], B[9], B[10], B[11], B[12], B[13], B[14], B[15], wk.S3,
-                   wk.A8, B[16], B[17], B[18], B[19], B[20], B[21], B[22], B[23], B[24], B[25])
+                   wk.A8, B[16], B[17], B[18], B[19], B[20], B[21], B[22], B[23], B[24], B[25], B[26], B[27],
+                   V[9], V[10], V[11])
 
 
 @numba.njit(**_JIT)
@@ -994,20 +879,32 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
         for i in range(n):
             Px[i], Py[i], Pz[i] = P[0, i, 0], P[0, i, 1], P[0, i, 2]
     for f in range(lo, hi):
-        for i in range(n):
-            lx, ly = lit[f, i, 0], lit[f, i, 1]
-            wx[i] = 1.0 if lx else 0.0
-            wy[i] = 1.0 if ly else 0.0
-            w[i] = wx[i] * wy[i]
-            wany[i] = 1.0 if (lx or ly) else 0.0
-            ux[i] = cot[f, i, 0] if lx else 0.0
-            uy[i] = cot[f, i, 1] if ly else 0.0
-            if shared:
-                pass
-            elif lx or ly:
-                Px[i], Py[i], Pz[i] = P[f, i, 0], P[f, i, 1], P[f, i, 2]
-            else:  # an unseen sensor's (maybe non-finite) point never enters, as pnp_lh1._Frames
-                Px[i] = Py[i] = Pz[i] = 0.0
+        # the body's geometry is the previous frame's when the body is shared and the same angles are lit
+        same = shared and f > lo
+        if same:
+            for i in range(n):
+                if lit[f, i, 0] != lit[f - 1, i, 0] or lit[f, i, 1] != lit[f - 1, i, 1]:
+                    same = False
+                    break
+        if same:  # the weights are the previous frame's: only the measurements change
+            for i in range(n):
+                ux[i] = cot[f, i, 0] if wx[i] > 0.0 else 0.0
+                uy[i] = cot[f, i, 1] if wy[i] > 0.0 else 0.0
+        else:
+            for i in range(n):
+                lx, ly = lit[f, i, 0], lit[f, i, 1]
+                wx[i] = 1.0 if lx else 0.0
+                wy[i] = 1.0 if ly else 0.0
+                w[i] = wx[i] * wy[i]
+                wany[i] = 1.0 if (lx or ly) else 0.0
+                ux[i] = cot[f, i, 0] if lx else 0.0
+                uy[i] = cot[f, i, 1] if ly else 0.0
+                if shared:
+                    pass
+                elif lx or ly:
+                    Px[i], Py[i], Pz[i] = P[f, i, 0], P[f, i, 1], P[f, i, 2]
+                else:  # an unseen sensor's (maybe non-finite) point never enters, as pnp_lh1._Frames
+                    Px[i] = Py[i] = Pz[i] = 0.0
         hi_ = has_init[f]
         if hi_:
             for a in range(3):
@@ -1015,7 +912,7 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
                     r0[3 * a + c] = R0[f, a, c]
                 tt0[a] = t0[f, a]
         amb = _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, m, r0, tt0, hi_, max_iterations, sigma, rho,
-                           consts, wk, bs, res)
+                           consts, wk, bs, res, same)
         status[f] = int(res[0])
         resid[f] = res[1]
         iters[f] = int(res[2])
@@ -1043,10 +940,24 @@ def solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rh
                  R_out, t_out, status, resid, iters, altR, altt, altres)
 
 
-@numba.njit(parallel=True, **_JIT)
 def solve_batch_parallel(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
                          R_out, t_out, status, resid, iters, altR, altt, altres):
-    """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads."""
+    """:func:`solve_batch` with blocks of ``block`` frames spread over numba's threads; on one thread
+    :func:`solve_batch` itself (the whole batch as one range: no per-block scratch, the geometry reused
+    across blocks; 4 % per frame at n = 12). (The thread count is read here: read inside the kernel it
+    is a runtime address, which numba cannot cache.)"""
+    if numba.get_num_threads() == 1:
+        solve_batch(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+                    R_out, t_out, status, resid, iters, altR, altt, altres)
+    else:
+        _solve_blocks(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
+                      R_out, t_out, status, resid, iters, altR, altt, altres)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _solve_blocks(P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts, block,
+                  R_out, t_out, status, resid, iters, altR, altt, altres):
+    """Blocks of ``block`` frames spread over numba's threads, each with its own scratch."""
     F = cot.shape[0]
     nb = (F + block - 1) // block
     for b in prange(nb):

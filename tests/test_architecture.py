@@ -30,7 +30,7 @@ DOC = PKG.parent / "docs" / "architecture.md"
 #: has no cycle: test_no_import_cycles); the data rooms (2.x) are ordered among themselves.
 TIERS = {
     "units": 0, "_validate": 0, "status": 0, "resources": 0,
-    "geometry": 1, "lighthouse": 1, "noise": 1, "pnp_result": 1, "pnp_numba": 1, "pnp_lh1": 1, "joint_numba": 1, "joint": 1,
+    "geometry": 1, "lighthouse": 1, "noise": 1, "pnp_result": 1, "lm_numba": 1, "pnp_numba": 1, "pnp_lh1": 1, "joint_numba": 1, "joint": 1,
     "pnp": 1,
     "dop": 1,
     "dop_batch": 1, "simulate": 1, "visibility": 1, "quality": 1, "coverage_rule": 1, "filter": 1, "rotations": 1,

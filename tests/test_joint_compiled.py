@@ -20,9 +20,10 @@ from test_joint import DECK, random_calibration, two_stations
 
 
 def _same(a, b, tol=1e-7):
-    """Same statuses; same poses to 1e-7 (rad, m) — the LM stops at a relative cost change of 1e-8, so
-    two implementations whose sums round differently may stop one step apart, ~1e-9..1e-8 off, three
-    orders below the poses' precision here (~1e-4)."""
+    """Same statuses; same poses to 1e-7 (rad, m) — the LM (the shared core, layoutkit.lm_numba) stops
+    when a step's predicted decrease is below 1e-8 of the cost, so two implementations whose sums round
+    differently may stop one step apart, ~1e-9..1e-8 off, three orders below the poses' precision here
+    (~1e-4)."""
     np.testing.assert_array_equal(a.status, b.status)
     fin = np.isfinite(a.translation[:, 0]) & (a.status != 3)
     np.testing.assert_array_equal(np.isfinite(a.translation[:, 0]), np.isfinite(b.translation[:, 0]))

@@ -150,3 +150,44 @@ def test_many_sensors(rng, n):
     a, b = _both(P, _angles(R, t, rng, P))
     assert a.success.mean() > 0.99
     _same(a, b)
+
+
+@pytest.mark.parametrize("F", [120, PARALLEL_MIN_FRAMES + 40])
+def test_runs_of_one_lit_pattern(rng, F):
+    """The kernel computes a body's geometry (scatter, planarity, collinearity, POSIT's centred points)
+    once per run of consecutive frames with the same lit pattern: runs of 1-7 frames whose pattern
+    changes between all lit, per-angle gaps (a sensor with one angle), the coplanar top face,
+    a collinear edge and too few sensors; on one numba thread and on two (threaded blocks cut runs)."""
+    import numba
+
+    R, t = _poses(F, rng)
+    a = _angles(R, t, rng)
+    pats = [np.ones((12, 2), bool)]
+    gap = np.ones((12, 2), bool)
+    gap[[2, 7], 0] = False
+    pats.append(gap)
+    top = np.zeros((12, 2), bool)
+    top[TOP] = True
+    pats.append(top)
+    edge = np.zeros((12, 2), bool)
+    edge[[0, 1]] = True                       # two sensors: too few
+    pats.append(edge)
+    five = np.zeros((12, 2), bool)
+    five[[0, 1, 2, 3, 8]] = True
+    pats.append(five)
+    vis = np.empty((F, 12, 2), bool)
+    f = 0
+    while f < F:
+        k = int(rng.integers(1, 8))
+        vis[f:f + k] = pats[int(rng.integers(len(pats)))]
+        f += k
+    threads = numba.get_num_threads()
+    try:
+        for nt in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)}):
+            numba.set_num_threads(nt)
+            x = solve_pnp(P12, a, vis, method="lm")
+            y = solve_pnp(P12, a, vis, method="lm-numpy")
+            assert len(np.unique(x.status)) >= 3
+            _same(x, y)
+    finally:
+        numba.set_num_threads(threads)
