@@ -25,7 +25,7 @@ EXE = [sys.executable, "-m", "layoutkit"]
 #: (command, README text, test text): shorter runs, same commands and files.
 SHORTEN = [
     ("optimize", "--spacing-mm 8", "--spacing-mm 14 --no-render"),
-    ("optimize", "--time-limit-s 120", "--time-limit-s 20"),
+    ("optimize", "--time-limit-s 120", "--time-limit-s 10"),
     ("score", "--draws 5", "--draws 2 --poses 300"),
     ("render", "--out-dir out/pics/", "--out-dir out/pics/ --size 320x240 --grid-deg 15 --views iso"),
     ("simulate", "--frames 10000", "--frames 300"),
