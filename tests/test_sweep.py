@@ -179,7 +179,7 @@ SLOW_AXES = "k = [5, 6, 7]\nmethod = [\"pipeline\"]\nseed = [1, 2]\n"
 
 @pytest.mark.slow
 def test_real_scheduler_worker_killed_midsweep_then_completes(tmp_path, small_envelope):
-    sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 1.5")
+    sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 1.0")
     (tmp_path / "sweep.toml").write_text(sweep)
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
