@@ -41,9 +41,13 @@ from ..units import RAD2DEG, RHO_PAPER, SIGMA_THETA_PAPER
 from .models import FORWARD_MODELS, ForwardModel
 from .so3 import quat_from_matrix, quat_from_rotvec, quat_mul, quat_to_matrix, quat_to_rotvec
 
-__all__ = ["EkfConfig", "SweepUpdate", "ErrorStateEKF", "chi2_quantile", "hit_time_covariance"]
+__all__ = ["EkfConfig", "SweepUpdate", "ErrorStateEKF", "chi2_quantile", "hit_time_covariance", "POSE_IDX"]
 
 _TWO_PI = 2.0 * math.pi
+
+#: indices of the pose ``(dphi rad, dp m)`` in the error state ``[dphi, dw, dp, dv, ...]`` (read-only)
+POSE_IDX = np.r_[0:3, 6:9]
+POSE_IDX.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -229,8 +233,7 @@ def start_covariance(config: EkfConfig, cov, dim: int) -> np.ndarray:
         return P
     if cov.shape != (6, 6):
         raise ValueError(f"start covariance: expected (6, 6) or (12, 12), got {cov.shape}")
-    i = np.r_[0:3, 6:9]
-    P[np.ix_(i, i)] = cov
+    P[np.ix_(POSE_IDX, POSE_IDX)] = cov
     P[3:6, 3:6] = np.eye(3) * config.init_sigma_rate ** 2
     P[9:12, 9:12] = np.eye(3) * config.init_sigma_speed ** 2
     return P
@@ -300,7 +303,7 @@ def two_point_start(a, b, max_speed: float, max_rate: float):
     blur = np.r_[np.full(3, float(np.linalg.norm(w)) ** 2), np.full(3, float(np.linalg.norm(v)) ** 2)]
     Ca, Cb = Ca + np.diag(blur * sa ** 2), Cb + np.diag(blur * sb ** 2)
     P = np.zeros((12, 12))
-    ip, iv = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+    ip, iv = POSE_IDX, np.r_[3:6, 9:12]
     P[np.ix_(ip, ip)] = Cb
     P[np.ix_(iv, iv)] = (Ca + Cb) / dt ** 2
     P[np.ix_(ip, iv)] = Cb / dt
@@ -312,9 +315,6 @@ class PoseStateView:
     """The pose read-outs shared by :class:`ErrorStateEKF` and :class:`~layoutkit.filter.imm.ImmFilter`:
     a nominal attitude ``q`` (x, y, z, w) and an error-state covariance ``P`` with the attitude error
     at rows 0:3 and the position at 6:9."""
-
-    _pose_idx = np.r_[0:3, 6:9]
-    _pose_idx.flags.writeable = False
 
     @property
     def rotation(self) -> np.ndarray:
@@ -328,12 +328,11 @@ class PoseStateView:
 
     def pose_sigma(self) -> np.ndarray:
         """(6,) 1-sigma of ``(dphi rad, dp m)`` (world axes)."""
-        return np.sqrt(np.maximum(np.diagonal(self.P)[self._pose_idx], 0.0))
+        return np.sqrt(np.maximum(np.diagonal(self.P)[POSE_IDX], 0.0))
 
     def pose_covariance(self) -> np.ndarray:
         """(6, 6) covariance of ``(dphi rad, dp m)``."""
-        i = self._pose_idx
-        return self.P[i][:, i]
+        return self.P[POSE_IDX][:, POSE_IDX]
 
     def sigma_deg_m(self):
         """1-sigma attitude (3,) deg and position (3,) m (the ``cov_rot_deg`` / ``cov_pos_m`` fields)."""
@@ -354,6 +353,7 @@ class ErrorStateEKF(PoseStateView):
         self.points_body = np.ascontiguousarray(points_body, float)
         self.stations = list(stations)
         self.model = model if model is not None else FORWARD_MODELS[self.config.model]
+        self._noise_on = True  # the last predict carried process noise (also over the hit-time offsets)
         self._both = getattr(self.model, "angles_and_jacobian", None)
         self._rows = getattr(self.model, "sweep_rows", None)
         d = self.config.dim
@@ -488,7 +488,7 @@ class ErrorStateEKF(PoseStateView):
         sensors = np.asarray(sensors, np.intp)
         z = np.asarray(angles, float)
         m = sensors.size
-        sig0 = np.sqrt(np.diagonal(self.P)[self._pose_idx])
+        sig0 = np.sqrt(np.diagonal(self.P)[POSE_IDX])
         if m == 0:
             return SweepUpdate(0, 0, False, float("nan"), 0, np.zeros(6), sig0)
         st = self.stations[station]
@@ -520,7 +520,7 @@ class ErrorStateEKF(PoseStateView):
         HP = H @ self.P
         S = HP @ H.T + self._correlation(m)
         if hit_offsets is not None and c.hit_time_noise and not c.constant_acceleration \
-                and getattr(self, "_noise_on", True):
+                and self._noise_on:
             # the white acceleration between the state time and the hit times (hit_time_covariance)
             S = S + hit_time_covariance(dl) * (c.psd_rot * (Jr @ Jr.T) + c.psd_pos * (Jt @ Jt.T))
         keep = y * y <= self._q1 * np.diagonal(S)

@@ -45,14 +45,13 @@ import numpy as np
 
 from ..lighthouse import Station, to_sweep_angles
 from ..units import RAD2DEG
-from .ekf import EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
+from .ekf import POSE_IDX, EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
 from .so3 import quat_to_matrix, quat_to_rotvec, rotvec_floats
 
 __all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_pose_covariance", "joint_pose_covariance"]
 
 #: Output statuses: "ok" = tracking within the configured sigma limits.
 STATUSES = ("ok", "uncertain", "lost")
-_POSE_DIAG = np.array([0, 1, 2, 6, 7, 8])  # (dphi, dp) in the error state's diagonal
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,8 +99,7 @@ class FilterOutput:
     @property
     def pose_cov(self) -> np.ndarray:
         """(6, 6) covariance of ``(dphi rad, dp m)`` (from the full error-state covariance)."""
-        i = np.r_[0:3, 6:9]
-        return self.state_cov[np.ix_(i, i)]
+        return self.state_cov[np.ix_(POSE_IDX, POSE_IDX)]
 
     @property
     def cov_rot_deg(self) -> np.ndarray:
@@ -115,7 +113,7 @@ class FilterOutput:
 
     def record(self) -> dict:
         """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays)."""
-        sd = np.sqrt(np.diagonal(self.state_cov)[_POSE_DIAG]).tolist()
+        sd = np.sqrt(np.diagonal(self.state_cov)[POSE_IDX]).tolist()
         return {"t": self.t, "status": self.status,
                 "rotvec": rotvec_floats(self.quaternion), "translation": np.asarray(self.translation, float).tolist(),
                 "cov_rot_deg": [sd[0] * RAD2DEG, sd[1] * RAD2DEG, sd[2] * RAD2DEG], "cov_pos_m": sd[3:],
