@@ -156,13 +156,16 @@ def _gauss_newton(Ra, Rb, X, Y, body_offset: bool, iterations: int):
 
     N = len(Ra)
     RaT = np.swapaxes(Ra, -1, -2)
+    if body_offset:
+        J = np.concatenate([RaT, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=-1).reshape(3 * N, 6)
+    else:
+        J = RaT.reshape(3 * N, 3)
+    # J depends on Ra only: its pseudo-inverse (the minimum-norm least-squares solution, singular values
+    # below 1e-9 of the largest cut, as lstsq's rcond) is computed once, each step is one product
+    J_pinv = np.linalg.pinv(J, rcond=1e-9)
     for _ in range(max(iterations, 1)):
         e = matrix_to_rotvec(RaT @ X @ Rb @ Y, assume_valid=True)  # (N, 3); rotations (fit_rotation_pair)
-        if body_offset:
-            J = np.concatenate([RaT, np.broadcast_to(np.eye(3), (N, 3, 3))], axis=-1).reshape(3 * N, 6)
-        else:
-            J = RaT.reshape(3 * N, 3)
-        step, *_ = np.linalg.lstsq(J, -e.reshape(3 * N), rcond=1e-9)
+        step = -(J_pinv @ e.reshape(3 * N))
         X = rotvec_to_matrix(step[:3]) @ X
         if body_offset:
             Y = Y @ rotvec_to_matrix(step[3:])
