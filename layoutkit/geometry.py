@@ -20,6 +20,7 @@ __all__ = [
     "attitude_error",
     "random_rotations",
     "nearest_rotation",
+    "ensure_rotation",
     "right_jacobian_so3",
     "look_at_rotation",
 ]
@@ -87,6 +88,21 @@ def nearest_rotation(M) -> np.ndarray:
     D = np.ones(M.shape[:-1])
     D[..., -1] = d
     return (U * D[..., None, :]) @ Vt
+
+
+def ensure_rotation(M, tol: float = 1e-9) -> np.ndarray:
+    """``M (..., 3, 3)`` with every matrix that is not a proper rotation to ``tol`` (``|M M^T - I|`` max,
+    a non-positive determinant, or a non-finite entry) replaced by its :func:`nearest_rotation`; proper
+    ones are returned untouched (a copy). The one place that decides "a rotation to rounding" for
+    starts and inputs given by callers (PnP's initial poses, the rotation-pair fit)."""
+    R = np.array(as_array(M, "M", (..., 3, 3)), float)
+    flat = R.reshape(-1, 3, 3)
+    with np.errstate(invalid="ignore"):
+        err = np.abs(flat @ np.swapaxes(flat, -1, -2) - np.eye(3)).max((1, 2))
+        off = ~(err <= tol) | ~(np.linalg.det(flat) > 0)
+    if off.any():
+        flat[off] = nearest_rotation(flat[off])
+    return R
 
 
 def right_jacobian_so3(rotvec) -> np.ndarray:

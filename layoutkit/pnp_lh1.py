@@ -48,7 +48,7 @@ import numpy as np
 
 from . import status as _status
 from ._validate import as_array
-from .geometry import nearest_rotation
+from .geometry import ensure_rotation
 from .pnp_result import PnPResult, concat_results
 from .units import RHO_PAPER, SIGMA_THETA_PAPER
 
@@ -807,10 +807,7 @@ def solve_pnp_lm(points_body, angles, lit, initial=None, max_iterations: int = 2
         R0, t0 = initial
         idx = np.flatnonzero(todo & np.all(np.isfinite(R0), (1, 2)) & np.all(np.isfinite(t0), 1))
         if idx.size:
-            Ri = np.array(R0[idx], float)
-            off = np.abs(np.matmul(Ri, Ri.transpose(0, 2, 1)) - np.eye(3)).max((1, 2)) > 1e-9
-            if off.any():  # not a rotation: start from the nearest one
-                Ri[off] = nearest_rotation(Ri[off])
+            Ri = ensure_rotation(R0[idx])  # not a rotation: start from the nearest one
             consider(idx, Ri, t0[idx])
             tried_initial[idx] = True
             cold[idx[~poor(idx)]] = False
@@ -912,10 +909,7 @@ def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: i
         idx = np.flatnonzero(has)
         if idx.size:
             R0, t0 = np.zeros((F, 3, 3)), np.zeros((F, 3))
-            Rs = Ri[idx]
-            off = np.abs(np.matmul(Rs, Rs.transpose(0, 2, 1)) - np.eye(3)).max((1, 2)) > 1e-9
-            if off.any():  # not a rotation: start from the nearest one (as solve_pnp_lm)
-                Rs[off] = nearest_rotation(Rs[off])
+            Rs = ensure_rotation(Ri[idx])  # not a rotation: start from the nearest one (as solve_pnp_lm)
             R0[idx], t0[idx] = Rs, ti[idx]
     consts = np.array([MIN_ANGLES, MIN_SENSORS, MIN_START_SENSORS, PLANARITY_THRESHOLD, COPLANAR_THRESHOLD,
                        COLLINEAR_THRESHOLD, RETRY_RESIDUAL, np.cos(DISTINCT_ANGLE), AMBIGUITY_LR], float)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import attitude_error, matrix_to_rotvec, nearest_rotation
+from .geometry import attitude_error, ensure_rotation, matrix_to_rotvec, nearest_rotation
 
 __all__ = ["chordal_mean", "wahba", "relative_rotvec_pairs", "RotationPairFit", "fit_rotation_pair",
            "quaternion_to_matrix", "matrix_to_quaternion"]
@@ -136,15 +136,6 @@ class RotationPairFit:
         return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
 
-def _proper(R: np.ndarray) -> np.ndarray:
-    """``R (N, 3, 3)`` unchanged when every matrix is a rotation to 1e-9, else its nearest rotations."""
-    if R.ndim == 3 and len(R):
-        err = np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max()
-        if not np.isfinite(err) or err > 1e-9 or np.any(np.linalg.det(R) <= 0):
-            return nearest_rotation(R)
-    return R
-
-
 def _gauss_newton(Ra, Rb, X, Y, body_offset: bool, iterations: int):
     """Minimise ``sum |log(Ra_i^T X Rb_i Y)|^2`` over X (and Y) from a start, by Gauss-Newton.
 
@@ -185,8 +176,8 @@ def fit_rotation_pair(R_a, R_b, *, body_offset: bool = True, outlier_factor: flo
     """
     # proper rotations from here on (matrices off by more than rounding are projected once), so the
     # solver's many log maps may skip scipy's per-call orthonormalisation
-    Ra = _proper(np.asarray(R_a, float))
-    Rb = _proper(np.asarray(R_b, float))
+    Ra = ensure_rotation(R_a)
+    Rb = ensure_rotation(R_b)
     eye = np.eye(3)
     N = len(Ra)
 

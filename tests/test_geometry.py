@@ -57,3 +57,24 @@ def test_transform_and_look_at(rng):
     np.testing.assert_allclose(L[2], d / np.linalg.norm(d))
     np.testing.assert_allclose(L @ L.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(L) == pytest.approx(1.0)
+
+
+def test_ensure_rotation_projects_only_what_is_not_a_rotation():
+    """Proper rotations pass bit for bit; a scaled matrix, a reflection and a NaN-free shear are each
+    replaced by the SVD-nearest proper rotation (closed form: the polar factor), per matrix."""
+    from layoutkit.geometry import ensure_rotation, nearest_rotation, random_rotations
+
+    R = random_rotations(5, np.random.default_rng(3))
+    bad = R.copy()
+    bad[1] *= 1.001                                 # scaled: M M^T - I ~ 2e-3
+    bad[2] = -bad[2]                                # a reflection: orthogonal, det -1
+    bad[3] = bad[3] + 1e-6 * np.triu(np.ones((3, 3)))
+    out = ensure_rotation(bad)
+    for i in (0, 4):
+        assert np.array_equal(out[i], R[i])
+    assert np.allclose(out[1], R[1], atol=1e-12)    # the polar factor of s R is R
+    for i in (1, 2, 3):
+        assert np.allclose(out[i] @ out[i].T, np.eye(3), atol=1e-12) and np.linalg.det(out[i]) > 0
+        assert np.allclose(out[i], nearest_rotation(bad[i]), atol=1e-15)
+    assert np.array_equal(ensure_rotation(R), R) and ensure_rotation(R) is not R
+    assert ensure_rotation(R[0]).shape == (3, 3)
