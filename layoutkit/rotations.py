@@ -157,9 +157,10 @@ def _gauss_newton(Ra, Rb, X, Y, body_offset: bool, iterations: int):
     for _ in range(max(iterations, 1)):
         e = matrix_to_rotvec(RaT @ X @ Rb @ Y, assume_valid=True)  # (N, 3); rotations (fit_rotation_pair)
         step = -(J_pinv @ e.reshape(3 * N))
-        X = rotvec_to_matrix(step[:3]) @ X
+        E = rotvec_to_matrix(step.reshape(-1, 3))  # both updates in one call
+        X = E[0] @ X
         if body_offset:
-            Y = Y @ rotvec_to_matrix(step[3:])
+            Y = Y @ E[1]
         if np.linalg.norm(step) < 1e-12:
             break
     return X, Y
