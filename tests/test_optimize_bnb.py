@@ -272,7 +272,7 @@ def test_cli_branch_and_bound_switch(tmp_path, capsys):
     env = tmp_path / "env.toml"
     env.write_text(open("models/chen_envelope.toml").read().replace("count = 200", "count = 20"))
     args = ["optimize", "models/chen_target.stl", "--sensors", "8", "--envelope", str(env), "--spacing-mm", "20",
-            "--time-limit-s", "10", "--no-render", "--json", "--dense-poses", "0"]
+            "--time-limit-s", "7", "--no-render", "--json", "--dense-poses", "0"]
     on = CliRunner().invoke(main, args + ["--out", str(tmp_path / "a.json")])
     off = CliRunner().invoke(main, args + ["--out", str(tmp_path / "b.json"), "--no-branch-and-bound"])
     assert on.exit_code == 0 and off.exit_code == 0, on.output + off.output
