@@ -38,7 +38,7 @@ def main(out: Path = OUT) -> list:
             save_mesh(mesh, out / f"{name}.{fmt}")
             written.append(f"{name}.{fmt}")
     try:  # a few synthetic camera frames for `layoutkit camera-attitude` (needs off-screen rendering)
-        from layoutkit.workflows.camera import write_example_frames
+        from layoutkit.studies.zhai2014 import write_example_frames
 
         written += [str(p.relative_to(out)) for p in write_example_frames(out / "camera_frames")]
     except Exception as exc:  # noqa: BLE001 - no EGL/OSMesa here: the meshes are still written

@@ -78,3 +78,27 @@ def test_committed_chen_layout_matches_mesh_file():
     f = load_layout(MODELS / "chen_target.layout.json")
     np.testing.assert_allclose(f.positions, lay.positions)
     assert f.metadata["mesh_sha256"] == mesh_hash(load_mesh(MODELS / "chen_target.stl"))
+
+
+@pytest.mark.slow
+def test_committed_camera_frames_match_their_builder(tmp_path):
+    """models/camera_frames/ (the README tour's `camera-attitude` input) is what build_models.py's
+    builder renders: the first frame pixel for pixel (0.0 DN mean difference here) and its truth row.
+    Regression: the builder referenced helpers renamed in the house rework and build_models.py imported
+    it from a module that no longer held it — both failures were swallowed by the builder's
+    no-off-screen-rendering guard, so models/ could not be rebuilt."""
+    import importlib
+    import re
+
+    import cv2
+
+    src = (MODELS / "build_models.py").read_text()  # the builder the script imports must exist there
+    mod = re.search(r"from (\S+) import write_example_frames", src).group(1)
+    write_example_frames = getattr(importlib.import_module(mod), "write_example_frames")
+
+    paths = write_example_frames(tmp_path, times_s=(0.0,))
+    new = cv2.imread(str(paths[0]), cv2.IMREAD_UNCHANGED).astype(float)
+    old = cv2.imread(str(MODELS / "camera_frames" / "frame_000.png"), cv2.IMREAD_UNCHANGED).astype(float)
+    assert new.shape == old.shape and np.abs(new - old).mean() < 0.5
+    assert (tmp_path / "truth.csv").read_text().splitlines()[1] == \
+        (MODELS / "camera_frames" / "truth.csv").read_text().splitlines()[1]

@@ -388,11 +388,11 @@ def write_example_frames(out_dir, times_s=(0.0, 150.0, 300.0), distance_m: float
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mesh = zhai_target()
-    full, _, _ = _camera_and_crop()
-    theta, R = _truth("case1", list(times_s))
+    full, _, _ = camera_and_crop()
+    theta, R = case_truth("case1", list(times_s))
     rng = np.random.default_rng(seed)
     paths = []
-    with SyntheticCamera(mesh, full, face_colors=_target_colors(mesh), supersample=2) as sc:
+    with SyntheticCamera(mesh, full, face_colors=target_colors(mesh), supersample=2) as sc:
         for k, Rk in enumerate(R):
             Rc, tc = pose_paper_to_cv(Rk, np.array([-distance_m, 0, 0]))
             img = sc.render(Rc, tc, blur_sigma_px=0.7, noise_sigma=0.0, rng=rng)
