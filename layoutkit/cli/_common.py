@@ -1,6 +1,7 @@
 """Small helpers shared by CLI modules: JSON output and error reporting."""
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 
@@ -36,13 +37,20 @@ def fail(message: str, code: int = 2):
     sys.exit(code)
 
 
-def call_or_fail(fn, *args, **kwargs):
-    """``fn(*args, **kwargs)``; a ``ValueError`` (bad input, named by the workflow) becomes one
-    ``error:`` line and exit 2 instead of a traceback."""
+@contextlib.contextmanager
+def bad_input(prefix: str = ""):
+    """Inside the block, a ``ValueError`` (bad input, named by the code that raised it: file, field,
+    option) becomes one ``error: <prefix><message>`` line and exit 2 instead of a traceback."""
     try:
-        return fn(*args, **kwargs)
+        yield
     except ValueError as exc:
-        fail(str(exc))
+        fail(f"{prefix}{exc}")
+
+
+def call_or_fail(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` under :func:`bad_input`."""
+    with bad_input():
+        return fn(*args, **kwargs)
 
 
 def refuse_existing(path, overwrite: bool, what: str) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import call_or_fail, echo_json, fail
+from ._common import bad_input, call_or_fail, echo_json, fail
 from .options import POSITIVE, Conflict, Number, Requires, flag_rules
 from .options import camera_model_option, corner_sigma_option, json_flag, registry_choice
 
@@ -177,14 +177,12 @@ def attitude_cmd(image, camera_model, corners, detect, inner, method, aspect_rat
 
     from ..workflows.camera import image_attitude, parse_corners
 
-    try:
+    with bad_input():
         c = parse_corners(corners) if corners is not None else None
         pic = None if no_picture else (picture or f"{Path(image).stem}_attitude.png")
         out = image_attitude(image, camera_model, corners=c, detect=detect, inner=inner, method=method,
                              aspect_ratio=aspect_ratio, corner_sigma_px=corner_sigma_px, polarity=polarity,
                              picture=pic)
-    except ValueError as exc:
-        fail(str(exc))
     if as_json:
         echo_json(out)
     elif out["success"]:

@@ -8,7 +8,7 @@ import contextlib
 
 import click
 
-from ._common import call_or_fail, echo_json, fail
+from ._common import bad_input, call_or_fail, echo_json
 from .options import (envelope_option, half_angle_option, json_flag, json_out_option, out_dir_option, rho_option,
                       scheduler_option, seed_option, sigma_option, units_option, workers_option)
 
@@ -19,10 +19,8 @@ def executor_from_flags(scheduler, workers, quiet=False):
     from ..parallel import open_executor
 
     with contextlib.ExitStack() as stack:
-        try:
+        with bad_input():
             ex = stack.enter_context(open_executor(scheduler, workers))
-        except ValueError as exc:
-            fail(str(exc))
         if not quiet:
             where = {"synchronous": "in-process (synchronous scheduler)",
                      "local": f"LocalCluster with {ex.n_workers} worker(s) at {ex.address}",
@@ -138,14 +136,12 @@ def validate_cmd(layout_path, envelope_path, frames, mesh_path, units, half_angl
     with executor_from_flags(scheduler, workers, quiet=as_json) as ex:
         from .progress import progress_bar
 
-        try:
+        with bad_input():
             with progress_bar("frames", quiet=as_json) as prog:
                 task = prog.add_task("frames", total=frames)
                 res = run_validate(layout_path, envelope_path, frames, executor=ex, sigma=sigma, rho=rho, seed=seed,
                                    mesh=mesh_path, units=units, half_angle_deg=half_angle_deg,
                                    chunk_frames=chunk_frames, progress=lambda n: prog.advance(task, n))
-        except ValueError as exc:
-            fail(str(exc))
     if json_out:
         echo_json(res, json_out)
     if as_json:

@@ -58,7 +58,7 @@ def _camera_config(camera_device, focal_length_px, principal_point_px, camera_me
     camera side undistort (``--focal-length-px`` / ``--principal-point-px`` are then refused)."""
     from pathlib import Path
 
-    from ._common import call_or_fail, fail
+    from ._common import bad_input, fail
 
     src = camera_device if camera_device is not None else folder
     if src is None:
@@ -66,34 +66,28 @@ def _camera_config(camera_device, focal_length_px, principal_point_px, camera_me
     from ..io.camera import read_camera_meta, read_camera_model
     from ..live.camera import CameraConfig
 
-    try:
+    with bad_input():
         meta = read_camera_meta(src) if Path(str(src)).is_dir() else None
         model = read_camera_model(camera_model) if camera_model is not None else None
         if model is None and meta is not None and meta.camera_matrix is not None and not focal_length_px:
             model = meta.camera_model()
-    except ValueError as exc:
-        fail(str(exc))
     if model is not None:
         if camera_model is not None and (focal_length_px or principal_point_px):
             fail("--camera-model: gives the focal length and principal point; leave out --focal-length-px and "
                  "--principal-point-px")
         ar = aspect_ratio if aspect_ratio is not None else (meta.aspect_ratio if meta else None)
-        try:
+        with bad_input():
             return CameraConfig.from_model(model, method=camera_method, aspect_ratio=ar,
                                            corner_sigma_px=corner_sigma_px)
-        except ValueError as exc:
-            fail(str(exc))
     f = focal_length_px or (meta.focal_length_px if meta else None)
     if f is None:
         if camera_device is None:
             return None
         fail("--focal-length-px: required with --camera-device (no camera.json beside the frames names one)")
     ar = aspect_ratio if aspect_ratio is not None else (meta.aspect_ratio if meta else None)
-    try:
+    with bad_input():
         return CameraConfig(float(f), principal_point_px or (meta.principal_point_px if meta else None),
                             camera_method, ar, corner_sigma_px)
-    except ValueError as exc:
-        fail(str(exc))
 
 
 def _print_camera(summary: dict, err: bool) -> None:
@@ -134,12 +128,10 @@ def _options(rho, sigma, live: bool, motion_compensation: bool | None = None, fi
     if filter_settings is not None:
         from ..workflows.filter import filter_config
 
-        try:
-            kw["filter"] = filter_config(filter_settings, kw["sigma_theta"], kw["rho"])
-        except ValueError as exc:
-            from ._common import fail
+        from ._common import bad_input
 
-            fail(f"--filter: {exc}")
+        with bad_input("--filter: "):
+            kw["filter"] = filter_config(filter_settings, kw["sigma_theta"], kw["rho"])
     return LiveConfig(**kw)
 
 
@@ -243,7 +235,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
     capture) the camera frames are solved too and compared with the poses (summary "camera").
     """
     from ..workflows.live import camera_folder_for, replay_capture
-    from ._common import call_or_fail, fail
+    from ._common import fail
 
     opts = _options(rho, sigma, live=False, motion_compensation=motion_compensation,
                     filter_settings=filter_settings, max_sigma_position=max_sigma_position)

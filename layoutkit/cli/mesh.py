@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import call_or_fail, echo_json, emit_json, fail
+from ._common import bad_input, call_or_fail, echo_json, emit_json
 from .options import (envelope_option, half_angle_option, json_flag, json_out_option, layout_option, length_mm_option,
                       min_visible_option, out_file_option, seed_option, units_option)
 
@@ -62,7 +62,7 @@ def candidates_cmd(mesh, units, spacing, keepout_box, keepout_part, keepout_cone
     from ..candidates import parse_keepout
     from ..workflows.design import make_candidates
 
-    try:
+    with bad_input():
         keep = ([parse_keepout("box:" + b) for b in keepout_box] + [parse_keepout("part:" + p) for p in keepout_part]
                 + [parse_keepout("cone:" + c) for c in keepout_cone])
         nf = None
@@ -71,8 +71,6 @@ def candidates_cmd(mesh, units, spacing, keepout_box, keepout_part, keepout_cone
             nf = (cone.direction, cone.half_angle_deg)
         lay, msgs = make_candidates(mesh, spacing=spacing, units=units, keepout=keep, flat_only=flat_only,
                                     normal_filter=nf, seed=seed, max_count=max_count, out=out)
-    except ValueError as exc:
-        fail(str(exc))
     parts = {}
     for e in lay.extra:
         if "part" in e:

@@ -5,7 +5,7 @@ import math
 
 import click
 
-from ._common import echo_json, fail
+from ._common import bad_input, echo_json, fail
 from .options import Conflict, flag_rules
 from .options import (allow_odd_size_option, coverage_option, envelope_option, half_angle_option, json_flag, min_visible_option,
                       out_file_option, registry_choice, report_option, rho_option, seed_option, time_limit_option,
@@ -126,10 +126,8 @@ def optimize_cmd(mesh, k, envelope_path, objective, weights, rho, out, report_di
 def _keepout(keepout_box):
     from ..candidates import parse_keepout
 
-    try:
+    with bad_input():
         return [parse_keepout("box:" + b) for b in keepout_box]
-    except ValueError as exc:
-        fail(str(exc))
 
 
 def _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fraction, min_spacing_mm,
@@ -142,7 +140,7 @@ def _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fract
     if objective.strip().lower().endswith("weighted") and not weights:
         fail(f"--objective {objective}: needs --weights A,B (weights of ADOP² in deg² and PDOP² in m²); "
              "no silent default")
-    try:
+    with bad_input():
         w = tuple(float(x) for x in weights.split(",")) if weights else None
         return OptimizeSpec(k=k, objective=objective, weights=w, rho=rho, min_visible=min_visible, coverage=coverage,
                             coverage_fraction=coverage_fraction, min_spacing_m=min_spacing_mm * 1e-3,
@@ -152,8 +150,6 @@ def _spec(k, objective, weights, rho, method, fixed, min_visible, coverage_fract
                             branch_and_bound="auto" if bnb else "off",
                             fixed=tuple(f.strip() for f in fixed.split(",") if f.strip()),
                             dense=DenseSpec(poses=dense_poses) if dense_poses else None)
-    except ValueError as exc:
-        fail(str(exc))
 
 
 def _optimize(mesh, envelope_path, spec, sources, out, report_dir, k_range, no_render, as_json, auto_dense):
@@ -164,7 +160,7 @@ def _optimize(mesh, envelope_path, spec, sources, out, report_dir, k_range, no_r
     from ..optimize.runcontrol import Interrupted
     from ..workflows.optimize import run_optimize
 
-    try:
+    with bad_input():
         problem = DesignProblem.for_spec(mesh, envelope_path, spec, **sources)
         if auto_dense:
             dense, budget, note = default_dense(problem.envelope, spec.time_limit_s)
@@ -179,8 +175,6 @@ def _optimize(mesh, envelope_path, spec, sources, out, report_dir, k_range, no_r
                 click.secho(f"error: interrupted by {exc.signame} before any layout was found; nothing written",
                             fg="red", err=True)
                 raise SystemExit(143 if exc.signame == "SIGTERM" else 130)
-    except ValueError as exc:
-        fail(str(exc))
 
 
 def _print_summary(s):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from ._common import echo_json, fail
+from ._common import bad_input, echo_json
 from .options import (coverage_option, envelope_option, explicit, half_angle_option, json_flag, min_visible_option,
                       report_option, rho_option, seed_option, units_option)
 
@@ -47,7 +47,7 @@ def score_cmd(ctx, layout, envelope_path, mesh_path, units, rho, half_angle_deg,
 
     from .progress import progress_bar
 
-    try:
+    with bad_input():
         with progress_bar("poses", quiet=as_json or not n_poses) as bar:
             task = bar.add_task("poses", total=n_poses)
             res = score_layout(layout, envelope_path, mesh=mesh_path if mesh_path is not None else FROM_LAYOUT,
@@ -56,8 +56,6 @@ def score_cmd(ctx, layout, envelope_path, mesh_path, units, rho, half_angle_deg,
                                min_visible=given("min_visible", min_visible), coverage=given("coverage", coverage),
                                poses=n_poses, seed=seed, compare=compare_path, report=report_dir, draws=draws,
                                progress=lambda n: bar.advance(task, n))
-    except ValueError as exc:
-        fail(str(exc))
     out = {k: v for k, v in res.items() if not k.startswith("_")}
     if as_json:
         echo_json(out)
