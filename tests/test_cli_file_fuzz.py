@@ -13,7 +13,6 @@ it does). A wrong-unit file is refused (exit 2, ``error:`` naming the file) or a
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import shutil
 from pathlib import Path
 

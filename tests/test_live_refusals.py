@@ -10,7 +10,6 @@ Monte-Carlo against its stated false-alarm level.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess

@@ -181,7 +181,6 @@ def detect_face(image, camera_matrix=None, distortion=None, *, polarity: str = "
     else:
         to_ideal = to_image = None
     gf = g.astype(np.float32)
-    border = np.array([[0.0, 0.0], [W - 1.0, 0.0], [W - 1.0, H - 1.0], [0.0, H - 1.0]])
     cands = []  # (score, area, quad_ideal, support, pol, src)
     n_tried = 0
     for pol, src, bw in _segmentations(g, polarity):

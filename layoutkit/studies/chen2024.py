@@ -13,7 +13,7 @@ import numpy as np
 from ..dop import pose_dop, pose_errors, predicted_precision, rms
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from ..simulate import poses_in_front, simulate_angles
-from ..units import RAD2DEG, RHO_PAPER, SIGMA_THETA_PAPER
+from ..units import RHO_PAPER, SIGMA_THETA_PAPER
 from ..visibility import facing_mask
 
 __all__ = ["StudyConfig", "static_groups", "static_chunk", "dynamic_run", "run_chen2024", "write_outputs"]

@@ -91,7 +91,7 @@ def filter_recording(recording, device: str, *, config=None, stations=None, ligh
                                         read_lighthouse_config, read_recording)
     from ..importers.libsurvive_imu import STANDARD_GRAVITY, imu_samples
     from ..joint import solve_joint
-    from .joint_solve import StationFrames, to_station_convention, window_table
+    from .joint_solve import StationFrames, window_table
 
     config = ImuFilterConfig() if config is None else config
     recording = Path(recording)
