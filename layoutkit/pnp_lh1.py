@@ -600,6 +600,7 @@ def _posit(fr, c, S, iterations=2):
     if not fr.all_lit:
         Qx, Qy, Qz = Qx * fr.w, Qy * fr.w, Qz * fr.w
     ax, ay = vxs, vys
+    r3 = iZ = None  # set by the first iteration, read from the second
     for it in range(iterations):
         if it:  # perspective correction 1 + eps_i = z_i / z_c
             e = 1.0 + (r3[0] * iZ) * Qx + (r3[1] * iZ) * Qy + (r3[2] * iZ) * Qz
