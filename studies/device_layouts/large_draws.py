@@ -1,0 +1,68 @@
+"""Issue 27: is the headset's per-draw ratio a small-sample effect? The best tilted layouts and the
+shipped one on five more fresh draws of 20,000 poses each (envelope seed + 201 … + 205) besides the
+study's sets, self-occlusion by the hull, worst ADOP per draw and the ratio shipped / ours.
+
+    .venv/bin/python studies/device_layouts/large_draws.py [--layouts tilt_az4_spare1_s1 tilt_spare1_s1]
+
+A worst case over 2,000 poses estimates the supremum over the envelope poorly for a layout with rare
+bad attitudes: the shipped layout's worst over 2,000 poses ranged 5,506–10,051 across five draws. Writes
+``results/large_draws.json`` and ``results/large_draws.md`` (results only; uses the layouts and hull in
+``results/hmd/``)."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from run import FRESH, _scores  # noqa: E402
+
+from layoutkit.envelope import load_envelope  # noqa: E402
+
+LARGE = [(f"fresh 20k seed+{s}", 20000, s) for s in range(201, 206)]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="hmd")
+    ap.add_argument("--layouts", nargs="*", default=["tilt_az4_spare1_s1", "tilt_spare1_s1"])
+    a = ap.parse_args()
+    folder = HERE / "results" / a.device
+    env = load_envelope(folder / "env.toml")
+    sets = FRESH + LARGE
+    t0 = time.time()
+    rows = {}
+    for name in ["shipped"] + a.layouts:
+        path = folder / ("shipped.json" if name == "shipped" else f"{name}.layout.json")
+        sc = _scores(path, str(folder / "hull.stl"), env, sets=sets)
+        rows[name] = {lab: sc[lab]["worst_adop"] for lab, _, _ in sets}
+        rows[name]["_covered"] = {lab: sc[lab]["covered_fraction"] for lab, _, _ in sets}
+        print(name, {k: round(v) if math.isfinite(v) else v for k, v in rows[name].items() if k[0] != "_"}, flush=True)
+    out = {"device": a.device, "sets": [lab for lab, _, _ in sets], "worst_adop": rows, "wall_s": time.time() - t0}
+    (HERE / "results" / "large_draws.json").write_text(json.dumps(out, indent=1, default=str) + "\n")
+    lines = ["Worst ADOP (deg/rad), self-occlusion by the hull; ×shipped = shipped worst / this worst on the same set "
+             "(`python studies/device_layouts/large_draws.py`).", "",
+             "| layout | " + " | ".join(lab.replace("fresh ", "") for lab, _, _ in sets) + " | min ×shipped, 2,000-pose draws | min ×shipped, 20,000-pose sets |",
+             "|---|" + "---|" * (len(sets) + 2)]
+    ship = rows["shipped"]
+    for name, r in rows.items():
+        cells = [f"{r[lab]:,.0f}" if math.isfinite(r[lab]) else "∞" for lab, _, _ in sets]
+        if name == "shipped":
+            lines.append(f"| {name} | " + " | ".join(cells) + " | – | – |")
+            continue
+        ratio = {lab: ship[lab] / r[lab] for lab, _, _ in sets}
+        small = min(ratio[lab] for lab, n, _ in sets if n == 2000)
+        large = min(ratio[lab] for lab, n, _ in sets if n == 20000)
+        lines.append(f"| {name} | " + " | ".join(f"{c} ({ratio[lab]:.2f}×)" for c, (lab, _, _) in zip(cells, sets))
+                     + f" | {small:.2f} | {large:.2f} |")
+    (HERE / "results" / "large_draws.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
