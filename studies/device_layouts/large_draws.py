@@ -30,9 +30,10 @@ LARGE = [(f"fresh 20k seed+{s}", 20000, s) for s in range(201, 206)]
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="hmd")
+    ap.add_argument("--folder", default=None, help="layouts folder (default results/<device>)")
     ap.add_argument("--layouts", nargs="*", default=["tilt_az4_spare1_s1", "tilt_spare1_s1"])
     a = ap.parse_args()
-    folder = HERE / "results" / a.device
+    folder = Path(a.folder) if a.folder else HERE / "results" / a.device
     env = load_envelope(folder / "env.toml")
     sets = FRESH + LARGE
     t0 = time.time()
