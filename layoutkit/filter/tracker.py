@@ -137,15 +137,18 @@ class FilterOutput:
         Infinity spellings) or not of the usual type. Tests: tests/test_filter.py (equal to
         ``json.dumps(record())`` on tracked outputs and on NaN / infinite / None / odd-typed values)."""
         d = self.state_cov.diagonal().tolist()
-        sq = math.sqrt
-        nan = math.nan
         # np.sqrt of the diagonal, as record(): NaN for a negative variance (math.sqrt would raise)
-        s0, s1, s2, s3, s4, s5 = (sq(v) if v >= 0.0 else nan for v in (d[0], d[1], d[2], d[6], d[7], d[8]))
+        v0, v1, v2, v3, v4, v5 = d[0], d[1], d[2], d[6], d[7], d[8]
+        if v0 >= 0.0 and v1 >= 0.0 and v2 >= 0.0 and v3 >= 0.0 and v4 >= 0.0 and v5 >= 0.0:
+            sq = math.sqrt
+            s0, s1, s2, s3, s4, s5 = sq(v0), sq(v1), sq(v2), sq(v3), sq(v4), sq(v5)
+        else:
+            return json.dumps(self.record())
         nis = self.nis
-        ints = (self.station, self.axis, self.used, self.rejected, self.dof)
-        if (type(self.status) is not str or type(self.event) is not str or type(self.static) is not bool
-                or any(type(i) is not int for i in ints)
-                or not isinstance(nis, float) or not isinstance(self.t, float)):
+        station, axis, used, rejected, dof = self.station, self.axis, self.used, self.rejected, self.dof
+        if not (type(self.status) is str and type(self.event) is str and type(self.static) is bool
+                and type(station) is int and type(axis) is int and type(used) is int and type(rejected) is int
+                and type(dof) is int and isinstance(nis, float) and isinstance(self.t, float)):
             return json.dumps(self.record())
         fl = (self.t, *rotvec_floats(self.quaternion), *np.asarray(self.translation, float).tolist(),
               s0 * RAD2DEG, s1 * RAD2DEG, s2 * RAD2DEG, s3, s4, s5)
@@ -154,7 +157,7 @@ class FilterOutput:
         nis_s = float.__repr__(nis) if math.isfinite(nis) else "null"
         # %r of a Python float is float.__repr__ (json's spelling of a finite float); t may be a numpy
         # float (json writes float.__repr__ of it too): float() keeps its value
-        return _LINE % (float(fl[0]), _esc(self.status), *fl[1:], *ints[:4], nis_s, ints[4],
+        return _LINE % (float(fl[0]), _esc(self.status), *fl[1:], station, axis, used, rejected, nis_s, dof,
                         "true" if self.static else "false", _esc(self.event))
 
 
