@@ -48,6 +48,10 @@ _VEC = dict(_LEAF, fastmath={"contract", "arcp", "nsz", "reassoc"})
 # as separate functions each call passed every array as ~7 words (-9 to -14 % per frame at n = 12,
 # interleaved A/B on one core). _pass_series and _posit stay calls: their reassociating flags
 # (vectorised sums) must not spread to the LM's arithmetic.
+# Inlined code takes its caller's runtime: these functions (and _views) are for the kernel's own
+# functions compiled without reference counting (_LEAF) only — inlined into a function with it, the
+# views _views hands out would be released without having been held (heap corruption, seen in a test
+# harness).
 
 
 # ------------------------------------------------------------------------------ small helpers
