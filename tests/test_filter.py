@@ -419,9 +419,11 @@ def test_json_line_is_json_dumps_of_the_record():
               out(event="ré-init \"x\"\n"), out(used=True),
               out(quaternion=np.array([0.0, 0.0, 0.0, 1.0])), out(t=7)]
     for o in cases:
-        assert o.json_line() == json.dumps(o.record())
+        with np.errstate(invalid="ignore"):  # record()'s np.sqrt of the negative variance
+            want = json.dumps(o.record())
+        assert o.json_line() == want
     for bad in (out(station=np.int64(1)), out(static=np.bool_(True))):
-        with pytest.raises(TypeError):
+        with pytest.raises(TypeError), np.errstate(invalid="ignore"):
             json.dumps(bad.record())
         with pytest.raises(TypeError):
             bad.json_line()
