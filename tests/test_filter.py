@@ -383,13 +383,14 @@ def test_real_hmd_at_rest_filtered_jitter_below_frame_by_frame(libsurvive_dir, t
 
 
 def test_json_line_is_json_dumps_of_the_record():
-    """FilterOutput.json_line (the per-sweep JSON line of replay / live --filter ekf) is byte for byte
+    """filter.jsonline.json_line (the per-sweep JSON line of replay / live --filter ekf) is byte for byte
     json.dumps(record()) — on random states over many magnitudes (exponent spellings 1e-05 / 1e+16,
     -0.0), numpy float times, and the values json spells itself: NaN / infinite floats, a negative
     variance, an infinite NIS (null), odd types (numpy ints are refused by both, bools written as
     true / false), non-ASCII event text."""
     import json
 
+    from layoutkit.filter.jsonline import json_line
     from layoutkit.filter.tracker import FilterOutput
 
     rng = np.random.default_rng(7)
@@ -420,10 +421,9 @@ def test_json_line_is_json_dumps_of_the_record():
               out(quaternion=np.array([0.0, 0.0, 0.0, 1.0])), out(t=7)]
     for o in cases:
         with np.errstate(invalid="ignore"):  # record()'s np.sqrt of the negative variance
-            want = json.dumps(o.record())
-        assert o.json_line() == want
+            assert json_line(o) == json.dumps(o.record())
     for bad in (out(station=np.int64(1)), out(static=np.bool_(True))):
         with pytest.raises(TypeError), np.errstate(invalid="ignore"):
             json.dumps(bad.record())
         with pytest.raises(TypeError):
-            bad.json_line()
+            json_line(bad)

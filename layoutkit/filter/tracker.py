@@ -36,12 +36,10 @@ zero-velocity update per sweep.
 """
 from __future__ import annotations
 
-import json
 import math
 from collections import deque
 from statistics import median
 from dataclasses import dataclass
-from json.encoder import encode_basestring_ascii as _esc
 
 import numpy as np
 
@@ -54,12 +52,6 @@ __all__ = ["FilterOutput", "TrackerCounters", "SweepTracker", "STATUSES", "pnp_p
 
 #: Output statuses: "ok" = tracking within the configured sigma limits.
 STATUSES = ("ok", "uncertain", "lost")
-
-#: The per-sweep JSON line (:meth:`FilterOutput.json_line`): ``json.dumps`` of :meth:`FilterOutput.record`'s
-#: keys in its order, with json's separators.
-_LINE = ('{"t": %r, "status": %s, "rotvec": [%r, %r, %r], "translation": [%r, %r, %r], '
-         '"cov_rot_deg": [%r, %r, %r], "cov_pos_m": [%r, %r, %r], "station": %d, "axis": %d, "used": %d, '
-         '"rejected": %d, "nis": %s, "dof": %d, "static": %s, "event": %s}')
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,7 +112,8 @@ class FilterOutput:
         return np.sqrt(np.diagonal(self.state_cov)[6:9])
 
     def record(self) -> dict:
-        """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays)."""
+        """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays;
+        written by :func:`layoutkit.filter.jsonline.json_line`, byte-identical to ``json.dumps`` of it)."""
         sd = np.sqrt(np.diagonal(self.state_cov)[POSE_IDX]).tolist()
         return {"t": self.t, "status": self.status,
                 "rotvec": rotvec_floats(self.quaternion), "translation": np.asarray(self.translation, float).tolist(),
@@ -128,37 +121,6 @@ class FilterOutput:
                 "station": self.station, "axis": self.axis, "used": self.used, "rejected": self.rejected,
                 "nis": None if not math.isfinite(self.nis) else self.nis, "dof": self.dof,
                 "static": self.static, "event": self.event}
-
-    def json_line(self) -> str:
-        """``json.dumps(self.record())``, byte for byte, without the generic encoder (the JSON line of
-        every sweep: the encoder and the record's arrays were ~15 us of a ~70 us sweep in ``replay
-        --filter ekf``): the record's values formatted into a fixed template, floats by ``float.__repr__``
-        as the encoder spells finite ones. Falls back to the encoder when a value is not finite (NaN /
-        Infinity spellings) or not of the usual type. Tests: tests/test_filter.py (equal to
-        ``json.dumps(record())`` on tracked outputs and on NaN / infinite / None / odd-typed values)."""
-        d = self.state_cov.diagonal().tolist()
-        # np.sqrt of the diagonal, as record(): NaN for a negative variance (math.sqrt would raise)
-        v0, v1, v2, v3, v4, v5 = d[0], d[1], d[2], d[6], d[7], d[8]
-        if v0 >= 0.0 and v1 >= 0.0 and v2 >= 0.0 and v3 >= 0.0 and v4 >= 0.0 and v5 >= 0.0:
-            sq = math.sqrt
-            s0, s1, s2, s3, s4, s5 = sq(v0), sq(v1), sq(v2), sq(v3), sq(v4), sq(v5)
-        else:
-            return json.dumps(self.record())
-        nis = self.nis
-        station, axis, used, rejected, dof = self.station, self.axis, self.used, self.rejected, self.dof
-        if not (type(self.status) is str and type(self.event) is str and type(self.static) is bool
-                and type(station) is int and type(axis) is int and type(used) is int and type(rejected) is int
-                and type(dof) is int and isinstance(nis, float) and isinstance(self.t, float)):
-            return json.dumps(self.record())
-        fl = (self.t, *rotvec_floats(self.quaternion), *np.asarray(self.translation, float).tolist(),
-              s0 * RAD2DEG, s1 * RAD2DEG, s2 * RAD2DEG, s3, s4, s5)
-        if not math.isfinite(sum(fl)):  # a NaN / infinity among them (or an overflowing sum): json's spellings
-            return json.dumps(self.record())
-        nis_s = float.__repr__(nis) if math.isfinite(nis) else "null"
-        # %r of a Python float is float.__repr__ (json's spelling of a finite float); t may be a numpy
-        # float (json writes float.__repr__ of it too): float() keeps its value
-        return _LINE % (float(fl[0]), _esc(self.status), *fl[1:], station, axis, used, rejected, nis_s, dof,
-                        "true" if self.static else "false", _esc(self.event))
 
 
 @dataclass
