@@ -980,13 +980,19 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
             e = min(F, s + chunk)
             a = ang[s:e]
             p = P if P.ndim == 2 else P[s:e]
-            v = vis[s:e] & ~np.isnan(a)  # NaN = not seen
-            good = np.isfinite(a) & (a > 0) & (a < np.pi)
-            bad = v & ~good  # a seen angle that is inf or outside (0, pi)
-            invalid = bad.any((1, 2)) if bad.any() else None  # (per frame only when there is one)
-            lit = v & good
-            if P.ndim == 3:
-                lit &= np.all(np.isfinite(p), -1)[..., None]
+            # every angle seen and in (0, pi) (NaN compares False): the usual batch, all lit, nothing
+            # invalid — one test instead of the seven elementwise passes below (~4 % of a compiled solve)
+            inr = (a > 0) & (a < np.pi) if visible is None and P.ndim == 2 else None
+            if inr is not None and inr.all():
+                lit, invalid = inr, None
+            else:
+                v = vis[s:e] & ~np.isnan(a)  # NaN = not seen
+                good = np.isfinite(a) & (a > 0) & (a < np.pi)
+                bad = v & ~good  # a seen angle that is inf or outside (0, pi)
+                invalid = bad.any((1, 2)) if bad.any() else None  # (per frame only when there is one)
+                lit = v & good
+                if P.ndim == 3:
+                    lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
             n_angles = np.full(e - s, lit[0].size) if lit.all() else lit.sum((1, 2))
             r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), n_angles)

@@ -43,6 +43,15 @@ OK, TOO_FEW, DEGENERATE, NOT_CONVERGED, BEHIND, AMBIGUOUS, NO_START = 0, 1, 2, 3
 _JIT, _LEAF = JIT, LEAF
 _RTOL, _ATOL = 1e-6, 1e-26  # the LM's tolerances: those of the reference, pnp_lh1._RTOL and _ATOL
 _VEC = dict(_LEAF, fastmath={"contract", "arcp", "nsz", "reassoc"})
+# The per-frame call chain (_solve_frame -> _consider -> _refine -> LM core -> _pass, _depth) is
+# inlined at numba's IR level (inline="always"; same flags, so the same arithmetic, bit for bit):
+# as separate functions each call passed every array as ~7 words (-9 to -14 % per frame at n = 12,
+# interleaved A/B on one core). _pass_series and _posit stay calls: their reassociating flags
+# (vectorised sums) must not spread to the LM's arithmetic.
+# Inlined code takes its caller's runtime: these functions (and _views) are for the kernel's own
+# functions compiled without reference counting (_LEAF) only — inlined into a function with it, the
+# views _views hands out would be released without having been held (heap corruption, seen in a test
+# harness).
 
 
 # ------------------------------------------------------------------------------ small helpers
@@ -191,7 +200,7 @@ def _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     return cost, True
 
 
-@numba.njit(**_LEAF)
+@numba.njit(inline="always", **_LEAF)
 def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     """One pass over the sensors at the pose (see :func:`_pass_exact`): the vectorised series pass
     when every seen residual is in its range, else the exact one."""
@@ -201,7 +210,7 @@ def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
     return cost
 
 
-@numba.njit(**_LEAF)
+@numba.njit(inline="always", **_LEAF)
 def _depth(Px, Py, Pz, wx, wy, n, pose, depth):
     """depth (2,) = smallest and largest z of the seen sensors at pose (12,) = (r (9,), t (3,))."""
     r6, r7, r8, t2 = pose[6], pose[7], pose[8], pose[11]
@@ -307,7 +316,7 @@ _lm_refine = make_refine(_pnp_pass, "pnp")
 
 # ------------------------------------------------------------------------------ refinement
 
-@numba.njit(**_LEAF)
+@numba.njit(inline="always", **_LEAF)
 def _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out):
     """Levenberg–Marquardt from (r (9,), t (3,)), updated in place: the shared core
     :func:`layoutkit.lm_numba.make_refine` (the per-frame form of :func:`layoutkit.pnp_lh1._refine`: the same
@@ -677,7 +686,7 @@ def _noise_quadratic(rx, ry, wx, wy, n, sigma, rho):
     return q / (sigma * sigma * (1.0 - rho))
 
 
-@numba.njit(**_LEAF)
+@numba.njit(inline="always", **_LEAF)
 def _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, r0, t0, max_iterations, track_alt, cos_d, wk, bs):
     """Refine the start (r0, t0) and keep it as the best or the runner-up (pnp_lh1's consider)."""
     sc = _views(wk)

@@ -380,3 +380,50 @@ def test_real_hmd_at_rest_filtered_jitter_below_frame_by_frame(libsurvive_dir, t
         assert row["filter_ok"] >= 0.9 * row["frames"]
         assert row["filter_jitter_rot_deg"] < row["pnp_jitter_rot_deg"]
         assert row["filter_jitter_pos_mm"] < row["pnp_jitter_pos_mm"]
+
+
+def test_json_line_is_json_dumps_of_the_record():
+    """filter.jsonline.json_line (the per-sweep JSON line of replay / live --filter ekf) is byte for byte
+    json.dumps(record()) — on random states over many magnitudes (exponent spellings 1e-05 / 1e+16,
+    -0.0), numpy float times, and the values json spells itself: NaN / infinite floats, a negative
+    variance, an infinite NIS (null), odd types (numpy ints are refused by both, bools written as
+    true / false), non-ASCII event text."""
+    import json
+
+    from layoutkit.filter.jsonline import json_line
+    from layoutkit.filter.tracker import FilterOutput
+
+    rng = np.random.default_rng(7)
+
+    def out(**kw):
+        q = rng.standard_normal(4)
+        P = rng.standard_normal((15, 15))
+        P = P @ P.T * 10.0 ** rng.uniform(-20, 20)
+        base = dict(t=float(rng.uniform(0, 1e4)), station=int(rng.integers(0, 3)), axis=int(rng.integers(0, 2)),
+                    status=str(rng.choice(["ok", "uncertain", "lost"])), quaternion=q / np.linalg.norm(q),
+                    translation=rng.standard_normal(3) * 10.0 ** rng.uniform(-8, 17), state_cov=P,
+                    used=int(rng.integers(0, 30)), rejected=int(rng.integers(0, 3)), nis=float(rng.exponential(3.0)),
+                    dof=int(rng.integers(0, 30)), static=bool(rng.integers(0, 2)), event=str(rng.choice(["", "init"])))
+        base.update(kw)
+        return FilterOutput(**base)
+
+    cases = [out() for _ in range(500)]
+    Pn = np.eye(15)
+    Pn[7, 7] = np.nan
+    Pneg = np.eye(15)
+    Pneg[1, 1] = -1e-9
+    Pinf = np.eye(15)
+    Pinf[8, 8] = np.inf
+    cases += [out(t=np.float64(3.5)), out(t=1e-5), out(t=1e16), out(translation=np.array([-0.0, 0.0, 1e-300])),
+              out(state_cov=Pn), out(state_cov=Pneg), out(state_cov=Pinf), out(state_cov=np.zeros((15, 15))),
+              out(nis=np.inf), out(nis=np.nan), out(nis=np.float64(2.25)), out(translation=np.array([np.nan, 1.0, 2.0])),
+              out(event="ré-init \"x\"\n"), out(used=True),
+              out(quaternion=np.array([0.0, 0.0, 0.0, 1.0])), out(t=7)]
+    for o in cases:
+        with np.errstate(invalid="ignore"):  # record()'s np.sqrt of the negative variance
+            assert json_line(o) == json.dumps(o.record())
+    for bad in (out(station=np.int64(1)), out(static=np.bool_(True))):
+        with pytest.raises(TypeError), np.errstate(invalid="ignore"):
+            json.dumps(bad.record())
+        with pytest.raises(TypeError):
+            json_line(bad)

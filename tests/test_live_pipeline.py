@@ -189,3 +189,58 @@ def test_bad_configuration_messages(layout):
         LiveConfig(n_sensors=12, min_lit=2)
     with pytest.raises(ValueError, match=r"^points_body: expected shape \(4, 3\), got \(12, 3\)$"):
         PosePipeline(layout.positions, LiveConfig(n_sensors=4))
+
+
+def test_continuity_gate_equals_its_one_pose_at_a_time_definition():
+    """The gate's batched verdicts (every good pose against the one before it, evaluated at once and
+    used whenever that is the reference) give the same statuses and jump chain as the rule applied
+    one pose at a time (written out here), on random tracks with jumps, chains of consistent jumps
+    (re-acquisition), long gaps, time running backwards, non-ok frames, with and without a previous
+    good pose or an open chain."""
+    from layoutkit.geometry import attitude_error
+    from layoutkit.live.continuity import continuity_gate
+    from layoutkit import status as st
+
+    cfg = LiveConfig(max_rate_deg_s=60.0, max_speed_m_s=1.0, reacquire_frames=3)
+    rate, k_sig = np.deg2rad(cfg.max_rate_deg_s), cfg.gate_sigma * cfg.sigma_theta
+
+    def reference(t, R, tr, status, adop, pdop, last, cand):
+        def near(k, ref):
+            dt = t[k] - ref[2]
+            return bool(attitude_error(R[k], ref[0]) <= rate * dt + k_sig * np.deg2rad(adop[k])) and bool(
+                np.linalg.norm(tr[k] - ref[1]) <= cfg.max_speed_m_s * dt + k_sig * pdop[k])
+        status = status.copy()
+        for k in np.flatnonzero(status == st.OK):
+            gap = t[k] - last[2] if last is not None else 0.0
+            if last is None or gap > cfg.reacquire_s or gap < 0 or near(k, last):
+                last, cand = (R[k], tr[k], t[k]), None
+                continue
+            status[k] = st.JUMP
+            cand = (R[k], tr[k], t[k], cand[3] + 1) if cand is not None and near(k, cand) else (R[k], tr[k], t[k], 1)
+            if cand[3] >= cfg.reacquire_frames:
+                status[k] = st.OK
+                last, cand = (R[k], tr[k], t[k]), None
+        return status, cand
+
+    rng = np.random.default_rng(11)
+    jumps = 0
+    for trial in range(60):
+        F = int(rng.integers(1, 40))
+        dt = rng.choice([0.01, 0.01, 0.01, 0.7, -0.02], F, p=[0.5, 0.2, 0.2, 0.05, 0.05])
+        t = 10.0 + np.cumsum(dt)
+        rv = np.cumsum(rng.normal(0, 0.002, (F, 3)), 0)
+        tr = np.cumsum(rng.normal(0, 0.002, (F, 3)), 0) + [0, 0, 2.0]
+        flip = rng.random(F) < 0.25  # wrong-basin poses, sometimes in runs (a chain that re-acquires)
+        rv[flip] += [0.0, 0.8, 0.0]
+        tr[flip] += [0.0, 0.0, 0.3 * (trial % 2)]
+        R = rotvec_to_matrix(rv)
+        status = np.where(rng.random(F) < 0.15, st.TOO_FEW_LIT, st.OK)
+        adop, pdop = rng.uniform(1, 3, F), rng.uniform(0.5, 2, F)
+        last = None if trial % 3 == 0 else (rotvec_to_matrix(rng.normal(0, 0.3, 3)), np.array([0, 0, 2.0]), 9.99)
+        cand = None if trial % 4 else (R[0], tr[0], t[0] - 0.01, int(rng.integers(1, 3)))
+        got, gc = continuity_gate(t, R, tr, status, adop, pdop, last, cand, cfg)
+        want, wc = reference(t, R, tr, status, adop, pdop, last, cand)
+        assert np.array_equal(got, want), trial
+        assert (gc is None) == (wc is None) and (gc is None or (gc[3] == wc[3] and gc[2] == wc[2])), trial
+        jumps += int((want == st.JUMP).sum())
+    assert jumps > 20  # the slow path ran

@@ -112,7 +112,8 @@ class FilterOutput:
         return np.sqrt(np.diagonal(self.state_cov)[6:9])
 
     def record(self) -> dict:
-        """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays)."""
+        """The JSON-lines object (``--filter ekf --json-lines``; the properties' values, without their arrays;
+        written by :func:`layoutkit.filter.jsonline.json_line`, byte-identical to ``json.dumps`` of it)."""
         sd = np.sqrt(np.diagonal(self.state_cov)[POSE_IDX]).tolist()
         return {"t": self.t, "status": self.status,
                 "rotvec": rotvec_floats(self.quaternion), "translation": np.asarray(self.translation, float).tolist(),

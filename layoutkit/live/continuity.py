@@ -120,6 +120,11 @@ def continuity_gate(t, R, tr, status, adop, pdop, last, cand, config):
         d = np.linalg.norm(tr[k] - ref[1], axis=-1)
         return (a <= rate * dt + k_sig * np.deg2rad(adop[k])) & (d <= config.max_speed_m_s * dt + k_sig * pdop[k])
 
+    # near() of every good pose against the good pose before it (pre[j]: good[j + 1] vs good[j]),
+    # evaluated at once: the fast path's test, and in the slow path the verdict whenever the reference
+    # is the previous good pose (every accepted pose: the usual case) — the same per-pose arithmetic
+    # as one call per pose (same matrix products and elementwise functions), ~25 us less per pose
+    pre = None
     if cand is None:
         # fast path: every good pose agrees with the good pose before it -> nothing to gate
         if last is not None:
@@ -128,15 +133,25 @@ def continuity_gate(t, R, tr, status, adop, pdop, last, cand, config):
             cur = good
         else:
             ref, cur = (R[good[:-1]], tr[good[:-1]], t[good[:-1]]), good[1:]
-        gap = t[cur] - ref[2]
-        if cur.size == 0 or np.all(near(cur, ref) | (gap > config.reacquire_s) | (gap < 0)):
+        if cur.size == 0:
             return status, None
+        gap = t[cur] - ref[2]
+        ok = near(cur, ref)
+        if np.all(ok | (gap > config.reacquire_s) | (gap < 0)):
+            return status, None
+        pre = ok[1:] if last is not None else ok
+    if pre is None and good.size > 1:
+        pre = near(good[1:], (R[good[:-1]], tr[good[:-1]], t[good[:-1]]))
+    pre = pre.tolist() if pre is not None else []
     status = status.copy()
-    for k in good:  # slow path: sequential against the last accepted pose
+    last_j = -2  # position in ``good`` of the reference ``last`` when it is a pose of this call
+    for j, k in enumerate(good):  # slow path: sequential against the last accepted pose
         gap = t[k] - last[2] if last is not None else 0.0
         # no reference, a long gap, or time running backwards (device reset): accept and restart
-        if last is None or gap > config.reacquire_s or gap < 0 or bool(near(k, last)):
+        if last is None or gap > config.reacquire_s or gap < 0 or (
+                pre[j - 1] if last_j == j - 1 else bool(near(k, last))):
             last, cand = (R[k], tr[k], t[k]), None
+            last_j = j
             continue
         status[k] = _status.JUMP
         if cand is not None and bool(near(k, cand)):
@@ -146,4 +161,5 @@ def continuity_gate(t, R, tr, status, adop, pdop, last, cand, config):
         if cand[3] >= config.reacquire_frames:
             status[k] = _status.OK
             last, cand = (R[k], tr[k], t[k]), None
+            last_j = j
     return status, cand

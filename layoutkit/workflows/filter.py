@@ -15,6 +15,7 @@ import numpy as np
 from .. import status as _status
 from ..filter import EkfConfig, SweepTracker
 from ..filter.consistency import nees, pose_error
+from ..filter.jsonline import json_line
 from ..geometry import rotvec_to_matrix
 from ..lighthouse import Station
 from ..units import RAD2DEG
@@ -68,7 +69,6 @@ class FilterSink:
 
     def feed(self, sweeps) -> list:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
-        import json
 
         t0, c0 = time.perf_counter(), time.process_time()
         outs = []
@@ -84,7 +84,7 @@ class FilterSink:
         self.seconds += time.perf_counter() - t0
         self.cpu_seconds += time.process_time() - c0
         if outs and self.json_out is not None:
-            self.json_out.write("".join(json.dumps(o.record()) + "\n" for o in outs))
+            self.json_out.write("".join(json_line(o) + "\n" for o in outs))
             self.json_out.flush()
         if outs and self.truth is not None:
             self._compare(outs)
