@@ -17,8 +17,9 @@ Life cycle (docs/filter.md, "IMU-aided"):
    pi/3) / omega`` after the rotor zero) and updates with its lit angles through the station's
    calibrated forward model; the chi² gate (``gate_p``) rejects a sweep whose NIS is too large. The
    angle noise is ``sigma_theta * sqrt(scale)`` with ``scale`` estimated from the innovations
-   (exponential average of ``(y^T y / m - mean diag(H P H^T)) / sigma_theta²``, floored at 1 and capped
-   at ``max_noise_scale``; a covariance-matching estimate, Mehra 1972): the light's model error (station
+   (exponential average of ``(y^T y / m - mean diag(H P H^T)) / sigma_theta²``, each sweep's estimate
+   limited to 1/4..4 times the current scale, the scale to ``[1, EkfConfig.noise_scale_max]``; a
+   covariance-matching estimate, Mehra 1972): the light's model error (station
    geometry, calibration) is larger than the paper's sigma and the data say by how much.
 3. *status*: "ok" when ``confirm_sweeps`` sweeps were accepted since the start, fewer than two in a
    row were rejected, fewer than half of the last ``health_window`` sweeps were rejected (the gate is
@@ -52,16 +53,18 @@ __all__ = ["ImuTrackerConfig", "ImuCounters", "ImuSweepTracker"]
 class ImuTrackerConfig:
     """The IMU side's tuning (SI). imu : :class:`ImuFilterConfig` (noise densities, bias walks, priors,
     gate; its ``sigma_theta`` is replaced by the session's); imu_position : (3,) m, the IMU in the body
-    (layout) frame; max_noise_scale : cap of the adaptive angle-noise scale (variance ratio);
-    noise_alpha : its averaging weight per sweep; health_window : sweeps over which the rejected share
+    (layout) frame (the adaptive angle-noise scale is capped at the lighthouse filter's
+    ``EkfConfig.noise_scale_max``); noise_alpha : its averaging weight per sweep; health_window : sweeps over which the rejected share
     is judged; confirm_sweeps : accepted sweeps after a start before "ok"; rest_window_s, rest_acc_tol
     (fraction of 1 g), rest_rate (rad/s): the rest test for gravity at the first start; max_imu_gap_s :
     a sweep further than this from the IMU samples is propagated with the saturated (loose)
-    accelerometer noise."""
+    accelerometer noise; imu_delay_s : s, how much later than the motion the IMU samples are
+    stamped (their low-pass filters and the logging: they are moved earlier by it); reorder_s : s, a
+    sweep whose hit time is at most this much before the filter's is applied at its own time (first
+    order: the pose moved back with the velocity and rate), an older one is dropped."""
 
     imu: ImuFilterConfig = ImuFilterConfig()
     imu_position: tuple = (0.0, 0.0, 0.0)
-    max_noise_scale: float = 1e4
     noise_alpha: float = 0.02
     health_window: int = 20
     confirm_sweeps: int = 4
@@ -69,6 +72,9 @@ class ImuTrackerConfig:
     rest_acc_tol: float = 0.03
     rest_rate: float = 0.1
     max_imu_gap_s: float = 0.1
+    imu_delay_s: float = 0.0
+    reorder_s: float = 0.1
+    acc_noise_per_acc: float = 0.0
 
 
 @dataclass
@@ -87,6 +93,7 @@ class ImuCounters:
     waiting: int = 0
     sweeps_late: int = 0
     imu_gap_sweeps: int = 0
+    sweeps_reordered: int = 0
     angles_dropped: int = 0
     nis_sum: float = 0.0
     dof_sum: int = 0
@@ -123,7 +130,7 @@ class ImuSweepTracker:
         from dataclasses import replace
 
         self.fc = replace(self.ic.imu, sigma_theta=config.sigma_theta)
-        self.imu_t = np.asarray(imu_t, float)
+        self.imu_t = np.asarray(imu_t, float) - self.ic.imu_delay_s
         self.gyro = np.asarray(gyro, float)
         self.acc = np.asarray(acc, float)
         if self.imu_t.size < 2:
@@ -186,9 +193,12 @@ class ImuSweepTracker:
             if b > a:
                 w, f = self._sample(0.5 * (a + b))
                 e = self.eskf
-                K.propagate(e.R, e.p, e.v, e.ba, e.bg, e.g, e.P, f, w, b - a,
-                            (self.fc.saturated_acc_noise if gap else self.fc.acc_noise) ** 2, self._qg, self._qba,
-                            self._qbg)
+                if gap:
+                    qa = self.fc.saturated_acc_noise ** 2
+                else:  # the accelerometer's error grows with the motion (scale, axes, timing, filtering)
+                    ad = e.R @ (f - e.ba) + e.g
+                    qa = (self.fc.acc_noise + self.ic.acc_noise_per_acc * math.sqrt(ad @ ad)) ** 2
+                K.propagate(e.R, e.p, e.v, e.ba, e.bg, e.g, e.P, f, w, b - a, qa, self._qg, self._qba, self._qbg)
                 a = b
             if a >= t:
                 break
@@ -281,9 +291,12 @@ class ImuSweepTracker:
         m = int(out[2])
         res = {"accepted": acc, "nis": float(out[1]), "m": m, "dropped": int(out[5])}
         if acc:
-            est = min(max((out[3] - out[4]) / s2, 1.0), self.ic.max_noise_scale)
+            # one sweep moves the scale by at most a factor 4 of its share (a heavy-tailed estimate:
+            # one odd sweep must not make the filter ignore the light)
+            cap = self.config.noise_scale_max
+            est = min(max((out[3] - out[4]) / s2, 0.25 * self.noise_scale), 4.0 * self.noise_scale)
             a = self.ic.noise_alpha
-            self.noise_scale = min(max((1 - a) * self.noise_scale + a * est, 1.0), self.ic.max_noise_scale)
+            self.noise_scale = min(max((1 - a) * self.noise_scale + a * est, 1.0), cap)
         return res
 
     # ------------------------------------------------------------------ main
@@ -319,13 +332,30 @@ class ImuSweepTracker:
         idx = np.flatnonzero(np.isfinite(ang))
         kind = getattr(sweep, "kind", None) or st.kind
         th = t + (self._hit_offset(st, kind, axis, ang[idx]) if idx.size else 0.0)
-        if th < self.t - 0.05:
+        if th < self.t - self.ic.reorder_s:
             self.counters.sweeps_late += 1
             return None
         self._propagate(th)
         upd = None
         if idx.size >= self.fc.min_sensors:
-            upd = self._update(s, axis, ang[idx], idx)
+            late = self.t - th
+            if late > 0.0:
+                # a sweep the decoder emitted after later ones (the stations' sweeps interleave): its
+                # angles are predicted at the pose moved back to its hit time with the current velocity
+                # and rate, the correction applied, the pose moved forward again (first order in late)
+                self.counters.sweeps_reordered += 1
+                f = self.eskf
+                w, _ = self._sample(th)
+                dR = rotvec_to_matrix((np.asarray(w) - f.bg) * late)
+                f.p -= f.v * late
+                f.R[:, :] = f.R @ dR.T
+                upd = self._update(s, axis, ang[idx], idx)
+                f.p += f.v * late
+                f.R[:, :] = f.R @ dR
+                P = f.P  # the motion over `late` is uncertain: its velocity's share
+                P[0:3, 0:3] += P[3:6, 3:6] * late * late
+            else:
+                upd = self._update(s, axis, ang[idx], idx)
             if math.isfinite(upd["nis"]):
                 self.counters.nis_sum += upd["nis"]
                 self.counters.dof_sum += upd["m"]
@@ -340,7 +370,7 @@ class ImuSweepTracker:
                 self._bad_run += 1
         elif idx.size:
             self.counters.too_few_lit += 1
-        return self._output(t, s, axis, upd, "")
+        return self._output(self.t, s, axis, upd, "")  # the state's time: the sweep's mean hit time
 
     def _one_station_limit(self, t: float, R, p) -> float:
         t0, lim = self._one
