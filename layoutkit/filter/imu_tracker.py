@@ -22,12 +22,12 @@ Life cycle (docs/filter.md, "IMU-aided"):
    covariance-matching estimate, Mehra 1972): the light's model error (station
    geometry, calibration) is larger than the paper's sigma and the data say by how much.
 3. *status*: "ok" when ``confirm_sweeps`` sweeps were accepted since the start, fewer than two in a
-   row were rejected, fewer than half of the last ``health_window`` sweeps were rejected (the gate is
+   row were rejected (overall and of each station), fewer than half of the last ``health_window`` sweeps were rejected (the gate is
    not starving the filter), and the 1-sigma attitude / position / speed are within the lighthouse-only
    filter's limits (:class:`EkfConfig` ``max_sigma_rot_deg``, ``max_sigma_pos_m``, ``max_sigma_speed``
    and, with two stations or more, the position root trace within the best single station's
    ``PDOP_1 sigma_theta``: ``ok_beats_one_station``); else "uncertain".
-4. *lost*: ``lost_after`` sweeps rejected in a row, or a position 1-sigma beyond ``lost_factor`` times
+4. *lost*: ``lost_after`` sweeps rejected in a row (overall or of one station), or a position 1-sigma beyond ``lost_factor`` times
    its limit → "lost", back to 1 (biases and gravity kept).
 """
 from __future__ import annotations
@@ -52,7 +52,9 @@ __all__ = ["ImuTrackerConfig", "ImuCounters", "ImuSweepTracker"]
 @dataclass(frozen=True)
 class ImuTrackerConfig:
     """The IMU side's tuning (SI). imu : :class:`ImuFilterConfig` (noise densities, bias walks, priors,
-    gate; its ``sigma_theta`` is replaced by the session's); imu_position : (3,) m, the IMU in the body
+    gate — here 1e-3 per sweep and per angle: a wrongly accepted sweep costs a drift the covariance
+    does not hold, a rejected one only a restart from the lighthouse tracker beside; its
+    ``sigma_theta`` is replaced by the session's); imu_position : (3,) m, the IMU in the body
     (layout) frame (the adaptive angle-noise scale is capped at the lighthouse filter's
     ``EkfConfig.noise_scale_max``); noise_alpha : its averaging weight per sweep; health_window : sweeps over which the rejected share
     is judged; confirm_sweeps : accepted sweeps after a start before "ok"; rest_window_s, rest_acc_tol
@@ -61,9 +63,11 @@ class ImuTrackerConfig:
     accelerometer noise; imu_delay_s : s, how much later than the motion the IMU samples are
     stamped (their low-pass filters and the logging: they are moved earlier by it); reorder_s : s, a
     sweep whose hit time is at most this much before the filter's is applied at its own time (first
-    order: the pose moved back with the velocity and rate), an older one is dropped."""
+    order: the pose moved back with the velocity and rate), an older one is dropped; lighthouse_beside :
+    run the lighthouse-only tracker on every sweep (a restart starts from its current state at once)
+    rather than only while the IMU filter waits for a start."""
 
-    imu: ImuFilterConfig = ImuFilterConfig()
+    imu: ImuFilterConfig = ImuFilterConfig(gate_p=1e-3)
     imu_position: tuple = (0.0, 0.0, 0.0)
     noise_alpha: float = 0.02
     health_window: int = 20
@@ -74,6 +78,7 @@ class ImuTrackerConfig:
     max_imu_gap_s: float = 0.1
     imu_delay_s: float = 0.0
     reorder_s: float = 0.1
+    lighthouse_beside: bool = True
     acc_noise_per_acc: float = 0.0
 
 
@@ -144,6 +149,7 @@ class ImuSweepTracker:
         self.noise_scale = 1.0
         self.t = -math.inf
         self._bad_run = 0
+        self._bad_by_station = {}
         self._confirm = 0
         self._recent = deque(maxlen=self.ic.health_window)
         self._one = (-math.inf, math.inf)
@@ -247,6 +253,7 @@ class ImuSweepTracker:
         self.eskf = f
         self.t = float(o.t)
         self._bad_run = 0
+        self._bad_by_station = {}
         self._confirm = self.ic.confirm_sweeps
         self._recent.clear()
         self._one = (-math.inf, math.inf)
@@ -254,6 +261,21 @@ class ImuSweepTracker:
         if self._started_once:
             self.counters.restarts += 1
         self._started_once = True
+
+    def _can_start(self, o: FilterOutput) -> bool:
+        """The lighthouse tracker's output ``o`` starts the IMU filter: ok, or its (re)start itself when
+        that was solved from two stations or more (its position 1-sigma within the best single
+        station's, :meth:`_one_station_limit`); the IMU filter then confirms it with its own sweeps."""
+        if len(self.stations) < 2 or getattr(self.starter.ekf, "v", None) is None:
+            return False
+        if o.ok:
+            return True
+        if o.event != "init":
+            return False
+        d = np.diagonal(o.state_cov)
+        R = quat_to_matrix(o.quaternion)
+        self._one = (-math.inf, math.inf)
+        return math.sqrt(d[6] + d[7] + d[8]) <= self._one_station_limit(o.t, R, np.asarray(o.translation, float))
 
     def _lose(self) -> None:
         f = self.eskf
@@ -311,16 +333,18 @@ class ImuSweepTracker:
         ang = np.asarray(sweep.angles, float)
         if ang.shape != (self.n,):
             raise ValueError(f"sweep angles: expected shape ({self.n},), got {ang.shape}")
+        if self.starter is None:
+            self.starter = SweepTracker(self.points_body, self.stations, c)
+        # the lighthouse-only tracker runs beside (continuous: a restart needs no new start of its own)
+        o = self.starter.push(sweep) if self.ic.lighthouse_beside or self.eskf is None else None
         if self.eskf is None:
-            if self.starter is None:
-                self.starter = SweepTracker(self.points_body, self.stations, c)
-            o = self.starter.push(sweep)
             if o is None:
                 return None
             self.counters.waiting += 1
-            if o.ok and len(self.stations) >= 2 and getattr(self.starter.ekf, "v", None) is not None:
+            if self._can_start(o):
                 self._start_from(o, np.asarray(self.starter.ekf.v, float).copy())
-                self.starter = None
+                if not self.ic.lighthouse_beside:
+                    self.starter = None
                 return self._output(float(sweep.t), s, int(sweep.axis), None, "init")
             status = "lost" if self._started_once else ("uncertain" if o.status == "ok" else o.status)
             self.counters.outputs += 1
@@ -364,10 +388,12 @@ class ImuSweepTracker:
             if upd["accepted"]:
                 self.counters.accepted += 1
                 self._bad_run = 0
+                self._bad_by_station[s] = 0
                 self._confirm -= 1
             else:
                 self.counters.rejected += 1
                 self._bad_run += 1
+                self._bad_by_station[s] = self._bad_by_station.get(s, 0) + 1
         elif idx.size:
             self.counters.too_few_lit += 1
         return self._output(self.t, s, axis, upd, "")  # the state's time: the sweep's mean hit time
@@ -401,7 +427,10 @@ class ImuSweepTracker:
         d = P.diagonal()
         p_body = f.p - f.R @ self.p_ib
         big_pos = math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m
-        lost = self._bad_run >= c.lost_after or big_pos > c.lost_factor
+        # one station's sweeps refused again and again while the other's are taken: the state is wrong
+        # for that station (the lighthouse-only tracker's rule too)
+        bad = max(self._bad_run, max(self._bad_by_station.values(), default=0))
+        lost = bad >= c.lost_after or big_pos > c.lost_factor
         if lost:
             status = "lost"
         else:
@@ -409,7 +438,7 @@ class ImuSweepTracker:
             slow_known = math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed
             starving = len(self._recent) >= self._recent.maxlen // 2 and \
                 sum(1 for x in self._recent if not x) > len(self._recent) // 2
-            ok = (max(big_rot, big_pos) <= 1.0 and slow_known and self._bad_run < 2 and self._confirm <= 0
+            ok = (max(big_rot, big_pos) <= 1.0 and slow_known and bad < 2 and self._confirm <= 0
                   and not starving)
             if ok and c.ok_beats_one_station and len(self.stations) >= 2 \
                     and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t, f.R, p_body):

@@ -433,13 +433,20 @@ def fit_deck_clock(deck_s, t_log) -> DeckClock:
 IMU_VARIABLES = ("gyro.x", "gyro.y", "gyro.z", "acc.x", "acc.y", "acc.z")
 
 
+#: s, how much later than the motion the Crazyflie's logged IMU samples are stamped (the firmware's
+#: gyro / accelerometer low-pass filters and the logging): measured on lh2_crossingBeam_move/log00
+#: by the lag that best matches the gyro to the lighthouse attitude rates (-4 ms) and the
+#: accelerometer to the motion capture's second differences (-5 ms); imu_samples moves them back
+IMU_DELAY_S = 0.005
+
+
 def imu_samples(log: UsdLog):
     """The log's IMU samples as :class:`layoutkit.io.imu.ImuSamples` (SI: rad/s, m/s² specific force,
     body frame; ``t`` the log's event clock — the clock the replay maps the deck's timestamps onto),
     or None when no event type carries all of :data:`IMU_VARIABLES` (e.g. a log without
     ``fixedFrequency`` sensor logging). The first event type with the most samples wins (the
     dataset's logs: ``fixedFrequency`` at ~100 Hz). Rows with a non-finite value are dropped;
-    time-sorted (stable)."""
+    time-sorted (stable); ``t`` is the event time minus :data:`IMU_DELAY_S` (the motion's time)."""
     from ..io.imu import ImuSamples
     from ..units import DEG_PER_S, STANDARD_GRAVITY
 
@@ -456,5 +463,5 @@ def imu_samples(log: UsdLog):
     keep = np.all(np.isfinite(raw), 1) & np.isfinite(t)
     raw, t = raw[keep], t[keep]
     order = np.argsort(t, kind="stable")
-    return ImuSamples(t[order], raw[order, 0:3] * DEG_PER_S, raw[order, 3:6] * STANDARD_GRAVITY,
-                      f"{log.path}: {best} events gyro.x/y/z (deg/s), acc.x/y/z (g)")
+    return ImuSamples(t[order] - IMU_DELAY_S, raw[order, 0:3] * DEG_PER_S, raw[order, 3:6] * STANDARD_GRAVITY,
+                      f"{log.path}: {best} events gyro.x/y/z (deg/s), acc.x/y/z (g), time - {IMU_DELAY_S} s")
