@@ -100,12 +100,16 @@ class ImuCounters:
     imu_gap_sweeps: int = 0
     sweeps_reordered: int = 0
     angles_dropped: int = 0
+    angles_used: int = 0
     nis_sum: float = 0.0
     dof_sum: int = 0
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d["mean_nis_per_dof"] = self.nis_sum / self.dof_sum if self.dof_sum else None
+        # the lighthouse-only tracker's names of the same counts (summaries print them)
+        d["angles_rejected"] = self.angles_dropped
+        d["sweeps_rejected"] = self.rejected
         return d
 
 
@@ -142,6 +146,7 @@ class ImuSweepTracker:
             raise ValueError("IMU-aided filter: fewer than two IMU samples")
         self.counters = ImuCounters()
         self.eskf: ImuEskf | None = None
+        self.why = "waiting for a start"  # why the latest output is not ok ("" when it is)
         self.ekf = None  # (the lighthouse-only tracker's estimator attribute; summaries read it)
         self.starter: SweepTracker | None = None
         self.g = None
@@ -347,6 +352,7 @@ class ImuSweepTracker:
                     self.starter = None
                 return self._output(float(sweep.t), s, int(sweep.axis), None, "init")
             status = "lost" if self._started_once else ("uncertain" if o.status == "ok" else o.status)
+            self.why = "waiting for a start"
             self.counters.outputs += 1
             return FilterOutput(o.t, o.station, o.axis, status, o.quaternion, o.translation, o.state_cov, o.used,
                                 o.rejected, o.sweep_rejected, o.nis, o.dof, o.static, o.event)
@@ -387,6 +393,7 @@ class ImuSweepTracker:
             self._recent.append(upd["accepted"])
             if upd["accepted"]:
                 self.counters.accepted += 1
+                self.counters.angles_used += upd["m"]
                 self._bad_run = 0
                 self._bad_by_station[s] = 0
                 self._confirm -= 1
@@ -433,17 +440,21 @@ class ImuSweepTracker:
         lost = bad >= c.lost_after or big_pos > c.lost_factor
         if lost:
             status = "lost"
+            self.why = "lost"
         else:
             big_rot = math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg
             slow_known = math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed
             starving = len(self._recent) >= self._recent.maxlen // 2 and \
                 sum(1 for x in self._recent if not x) > len(self._recent) // 2
-            ok = (max(big_rot, big_pos) <= 1.0 and slow_known and bad < 2 and self._confirm <= 0
-                  and not starving)
-            if ok and c.ok_beats_one_station and len(self.stations) >= 2 \
+            why = ("confirming a start" if self._confirm > 0 else "sweeps rejected" if bad >= 2 else
+                   "gate starving" if starving else "velocity unknown" if not slow_known else
+                   "sigma above the filter's limits" if max(big_rot, big_pos) > 1.0 else "")
+            if not why and c.ok_beats_one_station and len(self.stations) >= 2 \
                     and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t, f.R, p_body):
-                ok = False
-            status = "ok" if ok else "uncertain"
+                why = "position sigma above one station's"
+            self.dbg = (math.sqrt(d[6] + d[7] + d[8]), self._one[1], math.sqrt(d[9] + d[10] + d[11]), self.noise_scale)
+            self.why = why
+            status = "uncertain" if why else "ok"
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"
