@@ -155,3 +155,49 @@ def update(R, p, v, ba, bg, P, pb, idx, z, Rs, ts, lh2, axis, c, corrected, sigm
     _expm(dx[6], dx[7], dx[8], E)
     Rn = R @ E
     R[:, :] = Rn
+
+
+@numba.njit(**_JIT)
+def matrix_to_quat(R, q):
+    """Rotation matrix → unit quaternion ``q = [x, y, z, w]`` with ``w >= 0`` (Shepperd's method; the order
+    and sign of :func:`layoutkit.rotations.matrix_to_quaternion`, which the tests compare with)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr >= R[0, 0] and tr >= R[1, 1] and tr >= R[2, 2]:
+        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
+        s = 0.25 / w
+        x, y, z = (R[2, 1] - R[1, 2]) * s, (R[0, 2] - R[2, 0]) * s, (R[1, 0] - R[0, 1]) * s
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        x = 0.5 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        s = 0.25 / x
+        w, y, z = (R[2, 1] - R[1, 2]) * s, (R[0, 1] + R[1, 0]) * s, (R[0, 2] + R[2, 0]) * s
+    elif R[1, 1] >= R[2, 2]:
+        y = 0.5 * math.sqrt(max(1.0 - R[0, 0] + R[1, 1] - R[2, 2], 0.0))
+        s = 0.25 / y
+        w, x, z = (R[0, 2] - R[2, 0]) * s, (R[0, 1] + R[1, 0]) * s, (R[1, 2] + R[2, 1]) * s
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - R[0, 0] - R[1, 1] + R[2, 2], 0.0))
+        s = 0.25 / z
+        w, x, y = (R[1, 0] - R[0, 1]) * s, (R[0, 2] + R[2, 0]) * s, (R[1, 2] + R[2, 1]) * s
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0.0:
+        n = -n
+    q[0], q[1], q[2], q[3] = x / n, y / n, z / n, w / n
+
+
+@numba.njit(**_JIT)
+def body_cov(R, P, p_ib, out):
+    """(12, 12) covariance ``out`` of the body pose in the lighthouse filter's layout ``(dphi world, dw,
+    dp, dv)`` from the IMU filter's ``P (15, 15)`` (``[dp, dv, dtheta, dba, dbg]``, local attitude
+    error): ``dphi = R dtheta``, ``dw = R dbg`` (the rate's uncertainty is the gyro bias's), ``dp_body
+    = dp + R [p_ib]x dtheta`` (the IMU at ``p_ib`` in the body), ``dv``."""
+    B = np.zeros((12, 15))
+    S = np.array([[0.0, -p_ib[2], p_ib[1]], [p_ib[2], 0.0, -p_ib[0]], [-p_ib[1], p_ib[0], 0.0]])
+    RS = R @ S
+    for i in range(3):
+        B[6 + i, i] = 1.0
+        B[9 + i, 3 + i] = 1.0
+        for j in range(3):
+            B[i, 6 + j] = R[i, j]
+            B[3 + i, 12 + j] = R[i, j]
+            B[6 + i, 6 + j] = RS[i, j]
+    out[:, :] = B @ P @ B.T

@@ -43,7 +43,7 @@ from ..lighthouse import measure_jacobian
 from ..units import RAD2DEG, STANDARD_GRAVITY
 from .ekf import EkfConfig, chi2_quantile, single_station_sigma
 from .imu import ImuEskf, ImuFilterConfig
-from .so3 import quat_from_matrix, quat_to_matrix
+from .so3 import quat_to_matrix
 from .tracker import FilterOutput, SweepTracker
 
 __all__ = ["ImuTrackerConfig", "ImuCounters", "ImuSweepTracker"]
@@ -409,23 +409,21 @@ class ImuSweepTracker:
         t0, lim = self._one
         if abs(t - t0) <= 0.1:
             return lim
-        lim = single_station_sigma(self.points_body, R, p, self.stations, self.config.rho, self.config.sigma_theta)
+        jac = getattr(self.starter.ekf, "station_jacobians", None) if self.starter is not None else None
+        lim = single_station_sigma(self.points_body, R, p, self.stations, self.config.rho, self.config.sigma_theta,
+                                   None if jac is None else jac(R, p))
         self._one = (t, lim)
         return lim
 
     def state_cov(self) -> np.ndarray:
         """(12, 12) covariance in the lighthouse filter's layout ``(dphi world, dw, dp, dv)`` (``dw``:
-        the gyro bias's, turned into the world) of the body pose."""
-        f = self.eskf
-        R = f.R
-        # body position p_b = p - R p_ib: its error dp - R [.. ] (lever arm; 0 for the Crazyflie)
-        B = np.zeros((12, 15))
-        B[0:3, 6:9] = R
-        B[3:6, 12:15] = R
-        B[6:9, 0:3] = np.eye(3)
-        B[6:9, 6:9] = R @ _skew(self.p_ib)
-        B[9:12, 3:6] = np.eye(3)
-        return B @ f.P @ B.T
+        the gyro bias's, turned into the world) of the body pose
+        (:func:`layoutkit.filter._imu_numba.body_cov`)."""
+        from . import _imu_numba as K
+
+        out = np.empty((12, 12))
+        K.body_cov(self.eskf.R, self.eskf.P, self.p_ib, out)
+        return out
 
     def _output(self, t, s, axis, upd, event) -> FilterOutput:
         c = self.config
@@ -458,7 +456,10 @@ class ImuSweepTracker:
         cnt = self.counters
         cnt.outputs += 1
         cnt.ok += status == "ok"
-        q = quat_from_matrix(f.R)
+        from . import _imu_numba as K
+
+        q = np.empty(4)
+        K.matrix_to_quat(f.R, q)
         if upd is None:
             o = FilterOutput(t, s, axis, status, q, p_body, P, event=event)
         else:
