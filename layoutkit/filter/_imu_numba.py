@@ -201,3 +201,34 @@ def body_cov(R, P, p_ib, out):
             B[3 + i, 12 + j] = R[i, j]
             B[6 + i, 6 + j] = RS[i, j]
     out[:, :] = B @ P @ B.T
+
+
+@numba.njit(**_JIT)
+def zero_velocity(R, p, v, ba, bg, P, sigma2):
+    """Zero-velocity pseudo-measurement ``v = 0`` with noise variance ``sigma2`` per axis (the IMU says
+    the body is at rest), Joseph form; in place."""
+    S = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = P[3 + i, 3 + j]
+        S[i, i] += sigma2
+    Si = np.linalg.inv(S)
+    K = np.ascontiguousarray(P[:, 3:6]) @ Si  # (15, 3)
+    dx = K @ (-v)
+    IKH = np.eye(15)
+    for a in range(15):
+        for j in range(3):
+            IKH[a, 3 + j] -= K[a, j]
+    Pn = IKH @ P @ IKH.T + sigma2 * (K @ K.T)
+    for a in range(15):
+        for b in range(15):
+            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+    for i in range(3):
+        p[i] += dx[i]
+        v[i] += dx[3 + i]
+        ba[i] += dx[9 + i]
+        bg[i] += dx[12 + i]
+    E = np.empty((3, 3))
+    _expm(dx[6], dx[7], dx[8], E)
+    Rn = R @ E
+    R[:, :] = Rn

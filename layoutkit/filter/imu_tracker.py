@@ -20,7 +20,9 @@ Life cycle (docs/filter.md, "IMU-aided"):
    (exponential average of ``(y^T y / m - mean diag(H P H^T)) / sigma_theta²``, each sweep's estimate
    limited to 1/4..4 times the current scale, the scale to ``[1, EkfConfig.noise_scale_max]``; a
    covariance-matching estimate, Mehra 1972): the light's model error (station
-   geometry, calibration) is larger than the paper's sigma and the data say by how much.
+   geometry, calibration) is larger than the paper's sigma and the data say by how much. While the
+   IMU says the body is at rest (:func:`rest_flags`: rate and specific force steady over 0.2 s) each
+   sweep is followed by a zero-velocity update (1-sigma ``zupt_sigma``).
 3. *status*: "ok" when ``confirm_sweeps`` sweeps were accepted since the start, fewer than two in a
    row were rejected (overall and of each station), fewer than half of the last ``health_window`` sweeps were rejected (the gate is
    not starving the filter), and the 1-sigma attitude / position / speed are within the lighthouse-only
@@ -65,7 +67,9 @@ class ImuTrackerConfig:
     sweep whose hit time is at most this much before the filter's is applied at its own time (first
     order: the pose moved back with the velocity and rate), an older one is dropped; lighthouse_beside :
     run the lighthouse-only tracker on every sweep (a restart starts from its current state at once)
-    rather than only while the IMU filter waits for a start."""
+    rather than only while the IMU filter waits for a start; zupt_window_s, zupt_rate (rad/s),
+    zupt_acc (m/s²): the IMU's rest test (:func:`rest_flags`), zupt_sigma (m/s): 1-sigma of the
+    zero-velocity update applied at every sweep while the IMU is at rest."""
 
     imu: ImuFilterConfig = ImuFilterConfig(gate_p=1e-3)
     imu_position: tuple = (0.0, 0.0, 0.0)
@@ -79,6 +83,10 @@ class ImuTrackerConfig:
     imu_delay_s: float = 0.0
     reorder_s: float = 0.1
     lighthouse_beside: bool = True
+    zupt_window_s: float = 0.2
+    zupt_rate: float = 0.02
+    zupt_acc: float = 0.05
+    zupt_sigma: float = 1e-3
     acc_noise_per_acc: float = 0.0
 
 
@@ -101,6 +109,7 @@ class ImuCounters:
     sweeps_reordered: int = 0
     angles_dropped: int = 0
     angles_used: int = 0
+    zupts: int = 0
     nis_sum: float = 0.0
     dof_sum: int = 0
 
@@ -115,6 +124,26 @@ class ImuCounters:
 
 def _skew(a):
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def rest_flags(t, gyro, acc, window_s: float, max_rate: float, max_acc: float) -> np.ndarray:
+    """(N,) bool: the IMU at rest at sample k — over the ``window_s`` s up to it every sample's rate is
+    below ``max_rate`` rad/s and its specific force within ``max_acc`` m/s² of the window's mean (a
+    resting accelerometer reads a constant; its noise on the Crazyflie is ~0.012 m/s², its gyro's
+    ~0.003 rad/s). t (N,) s, gyro, acc (N, 3)."""
+    t = np.asarray(t, float)
+    n = t.size
+    rate_ok = np.linalg.norm(gyro, axis=1) <= max_rate
+    out = np.zeros(n, bool)
+    j = 0
+    for k in range(n):
+        while t[k] - t[j] > window_s:
+            j += 1
+        if k - j < 3 or not rate_ok[j:k + 1].all():
+            continue
+        a = acc[j:k + 1]
+        out[k] = bool(np.all(np.abs(a - a.mean(0)) <= max_acc))
+    return out
 
 
 class ImuSweepTracker:
@@ -144,6 +173,8 @@ class ImuSweepTracker:
         self.acc = np.asarray(acc, float)
         if self.imu_t.size < 2:
             raise ValueError("IMU-aided filter: fewer than two IMU samples")
+        self.rest = rest_flags(self.imu_t, self.gyro, self.acc, self.ic.zupt_window_s, self.ic.zupt_rate,
+                               self.ic.zupt_acc)
         self.counters = ImuCounters()
         self.eskf: ImuEskf | None = None
         self.why = "waiting for a start"  # why the latest output is not ok ("" when it is)
@@ -403,6 +434,14 @@ class ImuSweepTracker:
                 self._bad_by_station[s] = self._bad_by_station.get(s, 0) + 1
         elif idx.size:
             self.counters.too_few_lit += 1
+        j = int(np.searchsorted(self.imu_t, self.t, side="right")) - 1
+        self.static = bool(0 <= j < self.imu_t.size - 1 and self.rest[j])
+        if self.static:
+            from . import _imu_numba as K
+
+            f = self.eskf
+            K.zero_velocity(f.R, f.p, f.v, f.ba, f.bg, f.P, self.ic.zupt_sigma ** 2)
+            self.counters.zupts += 1
         return self._output(self.t, s, axis, upd, "")  # the state's time: the sweep's mean hit time
 
     def _one_station_limit(self, t: float, R, p) -> float:
@@ -461,11 +500,11 @@ class ImuSweepTracker:
         q = np.empty(4)
         K.matrix_to_quat(f.R, q)
         if upd is None:
-            o = FilterOutput(t, s, axis, status, q, p_body, P, event=event)
+            o = FilterOutput(t, s, axis, status, q, p_body, P, static=self.static, event=event)
         else:
             acc = bool(upd["accepted"])
             o = FilterOutput(t, s, axis, status, q, p_body, P, upd["m"] if acc else 0, 0 if acc else upd["m"],
-                             not acc, upd["nis"], upd["m"], False, event)
+                             not acc, upd["nis"], upd["m"], self.static, event)
         if lost:
             self._lose()
         return o
