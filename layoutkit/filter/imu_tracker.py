@@ -65,7 +65,8 @@ class ImuTrackerConfig:
     accelerometer noise; imu_delay_s : s, how much later than the motion the IMU samples are
     stamped (their low-pass filters and the logging: they are moved earlier by it); reorder_s : s, a
     sweep whose hit time is at most this much before the filter's is applied at its own time (first
-    order: the pose moved back with the velocity and rate), an older one is dropped; lighthouse_beside :
+    order: the pose moved back with the velocity, acceleration and rate, its position covariance grown by
+    the velocity's share and the acceleration's), an older one is dropped; lighthouse_beside :
     run the lighthouse-only tracker on every sweep (a restart starts from its current state at once)
     rather than only while the IMU filter waits for a start; zupt_window_s, zupt_rate (rad/s),
     zupt_acc (m/s²): the IMU's rest test (:func:`rest_flags`), zupt_sigma (m/s): 1-sigma of the
@@ -81,7 +82,7 @@ class ImuTrackerConfig:
     rest_rate: float = 0.1
     max_imu_gap_s: float = 0.1
     imu_delay_s: float = 0.0
-    reorder_s: float = 0.1
+    reorder_s: float = 0.05
     lighthouse_beside: bool = True
     zupt_window_s: float = 0.2
     zupt_rate: float = 0.02
@@ -406,15 +407,17 @@ class ImuSweepTracker:
                 # and rate, the correction applied, the pose moved forward again (first order in late)
                 self.counters.sweeps_reordered += 1
                 f = self.eskf
-                w, _ = self._sample(th)
+                w, fs = self._sample(th)
                 dR = rotvec_to_matrix((np.asarray(w) - f.bg) * late)
-                f.p -= f.v * late
+                # the pose moved back is uncertain by the velocity's share and the acceleration the
+                # constant-velocity step leaves out (before the gates judge the sweep)
+                ad = f.R @ (np.asarray(fs) - f.ba) + f.g
+                f.P[0:3, 0:3] += f.P[3:6, 3:6] * late * late + np.eye(3) * (0.5 * (ad @ ad) ** 0.5 * late * late) ** 2
+                f.p -= f.v * late - 0.5 * ad * late * late
                 f.R[:, :] = f.R @ dR.T
                 upd = self._update(s, axis, ang[idx], idx)
-                f.p += f.v * late
+                f.p += f.v * late - 0.5 * ad * late * late
                 f.R[:, :] = f.R @ dR
-                P = f.P  # the motion over `late` is uncertain: its velocity's share
-                P[0:3, 0:3] += P[3:6, 3:6] * late * late
             else:
                 upd = self._update(s, axis, ang[idx], idx)
             if math.isfinite(upd["nis"]):
