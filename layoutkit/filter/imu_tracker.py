@@ -85,6 +85,7 @@ class ImuTrackerConfig:
     reorder_s: float = 0.05
     lighthouse_beside: bool = True
     zupt_window_s: float = 0.2
+    gravity_from_start: bool = True
     zupt_rate: float = 0.02
     zupt_acc: float = 0.05
     zupt_sigma: float = 1e-3
@@ -251,6 +252,9 @@ class ImuSweepTracker:
     # ------------------------------------------------------------------ start
     def _gravity(self, t: float, R) -> np.ndarray:
         m = np.abs(self.imu_t - t) <= self.ic.rest_window_s
+        if not self.ic.gravity_from_start:
+            self.gravity = {"from": "world -z", "t": t, "angle_to_minus_z_deg": 0.0}
+            return np.array([0.0, 0.0, -STANDARD_GRAVITY])
         if m.sum() >= 3:
             f = self.acc[m]
             mag = np.linalg.norm(f, axis=1)
