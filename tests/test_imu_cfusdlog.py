@@ -229,3 +229,21 @@ def test_import_writes_imu_csv_and_replay_of_the_capture_uses_it(imu_log, tmp_pa
     assert np.allclose(got.t, want.t, atol=0) and np.allclose(got.gyro, want.gyro) and np.allclose(got.acc, want.acc)
     s, _ = _replay(out / "capture.bin", imu_log["yaml"])
     assert s["imu"]["used"] and s["imu"]["from"].endswith("imu.csv")
+
+
+def test_rest_flags_follow_the_imu():
+    """Proof kind: constructed input. The IMU's rest test (zero-velocity updates) is true once a
+    window of samples at the Crazyflie's resting noise (gyro 0.003 rad/s, accelerometer 0.012 m/s²)
+    is full, and false while the body turns at 0.2 rad/s or is shaken by ±0.5 m/s² at 3 Hz."""
+    from layoutkit.filter.imu_tracker import rest_flags
+
+    rng = np.random.default_rng(2)
+    t = np.arange(300) * 0.01
+    gyro = rng.normal(0, 0.003, (300, 3))
+    acc = np.array([0.0, 0.0, STANDARD_GRAVITY]) + rng.normal(0, 0.012, (300, 3))
+    gyro[100:150, 2] += 0.2
+    acc[200:230, 0] += 0.5 * np.sin(2 * np.pi * 3 * t[200:230])
+    r = rest_flags(t, gyro, acc, 0.2, 0.02, 0.05)
+    assert not r[:18].any() and r[20:100].all()
+    assert not r[100:168].any() and r[170:201].all()
+    assert not r[203:248].any() and r[250:].all()

@@ -132,7 +132,9 @@ def rest_flags(t, gyro, acc, window_s: float, max_rate: float, max_acc: float) -
     """(N,) bool: the IMU at rest at sample k — over the ``window_s`` s up to it every sample's rate is
     below ``max_rate`` rad/s and its specific force within ``max_acc`` m/s² of the window's mean (a
     resting accelerometer reads a constant; its noise on the Crazyflie is ~0.012 m/s², its gyro's
-    ~0.003 rad/s). t (N,) s, gyro, acc (N, 3)."""
+    ~0.003 rad/s), the window full (90 % of ``window_s``). A constant acceleration without turning
+    over the whole window would pass: hand and flight motion do not hold one. t (N,) s, gyro, acc
+    (N, 3)."""
     t = np.asarray(t, float)
     n = t.size
     rate_ok = np.linalg.norm(gyro, axis=1) <= max_rate
@@ -141,7 +143,7 @@ def rest_flags(t, gyro, acc, window_s: float, max_rate: float, max_acc: float) -
     for k in range(n):
         while t[k] - t[j] > window_s:
             j += 1
-        if k - j < 3 or not rate_ok[j:k + 1].all():
+        if k - j < 3 or t[k] - t[j] < 0.9 * window_s or not rate_ok[j:k + 1].all():
             continue
         a = acc[j:k + 1]
         out[k] = bool(np.all(np.abs(a - a.mean(0)) <= max_acc))
