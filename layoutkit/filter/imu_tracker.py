@@ -29,8 +29,10 @@ Life cycle (docs/filter.md, "IMU-aided"):
    filter's limits (:class:`EkfConfig` ``max_sigma_rot_deg``, ``max_sigma_pos_m``, ``max_sigma_speed``
    and, with two stations or more, the position root trace within the best single station's
    ``PDOP_1 sigma_theta``: ``ok_beats_one_station``); else "uncertain".
-4. *lost*: ``lost_after`` sweeps rejected in a row (overall or of one station), or a position 1-sigma beyond ``lost_factor`` times
-   its limit → "lost", back to 1 (biases and gravity kept).
+4. *lost*: ``lost_after`` sweeps rejected in a row (overall or of one station), or a position 1-sigma
+   beyond ``lost_factor`` times its limit → "lost" for that sweep, and a soft restart: the state kept
+   with its position / velocity / attitude 1-sigma reset to ``soft_restart_sigma`` (the gates then
+   take the next sweeps; biases and gravity kept), or (``soft_restart_sigma=None``) back to 1.
 """
 from __future__ import annotations
 
@@ -54,9 +56,8 @@ __all__ = ["ImuTrackerConfig", "ImuCounters", "ImuSweepTracker"]
 @dataclass(frozen=True)
 class ImuTrackerConfig:
     """The IMU side's tuning (SI). imu : :class:`ImuFilterConfig` (noise densities, bias walks, priors,
-    gate — here 1e-3 per sweep and per angle: a wrongly accepted sweep costs a drift the covariance
-    does not hold, a rejected one only a restart from the lighthouse tracker beside; its
-    ``sigma_theta`` is replaced by the session's); imu_position : (3,) m, the IMU in the body
+    gate ``gate_p`` per sweep and per angle, 1e-6: on the hand-moved logs 1e-3 restarts 15-32
+    times per log for the same errors; its ``sigma_theta`` is replaced by the session's); imu_position : (3,) m, the IMU in the body
     (layout) frame (the adaptive angle-noise scale is capped at the lighthouse filter's
     ``EkfConfig.noise_scale_max``); noise_alpha : its averaging weight per sweep; health_window : sweeps over which the rejected share
     is judged; confirm_sweeps : accepted sweeps after a start before "ok"; rest_window_s, rest_acc_tol
@@ -67,12 +68,17 @@ class ImuTrackerConfig:
     sweep whose hit time is at most this much before the filter's is applied at its own time (first
     order: the pose moved back with the velocity, acceleration and rate, its position covariance grown by
     the velocity's share and the acceleration's), an older one is dropped; lighthouse_beside :
-    run the lighthouse-only tracker on every sweep (a restart starts from its current state at once)
-    rather than only while the IMU filter waits for a start; zupt_window_s, zupt_rate (rad/s),
+    run the lighthouse-only tracker on every sweep (a hard restart starts from its current state at
+    once) rather than only while the IMU filter waits for a start (with soft restarts it is not
+    needed: off); zupt_window_s, zupt_rate (rad/s),
     zupt_acc (m/s²): the IMU's rest test (:func:`rest_flags`), zupt_sigma (m/s): 1-sigma of the
-    zero-velocity update applied at every sweep while the IMU is at rest."""
+    zero-velocity update applied at every sweep while the IMU is at rest; gravity_from_start : the
+    accelerometer at rest at the first start gives gravity (else the world's -z);
+    soft_restart_sigma : (m, m/s, rad) when lost, keep the state with its position, velocity and
+    attitude 1-sigma reset to these (the next sweeps pin it again), None = wait for the lighthouse
+    tracker beside to start it afresh."""
 
-    imu: ImuFilterConfig = ImuFilterConfig(gate_p=1e-3)
+    imu: ImuFilterConfig = ImuFilterConfig()
     imu_position: tuple = (0.0, 0.0, 0.0)
     noise_alpha: float = 0.02
     health_window: int = 20
@@ -83,9 +89,10 @@ class ImuTrackerConfig:
     max_imu_gap_s: float = 0.1
     imu_delay_s: float = 0.0
     reorder_s: float = 0.05
-    lighthouse_beside: bool = True
+    lighthouse_beside: bool = False
     zupt_window_s: float = 0.2
     gravity_from_start: bool = True
+    soft_restart_sigma: tuple | None = (0.05, 0.5, 0.05)
     zupt_rate: float = 0.02
     zupt_acc: float = 0.05
     zupt_sigma: float = 1e-3
@@ -197,6 +204,7 @@ class ImuSweepTracker:
         self._gate = {}
         self._started_once = False
         self.static = False
+        self._jac = None  # the compiled station Jacobians of the lighthouse tracker's estimator
         fc = self.fc
         self._qg, self._qba, self._qbg = fc.gyro_noise ** 2, fc.acc_bias_walk ** 2, fc.gyro_bias_walk ** 2
         self._q1 = chi2_quantile(1.0 - fc.gate_p, 1)
@@ -323,8 +331,24 @@ class ImuSweepTracker:
     def _lose(self) -> None:
         f = self.eskf
         self._keep_bias = (f.ba.copy(), f.bg.copy(), f.P[9:15, 9:15].copy())
-        self.eskf = None
         self.counters.losts += 1
+        if self.ic.soft_restart_sigma is None:
+            self.eskf = None
+            return
+        # soft restart: the state kept, its position / velocity / attitude declared unknown to the
+        # given 1-sigma (the gates then take the next sweeps; "ok" returns only once they pin it)
+        sp, sv, sr = self.ic.soft_restart_sigma
+        P = f.P
+        P[0:9, :] = 0.0
+        P[:, 0:9] = 0.0
+        P[0:3, 0:3] = np.eye(3) * sp ** 2
+        P[3:6, 3:6] = np.eye(3) * sv ** 2
+        P[6:9, 6:9] = np.eye(3) * sr ** 2
+        self._bad_run = 0
+        self._bad_by_station = {}
+        self._confirm = self.ic.confirm_sweeps
+        self._recent.clear()
+        self.counters.restarts += 1
 
     # ------------------------------------------------------------------ update
     def _hit_offset(self, st, kind: str, axis: int, ang: np.ndarray) -> float:
@@ -385,6 +409,7 @@ class ImuSweepTracker:
                 return None
             self.counters.waiting += 1
             if self._can_start(o):
+                self._jac = getattr(self.starter.ekf, "station_jacobians", None)
                 self._start_from(o, np.asarray(self.starter.ekf.v, float).copy())
                 if not self.ic.lighthouse_beside:
                     self.starter = None
@@ -457,7 +482,9 @@ class ImuSweepTracker:
         t0, lim = self._one
         if abs(t - t0) <= 0.1:
             return lim
-        jac = getattr(self.starter.ekf, "station_jacobians", None) if self.starter is not None else None
+        if self.starter is not None:
+            self._jac = getattr(self.starter.ekf, "station_jacobians", None)
+        jac = self._jac
         lim = single_station_sigma(self.points_body, R, p, self.stations, self.config.rho, self.config.sigma_theta,
                                    None if jac is None else jac(R, p))
         self._one = (t, lim)
