@@ -25,6 +25,11 @@ and its share of 100 ms intervals tracking. Moving and flight logs: RMS error vs
 the joint ok poses, the filter's ok poses, the firmware's crossing beam and EKF; coverage. The
 filter's real-time factor (stream seconds per filter CPU second).
 
+3. ``--filter ekf --imu`` (the IMU-aided filter on the log's own gyro and accelerometer events,
+   :mod:`layoutkit.filter.imu_tracker`) beside ``--filter ekf --no-imu`` (the lighthouse-only
+   filter) on every log: the ``imu_*`` columns and the table's "IMU-aided filter" section
+   (``--no-imu`` skips these replays).
+
 ``--filter-set KEY=VALUE`` (repeatable) replays the filter with other EkfConfig keywords, e.g. the
 measured alternative in ``adaptive_rho0/`` (``--filter-set adaptive_rho=0 --out OUT`` on the moving,
 flight and three static logs; docs/live.md says why it is not the default).
