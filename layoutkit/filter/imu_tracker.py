@@ -32,7 +32,8 @@ Life cycle (docs/filter.md, "IMU-aided"):
 4. *lost*: ``lost_after`` sweeps rejected in a row (overall or of one station), or a position 1-sigma
    beyond ``lost_factor`` times its limit → "lost" for that sweep, and a soft restart: the state kept
    with its position / velocity / attitude 1-sigma reset to ``soft_restart_sigma`` (the gates then
-   take the next sweeps; biases and gravity kept), or (``soft_restart_sigma=None``) back to 1.
+   take the next sweeps; biases and gravity kept), or back to 1 (``soft_restart_sigma=None``, or the
+   previous soft restart less than ``soft_restart_every_s`` ago).
 """
 from __future__ import annotations
 
@@ -76,7 +77,8 @@ class ImuTrackerConfig:
     accelerometer at rest at the first start gives gravity (else the world's -z);
     soft_restart_sigma : (m, m/s, rad) when lost, keep the state with its position, velocity and
     attitude 1-sigma reset to these (the next sweeps pin it again), None = wait for the lighthouse
-    tracker beside to start it afresh."""
+    tracker to start it afresh — also when the previous soft restart is less than
+    ``soft_restart_every_s`` s old."""
 
     imu: ImuFilterConfig = ImuFilterConfig()
     imu_position: tuple = (0.0, 0.0, 0.0)
@@ -93,6 +95,7 @@ class ImuTrackerConfig:
     zupt_window_s: float = 0.2
     gravity_from_start: bool = True
     soft_restart_sigma: tuple | None = (0.05, 0.5, 0.05)
+    soft_restart_every_s: float = 1.0
     zupt_rate: float = 0.02
     zupt_acc: float = 0.05
     zupt_sigma: float = 1e-3
@@ -205,6 +208,7 @@ class ImuSweepTracker:
         self._started_once = False
         self.static = False
         self._jac = None  # the compiled station Jacobians of the lighthouse tracker's estimator
+        self._soft_at = -math.inf  # time of the latest soft restart
         fc = self.fc
         self._qg, self._qba, self._qbg = fc.gyro_noise ** 2, fc.acc_bias_walk ** 2, fc.gyro_bias_walk ** 2
         self._q1 = chi2_quantile(1.0 - fc.gate_p, 1)
@@ -332,9 +336,12 @@ class ImuSweepTracker:
         f = self.eskf
         self._keep_bias = (f.ba.copy(), f.bg.copy(), f.P[9:15, 9:15].copy())
         self.counters.losts += 1
-        if self.ic.soft_restart_sigma is None:
+        if self.ic.soft_restart_sigma is None or self.t - self._soft_at < self.ic.soft_restart_every_s:
+            # (a soft restart that did not hold for soft_restart_every_s: start afresh from the
+            # lighthouse tracker instead — the state itself is wrong)
             self.eskf = None
             return
+        self._soft_at = self.t
         # soft restart: the state kept, its position / velocity / attitude declared unknown to the
         # given 1-sigma (the gates then take the next sweeps; "ok" returns only once they pin it)
         sp, sv, sr = self.ic.soft_restart_sigma
