@@ -347,8 +347,8 @@ def imu_tables(logs: dict) -> list:
                  f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
                  f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
                  f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
-    L += ["", "### Speed (stream seconds per filter CPU second; the IMU filter includes the lighthouse-only tracker "
-          "it runs beside for its restarts)", "", "| log | lighthouse filter × real time | IMU filter × real time | "
+    L += ["", "### Speed (stream seconds per filter CPU second, this run's shared machine; the IMU filter includes "
+          "the lighthouse-only tracker it runs until its first start and after a hard restart)", "", "| log | lighthouse filter × real time | IMU filter × real time | "
           "IMU replay wall s (end to end) |", "|---|---|---|---|"]
     for name, r in logs.items():
         L.append(f"| {name} | {_f(r.get('filter_real_time_x'))} | {_f(r.get('imu_filter_real_time_x'))} | "
