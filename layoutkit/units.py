@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 __all__ = [
-    "ARCSEC", "DEG", "RAD2DEG", "DEG2RAD", "LENGTH_UNITS", "LENGTH_UNIT_NAMES",
+    "ARCSEC", "DEG", "RAD2DEG", "DEG2RAD", "DEG_PER_S", "STANDARD_GRAVITY", "LENGTH_UNITS", "LENGTH_UNIT_NAMES",
     "SIGMA_THETA_PAPER", "SIGMA_THETA_PAPER_ARCSEC", "RHO_PAPER", "length_scale",
 ]
 
@@ -21,6 +21,10 @@ DEG = math.pi / 180.0
 DEG2RAD = DEG
 #: Radians to degrees.
 RAD2DEG = 180.0 / math.pi
+#: One degree per second in rad/s (gyro rates logged in deg/s, e.g. the Crazyflie's ``gyro.x``).
+DEG_PER_S = DEG
+#: Standard gravity, m/s² per g (accelerations logged in g, e.g. the Crazyflie's ``acc.x``; CGPM 1901).
+STANDARD_GRAVITY = 9.80665
 
 #: Length units accepted for meshes, layouts and reference tables: metres per unit.
 LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}

@@ -386,6 +386,17 @@ def refine_stations_option(f):
                              "--report for later --stations).")(f)
 
 
+def imu_option(f):
+    """``--imu/--no-imu``: with ``--filter ekf``, the IMU-aided filter on the capture's IMU samples (a
+    Crazyflie log's own, or the ``imu.csv`` ``import cfusdlog`` wrote beside the capture). The command
+    receives ``imu``: None (neither flag: use them when present), True (required) or False (the
+    lighthouse-only filter)."""
+    return click.option("--imu/--no-imu", "imu", default=None,
+                        help="With --filter ekf: the IMU-aided filter on the capture's IMU samples (a Crazyflie log's "
+                             "gyro/accelerometer events, or the imu.csv its import wrote beside the capture); "
+                             "--no-imu: the lighthouse-only filter [default: the IMU when the capture has it].")(f)
+
+
 def allow_odd_size_option(f=None):
     """``--allow-odd-size``: go on although the size of a mesh/layout says its ``--units`` are wrong."""
     deco = click.option("--allow-odd-size", is_flag=True,

@@ -424,3 +424,44 @@ def fit_deck_clock(deck_s, t_log) -> DeckClock:
     if use.sum() < 20 or rms > 1e-3:
         status, msg = "inaccurate", msg + " (fewer than 20 frames or RMS > 1 ms)"
     return DeckClock(offset, rate, rms, int(use.sum()), n, q, status, msg)
+
+
+# ------------------------------------------------------------------------------ IMU samples
+#: the Crazyflie's IMU log variables (``sensors`` log group, crazyflie-firmware ``sensors_bmi088_*.c``:
+#: ``gyro.x/y/z`` deg/s and ``acc.x/y/z`` g, body frame x forward, y left, z up, bias-corrected by the
+#: firmware), in the order gyro xyz, acc xyz
+IMU_VARIABLES = ("gyro.x", "gyro.y", "gyro.z", "acc.x", "acc.y", "acc.z")
+
+
+#: s, how much later than the motion the Crazyflie's logged IMU samples are stamped (the firmware's
+#: gyro / accelerometer low-pass filters and the logging): measured on lh2_crossingBeam_move/log00
+#: by the lag that best matches the gyro to the lighthouse attitude rates (-4 ms) and the
+#: accelerometer to the motion capture's second differences (-5 ms); imu_samples moves them back
+IMU_DELAY_S = 0.005
+
+
+def imu_samples(log: UsdLog):
+    """The log's IMU samples as :class:`layoutkit.io.imu.ImuSamples` (SI: rad/s, m/s² specific force,
+    body frame; ``t`` the log's event clock — the clock the replay maps the deck's timestamps onto),
+    or None when no event type carries all of :data:`IMU_VARIABLES` (e.g. a log without
+    ``fixedFrequency`` sensor logging). The first event type with the most samples wins (the
+    dataset's logs: ``fixedFrequency`` at ~100 Hz). Rows with a non-finite value are dropped;
+    time-sorted (stable); ``t`` is the event time minus :data:`IMU_DELAY_S` (the motion's time)."""
+    from ..io.imu import ImuSamples
+    from ..units import DEG_PER_S, STANDARD_GRAVITY
+
+    best = None
+    for name, ev in log.events.items():
+        if all(k in ev for k in IMU_VARIABLES) and len(ev["t"]) > 0:
+            if best is None or len(ev["t"]) > len(log.events[best]["t"]):
+                best = name
+    if best is None:
+        return None
+    ev = log.events[best]
+    raw = np.column_stack([np.asarray(ev[k], float) for k in IMU_VARIABLES])
+    t = np.asarray(ev["t"], float)
+    keep = np.all(np.isfinite(raw), 1) & np.isfinite(t)
+    raw, t = raw[keep], t[keep]
+    order = np.argsort(t, kind="stable")
+    return ImuSamples(t[order] - IMU_DELAY_S, raw[order, 0:3] * DEG_PER_S, raw[order, 3:6] * STANDARD_GRAVITY,
+                      f"{log.path}: {best} events gyro.x/y/z (deg/s), acc.x/y/z (g), time - {IMU_DELAY_S} s")

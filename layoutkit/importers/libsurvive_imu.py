@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..units import STANDARD_GRAVITY
 from .libsurvive import Recording, _device_time
 
 __all__ = ["ACC_COUNTS_PER_G", "GYRO_COUNTS_PER_DEG_S", "STANDARD_GRAVITY", "IMU_SATURATION", "imu_frame",
@@ -22,7 +23,6 @@ ACC_COUNTS_PER_G = (16384.0, 8192.0, 4096.0, 2048.0)
 #: rates match the lighthouse attitude changes of the moving device (``index-yank-up-down``'s tracker:
 #: 0.27x the gyro integral at 16.4 counts/(deg/s), corr 0.91 over 78 window pairs: ±500, 65.5).
 GYRO_COUNTS_PER_DEG_S = (131.072, 65.536, 32.768, 16.384)
-STANDARD_GRAVITY = 9.80665
 #: Raw counts at which the IMU saturates.
 IMU_SATURATION = 32767
 

@@ -246,3 +246,41 @@ def filter_table(res: dict):
             ex[f"{name}_{ax}"] = res[key][:, i]
     return PoseTable(res["t"], res["rotvec"], res["translation"], station=res.get("station"), status=res["status"],
                      extras=ex)
+
+
+class ImuFilterSink(FilterSink):
+    """:class:`FilterSink` with the IMU-aided filter (:class:`layoutkit.filter.imu_tracker.ImuSweepTracker`):
+    the same outputs, JSON lines (keys of :meth:`layoutkit.filter.tracker.FilterOutput.record`), pose
+    table and truth statistics; the summary adds ``imu`` (used, samples, rate, gravity, the filter's
+    health: mean NIS per degree of freedom, sweeps rejected by the gate, restarts, the angle-noise
+    scale). imu : :class:`layoutkit.io.imu.ImuSamples` on the sweeps' clock, IMU frame = the layout's
+    frame. Needs the stations' world poses (two or more stations for a start)."""
+
+    def __init__(self, points_body, stations, config: EkfConfig, imu, truth=None, json_out=None, poses_path=None,
+                 imu_config=None):
+        from ..filter.imu_tracker import ImuSweepTracker
+
+        super().__init__(points_body, stations, config, truth, json_out, poses_path)
+        self.imu = imu
+        self.tracker = ImuSweepTracker(points_body, self.tracker.stations, config, imu.t, imu.gyro, imu.acc, imu_config)
+
+    def summary(self, frame_truth: dict | None = None) -> dict:
+        trk = self.tracker
+        out = super().summary(frame_truth)
+        c = trk.counters.as_dict()
+        out["share_ok"] = c["ok"] / c["sweeps"] if c["sweeps"] else 0.0
+        out["angle_noise_rad"] = float(np.sqrt(trk.noise_scale) * trk.config.sigma_theta)
+        judged = c["accepted"] + c["rejected"]
+        out["imu"] = {"used": True, **self.imu.summary(), "gravity": trk.gravity,
+                      "health": {"mean_nis_per_dof": c["mean_nis_per_dof"], "sweeps_accepted": c["accepted"],
+                                 "sweeps_rejected_by_gate": c["rejected"],
+                                 "share_rejected": c["rejected"] / judged if judged else None,
+                                 "starts": c["inits"], "restarts": c["restarts"], "losts": c["losts"],
+                                 "angle_noise_scale": trk.noise_scale,
+                                 "gate_p": trk.fc.gate_p},
+                      "config": {k: getattr(trk.fc, k) for k in ("gyro_noise", "acc_noise", "gyro_bias_walk",
+                                                                 "acc_bias_walk", "gate_p")}
+                      | {"imu_position_m": list(trk.ic.imu_position)},
+                      "bias_acc_m_s2": None if trk.eskf is None else trk.eskf.ba.tolist(),
+                      "bias_gyro_rad_s": None if trk.eskf is None else trk.eskf.bg.tolist()}
+        return out

@@ -271,7 +271,9 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
     events, i.e. the card dropped UART frames; the angle events otherwise). The base-station type comes from the events, the
     system config's ``systemType`` or the stations.
     Returns ``{"mode", "sidecar", "bytes" | "frames", "stats", "kind", "firmware" (the log's own
-    position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``.
+    position estimates, :func:`layoutkit.importers.cfusdlog.firmware_positions}), "info"}``, and in
+    "uart" mode ``"imu"``: the log's IMU samples on the log clock (the replay's ``t``;
+    :func:`layoutkit.importers.cfusdlog.imu_samples`, None when it has none).
     system_config : a path or a loaded :class:`~layoutkit.io.systemconfig.SystemConfig`; the log is
     read once.
     ValueError naming the file and listing the event types found when nothing can be solved.
@@ -311,7 +313,10 @@ def cfusdlog_replay_source(log, *, stations=None, system_config=None, source: st
                              f"that identify LH1 sync pulses are not logged); log lhAngle events (found: {_found(ul)})")
         data, sc = cfusdlog_capture(log, ul)
         info["source"] = "lhUartFrame"
-        return {"mode": "uart", "bytes": data, "sidecar": sc, "kind": "lh2", "firmware": fw, "info": info}
+        from ..importers.cfusdlog import imu_samples
+
+        return {"mode": "uart", "bytes": data, "sidecar": sc, "kind": "lh2", "firmware": fw, "info": info,
+                "imu": imu_samples(ul)}
     if ev is None:
         raise ValueError(f"{log}: no lighthouse sweep data to solve: found {_found(ul)}; replay needs sweep-angle "
                          "events (lhAngle or estSweepAngle: 'on:lhAngle' in the card's config.txt) or, for LH2, "
@@ -402,12 +407,32 @@ def import_cfusdlog(log, out_dir, *, system_config=None) -> dict:
                         source="layoutkit import cfusdlog", n_sensors=4, bytes=len(data),
                         extra={"imported_from": str(log), "clock": clock.as_dict() | {"deck_clock_hz": DECK_CLOCK_HZ},
                                "import_notes": note_list})
+    from dataclasses import replace
+
+    imu_note = _write_imu(ul, out)
+    if imu_note is not None:
+        sc = replace(sc, extra=sc.extra | {"imu": imu_note})
     write_sidecar(cap, sc)
     rows, fa = _firmware_angles(ul, out)
     return summary | {"uart_frames": int(len(ev["t"])), "capture": str(cap), "sidecar": str(sidecar_path(cap)),
                       "firmware_angles": str(fa), "angle_rows": rows, "clock_offset_s": offset,
                       "clock": clock.as_dict(),
-                      "stations": len(stations), "notes": note_list}
+                      "stations": len(stations), "notes": note_list, "imu": imu_note}
+
+
+def _write_imu(ul, out) -> dict | None:
+    """The log's IMU samples (:func:`layoutkit.importers.cfusdlog.imu_samples`) → ``out/imu.csv``
+    (:mod:`layoutkit.io.imu`; on the log clock = the capture's replay clock); the sidecar's ``imu``
+    entry, or None when the log has none."""
+    from ..importers.cfusdlog import imu_samples
+    from ..io.imu import IMU_FILE, write_imu
+
+    imu = imu_samples(ul)
+    if imu is None or len(imu) == 0:
+        return None
+    write_imu(Path(out) / IMU_FILE, imu)
+    return {"file": IMU_FILE, **imu.summary(), "clock": "log clock (the capture's replay t)",
+            "units": "t s, gyro rad/s, acc m/s2 (specific force), body frame"}
 
 
 def _firmware_angles(ul, out) -> tuple[int, Path]:

@@ -111,12 +111,14 @@ def _layout_from(layout, sidecar: CaptureSidecar) -> Layout:
 
 
 def open_session(setup: RunSetup, *, truth=None, json_out=None, poses_path=None, firmware=None,
-                 keep_good: bool = False) -> LiveSession:
+                 keep_good: bool = False, imu=None) -> LiveSession:
     """A :class:`LiveSession` for ``setup`` with the file side's sinks: the per-sweep EKF
     (:class:`~layoutkit.workflows.filter.FilterSink`, ``filter_poses.csv`` beside ``poses_path``)
     when ``setup.config.filter`` is set, the firmware's own position estimates joined into the pose
     table (``firmware``: :func:`layoutkit.importers.cfusdlog.firmware_positions`), every good pose
-    kept for references (``keep_good``). truth : a PoseTrack (or a TRUTH.csv path)."""
+    kept for references (``keep_good``). truth : a PoseTrack (or a TRUTH.csv path). imu : IMU samples
+    (:class:`layoutkit.io.imu.ImuSamples`, the sweeps' clock, the layout's frame) for the IMU-aided
+    filter (:class:`~layoutkit.workflows.filter.ImuFilterSink`) instead of the lighthouse-only one."""
     from ..live.session import calibrated_setup
 
     tr = _track(truth) if isinstance(truth, (str, Path)) else truth
@@ -132,7 +134,12 @@ def open_session(setup: RunSetup, *, truth=None, json_out=None, poses_path=None,
         if not sts and cals and 0 in cals:
             sts = [Station(kind=cals[0].kind, rotor_rpm=3600.0 if cals[0].kind == "lh1" else 3000.0,
                            calibration=cals[0])]
-        sink = FilterSink(setup.layout.positions, sts or None, setup.config.filter, tr, json_out, fp)
+        if imu is not None:
+            from .filter import ImuFilterSink
+
+            sink = ImuFilterSink(setup.layout.positions, sts or None, setup.config.filter, imu, tr, json_out, fp)
+        else:
+            sink = FilterSink(setup.layout.positions, sts or None, setup.config.filter, tr, json_out, fp)
     columns = ()
     if firmware:
         from ..live.firmware import FirmwareComparison
@@ -351,7 +358,7 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
                    camera_config=None, stations=None, system_config=None, solve: str | None = None,
                    cfusdlog_source: str = "auto", refine_stations: bool = False, refine_from=(),
-                   refine_calibration: bool = False) -> dict:
+                   refine_calibration: bool = False, imu: bool | None = None) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -379,7 +386,11 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     folder); the capture is decoded once, into memory. refine_from : more captures of the same
     station set-up whose slow windows join the refinement (a deck at rest in several places fixes
     the stations; a capture in constant motion has no slow window of its own); refine_calibration :
-    also the observable calibration terms.
+    also the observable calibration terms. imu : with ``--filter ekf``, run the IMU-aided filter on
+    the capture's IMU samples (a Crazyflie log's own, or the ``imu.csv`` its import wrote beside the
+    capture: :func:`capture_imu`); None (default) = when the capture has them, False = never (the
+    lighthouse-only filter), True = required (ValueError without them). ``summary["imu"]`` says
+    whether it was used and why not.
     """
     capture = Path(capture)
     if not capture.is_file():
@@ -411,8 +422,9 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
         setup, refinement = _refined(setup, sets, report_dir, refine_calibration)
         if refine_from:
             refinement["refined_from"] = [str(capture)] + [str(x) for x in refine_from]
+    imu_samples, imu_note = _imu_for(capture, usd, setup, imu)
     s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
-                     keep_good=reference is not None or camera is not None)
+                     keep_good=reference is not None or camera is not None, imu=imu_samples)
     if decoded is None:
         _feed_capture(s, capture, usd, on_progress)
     else:
@@ -427,6 +439,8 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     summary["capture"] = str(capture)
     summary["protocol"] = setup.protocol
     summary["evidence"] = evidence
+    if setup.config.filter is not None:
+        summary["imu"] = imu_note
     if usd is not None:
         summary["cfusdlog"] = usd["info"]
         if firmware:  # the firmware's own estimates beside ours (same clock, same world frame)
@@ -434,6 +448,48 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     cam = _camera_from_folder(capture, camera_device, camera_config)
     return _finish_run(s, summary, reference=reference, reference_units=reference_units, camera=camera,
                        report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
+
+
+def capture_imu(capture, usd=None):
+    """The IMU samples of a capture (:class:`layoutkit.io.imu.ImuSamples`, on its replay clock) and
+    where they come from: a Crazyflie log replayed directly carries its own (``usd["imu"]``,
+    :func:`layoutkit.importers.cfusdlog.imu_samples`); an imported capture names its ``imu.csv`` in
+    its sidecar (``imu.file``, beside the capture). ``(None, why)`` when there are none."""
+    from ..io.imu import read_imu
+    from ..io.sidecar import read_sidecar
+
+    if usd is not None:
+        imu = usd.get("imu")
+        if imu is None or len(imu) == 0:
+            return None, "the log has no IMU events (gyro.x/y/z, acc.x/y/z)"
+        return imu, "the log's own events"
+    capture = Path(capture)
+    entry = (read_sidecar(capture).extra or {}).get("imu")
+    if not isinstance(entry, dict) or not entry.get("file"):
+        return None, "the capture's sidecar names no IMU file"
+    path = capture.parent / entry["file"]
+    if not path.is_file():
+        return None, f"{path}: the IMU file the sidecar names is missing"
+    return read_imu(path), str(path)
+
+
+def _imu_for(capture, usd, setup, want):
+    """(samples or None, summary note) for :func:`replay_capture`'s ``imu`` option."""
+    if setup.config.filter is None:
+        return None, None
+    if want is False:
+        return None, {"used": False, "why": "--no-imu"}
+    imu, where = capture_imu(capture, usd)
+    if imu is None:
+        if want:
+            raise ValueError(f"{capture}: --imu: no IMU samples ({where})")
+        return None, {"used": False, "why": where}
+    if len(setup.stations) < 2:
+        if want:
+            raise ValueError(f"{capture}: --imu: the IMU-aided filter starts from two stations' joint solve; "
+                             f"{len(setup.stations)} station(s) with known poses (--system-config or --stations)")
+        return None, {"used": False, "why": "fewer than two stations with known poses"}
+    return imu, {"used": True, "from": where, **imu.summary()}
 
 
 def _is_cfusdlog(path) -> bool:

@@ -25,6 +25,11 @@ and its share of 100 ms intervals tracking. Moving and flight logs: RMS error vs
 the joint ok poses, the filter's ok poses, the firmware's crossing beam and EKF; coverage. The
 filter's real-time factor (stream seconds per filter CPU second).
 
+3. ``--filter ekf --imu`` (the IMU-aided filter on the log's own gyro and accelerometer events,
+   :mod:`layoutkit.filter.imu_tracker`) beside ``--filter ekf --no-imu`` (the lighthouse-only
+   filter) on every log: the ``imu_*`` columns and the table's "IMU-aided filter" section
+   (``--no-imu`` skips these replays).
+
 ``--filter-set KEY=VALUE`` (repeatable) replays the filter with other EkfConfig keywords, e.g. the
 measured alternative in ``adaptive_rho0/`` (``--filter-set adaptive_rho=0 --out OUT`` on the moving,
 flight and three static logs; docs/live.md says why it is not the default).
@@ -217,6 +222,53 @@ def interval_causes(F, on: float, off: float, interval: float = 0.1) -> dict:
     return out
 
 
+def imu_metrics(s, F, wall, it, fw, span) -> dict:
+    """The IMU-aided filter's figures of one log (``replay LOG ... --filter ekf --imu``: the summary ``s``,
+    its JSON lines ``F``, wall seconds): the lighthouse-only filter's columns under ``imu_*`` — static
+    jitter, error vs motion capture of the ok outputs (own alignment), 100 ms coverage, err/σ, the
+    intervals' causes and the ok outputs' errors by the stations their interval had — and the
+    filter's health (IMU samples, rate, gravity, mean NIS per dof, gate rejections, restarts, angle
+    noise) and speed."""
+    if s is None:
+        return {"imu_error": wall}
+    f = s.get("filter") or {}
+    imu = f.get("imu") or {}
+    h = imu.get("health") or {}
+    okF = F["status"] == "ok"
+    tf, pf = F["t"][okF], F["p"][okF]
+    on, off = fw["markers"] if fw["markers"] else (tf[0] if len(tf) else 0.0, tf[-1] if len(tf) else 1.0)
+    row = {"imu_used": (s.get("imu") or {}).get("used"), "imu_samples": imu.get("samples"),
+           "imu_rate_hz": round(imu["rate_hz"], 2) if imu.get("rate_hz") else None,
+           "imu_gravity": imu.get("gravity"), "imu_health": h,
+           "imu_filter_ok_outputs": int(okF.sum()),
+           "imu_filter_by_status": {k: int((F["status"] == k).sum()) for k in np.unique(F["status"])},
+           "imu_filter_coverage_100ms": round(coverage(tf, on, off), 4),
+           "imu_filter_cpu_s": f.get("filter_cpu_seconds"), "imu_replay_wall_s": round(wall, 1),
+           "imu_filter_real_time_x": round(span / f["filter_cpu_seconds"], 1) if f.get("filter_cpu_seconds") else None,
+           "imu_filter_angle_noise_rad": f.get("angle_noise_rad")}
+    if it.scenario == "jitter":
+        row["imu_filter_jitter_mm"] = mm(jitter(pf))
+        return row
+    if it.mocap is None or not fw["markers"]:
+        return row
+    row["imu_filter_interval_causes"] = interval_causes(F, on, off)
+    if len(tf) < 10:
+        return row
+    mc = np.load(it.mocap)
+    al = align_to_mocap(tf, pf, mc, on, off)
+    if al.get("status") != "ok":
+        row["imu_filter_alignment"] = al.get("message")
+        return row
+    row.update(imu_filter_rms_mm=mm(al["rms_m"]), imu_filter_median_mm=mm(al["median_m"]),
+               imu_filter_max_mm=mm(al["max_m"]), imu_filter_samples=al["samples"])
+    e = errors_by_alignment(al, mc, on, off, tf, pf, tf, pf)
+    sg = F["sigma"][okF]
+    k = np.isfinite(e) & np.isfinite(sg)
+    row["imu_filter_error_over_sigma_rms"] = round(float(np.sqrt(np.mean((e[k] / sg[k]) ** 2))), 2)
+    row["imu_filter_ok_errors_by_interval_stations"] = ok_errors_by_interval_stations(F, e, on, off)
+    return row
+
+
 def mm(v):
     return None if v is None or not np.isfinite(v) else round(float(v) * 1e3, 3)
 
@@ -238,6 +290,70 @@ def _err_stats(e, sig):
 
 def _f(v, nd=1):
     return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+
+def imu_tables(logs: dict) -> list:
+    """The IMU-aided filter beside the lighthouse-only one (``replay ... --filter ekf --imu`` vs
+    ``--no-imu``): markdown lines."""
+    L = ["", "## IMU-aided filter (the log's gyro and accelerometer) beside the lighthouse-only filter", "",
+         "`layoutkit replay LOG --layout DECK --system-config system-config.yaml --stations "
+         "calibration/stations_refined.json --solve joint --filter ekf --imu` (the IMU-aided error-state filter, "
+         "layoutkit/filter/imu_tracker.py, on the log's `fixedFrequency` gyro.x/y/z deg/s and acc.x/y/z g at ~100 Hz) "
+         "vs `--no-imu` (the lighthouse-only filter of the tables above). Same ok rule for both (1-sigma within the "
+         "filter's limits and within the best single station's PDOP sigma_theta; not just started; gates not "
+         "starving).", "",
+         "### Static logs (mm, ok outputs)", "",
+         "| log | filter jitter: lighthouse / IMU | 100 ms coverage: lighthouse / IMU | IMU restarts | IMU mean NIS/dof |",
+         "|---|---|---|---|---|"]
+    for name, r in logs.items():
+        if r["scenario"] != "jitter":
+            continue
+        h = r.get("imu_health") or {}
+        L.append(f"| {name} | {_f(r.get('filter_jitter_mm'), 3)} / {_f(r.get('imu_filter_jitter_mm'), 3)} | "
+                 f"{_f(r.get('filter_coverage_100ms'), 3)} / {_f(r.get('imu_filter_coverage_100ms'), 3)} | "
+                 f"{h.get('restarts', '–')} | {_f(h.get('mean_nis_per_dof'), 2)} |")
+    L += ["", "### Moving and flying logs: error vs motion capture (mm, RMS / median / max; ok outputs, each "
+          "filter's own alignment) and 100 ms coverage", "",
+          "| log | lighthouse filter | IMU filter | coverage: lighthouse / IMU | err/σ RMS: lighthouse / IMU | "
+          "IMU ok outputs in 1-station intervals: n, RMS / p95 mm, err/σ | IMU restarts | IMU gate rejections, "
+          "mean NIS/dof | gravity |", "|---|---|---|---|---|---|---|---|---|"]
+
+    def e(r, k):
+        return ("–" if r.get(f"{k}_rms_mm") is None else
+                f"{_f(r[f'{k}_rms_mm'])} / {_f(r[f'{k}_median_mm'])} / {_f(r[f'{k}_max_mm'], 0)}")
+
+    def hon(x):
+        return "–" if not x or x.get("rms_mm") is None else (
+            f"{x['n']}, {_f(x['rms_mm'])} / {_f(x['p95_mm'])}, {_f(x.get('err_over_sigma_rms'))}")
+    for name, r in logs.items():
+        if r["scenario"] == "jitter":
+            continue
+        h = r.get("imu_health") or {}
+        g = (r.get("imu_gravity") or {}).get("from", "–")
+        one = (r.get("imu_filter_ok_errors_by_interval_stations") or {}).get("1_station")
+        rej = h.get("share_rejected")
+        L.append(f"| {name} | {e(r, 'filter')} | {e(r, 'imu_filter')} | {_f(r.get('filter_coverage_100ms'), 3)} / "
+                 f"{_f(r.get('imu_filter_coverage_100ms'), 3)} | {_f(r.get('filter_error_over_sigma_rms'))} / "
+                 f"{_f(r.get('imu_filter_error_over_sigma_rms'))} | {hon(one)} | {h.get('restarts', '–')} | "
+                 f"{'–' if rej is None else f'{100 * rej:.1f} %'}, {_f(h.get('mean_nis_per_dof'), 2)} | {g} |")
+    L += ["", "### Why the IMU filter's 100 ms intervals are not ok", "",
+          "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / "
+          "lost | not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
+    for name, r in logs.items():
+        c = r.get("imu_filter_interval_causes")
+        if not c:
+            continue
+        L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
+                 f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
+                 f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
+                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
+    L += ["", "### Speed (stream seconds per filter CPU second, this run's shared machine; the IMU filter includes "
+          "the lighthouse-only tracker it runs until its first start and after a hard restart)", "", "| log | lighthouse filter × real time | IMU filter × real time | "
+          "IMU replay wall s (end to end) |", "|---|---|---|---|"]
+    for name, r in logs.items():
+        L.append(f"| {name} | {_f(r.get('filter_real_time_x'))} | {_f(r.get('imu_filter_real_time_x'))} | "
+                 f"{_f(r.get('imu_replay_wall_s'))} |")
+    return L
 
 
 def write_table(res: dict, out: Path) -> Path:
@@ -340,6 +456,8 @@ def write_table(res: dict, out: Path) -> Path:
           "| log | stream s | filter CPU s | × real time |", "|---|---|---|---|"]
     for name, r in logs.items():
         L.append(f"| {name} | {_f(r['stream_s'])} | {_f(r.get('filter_cpu_s'), 2)} | {_f(r.get('filter_real_time_x'))} |")
+    if any("imu_filter_coverage_100ms" in r or "imu_error" in r for r in logs.values()):
+        L += imu_tables(logs)
     L += ["", "## Reading the tables", "",
           "- *ok* means precise, not accurate: the predicted 1-sigma of an ok joint pose (~0.25 mm) is the angle "
           "noise's share; the error against motion capture (6-17 mm) is dominated by what the noise model does not "
@@ -364,6 +482,7 @@ def main():
     ap.add_argument("--reuse-calibration", action="store_true",
                     help="use OUT/calibration/stations_refined.json as it is (skip step 1)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/table.md from OUT/results.json")
+    ap.add_argument("--no-imu", action="store_true", help="skip the IMU-aided filter's replays (replay --filter ekf --imu)")
     ap.add_argument("--note", help="a line recorded in results.json and the table (e.g. which code ran)")
     ap.add_argument("--filter-set", action="append", default=[], metavar="KEY=VALUE",
                     help="an EkfConfig keyword for the filter's replays, VALUE as JSON (e.g. adaptive_rho=0, "
@@ -422,7 +541,13 @@ def main():
         fw = firmware_series(it.log)
         row = {"set": it.set, "scenario": it.scenario}
         sj, J, wj = replay(it.log, it.system_config, stations=stations)
-        sf, F, wf = replay(it.log, it.system_config, stations=stations, filt=True, filter_settings=settings)
+        sf, F, wf = replay(it.log, it.system_config, stations=stations, filt=True, filter_settings=settings, imu=False)
+        if not a.no_imu:
+            try:
+                si, I, wi = replay(it.log, it.system_config, stations=stations, filt=True, filter_settings=settings,
+                                   imu=True)
+            except ValueError as exc:
+                si, I, wi = None, None, str(exc)
         g = _groups(J)
         okJ, okF = g["ok"], F["status"] == "ok"
         tj, pj, tf, pf = J["t"][okJ], J["p"][okJ], F["t"][okF], F["p"][okF]
@@ -487,6 +612,8 @@ def main():
                     # the filter's 1-sigma is per axis: |e|^2 / sum sigma_i^2 averages 1 when consistent
                     row["filter_error_over_sigma_rms"] = round(float(np.sqrt(np.mean((e[k] / sg[k]) ** 2))), 2)
                     row["filter_ok_errors_by_interval_stations"] = ok_errors_by_interval_stations(F, e, on, off)
+        if not a.no_imu:
+            row.update(imu_metrics(si, I, wi, it, fw, span))
         res["logs"][it.name] = row
         print(it.name, json.dumps(row), flush=True)
         (out / "results.json").write_text(json.dumps(res, indent=2, default=float) + "\n")

@@ -1,0 +1,234 @@
+"""numba kernels of the IMU-aided sweep filter (:mod:`layoutkit.filter.imu_tracker`; imported on first use).
+
+The same propagation and update as :class:`layoutkit.filter.imu.ImuEskf` (Solà 2017; the numpy
+reference the tests compare with), in place on the nominal state ``R (3, 3), p, v, ba, bg (3,)`` and
+the error-state covariance ``P (15, 15)`` ordered ``[dp, dv, dtheta, dba, dbg]``; the sweep's forward
+model is the lighthouse filter's compiled one (:func:`layoutkit.filter._kernels_numba.sweep_rows`).
+"""
+import math
+
+import numba
+import numpy as np
+
+from ._kernels_numba import sweep_rows
+
+_JIT = dict(cache=True, fastmath=False, nogil=True)
+
+
+@numba.njit(**_JIT)
+def _expm(a0, a1, a2, E):
+    """Rodrigues: E = exp([a]x)."""
+    th = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if th < 1e-9:
+        A = 1.0 - th * th / 6.0
+        B = 0.5 - th * th / 24.0
+    else:
+        A = math.sin(th) / th
+        B = (1.0 - math.cos(th)) / (th * th)
+    E[0, 0] = 1.0 - B * (a1 * a1 + a2 * a2)
+    E[1, 1] = 1.0 - B * (a0 * a0 + a2 * a2)
+    E[2, 2] = 1.0 - B * (a0 * a0 + a1 * a1)
+    E[0, 1] = -A * a2 + B * a0 * a1
+    E[1, 0] = A * a2 + B * a0 * a1
+    E[0, 2] = A * a1 + B * a0 * a2
+    E[2, 0] = -A * a1 + B * a0 * a2
+    E[1, 2] = -A * a0 + B * a1 * a2
+    E[2, 1] = A * a0 + B * a1 * a2
+
+
+@numba.njit(**_JIT)
+def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
+    """Advance by ``dt`` s with specific force ``f`` (m/s²) and rate ``w`` (rad/s), IMU frame;
+    ``qa, qg, qba, qbg``: the noise densities squared (acc, gyro, acc bias walk, gyro bias walk)."""
+    if dt <= 0.0:
+        return
+    fa = np.empty(3)
+    a = np.empty(3)
+    for i in range(3):
+        fa[i] = f[i] - ba[i]
+    for i in range(3):
+        a[i] = R[i, 0] * fa[0] + R[i, 1] * fa[1] + R[i, 2] * fa[2] + g[i]
+    E = np.empty((3, 3))
+    _expm((w[0] - bg[0]) * dt, (w[1] - bg[1]) * dt, (w[2] - bg[2]) * dt, E)
+    F = np.eye(15)
+    for i in range(3):
+        F[i, 3 + i] = dt
+        F[6 + i, 12 + i] = -dt
+        for j in range(3):
+            F[3 + i, 9 + j] = -R[i, j] * dt
+            F[6 + i, 6 + j] = E[j, i]
+    # -R [fa]x dt
+    S = np.array([[0.0, -fa[2], fa[1]], [fa[2], 0.0, -fa[0]], [-fa[1], fa[0], 0.0]])
+    for i in range(3):
+        for j in range(3):
+            F[3 + i, 6 + j] = -(R[i, 0] * S[0, j] + R[i, 1] * S[1, j] + R[i, 2] * S[2, j]) * dt
+    FP = F @ P
+    P[:, :] = FP @ F.T
+    for i in range(3):
+        P[3 + i, 3 + i] += qa * dt
+        P[6 + i, 6 + i] += qg * dt
+        P[9 + i, 9 + i] += qba * dt
+        P[12 + i, 12 + i] += qbg * dt
+    for i in range(3):
+        p[i] += v[i] * dt + 0.5 * a[i] * dt * dt
+        v[i] += a[i] * dt
+    Rn = R @ E
+    R[:, :] = Rn
+
+
+@numba.njit(**_JIT)
+def update(R, p, v, ba, bg, P, pb, idx, z, Rs, ts, lh2, axis, c, corrected, sigma2, q1, qm, out):
+    """One sweep: angles ``z (m,)`` rad of the sensors ``idx`` at ``pb (n, 3)`` (IMU frame) on ``axis`` of
+    the station ``Rs, ts`` (kind flag ``lh2``, calibration ``c (7,)``, ``corrected``); angle noise
+    variance ``sigma2``. Angles whose ``y_i² / S_ii`` exceeds ``q1`` are dropped, then the sweep is
+    rejected when its NIS exceeds ``qm[m_kept]``. ``out``: [accepted, nis, m kept, y·y / m, trace(H P
+    H^T) / m, angles dropped] (the last two over the kept angles)."""
+    m = idx.shape[0]
+    zp = np.empty(m)
+    rows = np.empty((m, 6))
+    sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, zp, rows)
+    H = np.zeros((m, 15))
+    y = np.empty(m)
+    for r in range(m):
+        for j in range(3):
+            H[r, j] = rows[r, 3 + j]
+            # d/dtheta (local) = d/dphi (world) R
+            H[r, 6 + j] = rows[r, 0] * R[0, j] + rows[r, 1] * R[1, j] + rows[r, 2] * R[2, j]
+        d = z[r] - zp[r] + math.pi
+        y[r] = d - 2.0 * math.pi * math.floor(d / (2.0 * math.pi)) - math.pi
+    HP = H @ P
+    S = HP @ H.T
+    keep = np.empty(m, np.bool_)
+    k = 0
+    for r in range(m):
+        keep[r] = y[r] * y[r] / (S[r, r] + sigma2) <= q1
+        if keep[r]:
+            k += 1
+    out[0] = 0.0
+    out[1] = np.nan
+    out[2] = k
+    out[5] = m - k
+    if k < 2:
+        return
+    ki = np.empty(k, np.int64)
+    j = 0
+    for r in range(m):
+        if keep[r]:
+            ki[j] = r
+            j += 1
+    Hk = H[ki]
+    yk = y[ki]
+    HPk = HP[ki]
+    Sk = np.empty((k, k))
+    tr = 0.0
+    for a in range(k):
+        for b in range(k):
+            Sk[a, b] = S[ki[a], ki[b]]
+        tr += Sk[a, a]
+        Sk[a, a] += sigma2
+    Si = np.linalg.inv(Sk)
+    Siy = Si @ yk
+    nis = 0.0
+    yy = 0.0
+    for a in range(k):
+        nis += yk[a] * Siy[a]
+        yy += yk[a] * yk[a]
+    out[1] = nis
+    out[3] = yy / k
+    out[4] = tr / k
+    if nis > qm[k]:
+        return
+    out[0] = 1.0
+    K = HPk.T @ Si                      # (15, k)
+    dx = K @ yk
+    IKH = np.eye(15) - K @ Hk
+    Pn = IKH @ P @ IKH.T + sigma2 * (K @ K.T)
+    for a in range(15):
+        for b in range(15):
+            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+    for i in range(3):
+        p[i] += dx[i]
+        v[i] += dx[3 + i]
+        ba[i] += dx[9 + i]
+        bg[i] += dx[12 + i]
+    E = np.empty((3, 3))
+    _expm(dx[6], dx[7], dx[8], E)
+    Rn = R @ E
+    R[:, :] = Rn
+
+
+@numba.njit(**_JIT)
+def matrix_to_quat(R, q):
+    """Rotation matrix → unit quaternion ``q = [x, y, z, w]`` with ``w >= 0`` (Shepperd's method; the order
+    and sign of :func:`layoutkit.rotations.matrix_to_quaternion`, which the tests compare with)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr >= R[0, 0] and tr >= R[1, 1] and tr >= R[2, 2]:
+        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
+        s = 0.25 / w
+        x, y, z = (R[2, 1] - R[1, 2]) * s, (R[0, 2] - R[2, 0]) * s, (R[1, 0] - R[0, 1]) * s
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        x = 0.5 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        s = 0.25 / x
+        w, y, z = (R[2, 1] - R[1, 2]) * s, (R[0, 1] + R[1, 0]) * s, (R[0, 2] + R[2, 0]) * s
+    elif R[1, 1] >= R[2, 2]:
+        y = 0.5 * math.sqrt(max(1.0 - R[0, 0] + R[1, 1] - R[2, 2], 0.0))
+        s = 0.25 / y
+        w, x, z = (R[0, 2] - R[2, 0]) * s, (R[0, 1] + R[1, 0]) * s, (R[1, 2] + R[2, 1]) * s
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - R[0, 0] - R[1, 1] + R[2, 2], 0.0))
+        s = 0.25 / z
+        w, x, y = (R[1, 0] - R[0, 1]) * s, (R[0, 2] + R[2, 0]) * s, (R[1, 2] + R[2, 1]) * s
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0.0:
+        n = -n
+    q[0], q[1], q[2], q[3] = x / n, y / n, z / n, w / n
+
+
+@numba.njit(**_JIT)
+def body_cov(R, P, p_ib, out):
+    """(12, 12) covariance ``out`` of the body pose in the lighthouse filter's layout ``(dphi world, dw,
+    dp, dv)`` from the IMU filter's ``P (15, 15)`` (``[dp, dv, dtheta, dba, dbg]``, local attitude
+    error): ``dphi = R dtheta``, ``dw = R dbg`` (the rate's uncertainty is the gyro bias's), ``dp_body
+    = dp + R [p_ib]x dtheta`` (the IMU at ``p_ib`` in the body), ``dv``."""
+    B = np.zeros((12, 15))
+    S = np.array([[0.0, -p_ib[2], p_ib[1]], [p_ib[2], 0.0, -p_ib[0]], [-p_ib[1], p_ib[0], 0.0]])
+    RS = R @ S
+    for i in range(3):
+        B[6 + i, i] = 1.0
+        B[9 + i, 3 + i] = 1.0
+        for j in range(3):
+            B[i, 6 + j] = R[i, j]
+            B[3 + i, 12 + j] = R[i, j]
+            B[6 + i, 6 + j] = RS[i, j]
+    out[:, :] = B @ P @ B.T
+
+
+@numba.njit(**_JIT)
+def zero_velocity(R, p, v, ba, bg, P, sigma2):
+    """Zero-velocity pseudo-measurement ``v = 0`` with noise variance ``sigma2`` per axis (the IMU says
+    the body is at rest), Joseph form; in place."""
+    S = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = P[3 + i, 3 + j]
+        S[i, i] += sigma2
+    Si = np.linalg.inv(S)
+    K = np.ascontiguousarray(P[:, 3:6]) @ Si  # (15, 3)
+    dx = K @ (-v)
+    IKH = np.eye(15)
+    for a in range(15):
+        for j in range(3):
+            IKH[a, 3 + j] -= K[a, j]
+    Pn = IKH @ P @ IKH.T + sigma2 * (K @ K.T)
+    for a in range(15):
+        for b in range(15):
+            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+    for i in range(3):
+        p[i] += dx[i]
+        v[i] += dx[3 + i]
+        ba[i] += dx[9 + i]
+        bg[i] += dx[12 + i]
+    E = np.empty((3, 3))
+    _expm(dx[6], dx[7], dx[8], E)
+    Rn = R @ E
+    R[:, :] = Rn
