@@ -44,7 +44,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import rotvec_to_matrix
-from ..lighthouse import measure_jacobian
 from ..units import RAD2DEG, STANDARD_GRAVITY
 from .ekf import EkfConfig, chi2_quantile, single_station_sigma
 from .imu import ImuEskf, ImuFilterConfig
