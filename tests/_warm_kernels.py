@@ -10,9 +10,10 @@ ones the tests load. Usage: ``python tests/_warm_kernels.py pose|filter`` (a sec
   (its frame kernel is cached by then).
 - ``filter``: the joint solve's frame kernel (from given starts: no PnP), then the IMM filter step and
   its station Jacobians, the fused DOP kernel and the optimiser's per-pose kernels.
-(33 s / 39 s of compilation CPU, measured in a fresh clone; per kernel: serial PnP ~28 s, the joint
-frame kernel ~16 s, threaded PnP 6 s, DOP 5 s, optimiser 3 s; the DOP and optimiser kernels were in
-``pose`` before, a 56 s / 18 s split that kept one core waiting.)
+(Compilation CPU measured in a fresh clone, both groups at once: 33 s / 39 s; 55 s / 34 s once the PnP
+kernel's per-frame calls were inlined (issue 30), which puts ~20 s more into each PnP specialisation —
+the serial and the threaded one stay together: in two processes each would compile the inlined chain,
+82 s for ``filter``. The DOP and optimiser kernels were in ``pose`` before, a 56 s / 18 s split.)
 """
 from __future__ import annotations
 
