@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m layoutkit demo --out-dir out/demo
 
-# the whole suite, slow tests included (what CI runs; ~6 min on 2 idle cores, +1 min in a fresh checkout)
+# the whole suite, slow tests included (what CI runs; ~5 min on 2 idle cores, +1 min in a fresh checkout)
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q
 
