@@ -37,6 +37,24 @@ def _expm(a0, a1, a2, E):
 
 
 @numba.njit(**_JIT)
+def _correct(R, p, v, ba, bg, P, Pn, dx):
+    """The end of a Joseph-form update, in place: ``P`` <- the symmetric part of ``Pn``, and the error
+    state ``dx = [dp, dv, dtheta, dba, dbg]`` injected into the nominal state (``R <- R exp([dtheta]x)``)."""
+    for a in range(15):
+        for b in range(15):
+            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+    for i in range(3):
+        p[i] += dx[i]
+        v[i] += dx[3 + i]
+        ba[i] += dx[9 + i]
+        bg[i] += dx[12 + i]
+    E = np.empty((3, 3))
+    _expm(dx[6], dx[7], dx[8], E)
+    Rn = R @ E
+    R[:, :] = Rn
+
+
+@numba.njit(**_JIT)
 def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
     """Advance by ``dt`` s with specific force ``f`` (m/s²) and rate ``w`` (rad/s), IMU frame;
     ``qa, qg, qba, qbg``: the noise densities squared (acc, gyro, acc bias walk, gyro bias walk)."""
@@ -142,19 +160,7 @@ def update(R, p, v, ba, bg, P, pb, idx, z, Rs, ts, lh2, axis, c, corrected, sigm
     K = HPk.T @ Si                      # (15, k)
     dx = K @ yk
     IKH = np.eye(15) - K @ Hk
-    Pn = IKH @ P @ IKH.T + sigma2 * (K @ K.T)
-    for a in range(15):
-        for b in range(15):
-            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-    for i in range(3):
-        p[i] += dx[i]
-        v[i] += dx[3 + i]
-        ba[i] += dx[9 + i]
-        bg[i] += dx[12 + i]
-    E = np.empty((3, 3))
-    _expm(dx[6], dx[7], dx[8], E)
-    Rn = R @ E
-    R[:, :] = Rn
+    _correct(R, p, v, ba, bg, P, IKH @ P @ IKH.T + sigma2 * (K @ K.T), dx)
 
 
 @numba.njit(**_JIT)
@@ -219,16 +225,4 @@ def zero_velocity(R, p, v, ba, bg, P, sigma2):
     for a in range(15):
         for j in range(3):
             IKH[a, 3 + j] -= K[a, j]
-    Pn = IKH @ P @ IKH.T + sigma2 * (K @ K.T)
-    for a in range(15):
-        for b in range(15):
-            P[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-    for i in range(3):
-        p[i] += dx[i]
-        v[i] += dx[3 + i]
-        ba[i] += dx[9 + i]
-        bg[i] += dx[12 + i]
-    E = np.empty((3, 3))
-    _expm(dx[6], dx[7], dx[8], E)
-    Rn = R @ E
-    R[:, :] = Rn
+    _correct(R, p, v, ba, bg, P, IKH @ P @ IKH.T + sigma2 * (K @ K.T), dx)
