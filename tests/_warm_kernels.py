@@ -9,7 +9,8 @@ ones the tests load. Usage: ``python tests/_warm_kernels.py pose|filter`` (a sec
 - ``pose``: single-station PnP (the serial and the threaded batch), then the joint solve's start costs
   (its frame kernel is cached by then).
 - ``filter``: the joint solve's frame kernel (from given starts: no PnP), then the IMM filter step and
-  its station Jacobians, the fused DOP kernel and the optimiser's per-pose kernels.
+  its station Jacobians, the fused DOP kernel, the optimiser's per-pose kernels and the IMU-aided
+  filter's kernels.
 (Compilation CPU measured in a fresh clone, both groups at once: 33 s / 39 s; 55 s / 34 s once the PnP
 kernel's per-frame calls were inlined (issue 30), which puts ~20 s more into each PnP specialisation —
 the serial and the threaded one stay together: in two processes each would compile the inlined chain,
@@ -95,6 +96,30 @@ def warm_filter() -> None:
         f.update_sweep(s, axis, np.arange(4), np.ascontiguousarray(z))  # as the tracker passes them
     f.station_jacobians(np.eye(3), np.zeros(3))
     _warm_design_kernels()
+    _warm_imu_kernels(sts)
+
+
+def _warm_imu_kernels(stations) -> None:
+    """The IMU-aided filter's kernels (filter/_imu_numba.py), with the argument types its tracker passes."""
+    from layoutkit.filter import _imu_numba as K
+    from layoutkit.lighthouse import measure
+
+    R, P = np.eye(3), np.eye(15) * 1e-6
+    p, v, ba, bg = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+    g = np.array([0.0, 0.0, -9.80665])
+    acc, gyro = np.tile([0.0, 0.0, 9.80665], (2, 1)), np.zeros((2, 3))
+    K.propagate(R, p, v, ba, bg, g, P, acc[0], gyro[0], 0.01, 0.01, 1e-4, 1e-6, 1e-8)
+    st = stations[0]
+    ang = measure((DECK - st.translation) @ st.rotation, None)[:, 0]
+    idx = np.flatnonzero(np.isfinite(ang))
+    cp = np.zeros((2, 7))
+    qm = np.full(len(DECK) + 1, 30.0)
+    K.update(R, p, v, ba, bg, P, DECK - np.zeros(3), idx, ang[idx], np.ascontiguousarray(st.rotation, float),
+             np.ascontiguousarray(st.translation, float), st.kind == "lh2", 0, cp[0], False, 1e-8, 30.0, qm,
+             np.zeros(6))
+    K.zero_velocity(R, p, v, ba, bg, P, 1e-6)
+    K.body_cov(R, P, np.zeros(3), np.empty((12, 12)))
+    K.matrix_to_quat(R, np.empty(4))
 
 
 if __name__ == "__main__":
