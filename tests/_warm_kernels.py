@@ -114,9 +114,12 @@ def _warm_imu_kernels(stations) -> None:
     idx = np.flatnonzero(np.isfinite(ang))
     cp = np.zeros((2, 7))
     qm = np.full(len(DECK) + 1, 30.0)
-    K.update(R, p, v, ba, bg, P, DECK - np.zeros(3), idx, ang[idx], np.ascontiguousarray(st.rotation, float),
-             np.ascontiguousarray(st.translation, float), st.kind == "lh2", 0, cp[0], False, 1e-8, 30.0, qm,
-             np.zeros(6))
+    ro = cp.copy()
+    ro.setflags(write=False)  # a calibrated station's terms come read-only (its frozen calibration)
+    for c in (cp[0], ro[0]):
+        K.update(R, p, v, ba, bg, P, DECK - np.zeros(3), idx, ang[idx], np.ascontiguousarray(st.rotation, float),
+                 np.ascontiguousarray(st.translation, float), st.kind == "lh2", 0, c, False, 1e-8, 30.0, qm,
+                 np.zeros(6))
     K.zero_velocity(R, p, v, ba, bg, P, 1e-6)
     K.body_cov(R, P, np.zeros(3), np.empty((12, 12)))
     K.matrix_to_quat(R, np.empty(4))
