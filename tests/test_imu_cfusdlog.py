@@ -209,10 +209,11 @@ def test_no_imu_gives_the_lighthouse_only_filter(imu_log):
 
 
 @pytest.mark.slow
-def test_import_writes_imu_csv_and_replay_of_the_capture_uses_it(imu_log, tmp_path):
+def test_import_writes_imu_csv_and_replay_of_the_capture_uses_it(imu_log, tmp_path, monkeypatch):
     """Proof kind: round trip. ``import cfusdlog`` writes imu.csv beside capture.bin (named in the
     sidecar; SI units, the capture's clock) and ``replay CAPTURE --filter ekf`` uses it exactly as
-    ``replay LOG`` uses the log's own events."""
+    ``replay LOG`` uses the log's own events, reading the capture's sidecar once (the IMU entry comes
+    from the sidecar the replay's set-up read)."""
     from click.testing import CliRunner
 
     from layoutkit.cli import main
@@ -227,8 +228,14 @@ def test_import_writes_imu_csv_and_replay_of_the_capture_uses_it(imu_log, tmp_pa
     got = read_imu(out / "imu.csv")
     want = imu_samples(read_cfusdlog(imu_log["with"]))
     assert np.allclose(got.t, want.t, atol=0) and np.allclose(got.gyro, want.gyro) and np.allclose(got.acc, want.acc)
+    import layoutkit.io.sidecar as sidecar_io
+
+    reads = []
+    real = sidecar_io.read_sidecar
+    monkeypatch.setattr(sidecar_io, "read_sidecar", lambda path, *a, **k: reads.append(path) or real(path, *a, **k))
     s, _ = _replay(out / "capture.bin", imu_log["yaml"])
     assert s["imu"]["used"] and s["imu"]["from"].endswith("imu.csv")
+    assert len(reads) == 1, reads
 
 
 def test_rest_flags_follow_the_imu():

@@ -252,7 +252,8 @@ def resolve_solve_mode(solve: str | None, stations, options: LiveConfig | None) 
 
 def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_config, solve, cfusdlog_source,
                   tied=None):
-    """Every input of a replay read once: ``(RunSetup, the cfusdlog source dict or None, evidence)``.
+    """Every input of a replay read once: ``(RunSetup, the cfusdlog source dict or None, evidence, the
+    capture's sidecar)``.
     tied : ``{option: path}`` of the files given beside the capture, checked against it
     (:func:`layoutkit.io.runtie.check_ties`: a file of another run is a ValueError)."""
     from dataclasses import replace
@@ -275,7 +276,7 @@ def _replay_setup(capture: Path, layout, *, protocol, options, stations, system_
         sidecar = usd["sidecar"]
     setup = RunSetup.from_sidecar(sidecar, _layout_from(layout, sidecar), protocol=protocol, config=options,
                                   stations=given, system_config=cfg)
-    return replace(setup, config=resolve_solve_mode(solve, setup.stations, setup.config)), usd, evidence
+    return replace(setup, config=resolve_solve_mode(solve, setup.stations, setup.config)), usd, evidence, sidecar
 
 
 def _decode_all(setup: RunSetup, capture: Path, usd):
@@ -396,7 +397,7 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
     if not capture.is_file():
         raise ValueError(f"{capture}: no such capture file")
     beside = camera_folder_for(capture) if camera_device is None and camera_config is not None else None
-    setup, usd, evidence = _replay_setup(
+    setup, usd, evidence, sidecar = _replay_setup(
         capture, layout, protocol=protocol, options=options, stations=stations, system_config=system_config,
         solve=solve, cfusdlog_source=cfusdlog_source,
         tied={"--truth": truth, "--reference": reference, "--camera": camera,
@@ -415,14 +416,14 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
             extra = Path(extra)
             if not extra.is_file():
                 raise ValueError(f"{extra}: no such capture file (--refine-from)")
-            x_setup, x_usd, _ = _replay_setup(extra, setup.layout, protocol=None, options=setup.config,
+            x_setup, x_usd, _, _ = _replay_setup(extra, setup.layout, protocol=None, options=setup.config,
                                               stations=stations, system_config=setup.system_config, solve=solve,
                                               cfusdlog_source=cfusdlog_source)
             sets.append(_decode_all(x_setup, extra, x_usd)[1])
         setup, refinement = _refined(setup, sets, report_dir, refine_calibration)
         if refine_from:
             refinement["refined_from"] = [str(capture)] + [str(x) for x in refine_from]
-    imu_samples, imu_note = _imu_for(capture, usd, setup, imu)
+    imu_samples, imu_note = _imu_for(capture, usd, sidecar, setup, imu)
     s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
                      keep_good=reference is not None or camera is not None, imu=imu_samples)
     if decoded is None:
@@ -450,11 +451,12 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
                        report_dir=report_dir, reference_offset=reference_offset, camera_frames=cam)
 
 
-def capture_imu(capture, usd=None):
+def capture_imu(capture, usd=None, sidecar=None):
     """The IMU samples of a capture (:class:`layoutkit.io.imu.ImuSamples`, on its replay clock) and
     where they come from: a Crazyflie log replayed directly carries its own (``usd["imu"]``,
     :func:`layoutkit.importers.cfusdlog.imu_samples`); an imported capture names its ``imu.csv`` in
-    its sidecar (``imu.file``, beside the capture). ``(None, why)`` when there are none."""
+    its sidecar (``imu.file``, beside the capture; ``sidecar``: the one already read, else it is read
+    here). ``(None, why)`` when there are none."""
     from ..io.imu import read_imu
     from ..io.sidecar import read_sidecar
 
@@ -464,7 +466,7 @@ def capture_imu(capture, usd=None):
             return None, "the log has no IMU events (gyro.x/y/z, acc.x/y/z)"
         return imu, "the log's own events"
     capture = Path(capture)
-    entry = (read_sidecar(capture).extra or {}).get("imu")
+    entry = ((sidecar if sidecar is not None else read_sidecar(capture)).extra or {}).get("imu")
     if not isinstance(entry, dict) or not entry.get("file"):
         return None, "the capture's sidecar names no IMU file"
     path = capture.parent / entry["file"]
@@ -473,13 +475,13 @@ def capture_imu(capture, usd=None):
     return read_imu(path), str(path)
 
 
-def _imu_for(capture, usd, setup, want):
+def _imu_for(capture, usd, sidecar, setup, want):
     """(samples or None, summary note) for :func:`replay_capture`'s ``imu`` option."""
     if setup.config.filter is None:
         return None, None
     if want is False:
         return None, {"used": False, "why": "--no-imu"}
-    imu, where = capture_imu(capture, usd)
+    imu, where = capture_imu(capture, usd, sidecar)
     if imu is None:
         if want:
             raise ValueError(f"{capture}: --imu: no IMU samples ({where})")

@@ -47,7 +47,7 @@ def main():
     mocap = data / a.log.split("/")[0] / f"mocap{a.log[-2:]}.npy"
     cfg = LiveConfig()
     cfg = replace(cfg, filter=EkfConfig(sigma_theta=cfg.sigma_theta, rho=cfg.rho))
-    setup, usd, _ = _replay_setup(log, str(DECK_LAYOUT), protocol=None, options=cfg, stations=a.stations,
+    setup, usd, _, _ = _replay_setup(log, str(DECK_LAYOUT), protocol=None, options=cfg, stations=a.stations,
                                   system_config=str(yml), solve="joint", cfusdlog_source="auto")
     sweeps = _decode_all(setup, log, usd)[0]
     sts, _, _ = calibrated_setup(setup)
