@@ -21,6 +21,7 @@ __all__ = [
     "check_station_ids",
     "LH1_ROTOR_RPM",
     "DEFAULT_CLOCK_HZ",
+    "hit_offset",
     "sweep_angles",
     "angles_to_normalized",
     "normalized_to_angles",
@@ -96,6 +97,17 @@ def in_field_of_view(points_lh, fov_deg: float = 120.0) -> np.ndarray:
 def angular_rate(rotor_rpm: float = LH1_ROTOR_RPM) -> float:
     """Rotor angular rate omega in rad/s (3600 rpm → 120 pi)."""
     return 2.0 * np.pi * rotor_rpm / 60.0
+
+
+def hit_offset(st: Station, kind: str, ang, axis: int = 0):
+    """Hit time after the sweep's time (s) of angle(s) ``ang`` rad of station ``st`` on ``axis``: LH1
+    ``theta / omega`` after the sync, LH2 plane ``axis`` ``(alpha + pi -/+ pi/3) / omega`` after the
+    rotor zero (the decoder's plane angles ``a0 = off0 omega - pi + pi/3``, ``a1 = off1 omega - pi -
+    pi/3``), ``omega`` the rotor's :func:`angular_rate`."""
+    omega = angular_rate(st.rotor_rpm)
+    if kind == "lh2":
+        return (ang + np.pi + (-np.pi / 3 if axis == 0 else np.pi / 3)) / omega
+    return ang / omega
 
 
 def angles_to_ticks(angles, rotor_rpm: float = LH1_ROTOR_RPM, clock_hz: float = DEFAULT_CLOCK_HZ):

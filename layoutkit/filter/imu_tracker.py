@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import rotvec_to_matrix
+from ..lighthouse import hit_offset
 from ..units import RAD2DEG, STANDARD_GRAVITY
 from .ekf import EkfConfig, chi2_quantile, single_station_sigma
 from .imu import ImuEskf, ImuFilterConfig
@@ -133,10 +134,6 @@ class ImuCounters:
         return d
 
 
-def _skew(a):
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
 def rest_flags(t, gyro, acc, window_s: float, max_rate: float, max_acc: float) -> np.ndarray:
     """(N,) bool: the IMU at rest at sample k — over the ``window_s`` s up to it every sample's rate is
     below ``max_rate`` rad/s and its specific force within ``max_acc`` m/s² of the window's mean (a
@@ -203,7 +200,6 @@ class ImuSweepTracker:
         self._recent = deque(maxlen=self.ic.health_window)
         self._one = (-math.inf, math.inf)
         self._keep_bias = None
-        self._gate = {}
         self._started_once = False
         self.static = False
         self._jac = None  # the compiled station Jacobians of the lighthouse tracker's estimator
@@ -357,20 +353,6 @@ class ImuSweepTracker:
         self.counters.restarts += 1
 
     # ------------------------------------------------------------------ update
-    def _hit_offset(self, st, kind: str, axis: int, ang: np.ndarray) -> float:
-        """s, mean hit time of the sweep's angles after its time (LH2: after the rotor zero)."""
-        omega = 2.0 * math.pi * st.rotor_rpm / 60.0
-        a = float(np.mean(ang))
-        if kind == "lh2":
-            return (a + math.pi + (-math.pi / 3 if axis == 0 else math.pi / 3)) / omega
-        return a / omega
-
-    def _gate_q(self, m: int) -> float:
-        q = self._gate.get(m)
-        if q is None:
-            q = self._gate[m] = chi2_quantile(1.0 - self.fc.gate_p, m)
-        return q
-
     def _update(self, s: int, axis: int, z: np.ndarray, idx: np.ndarray) -> dict:
         """One sweep's update (:func:`layoutkit.filter._imu_numba.update`); the angle-noise scale follows
         the innovations of the accepted sweeps afterwards."""
@@ -430,7 +412,7 @@ class ImuSweepTracker:
         t = float(sweep.t)
         idx = np.flatnonzero(np.isfinite(ang))
         kind = getattr(sweep, "kind", None) or st.kind
-        th = t + (self._hit_offset(st, kind, axis, ang[idx]) if idx.size else 0.0)
+        th = t + (hit_offset(st, kind, float(np.mean(ang[idx])), axis) if idx.size else 0.0)  # mean hit time
         if th < self.t - self.ic.reorder_s:
             self.counters.sweeps_late += 1
             return None
@@ -531,7 +513,6 @@ class ImuSweepTracker:
             if not why and c.ok_beats_one_station and len(self.stations) >= 2 \
                     and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t, f.R, p_body):
                 why = "position sigma above one station's"
-            self.dbg = (math.sqrt(d[6] + d[7] + d[8]), self._one[1], math.sqrt(d[9] + d[10] + d[11]), self.noise_scale)
             self.why = why
             status = "uncertain" if why else "ok"
         cnt = self.counters

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..lighthouse import Station, to_sweep_angles
+from ..lighthouse import Station, hit_offset, to_sweep_angles
 from ..units import RAD2DEG
 from .ekf import POSE_IDX, EkfConfig, ErrorStateEKF, SweepUpdate, chi2_quantile, single_station_sigma, two_point_start
 from .so3 import quat_to_matrix, quat_to_rotvec, rotvec_floats
@@ -238,15 +238,11 @@ class SweepTracker:
         return self.stations[s]
 
     def _hit_offsets(self, st: Station, kind: str, ang: np.ndarray, axis: int = 0):
-        """Hit time of each angle after the sweep's time (s): LH1 ``theta / omega`` after the sync,
-        LH2 plane ``axis`` ``(alpha + pi -/+ pi/3) / omega`` after the rotor zero (the decoder's
-        plane angles ``a0 = off0 omega - pi + pi/3``, ``a1 = off1 omega - pi - pi/3``)."""
+        """:func:`layoutkit.lighthouse.hit_offset` of each angle, or None when the config's ``hit_timing`` is
+        off."""
         if not self.config.hit_timing:
             return None
-        omega = 2.0 * math.pi * st.rotor_rpm / 60.0
-        if kind == "lh2":
-            return (ang + math.pi + (-math.pi / 3 if axis == 0 else math.pi / 3)) / omega
-        return ang / omega
+        return hit_offset(st, kind, ang, axis)
 
     def _remember(self, s: int, axis: int, t: float, ang: np.ndarray) -> None:
         rec = self._recent.get(s)
