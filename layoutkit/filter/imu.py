@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import rotvec_to_matrix
+from ..geometry import rotvec_to_matrix, skew
 from ..lighthouse import measure_jacobian
 
 __all__ = ["ImuFilterConfig", "ImuEskf", "run_imu_filter"]
@@ -70,10 +70,6 @@ class ImuFilterConfig:
             raise ValueError(f"ImuFilterConfig.gate_p: expected 0 < p < 1, got {self.gate_p!r}")
 
 
-def _skew(a):
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
 class ImuEskf:
     """The filter of the module docstring (one body; poses of the IMU frame in the world)."""
 
@@ -100,7 +96,7 @@ class ImuEskf:
         E = rotvec_to_matrix(wg * dt)
         F = np.eye(15)
         F[0:3, 3:6] = np.eye(3) * dt
-        F[3:6, 6:9] = -self.R @ _skew(fa) * dt
+        F[3:6, 6:9] = -self.R @ skew(fa) * dt
         F[3:6, 9:12] = -self.R * dt
         F[6:9, 6:9] = E.T
         F[6:9, 12:15] = -np.eye(3) * dt
@@ -123,7 +119,7 @@ class ImuEskf:
         dw = dp[0, :, axis] @ station.rotation.T                     # d angle / d p_world (m, 3)
         H = np.zeros((len(h), 15))
         H[:, 0:3] = dw
-        H[:, 6:9] = -np.einsum("mi,ij,mjk->mk", dw, self.R, np.stack([_skew(q) for q in points_imu]))
+        H[:, 6:9] = -np.einsum("mi,ij,mjk->mk", dw, self.R, skew(points_imu))
         return h, H
 
     def update(self, station, axis: int, angles, points_imu) -> dict:
