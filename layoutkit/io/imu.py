@@ -96,11 +96,12 @@ def read_imu(path, source: str | None = None) -> ImuSamples:
         parts = line.split(",")
         if len(parts) != len(head):
             raise ValueError(f"{path}: line {ln}: {len(parts)} fields, the header has {len(head)}")
-        try:
-            vals = [float(parts[i]) for i in idx]
-        except ValueError:
-            bad = next(c for c, i in zip(IMU_COLUMNS, idx) if not _is_float(parts[i]))
-            raise ValueError(f"{path}: line {ln}: column {bad}: not a number ({parts[head.index(bad)]!r})") from None
+        vals = []
+        for c, i in zip(IMU_COLUMNS, idx):
+            try:
+                vals.append(float(parts[i]))
+            except ValueError:
+                raise ValueError(f"{path}: line {ln}: column {c}: not a number ({parts[i]!r})") from None
         if not all(np.isfinite(vals)):
             bad = next(c for c, v in zip(IMU_COLUMNS, vals) if not np.isfinite(v))
             raise ValueError(f"{path}: line {ln}: column {bad}: not finite")
@@ -110,11 +111,3 @@ def read_imu(path, source: str | None = None) -> ImuSamples:
         k = int(np.flatnonzero(np.diff(a[:, 0]) < 0)[0])
         raise ValueError(f"{path}: column t_s: time runs backwards at data row {k + 2} (line {k + 3})")
     return ImuSamples(a[:, 0], a[:, 1:4], a[:, 4:7], str(path) if source is None else source)
-
-
-def _is_float(s: str) -> bool:
-    try:
-        float(s)
-        return True
-    except ValueError:
-        return False
