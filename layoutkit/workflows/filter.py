@@ -53,7 +53,7 @@ class FilterSink:
                            getattr(s0, "calibration", None))]
         else:
             sts = list(stations)
-        self.tracker = SweepTracker(points_body, sts, config)
+        self.tracker = self._tracker(points_body, sts, config)
         self.truth = truth
         self.json_out = json_out
         self.seconds = 0.0
@@ -66,6 +66,10 @@ class FilterSink:
             self._poses = PoseWriter(poses_path, [f"{k}_{a}" for k in ("cov_rot_deg", "cov_pos_m") for a in "xyz"])
         self._acc = {"n": 0, "e_rot2": 0.0, "e_pos2": 0.0, "s_rot2": 0.0, "s_pos2": 0.0, "nees": 0.0,
                      "max_z": 0.0, "within3": 0}
+
+    def _tracker(self, points_body, stations, config: EkfConfig):
+        """The per-sweep tracker the sink runs (the lighthouse-only :class:`SweepTracker`)."""
+        return SweepTracker(points_body, stations, config)
 
     def feed(self, sweeps) -> list:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
@@ -258,11 +262,15 @@ class ImuFilterSink(FilterSink):
 
     def __init__(self, points_body, stations, config: EkfConfig, imu, truth=None, json_out=None, poses_path=None,
                  imu_config=None):
+        self.imu = imu
+        self._imu_config = imu_config
+        super().__init__(points_body, stations, config, truth, json_out, poses_path)
+
+    def _tracker(self, points_body, stations, config: EkfConfig):
         from ..filter.imu_tracker import ImuSweepTracker
 
-        super().__init__(points_body, stations, config, truth, json_out, poses_path)
-        self.imu = imu
-        self.tracker = ImuSweepTracker(points_body, self.tracker.stations, config, imu.t, imu.gyro, imu.acc, imu_config)
+        imu = self.imu
+        return ImuSweepTracker(points_body, stations, config, imu.t, imu.gyro, imu.acc, self._imu_config)
 
     def summary(self, frame_truth: dict | None = None) -> dict:
         trk = self.tracker
