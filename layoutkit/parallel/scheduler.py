@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import threading
 import time
 import uuid
 from collections import deque
@@ -102,6 +104,26 @@ class SynchronousExecutor:
         pass
 
 
+@contextlib.contextmanager
+def _sigint_deferred():
+    """Ctrl-C held back for the duration of one of distributed's blocking calls (``Client.sync``:
+    ``processing()``, ``scheduler_info()``, ``Future.result()``) and delivered right after it, in our
+    code. Landing inside ``sync()`` itself, a KeyboardInterrupt makes distributed's cancel callback log a
+    NameError traceback through tornado (distributed's ``utils.sync``: ``future`` not yet bound) while the
+    sweep stops. Main thread only (elsewhere signal handlers cannot be set and Ctrl-C does not land)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if got:
+            signal.raise_signal(signal.SIGINT)  # the original handler (KeyboardInterrupt, runcontrol's), now
+
+
 class _Completed:
     """Iterator over ``(handle, ok, value)`` in completion order; ``add(handle)`` extends it."""
 
@@ -142,13 +164,14 @@ class _Completed:
             if self.tick is not None:
                 self.tick()
             time.sleep(0.1 if self.tick is None else 0.25)
-        f = next(self._ac)
-        if f.status == "finished":
-            return f, True, f.result()
-        try:
-            exc = f.exception()
-        except Exception as e:  # cancelled, lost
-            exc = e
+        with _sigint_deferred():
+            f = next(self._ac)
+            if f.status == "finished":
+                return f, True, f.result()
+            try:
+                exc = f.exception()
+            except Exception as e:  # cancelled, lost
+                exc = e
         return f, False, exc if exc is not None else RuntimeError(f"task {f.key} ended as {f.status}")
 
 
@@ -174,7 +197,8 @@ class DistributedExecutor:
 
     @property
     def n_workers(self) -> int:
-        return len(self.client.scheduler_info().get("workers", {}))
+        with _sigint_deferred():
+            return len(self.client.scheduler_info().get("workers", {}))
 
     def submit(self, fn: Callable, *args, key: str | None = None):
         key = f"{key}-{uuid.uuid4().hex[:8]}" if key else None  # unique: two sweeps may share a cluster
@@ -192,7 +216,8 @@ class DistributedExecutor:
         t, keys = self._proc_cache
         if now - t > 0.5:
             try:
-                keys = {k for ks in self.client.processing().values() for k in ks}
+                with _sigint_deferred():
+                    keys = {k for ks in self.client.processing().values() for k in ks}
             except Exception:
                 keys = set()
             self._proc_cache = (now, keys)
