@@ -173,6 +173,7 @@ class SmoothedImuTracker:
         self._stepped = False
         self._out = []
         self._one = (-math.inf, math.inf)
+        self.last_causal = None  # the tracker's own (causal) output of the latest sweep
 
     # ------------------------------------------------------------------ recorder (called by the tracker)
     def gap_due(self, t: float) -> bool:
@@ -279,7 +280,7 @@ class SmoothedImuTracker:
     def push(self, sweep) -> list:
         """One sweep through the tracker; the outputs that became final (maybe none)."""
         self._stepped = False
-        o = self.tracker.push(sweep)
+        o = self.last_causal = self.tracker.push(sweep)
         if o is not None and not self._stepped:  # waiting for a start: no state to smooth
             self._flush()
             self._out.append(o)
