@@ -245,3 +245,22 @@ def test_fixed_lag_blocks_match_the_full_interval_smoother():
     assert all(a.t == b.t and a.status == b.status for a, b in zip(short, full))
     assert np.max(d_pos / sig) < 0.05, np.max(d_pos / sig)
     assert np.max(d_sig) < 0.01, np.max(d_sig)
+
+
+def test_smoothed_json_line_is_json_dumps_of_the_record():
+    """Proof kind: independent implementation. The fast JSON line of a smoothed output is
+    ``json.dumps`` of its record (which carries ``"smoothed": true``); a causal one has no such key."""
+    import json
+
+    from layoutkit.filter.jsonline import json_line
+    from layoutkit.filter.tracker import FilterOutput
+
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(12, 12))
+    q = np.array([0.1, -0.2, 0.3, 0.9])
+    q /= np.linalg.norm(q)
+    for smoothed, station, event in ((True, 1, ""), (True, -1, "gap"), (False, 0, "")):
+        o = FilterOutput(12.5, station, station, "ok", q, rng.normal(size=3), A @ A.T, 4, 0, False, 3.2, 4, False,
+                         event, smoothed=smoothed)
+        assert json_line(o) == json.dumps(o.record())
+        assert ("smoothed" in json.loads(json_line(o))) == smoothed

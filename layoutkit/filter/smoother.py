@@ -17,7 +17,12 @@ stream:
   s of later sweeps) and dropped, the rest is kept; the outputs are therefore delayed by at most
   ``2 lag_s`` s of data;
 - a restart (the filter lost: soft restart or a fresh start) breaks the chain: the steps up to it
-  are smoothed and emitted as one segment, the next segment starts at the next step;
+  are smoothed and emitted as one segment, the next segment starts at the next step. The filter
+  was lost because the sweeps refused its state, which was wrong before that verdict: the sweeps it
+  accepted while it drifted (one station, fast motion) would pull the smoothed poses before them
+  the wrong way (move/log00 at 81.2-81.5 s: a causal ok pose 8 mm from the motion capture smoothed
+  to 29-112 mm with a 6-10 mm sigma). Such a chain is smoothed only up to its last causal ok output;
+  the steps after it are emitted as the causal filter gave them (none ok);
 - at the end of the stream (:meth:`SmoothedImuTracker.finish`) the rest is smoothed and emitted.
 
 Statuses of smoothed outputs use the causal filter's rules unchanged: "lost" where the causal filter
@@ -73,6 +78,7 @@ class SmootherCounters:
     blocks: int = 0
     max_buffer: int = 0
     passthrough: int = 0
+    unsmoothed_tail: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -130,11 +136,11 @@ class StepBuffer:
         self.meta.append(meta)
         self.n += 1
 
-    def smooth(self):
-        """:func:`rts_smooth` over the buffered steps (views of length ``n``)."""
+    def smooth(self, n: int | None = None):
+        """:func:`rts_smooth` over the first ``n`` buffered steps (default all)."""
         from . import _imu_numba as K
 
-        n = self.n
+        n = self.n if n is None else n
         Rs, xs, Ps = np.empty((n, 3, 3)), np.empty((n, 12)), np.empty((n, 15, 15))
         if n:
             K.rts_backward(self.Rf, self.xf, self.Pf, self.Rp, self.xp, self.Pp, self.F, n, Rs, xs, Ps)
@@ -210,7 +216,7 @@ class SmoothedImuTracker:
         self._pred = None
         self._stepped = True
         if lost:  # the chain breaks here (soft restart or a fresh start follows)
-            self._flush()
+            self._flush(lost=True)
 
     # ------------------------------------------------------------------ blocks
     def _emit(self, upto: int, smoothed) -> None:
@@ -248,11 +254,26 @@ class SmoothedImuTracker:
             self._out.append(out)
         self.buf.drop(upto)
 
-    def _flush(self) -> None:
-        """Smooth the buffered chain and emit all of it (a restart, or the end of the stream)."""
-        if self.buf.n:
-            self._emit(self.buf.n, self.buf.smooth())
-            self.counters.segments += 1
+    def _flush(self, lost: bool = False) -> None:
+        """Smooth the buffered chain and emit all of it (the end of the stream, a fresh start). A chain
+        that ends lost (the sweeps refused the state: it was wrong before the verdict) is smoothed only
+        up to its last causal ok output, backwards from there; its steps after that one are emitted as
+        the causal filter gave them (none of them ok), its gap poses there dropped."""
+        b = self.buf
+        if not b.n:
+            return
+        self.counters.segments += 1
+        if not lost:
+            self._emit(b.n, b.smooth())
+            return
+        last_ok = max((k for k, m in enumerate(b.meta) if m[0] == "sweep" and m[1].status == "ok"), default=-1)
+        if last_ok >= 0:
+            self._emit(last_ok + 1, b.smooth(last_ok + 1))
+        for kind, o, *_ in b.meta:
+            if kind == "sweep":
+                self._out.append(o)
+                self.counters.unsmoothed_tail += 1
+        b.drop(b.n)
 
     def _block(self) -> None:
         b = self.buf
