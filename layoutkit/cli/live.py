@@ -200,6 +200,11 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
                          f"sweeps rejected by the gate {h['sweeps_rejected_by_gate']}, restarts {h['restarts']}")
         elif summary.get("imu") and not summary["imu"].get("used"):
             lines.append(f"filter IMU: not used ({summary['imu'].get('why')})")
+        sm = f.get("smoother")
+        if sm:
+            lines.append(f"filter smoothed (--smooth, lag {sm['lag_s']:g} s): {sm['outputs']} outputs ({sm['gap_poses']} "
+                         f"gap poses), ok {sm['share_ok'] * 100:.1f} %, chains {sm['segments']}, largest buffer "
+                         f"{sm['max_buffer']} steps")
         e = f.get("truth")
         if e:
             lines.append(f"filter error vs truth: RMS {e['rms_rot_deg']:.4f} deg / {e['rms_pos_m'] * 1e3:.3f} mm "

@@ -267,7 +267,8 @@ class ImuFilterSink(FilterSink):
     smooth : a :class:`layoutkit.filter.smoother.SmootherConfig` (``replay --smooth``): the outputs are
     the fixed-lag smoother's (delayed by up to twice its lag; gap poses between sweeps), the last ones
     when the sink is closed; the summary adds ``smoother`` (its counters, lag, seconds). None: the
-    causal filter's outputs."""
+    causal filter's outputs. (``share_ok`` and the counters stay the causal filter's; ``smoother.share_ok``
+    is the share of the smoothed outputs, gap poses included, that are ok.)"""
 
     def __init__(self, points_body, stations, config: EkfConfig, imu, truth=None, json_out=None, poses_path=None,
                  imu_config=None, smooth=None):
@@ -337,6 +338,4 @@ class ImuFilterSink(FilterSink):
             c = sm.counters.as_dict()
             out["smoother"] = {"lag_s": sm.sc.lag_s, "gap_dt_s": sm.sc.gap_dt_s, **c,
                                "share_ok": c["ok"] / c["outputs"] if c["outputs"] else 0.0}
-            out["share_ok_causal"] = out["share_ok"]
-            out["share_ok"] = out["smoother"]["share_ok"]
         return out
