@@ -312,3 +312,30 @@ def rts_backward(Rf, xf, Pf, Rp, xp, Pp, F, n, Rs, xs, Ps):
         for a in range(15):
             for b in range(15):
                 Ps[k, a, b] = Pf[k, a, b] + 0.5 * (M[a, b] + M[b, a])
+
+
+@numba.njit(**_JIT)
+def record_state(R, p, v, ba, bg, P, Rd, xd, Pd):
+    """Copy the nominal state and covariance into a recorder's slots: ``Rd (3, 3)``, ``xd (12,) = [p, v,
+    ba, bg]``, ``Pd (15, 15)``."""
+    for i in range(3):
+        for j in range(3):
+            Rd[i, j] = R[i, j]
+        xd[i] = p[i]
+        xd[3 + i] = v[i]
+        xd[6 + i] = ba[i]
+        xd[9 + i] = bg[i]
+    for a in range(15):
+        for b in range(15):
+            Pd[a, b] = P[a, b]
+
+
+@numba.njit(**_JIT)
+def body_outputs(Rs, xs, Ps, n, p_ib, cov, q, pb):
+    """Per smoothed step ``k < n`` the body pose of an output: ``cov[k] (12, 12)`` (:func:`body_cov`),
+    ``q[k]`` the attitude quaternion (:func:`matrix_to_quat`), ``pb[k] = p - R p_ib`` (m, world)."""
+    for k in range(n):
+        body_cov(Rs[k], Ps[k], p_ib, cov[k])
+        matrix_to_quat(Rs[k], q[k])
+        for i in range(3):
+            pb[k, i] = xs[k, i] - (Rs[k, i, 0] * p_ib[0] + Rs[k, i, 1] * p_ib[1] + Rs[k, i, 2] * p_ib[2])

@@ -126,13 +126,21 @@ class StepBuffer:
             b[:self.n] = a[:self.n]
             setattr(self, k, b)
 
-    def append(self, t, R, x, P, Rp, xp, Pp, F, meta) -> None:
+    def append(self, t, e, pred, F, meta) -> None:
+        """One step: time ``t``, the filter ``e``'s state now (filtered), ``pred = (R, x, P)`` before its
+        update (None: the same as filtered), ``F``, ``meta``."""
+        from . import _imu_numba as K
+
         if self.n == len(self.t):
             self._grow()
         i = self.n
         self.t[i] = t
-        self.Rf[i], self.xf[i], self.Pf[i] = R, x, P
-        self.Rp[i], self.xp[i], self.Pp[i], self.F[i] = Rp, xp, Pp, F
+        K.record_state(e.R, e.p, e.v, e.ba, e.bg, e.P, self.Rf[i], self.xf[i], self.Pf[i])
+        if pred is None:
+            self.Rp[i], self.xp[i], self.Pp[i] = self.Rf[i], self.xf[i], self.Pf[i]
+        else:
+            self.Rp[i], self.xp[i], self.Pp[i] = pred
+        self.F[i] = F
         self.meta.append(meta)
         self.n += 1
 
@@ -155,10 +163,6 @@ class StepBuffer:
             a[:m] = a[k:self.n]
         del self.meta[:k]
         self.n = m
-
-
-def _nominal(e):
-    return e.R.copy(), np.concatenate([e.p, e.v, e.ba, e.bg])
 
 
 class SmoothedImuTracker:
@@ -186,18 +190,18 @@ class SmoothedImuTracker:
         return len(self.buf.meta) > 0 and t - self._last_t >= self.sc.gap_dt_s
 
     def predicted(self, e) -> None:
-        R, x = _nominal(e)
-        self._pred = (R, x, e.P.copy())
+        from . import _imu_numba as K
+
+        R, x, P = np.empty((3, 3)), np.empty(12), np.empty((15, 15))
+        K.record_state(e.R, e.p, e.v, e.ba, e.bg, e.P, R, x, P)
+        self._pred = (R, x, P)
 
     def predicted_cov(self, P) -> None:
         R, x, _ = self._pred
         self._pred = (R, x, np.array(P, float))
 
     def _append(self, t, e, meta, F, pred) -> None:
-        R, x = _nominal(e)
-        P = e.P.copy()
-        Rp, xp, Pp = pred if pred is not None else (R, x, P)
-        self.buf.append(t, R, x, P, Rp, xp, Pp, F, meta)
+        self.buf.append(t, e, pred, F, meta)
         self._last_t = t
         self.counters.steps += 1
         self.counters.max_buffer = max(self.counters.max_buffer, self.buf.n)
@@ -205,13 +209,13 @@ class SmoothedImuTracker:
     def gap_step(self, t: float, trk: ImuSweepTracker) -> None:
         e = trk.eskf
         # a step without update: predicted = filtered
-        self._append(t, e, ("gap", None, trk._health(), False, trk.static), trk._Fc.copy(), None)
+        self._append(t, e, ("gap", None, trk._health(), False, trk.static), trk._Fc, None)
         self.counters.gap_poses += 1
 
     def step(self, o: FilterOutput, health: str, lost: bool, trk: ImuSweepTracker) -> None:
         if o.event == "init" and self.buf.n:
             self._flush()
-        self._append(o.t, trk.eskf, ("sweep", o, health, lost, o.static), trk._Fc.copy(),
+        self._append(o.t, trk.eskf, ("sweep", o, health, lost, o.static), trk._Fc,
                      None if o.event == "init" else self._pred)
         self._pred = None
         self._stepped = True
@@ -225,13 +229,12 @@ class SmoothedImuTracker:
         trk = self.tracker
         c = trk.config
         Rs, xs, Ps = smoothed
-        cov = np.empty((12, 12))
-        q = np.empty(4)
+        covs, qs, pbs = np.empty((upto, 12, 12)), np.empty((upto, 4)), np.empty((upto, 3))
+        K.body_outputs(Rs, xs, Ps, upto, trk.p_ib, covs, qs, pbs)
+        ns = len(trk.stations)
         for k in range(upto):
             kind, o, health, lost, static = self.buf.meta[k]
-            R, P = Rs[k], Ps[k]
-            K.body_cov(R, P, trk.p_ib, cov)
-            p_body = xs[k, 0:3] - R @ trk.p_ib
+            R, cov, p_body = Rs[k], covs[k], pbs[k]
             if lost:
                 status = "lost"
             elif health:
@@ -239,14 +242,12 @@ class SmoothedImuTracker:
             else:
                 d = cov.diagonal()
                 t = float(self.buf.t[k])
-                status = "uncertain" if sigma_why(d, c, len(trk.stations),
-                                                  lambda: self._one_station_limit(t, R, p_body)) else "ok"
-            K.matrix_to_quat(R, q)
+                status = "uncertain" if sigma_why(d, c, ns, lambda: self._one_station_limit(t, R, p_body)) else "ok"
             if o is None:
-                out = FilterOutput(float(self.buf.t[k]), -1, -1, status, q.copy(), p_body, cov.copy(),
+                out = FilterOutput(float(self.buf.t[k]), -1, -1, status, qs[k], p_body, cov,
                                    static=static, event="gap", smoothed=True)
             else:
-                out = FilterOutput(o.t, o.station, o.axis, status, q.copy(), p_body, cov.copy(), o.used, o.rejected,
+                out = FilterOutput(o.t, o.station, o.axis, status, qs[k], p_body, cov, o.used, o.rejected,
                                    o.sweep_rejected, o.nis, o.dof, static, o.event, smoothed=True)
             self.counters.outputs += 1
             self.counters.ok += status == "ok"
