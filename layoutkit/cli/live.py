@@ -7,7 +7,7 @@ import sys
 import click
 
 from .options import POSITIVE, Requires, flag_rules
-from .options import (camera_options, filter_options, imu_option, length_mm_option, refine_stations_option, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
+from .options import (camera_options, filter_options, imu_option, smooth_option, length_mm_option, refine_stations_option, json_flag, layout_option, overwrite_option, port_option, protocol_option, report_option,
                       rho_option, sigma_option, solve_mode_option, stations_option, system_config_option,
                       units_option)
 from .options import Number
@@ -200,6 +200,11 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
                          f"sweeps rejected by the gate {h['sweeps_rejected_by_gate']}, restarts {h['restarts']}")
         elif summary.get("imu") and not summary["imu"].get("used"):
             lines.append(f"filter IMU: not used ({summary['imu'].get('why')})")
+        sm = f.get("smoother")
+        if sm:
+            lines.append(f"filter smoothed (--smooth, lag {sm['lag_s']:g} s): {sm['outputs']} outputs ({sm['gap_poses']} "
+                         f"gap poses), ok {sm['share_ok'] * 100:.1f} %, chains {sm['segments']}, largest buffer "
+                         f"{sm['max_buffer']} steps")
         e = f.get("truth")
         if e:
             lines.append(f"filter error vs truth: RMS {e['rms_rot_deg']:.4f} deg / {e['rms_pos_m'] * 1e3:.3f} mm "
@@ -228,11 +233,13 @@ def _print_summary(summary: dict, as_json: bool, err: bool = False) -> None:
 @refine_stations_option
 @filter_options
 @imu_option
+@smooth_option
 @camera_options
 def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, reference_units, reference_offset, camera,
                report_dir, rho, sigma, motion_compensation, as_json, system_config, stations_path, filter_settings,
                camera_device, focal_length_px, principal_point_px, camera_method, aspect_ratio, corner_sigma_px,
-               camera_model, solve_mode, max_sigma_position, refine_stations, refine_from, refine_calibration, imu):
+               camera_model, solve_mode, max_sigma_position, refine_stations, refine_from, refine_calibration, imu,
+               smooth):
     """Decode and solve a recorded CAPTURE as fast as possible.
 
     Protocol, stations (and layout) come from the capture's sidecar JSON (<CAPTURE>.json) when
@@ -259,7 +266,7 @@ def replay_cmd(capture, layout_path, protocol, json_lines, truth, reference, ref
                                  camera_device=camera_device, camera_config=cam_cfg, stations=stations_path,
                                  system_config=system_config, solve=solve_mode,
                                  refine_stations=refine_stations or bool(refine_from), refine_from=refine_from,
-                                 refine_calibration=refine_calibration, imu=imu)
+                                 refine_calibration=refine_calibration, imu=imu, smooth=smooth)
     except BrokenPipeError:  # the reader of --json-lines went away (e.g. `| head`): stop quietly
         _quiet_exit()
     except (ValueError, FileNotFoundError, OSError) as exc:

@@ -397,6 +397,16 @@ def imu_option(f):
                              "--no-imu: the lighthouse-only filter [default: the IMU when the capture has it].")(f)
 
 
+def smooth_option(f):
+    """``--smooth``: with ``--filter ekf`` and the IMU, replay's outputs from the offline fixed-lag
+    smoother (:mod:`layoutkit.filter.smoother`). The command receives ``smooth`` (bool)."""
+    return click.option("--smooth", "smooth", is_flag=True, default=False,
+                        help="With --filter ekf and the IMU (replay only): the poses of the offline fixed-lag "
+                             "smoother (each uses the sweeps of the next 1.5 s too; JSON lines delayed by up to 3 s "
+                             "of data, marked \"smoothed\": true; poses in sweep gaps every 20 ms, \"event\": "
+                             "\"gap\"); same ok limits as the filter.")(f)
+
+
 def allow_odd_size_option(f=None):
     """``--allow-odd-size``: go on although the size of a mesh/layout says its ``--units`` are wrong."""
     deco = click.option("--allow-odd-size", is_flag=True,

@@ -7,6 +7,8 @@
 - :mod:`.tracker` — :class:`SweepTracker`: PnP (re-)initialisation, lost detection, static detector,
   one :class:`FilterOutput` per sweep.
 - :mod:`.consistency` — NEES / NIS over simulated runs.
+- :mod:`.imu`, :mod:`.imu_tracker` — the IMU-aided error-state filter and its per-sweep tracker;
+  :mod:`.smoother` — its offline fixed-lag Rauch-Tung-Striebel smoother (``replay --smooth``).
 
 numpy/scipy only; imports core modules (lighthouse, noise, pnp, geometry, dop), never live/cli/workflows.
 """

@@ -226,3 +226,116 @@ def zero_velocity(R, p, v, ba, bg, P, sigma2):
         for j in range(3):
             IKH[a, 3 + j] -= K[a, j]
     _correct(R, p, v, ba, bg, P, IKH @ P @ IKH.T + sigma2 * (K @ K.T), dx)
+
+
+@numba.njit(**_JIT)
+def transition(R, ba, bg, f, w, dt, Fc):
+    """The error transition ``F (15, 15)`` of :func:`propagate` over ``dt`` s with ``f``, ``w`` from the
+    nominal state ``R, ba, bg`` *before* that propagation (the same formula, Solà eqs. 269-270),
+    accumulated in place: ``Fc <- F Fc`` (the smoother's transition between two recorded steps)."""
+    if dt <= 0.0:
+        return
+    fa = np.empty(3)
+    for i in range(3):
+        fa[i] = f[i] - ba[i]
+    E = np.empty((3, 3))
+    _expm((w[0] - bg[0]) * dt, (w[1] - bg[1]) * dt, (w[2] - bg[2]) * dt, E)
+    F = np.eye(15)
+    for i in range(3):
+        F[i, 3 + i] = dt
+        F[6 + i, 12 + i] = -dt
+        for j in range(3):
+            F[3 + i, 9 + j] = -R[i, j] * dt
+            F[6 + i, 6 + j] = E[j, i]
+    S = np.array([[0.0, -fa[2], fa[1]], [fa[2], 0.0, -fa[0]], [-fa[1], fa[0], 0.0]])
+    for i in range(3):
+        for j in range(3):
+            F[3 + i, 6 + j] = -(R[i, 0] * S[0, j] + R[i, 1] * S[1, j] + R[i, 2] * S[2, j]) * dt
+    Fn = F @ Fc
+    Fc[:, :] = Fn
+
+
+@numba.njit(**_JIT)
+def _logm(R, out):
+    """Rotation vector ``out (3,)`` of ``R`` (angle below pi; small angles to second order)."""
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    c = min(1.0, max(-1.0, c))
+    th = math.acos(c)
+    k = 0.5 + th * th / 12.0 if th < 1e-4 else 0.5 * th / math.sin(th)
+    out[0] = k * (R[2, 1] - R[1, 2])
+    out[1] = k * (R[0, 2] - R[2, 0])
+    out[2] = k * (R[1, 0] - R[0, 1])
+
+
+@numba.njit(**_JIT)
+def rts_backward(Rf, xf, Pf, Rp, xp, Pp, F, n, Rs, xs, Ps):
+    """Rauch-Tung-Striebel backward pass of the error-state filter over steps ``0..n-1`` of one chain
+    (no restart in between), in place on ``Rs (K, 3, 3)``, ``xs (K, 12)``, ``Ps (K, 15, 15)``.
+
+    Per step k: ``Rf, xf = [p, v, ba, bg], Pf`` the filtered nominal state and error covariance after
+    its update; ``Rp, xp, Pp`` the predicted ones before it; ``F[k]`` the error transition from step
+    k-1's filtered state to step k's prediction (I for a step without propagation); index 0's
+    ``Rp, xp, Pp, F`` are not used. Error state ``[dp, dv, dtheta (local), dba, dbg]``.
+    The step ``n-1`` is smoothed = filtered; backwards:
+    ``C = Pf[k] F[k+1]^T Pp[k+1]^-1``, ``dx = C (x_s[k+1] ⊟ xp[k+1])``, ``x_s[k] = xf[k] ⊞ dx``
+    (``R_s = R_f exp([dtheta]x)``, ``⊟``: ``log(R_p^T R_s)`` for the attitude), ``P_s[k] = Pf[k] +
+    C (P_s[k+1] - Pp[k+1]) C^T`` (symmetrised)."""
+    last = n - 1
+    Rs[last] = Rf[last]
+    xs[last] = xf[last]
+    Ps[last] = Pf[last]
+    d = np.empty(15)
+    r = np.empty(3)
+    E = np.empty((3, 3))
+    for k in range(last - 1, -1, -1):
+        A = F[k + 1] @ Pf[k]                          # (15, 15) = F Pf
+        CT = np.linalg.solve(Pp[k + 1], A)            # C^T = Pp^-1 F Pf (Pp, Pf symmetric)
+        C = CT.T.copy()
+        for i in range(3):
+            d[i] = xs[k + 1, i] - xp[k + 1, i]
+            d[3 + i] = xs[k + 1, 3 + i] - xp[k + 1, 3 + i]
+            d[9 + i] = xs[k + 1, 6 + i] - xp[k + 1, 6 + i]
+            d[12 + i] = xs[k + 1, 9 + i] - xp[k + 1, 9 + i]
+        D = Rp[k + 1].T @ Rs[k + 1]
+        _logm(D, r)
+        for i in range(3):
+            d[6 + i] = r[i]
+        dx = C @ d
+        for i in range(3):
+            xs[k, i] = xf[k, i] + dx[i]
+            xs[k, 3 + i] = xf[k, 3 + i] + dx[3 + i]
+            xs[k, 6 + i] = xf[k, 6 + i] + dx[9 + i]
+            xs[k, 9 + i] = xf[k, 9 + i] + dx[12 + i]
+        _expm(dx[6], dx[7], dx[8], E)
+        Rs[k] = Rf[k] @ E
+        M = C @ (Ps[k + 1] - Pp[k + 1]) @ CT
+        for a in range(15):
+            for b in range(15):
+                Ps[k, a, b] = Pf[k, a, b] + 0.5 * (M[a, b] + M[b, a])
+
+
+@numba.njit(**_JIT)
+def record_state(R, p, v, ba, bg, P, Rd, xd, Pd):
+    """Copy the nominal state and covariance into a recorder's slots: ``Rd (3, 3)``, ``xd (12,) = [p, v,
+    ba, bg]``, ``Pd (15, 15)``."""
+    for i in range(3):
+        for j in range(3):
+            Rd[i, j] = R[i, j]
+        xd[i] = p[i]
+        xd[3 + i] = v[i]
+        xd[6 + i] = ba[i]
+        xd[9 + i] = bg[i]
+    for a in range(15):
+        for b in range(15):
+            Pd[a, b] = P[a, b]
+
+
+@numba.njit(**_JIT)
+def body_outputs(Rs, xs, Ps, n, p_ib, cov, q, pb):
+    """Per smoothed step ``k < n`` the body pose of an output: ``cov[k] (12, 12)`` (:func:`body_cov`),
+    ``q[k]`` the attitude quaternion (:func:`matrix_to_quat`), ``pb[k] = p - R p_ib`` (m, world)."""
+    for k in range(n):
+        body_cov(Rs[k], Ps[k], p_ib, cov[k])
+        matrix_to_quat(Rs[k], q[k])
+        for i in range(3):
+            pb[k, i] = xs[k, i] - (Rs[k, i, 0] * p_ib[0] + Rs[k, i, 1] * p_ib[1] + Rs[k, i, 2] * p_ib[2])

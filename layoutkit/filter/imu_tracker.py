@@ -51,7 +51,7 @@ from .imu import ImuEskf, ImuFilterConfig
 from .so3 import quat_to_matrix
 from .tracker import FilterOutput, SweepTracker
 
-__all__ = ["ImuTrackerConfig", "ImuCounters", "ImuSweepTracker"]
+__all__ = ["ImuTrackerConfig", "ImuCounters", "ImuSweepTracker", "sigma_why"]
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,25 @@ class ImuCounters:
         return d
 
 
+def sigma_why(d, config: EkfConfig, n_stations: int, one_station_limit) -> str:
+    """Why a pose with the body covariance diagonal ``d (12,)`` (``(dphi world rad, dw, dp m, dv m/s)``,
+    variances) is not ok by its sigma ("" when it is): the speed 1-sigma above ``max_sigma_speed``,
+    the attitude / position 1-sigma above ``max_sigma_rot_deg`` / ``max_sigma_pos_m``, or (with
+    ``ok_beats_one_station`` and two stations or more) the position root trace above the best single
+    station's ``one_station_limit()`` (m; called only when the other limits pass). The one rule of the
+    causal filter's statuses and of the smoothed ones."""
+    c = config
+    big_pos = math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m
+    big_rot = math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg
+    if not math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed:
+        return "velocity unknown"
+    if max(big_rot, big_pos) > 1.0:
+        return "sigma above the filter's limits"
+    if c.ok_beats_one_station and n_stations >= 2 and math.sqrt(d[6] + d[7] + d[8]) > one_station_limit():
+        return "position sigma above one station's"
+    return ""
+
+
 def rest_flags(t, gyro, acc, window_s: float, max_rate: float, max_acc: float) -> np.ndarray:
     """(N,) bool: the IMU at rest at sample k — over the ``window_s`` s up to it every sample's rate is
     below ``max_rate`` rad/s and its specific force within ``max_acc`` m/s² of the window's mean (a
@@ -204,6 +223,10 @@ class ImuSweepTracker:
         self.static = False
         self._jac = None  # the compiled station Jacobians of the lighthouse tracker's estimator
         self._soft_at = -math.inf  # time of the latest soft restart
+        # the smoother's recorder (:class:`layoutkit.filter.smoother.SmoothedImuTracker`), None = causal only;
+        # it reads the states and never changes them (the causal outputs stay the same with or without it)
+        self.recorder = None
+        self._Fc = np.eye(15)  # the error transition accumulated since the recorder's latest step
         fc = self.fc
         self._qg, self._qba, self._qbg = fc.gyro_noise ** 2, fc.acc_bias_walk ** 2, fc.gyro_bias_walk ** 2
         self._q1 = chi2_quantile(1.0 - fc.gate_p, 1)
@@ -239,6 +262,7 @@ class ImuSweepTracker:
             self.counters.imu_gap_sweeps += 1
         from . import _imu_numba as K
 
+        rec = self.recorder
         a = self.t
         j = int(np.searchsorted(T, a, side="right"))
         while True:
@@ -251,8 +275,14 @@ class ImuSweepTracker:
                 else:  # the accelerometer's error grows with the motion (scale, axes, timing, filtering)
                     ad = e.R @ (f - e.ba) + e.g
                     qa = (self.fc.acc_noise + self.ic.acc_noise_per_acc * math.sqrt(ad @ ad)) ** 2
+                if rec is not None:
+                    K.transition(e.R, e.ba, e.bg, f, w, b - a, self._Fc)
                 K.propagate(e.R, e.p, e.v, e.ba, e.bg, e.g, e.P, f, w, b - a, qa, self._qg, self._qba, self._qbg)
                 a = b
+                if rec is not None and b < t and rec.gap_due(b):
+                    # a pose inside a gap between sweeps (at an IMU sample's time): a step without update
+                    rec.gap_step(b, self)
+                    self._Fc = np.eye(15)
             if a >= t:
                 break
             j += 1
@@ -417,6 +447,8 @@ class ImuSweepTracker:
             self.counters.sweeps_late += 1
             return None
         self._propagate(th)
+        if self.recorder is not None:
+            self.recorder.predicted(self.eskf)
         upd = None
         if idx.size >= self.fc.min_sensors:
             late = self.t - th
@@ -432,6 +464,8 @@ class ImuSweepTracker:
                 # constant-velocity step leaves out (before the gates judge the sweep)
                 ad = f.R @ (np.asarray(fs) - f.ba) + f.g
                 f.P[0:3, 0:3] += f.P[3:6, 3:6] * late * late + np.eye(3) * (0.5 * (ad @ ad) ** 0.5 * late * late) ** 2
+                if self.recorder is not None:  # (the inflation is part of this step's prediction)
+                    self.recorder.predicted_cov(f.P)
                 f.p -= f.v * late - 0.5 * ad * late * late
                 f.R[:, :] = f.R @ dR.T
                 upd = self._update(s, axis, ang[idx], idx)
@@ -499,20 +533,14 @@ class ImuSweepTracker:
         # for that station (the lighthouse-only tracker's rule too)
         bad = max(self._bad_run, max(self._bad_by_station.values(), default=0))
         lost = bad >= c.lost_after or big_pos > c.lost_factor
+        health = ""
         if lost:
             status = "lost"
             self.why = "lost"
         else:
-            big_rot = math.sqrt(max(d[0], d[1], d[2])) * RAD2DEG / c.max_sigma_rot_deg
-            slow_known = math.sqrt(max(d[9], d[10], d[11])) <= c.max_sigma_speed
-            starving = len(self._recent) >= self._recent.maxlen // 2 and \
-                sum(1 for x in self._recent if not x) > len(self._recent) // 2
-            why = ("confirming a start" if self._confirm > 0 else "sweeps rejected" if bad >= 2 else
-                   "gate starving" if starving else "velocity unknown" if not slow_known else
-                   "sigma above the filter's limits" if max(big_rot, big_pos) > 1.0 else "")
-            if not why and c.ok_beats_one_station and len(self.stations) >= 2 \
-                    and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t, f.R, p_body):
-                why = "position sigma above one station's"
+            health = self._health()
+            why = health or sigma_why(d, c, len(self.stations),
+                                      lambda: self._one_station_limit(t, f.R, p_body))
             self.why = why
             status = "uncertain" if why else "ok"
         cnt = self.counters
@@ -528,6 +556,18 @@ class ImuSweepTracker:
             acc = bool(upd["accepted"])
             o = FilterOutput(t, s, axis, status, q, p_body, P, upd["m"] if acc else 0, 0 if acc else upd["m"],
                              not acc, upd["nis"], upd["m"], self.static, event)
+        if self.recorder is not None:
+            self.recorder.step(o, health, lost, self)
+            self._Fc = np.eye(15)
         if lost:
             self._lose()
         return o
+
+    def _health(self) -> str:
+        """Why the filter's state is not to be trusted now, its sigma aside ("" when it is): a start not
+        yet confirmed, sweeps rejected in a row (overall or of one station), the gate starving."""
+        bad = max(self._bad_run, max(self._bad_by_station.values(), default=0))
+        starving = len(self._recent) >= self._recent.maxlen // 2 and \
+            sum(1 for x in self._recent if not x) > len(self._recent) // 2
+        return ("confirming a start" if self._confirm > 0 else "sweeps rejected" if bad >= 2 else
+                "gate starving" if starving else "")

@@ -26,6 +26,8 @@ __all__ = ["json_line"]
 _LINE = ('{"t": %r, "status": %s, "rotvec": [%r, %r, %r], "translation": [%r, %r, %r], '
          '"cov_rot_deg": [%r, %r, %r], "cov_pos_m": [%r, %r, %r], "station": %d, "axis": %d, "used": %d, '
          '"rejected": %d, "nis": %s, "dof": %d, "static": %s, "event": %s}')
+#: the same with the smoother's mark (``FilterOutput.smoothed``)
+_LINE_SMOOTHED = _LINE[:-1] + ', "smoothed": true}'
 
 
 def json_line(o) -> str:
@@ -42,7 +44,8 @@ def json_line(o) -> str:
     station, axis, used, rejected, dof = o.station, o.axis, o.used, o.rejected, o.dof
     if not (type(o.status) is str and type(o.event) is str and type(o.static) is bool
             and type(station) is int and type(axis) is int and type(used) is int and type(rejected) is int
-            and type(dof) is int and isinstance(nis, float) and isinstance(o.t, float)):
+            and type(dof) is int and isinstance(nis, float) and isinstance(o.t, float)
+            and type(o.smoothed) is bool):
         return json.dumps(o.record())
     fl = (o.t, *rotvec_floats(o.quaternion), *np.asarray(o.translation, float).tolist(),
           s0 * RAD2DEG, s1 * RAD2DEG, s2 * RAD2DEG, s3, s4, s5)
@@ -51,5 +54,5 @@ def json_line(o) -> str:
     nis_s = float.__repr__(nis) if math.isfinite(nis) else "null"
     # %r of a Python float is float.__repr__ (json's spelling of a finite float); t may be a numpy
     # float (json writes float.__repr__ of it too): float() keeps its value
-    return _LINE % (float(fl[0]), _esc(o.status), *fl[1:], station, axis, used, rejected, nis_s, dof,
+    return (_LINE_SMOOTHED if o.smoothed is True else _LINE) % (float(fl[0]), _esc(o.status), *fl[1:], station, axis, used, rejected, nis_s, dof,
                     "true" if o.static else "false", _esc(o.event))

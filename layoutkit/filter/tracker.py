@@ -67,7 +67,9 @@ class FilterOutput:
     failed the NIS gate; nis, dof : its NIS and degrees of freedom; static : the static detector's
     verdict; event : "init" on the sweep that (re-)initialised the filter, else "";
     correction : (6,) pose correction applied by this sweep's update and prior_sigma : (6,) the
-    pose 1-sigma before it (None without update).
+    pose 1-sigma before it (None without update); smoothed : the pose and covariance are the offline
+    smoother's (:mod:`layoutkit.filter.smoother`: the sweeps after ``t`` used too; the JSON line then
+    carries ``"smoothed": true``).
     """
 
     t: float
@@ -86,6 +88,7 @@ class FilterOutput:
     event: str = ""
     correction: np.ndarray | None = None
     prior_sigma: np.ndarray | None = None
+    smoothed: bool = False
 
     @property
     def ok(self) -> bool:
@@ -120,7 +123,7 @@ class FilterOutput:
                 "cov_rot_deg": [sd[0] * RAD2DEG, sd[1] * RAD2DEG, sd[2] * RAD2DEG], "cov_pos_m": sd[3:],
                 "station": self.station, "axis": self.axis, "used": self.used, "rejected": self.rejected,
                 "nis": None if not math.isfinite(self.nis) else self.nis, "dof": self.dof,
-                "static": self.static, "event": self.event}
+                "static": self.static, "event": self.event} | ({"smoothed": True} if self.smoothed else {})
 
 
 @dataclass

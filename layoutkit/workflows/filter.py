@@ -87,6 +87,11 @@ class FilterSink:
                 outs.append(o)
         self.seconds += time.perf_counter() - t0
         self.cpu_seconds += time.process_time() - c0
+        self._emit(outs)
+        return outs
+
+    def _emit(self, outs) -> None:
+        """The outputs to the JSON lines, the truth statistics and the pose table."""
         if outs and self.json_out is not None:
             self.json_out.write("".join(json_line(o) + "\n" for o in outs))
             self.json_out.flush()
@@ -99,7 +104,6 @@ class FilterSink:
                 "status": np.array([FILTER_STATUS_CODES[o.status] for o in outs]),
                 "cov_rot_deg": np.array([o.cov_rot_deg for o in outs]),
                 "cov_pos_m": np.array([o.cov_pos_m for o in outs]), "station": np.array([o.station for o in outs])}))
-        return outs
 
     def close(self) -> None:
         """Finish the pose table (if any)."""
@@ -258,13 +262,51 @@ class ImuFilterSink(FilterSink):
     table and truth statistics; the summary adds ``imu`` (used, samples, rate, gravity, the filter's
     health: mean NIS per degree of freedom, sweeps rejected by the gate, restarts, the angle-noise
     scale). imu : :class:`layoutkit.io.imu.ImuSamples` on the sweeps' clock, IMU frame = the layout's
-    frame. Needs the stations' world poses (two or more stations for a start)."""
+    frame. Needs the stations' world poses (two or more stations for a start).
+
+    smooth : a :class:`layoutkit.filter.smoother.SmootherConfig` (``replay --smooth``): the outputs are
+    the fixed-lag smoother's (delayed by up to twice its lag; gap poses between sweeps), the last ones
+    when the sink is closed; the summary adds ``smoother`` (its counters, lag, seconds). None: the
+    causal filter's outputs. (``share_ok`` and the counters stay the causal filter's; ``smoother.share_ok``
+    is the share of the smoothed outputs, gap poses included, that are ok.)"""
 
     def __init__(self, points_body, stations, config: EkfConfig, imu, truth=None, json_out=None, poses_path=None,
-                 imu_config=None):
+                 imu_config=None, smooth=None):
         self.imu = imu
         self._imu_config = imu_config
         super().__init__(points_body, stations, config, truth, json_out, poses_path)
+        self.smoother = None
+        self.smooth_seconds = 0.0
+        if smooth is not None:
+            from ..filter.smoother import SmoothedImuTracker
+
+            self.smoother = SmoothedImuTracker(self.tracker, smooth)
+
+    def feed(self, sweeps) -> list:
+        if self.smoother is None:
+            return super().feed(sweeps)
+        t0, c0 = time.perf_counter(), time.process_time()
+        outs = []
+        push = self.smoother.push
+        for m in sweeps:
+            self.sweeps += 1
+            try:
+                outs.extend(push(m))
+            except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
+                continue
+        self.seconds += time.perf_counter() - t0
+        self.cpu_seconds += time.process_time() - c0
+        self._emit(outs)
+        return outs
+
+    def close(self) -> None:
+        if self.smoother is not None:  # the rest of the smoothed outputs, before the pose table closes
+            t0, c0 = time.perf_counter(), time.process_time()
+            outs = self.smoother.finish()
+            self.seconds += time.perf_counter() - t0
+            self.cpu_seconds += time.process_time() - c0
+            self._emit(outs)
+        super().close()
 
     def _tracker(self, points_body, stations, config: EkfConfig):
         from ..filter.imu_tracker import ImuSweepTracker
@@ -291,4 +333,9 @@ class ImuFilterSink(FilterSink):
                       | {"imu_position_m": list(trk.ic.imu_position)},
                       "bias_acc_m_s2": None if trk.eskf is None else trk.eskf.ba.tolist(),
                       "bias_gyro_rad_s": None if trk.eskf is None else trk.eskf.bg.tolist()}
+        if self.smoother is not None:
+            sm = self.smoother
+            c = sm.counters.as_dict()
+            out["smoother"] = {"lag_s": sm.sc.lag_s, "gap_dt_s": sm.sc.gap_dt_s, **c,
+                               "share_ok": c["ok"] / c["outputs"] if c["outputs"] else 0.0}
         return out

@@ -111,14 +111,16 @@ def _layout_from(layout, sidecar: CaptureSidecar) -> Layout:
 
 
 def open_session(setup: RunSetup, *, truth=None, json_out=None, poses_path=None, firmware=None,
-                 keep_good: bool = False, imu=None) -> LiveSession:
+                 keep_good: bool = False, imu=None, smooth=None) -> LiveSession:
     """A :class:`LiveSession` for ``setup`` with the file side's sinks: the per-sweep EKF
     (:class:`~layoutkit.workflows.filter.FilterSink`, ``filter_poses.csv`` beside ``poses_path``)
     when ``setup.config.filter`` is set, the firmware's own position estimates joined into the pose
     table (``firmware``: :func:`layoutkit.importers.cfusdlog.firmware_positions`), every good pose
     kept for references (``keep_good``). truth : a PoseTrack (or a TRUTH.csv path). imu : IMU samples
     (:class:`layoutkit.io.imu.ImuSamples`, the sweeps' clock, the layout's frame) for the IMU-aided
-    filter (:class:`~layoutkit.workflows.filter.ImuFilterSink`) instead of the lighthouse-only one."""
+    filter (:class:`~layoutkit.workflows.filter.ImuFilterSink`) instead of the lighthouse-only one.
+    smooth : a :class:`layoutkit.filter.smoother.SmootherConfig`: that filter's outputs smoothed
+    offline (replay only; needs ``imu``)."""
     from ..live.session import calibrated_setup
 
     tr = _track(truth) if isinstance(truth, (str, Path)) else truth
@@ -137,7 +139,8 @@ def open_session(setup: RunSetup, *, truth=None, json_out=None, poses_path=None,
         if imu is not None:
             from .filter import ImuFilterSink
 
-            sink = ImuFilterSink(setup.layout.positions, sts or None, setup.config.filter, imu, tr, json_out, fp)
+            sink = ImuFilterSink(setup.layout.positions, sts or None, setup.config.filter, imu, tr, json_out, fp,
+                                 smooth=smooth)
         else:
             sink = FilterSink(setup.layout.positions, sts or None, setup.config.filter, tr, json_out, fp)
     columns = ()
@@ -359,7 +362,7 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
                    camera=None, json_out=None, report_dir=None, on_progress=None, camera_device=None,
                    camera_config=None, stations=None, system_config=None, solve: str | None = None,
                    cfusdlog_source: str = "auto", refine_stations: bool = False, refine_from=(),
-                   refine_calibration: bool = False, imu: bool | None = None) -> dict:
+                   refine_calibration: bool = False, imu: bool | None = None, smooth=None) -> dict:
     """Decode and solve a capture file as fast as possible; returns the run summary dict.
 
     capture : path (with its ``.json`` sidecar when present: protocol, stations, layout).
@@ -424,8 +427,9 @@ def replay_capture(capture, layout=None, *, protocol: str | None = None, options
         if refine_from:
             refinement["refined_from"] = [str(capture)] + [str(x) for x in refine_from]
     imu_samples, imu_note = _imu_for(capture, usd, sidecar, setup, imu)
+    smooth = _smoother_config(smooth, setup, imu_samples, imu_note)
     s = open_session(setup, truth=truth, json_out=json_out, poses_path=poses, firmware=firmware,
-                     keep_good=reference is not None or camera is not None, imu=imu_samples)
+                     keep_good=reference is not None or camera is not None, imu=imu_samples, smooth=smooth)
     if decoded is None:
         _feed_capture(s, capture, usd, on_progress)
     else:
@@ -473,6 +477,22 @@ def capture_imu(capture, usd=None, sidecar=None):
     if not path.is_file():
         return None, f"{path}: the IMU file the sidecar names is missing"
     return read_imu(path), str(path)
+
+
+def _smoother_config(smooth, setup, imu_samples, imu_note):
+    """The :class:`~layoutkit.filter.smoother.SmootherConfig` of :func:`replay_capture`'s ``smooth``
+    (None / False: none; True: the defaults; a config as it is); ValueError when there is no IMU-aided
+    filter to smooth."""
+    if smooth is None or smooth is False:
+        return None
+    if setup.config.filter is None:
+        raise ValueError("--smooth: smooths the filter's outputs; add --filter ekf")
+    if imu_samples is None:
+        why = (imu_note or {}).get("why") or "the capture has no IMU samples"
+        raise ValueError(f"--smooth: smooths the IMU-aided filter, which does not run here ({why})")
+    from ..filter.smoother import SmootherConfig
+
+    return SmootherConfig() if smooth is True else smooth
 
 
 def _imu_for(capture, usd, sidecar, setup, want):

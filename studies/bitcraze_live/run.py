@@ -30,6 +30,12 @@ filter's real-time factor (stream seconds per filter CPU second).
    filter) on every log: the ``imu_*`` columns and the table's "IMU-aided filter" section
    (``--no-imu`` skips these replays).
 
+4. ``--filter ekf --imu --smooth`` (the offline fixed-lag smoother of the IMU-aided filter,
+   :mod:`layoutkit.filter.smoother`) on the moving and flight logs: the ``smooth_*`` columns (the
+   same figures as ``imu_*``, from the smoothed JSON lines: gap poses included) and the table's
+   "Offline smoother" section, with both replays' wall time and filter CPU time of the same run
+   (``--no-smooth`` skips these replays).
+
 ``--filter-set KEY=VALUE`` (repeatable) replays the filter with other EkfConfig keywords, e.g. the
 measured alternative in ``adaptive_rho0/`` (``--filter-set adaptive_rho=0 --out OUT`` on the moving,
 flight and three static logs; docs/live.md says why it is not the default).
@@ -222,50 +228,53 @@ def interval_causes(F, on: float, off: float, interval: float = 0.1) -> dict:
     return out
 
 
-def imu_metrics(s, F, wall, it, fw, span) -> dict:
+def imu_metrics(s, F, wall, it, fw, span, prefix: str = "imu_") -> dict:
     """The IMU-aided filter's figures of one log (``replay LOG ... --filter ekf --imu``: the summary ``s``,
     its JSON lines ``F``, wall seconds): the lighthouse-only filter's columns under ``imu_*`` — static
     jitter, error vs motion capture of the ok outputs (own alignment), 100 ms coverage, err/σ, the
     intervals' causes and the ok outputs' errors by the stations their interval had — and the
     filter's health (IMU samples, rate, gravity, mean NIS per dof, gate rejections, restarts, angle
-    noise) and speed."""
+    noise) and speed. ``prefix``: "smooth_" for the smoothed replay (``--smooth``; its ``smoother``
+    summary as ``smooth_smoother``)."""
     if s is None:
-        return {"imu_error": wall}
+        return {f"{prefix}error": wall}
     f = s.get("filter") or {}
     imu = f.get("imu") or {}
     h = imu.get("health") or {}
     okF = F["status"] == "ok"
     tf, pf = F["t"][okF], F["p"][okF]
     on, off = fw["markers"] if fw["markers"] else (tf[0] if len(tf) else 0.0, tf[-1] if len(tf) else 1.0)
-    row = {"imu_used": (s.get("imu") or {}).get("used"), "imu_samples": imu.get("samples"),
-           "imu_rate_hz": round(imu["rate_hz"], 2) if imu.get("rate_hz") else None,
-           "imu_gravity": imu.get("gravity"), "imu_health": h,
-           "imu_filter_ok_outputs": int(okF.sum()),
-           "imu_filter_by_status": {k: int((F["status"] == k).sum()) for k in np.unique(F["status"])},
-           "imu_filter_coverage_100ms": round(coverage(tf, on, off), 4),
-           "imu_filter_cpu_s": f.get("filter_cpu_seconds"), "imu_replay_wall_s": round(wall, 1),
-           "imu_filter_real_time_x": round(span / f["filter_cpu_seconds"], 1) if f.get("filter_cpu_seconds") else None,
-           "imu_filter_angle_noise_rad": f.get("angle_noise_rad")}
+    row = {f"{prefix}used": (s.get("imu") or {}).get("used"), f"{prefix}samples": imu.get("samples"),
+           f"{prefix}rate_hz": round(imu["rate_hz"], 2) if imu.get("rate_hz") else None,
+           f"{prefix}gravity": imu.get("gravity"), f"{prefix}health": h,
+           f"{prefix}filter_ok_outputs": int(okF.sum()),
+           f"{prefix}filter_by_status": {k: int((F["status"] == k).sum()) for k in np.unique(F["status"])},
+           f"{prefix}filter_coverage_100ms": round(coverage(tf, on, off), 4),
+           f"{prefix}filter_cpu_s": f.get("filter_cpu_seconds"), f"{prefix}replay_wall_s": round(wall, 1),
+           f"{prefix}filter_real_time_x": round(span / f["filter_cpu_seconds"], 1) if f.get("filter_cpu_seconds") else None,
+           f"{prefix}filter_angle_noise_rad": f.get("angle_noise_rad")}
+    if f.get("smoother"):
+        row[f"{prefix}smoother"] = f["smoother"]
     if it.scenario == "jitter":
-        row["imu_filter_jitter_mm"] = mm(jitter(pf))
+        row[f"{prefix}filter_jitter_mm"] = mm(jitter(pf))
         return row
     if it.mocap is None or not fw["markers"]:
         return row
-    row["imu_filter_interval_causes"] = interval_causes(F, on, off)
+    row[f"{prefix}filter_interval_causes"] = interval_causes(F, on, off)
     if len(tf) < 10:
         return row
     mc = np.load(it.mocap)
     al = align_to_mocap(tf, pf, mc, on, off)
     if al.get("status") != "ok":
-        row["imu_filter_alignment"] = al.get("message")
+        row[f"{prefix}filter_alignment"] = al.get("message")
         return row
-    row.update(imu_filter_rms_mm=mm(al["rms_m"]), imu_filter_median_mm=mm(al["median_m"]),
-               imu_filter_max_mm=mm(al["max_m"]), imu_filter_samples=al["samples"])
+    row.update({f"{prefix}filter_rms_mm": mm(al["rms_m"]), f"{prefix}filter_median_mm": mm(al["median_m"]),
+                f"{prefix}filter_max_mm": mm(al["max_m"]), f"{prefix}filter_samples": al["samples"]})
     e = errors_by_alignment(al, mc, on, off, tf, pf, tf, pf)
     sg = F["sigma"][okF]
     k = np.isfinite(e) & np.isfinite(sg)
-    row["imu_filter_error_over_sigma_rms"] = round(float(np.sqrt(np.mean((e[k] / sg[k]) ** 2))), 2)
-    row["imu_filter_ok_errors_by_interval_stations"] = ok_errors_by_interval_stations(F, e, on, off)
+    row[f"{prefix}filter_error_over_sigma_rms"] = round(float(np.sqrt(np.mean((e[k] / sg[k]) ** 2))), 2)
+    row[f"{prefix}filter_ok_errors_by_interval_stations"] = ok_errors_by_interval_stations(F, e, on, off)
     return row
 
 
@@ -353,6 +362,64 @@ def imu_tables(logs: dict) -> list:
     for name, r in logs.items():
         L.append(f"| {name} | {_f(r.get('filter_real_time_x'))} | {_f(r.get('imu_filter_real_time_x'))} | "
                  f"{_f(r.get('imu_replay_wall_s'))} |")
+    return L
+
+
+def smooth_tables(logs: dict) -> list:
+    """The offline smoother beside the causal IMU-aided filter (``replay ... --filter ekf --imu
+    --smooth`` vs without ``--smooth``, same run): markdown lines."""
+    lag = next((r["smooth_smoother"]["lag_s"] for r in logs.values() if r.get("smooth_smoother")), None)
+    L = ["", "## Offline smoother (replay --smooth) beside the causal IMU-aided filter", "",
+         "`layoutkit replay LOG --layout DECK --system-config system-config.yaml --stations "
+         "calibration/stations_refined.json --solve joint --filter ekf --imu --smooth`: the fixed-lag "
+         f"Rauch-Tung-Striebel smoother of the IMU-aided filter (layoutkit/filter/smoother.py; lag {lag} s, blocks "
+         "of twice the lag; poses inside sweep gaps every 20 ms of IMU propagation). Same ok rule as the causal "
+         "filter, on the smoothed covariance (1-sigma within the filter's limits and the position root trace within "
+         "the best single station's PDOP sigma_theta at the smoothed pose; not just started; gates not starving). "
+         "Errors vs motion capture in each series' own alignment (mm, RMS / median / max of the ok outputs).", "",
+         "| log | 100 ms coverage: causal / smoothed | error: causal | error: smoothed | err/σ RMS: causal / smoothed "
+         "| ok outputs in 1-station intervals, causal: n, RMS / p95 mm, err/σ | smoothed | gap poses: ok / all |",
+         "|---|---|---|---|---|---|---|---|"]
+
+    def e(r, k):
+        return ("–" if r.get(f"{k}_rms_mm") is None else
+                f"{_f(r[f'{k}_rms_mm'])} / {_f(r[f'{k}_median_mm'])} / {_f(r[f'{k}_max_mm'], 0)}")
+
+    def hon(x):
+        return "–" if not x or x.get("rms_mm") is None else (
+            f"{x['n']}, {_f(x['rms_mm'])} / {_f(x['p95_mm'])}, {_f(x.get('err_over_sigma_rms'))}")
+    for name, r in logs.items():
+        if "smooth_filter_coverage_100ms" not in r and "smooth_error" not in r:
+            continue
+        sm = r.get("smooth_smoother") or {}
+        one_c = (r.get("imu_filter_ok_errors_by_interval_stations") or {}).get("1_station")
+        one_s = (r.get("smooth_filter_ok_errors_by_interval_stations") or {}).get("1_station")
+        L.append(f"| {name} | {_f(r.get('imu_filter_coverage_100ms'), 3)} / {_f(r.get('smooth_filter_coverage_100ms'), 3)} "
+                 f"| {e(r, 'imu_filter')} | {e(r, 'smooth_filter')} | {_f(r.get('imu_filter_error_over_sigma_rms'))} / "
+                 f"{_f(r.get('smooth_filter_error_over_sigma_rms'))} | {hon(one_c)} | {hon(one_s)} | "
+                 f"{sm.get('gap_ok', '–')} / {sm.get('gap_poses', '–')} |")
+    L += ["", "### Why the smoothed 100 ms intervals are not ok", "",
+          "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / "
+          "lost | not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
+    for name, r in logs.items():
+        c = r.get("smooth_filter_interval_causes")
+        if not c:
+            continue
+        L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
+                 f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
+                 f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
+                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
+    L += ["", "### Speed of the same run (stream seconds per filter CPU second; replay wall seconds end to end, "
+          "decode and joint solve included; shared machine, load in results.json)", "",
+          "| log | filter × real time: causal / smoothed | replay wall s: causal / smoothed | smoother: steps, blocks, "
+          "max buffer (steps) |", "|---|---|---|---|"]
+    for name, r in logs.items():
+        if "smooth_filter_coverage_100ms" not in r:
+            continue
+        sm = r.get("smooth_smoother") or {}
+        L.append(f"| {name} | {_f(r.get('imu_filter_real_time_x'))} / {_f(r.get('smooth_filter_real_time_x'))} | "
+                 f"{_f(r.get('imu_replay_wall_s'))} / {_f(r.get('smooth_replay_wall_s'))} | {sm.get('steps', '–')}, "
+                 f"{sm.get('blocks', '–')}, {sm.get('max_buffer', '–')} |")
     return L
 
 
@@ -458,6 +525,8 @@ def write_table(res: dict, out: Path) -> Path:
         L.append(f"| {name} | {_f(r['stream_s'])} | {_f(r.get('filter_cpu_s'), 2)} | {_f(r.get('filter_real_time_x'))} |")
     if any("imu_filter_coverage_100ms" in r or "imu_error" in r for r in logs.values()):
         L += imu_tables(logs)
+    if any("smooth_filter_coverage_100ms" in r or "smooth_error" in r for r in logs.values()):
+        L += smooth_tables(logs)
     L += ["", "## Reading the tables", "",
           "- *ok* means precise, not accurate: the predicted 1-sigma of an ok joint pose (~0.25 mm) is the angle "
           "noise's share; the error against motion capture (6-17 mm) is dominated by what the noise model does not "
@@ -483,6 +552,8 @@ def main():
                     help="use OUT/calibration/stations_refined.json as it is (skip step 1)")
     ap.add_argument("--table-only", action="store_true", help="rewrite OUT/table.md from OUT/results.json")
     ap.add_argument("--no-imu", action="store_true", help="skip the IMU-aided filter's replays (replay --filter ekf --imu)")
+    ap.add_argument("--no-smooth", action="store_true",
+                    help="skip the smoother's replays (replay --filter ekf --imu --smooth)")
     ap.add_argument("--note", help="a line recorded in results.json and the table (e.g. which code ran)")
     ap.add_argument("--filter-set", action="append", default=[], metavar="KEY=VALUE",
                     help="an EkfConfig keyword for the filter's replays, VALUE as JSON (e.g. adaptive_rho=0, "
@@ -548,6 +619,13 @@ def main():
                                    imu=True)
             except ValueError as exc:
                 si, I, wi = None, None, str(exc)
+        smooth = not a.no_imu and not a.no_smooth and it.scenario != "jitter"
+        if smooth:
+            try:
+                ss, S, ws = replay(it.log, it.system_config, stations=stations, filt=True, filter_settings=settings,
+                                   imu=True, smooth=True)
+            except ValueError as exc:
+                ss, S, ws = None, None, str(exc)
         g = _groups(J)
         okJ, okF = g["ok"], F["status"] == "ok"
         tj, pj, tf, pf = J["t"][okJ], J["p"][okJ], F["t"][okF], F["p"][okF]
@@ -614,6 +692,8 @@ def main():
                     row["filter_ok_errors_by_interval_stations"] = ok_errors_by_interval_stations(F, e, on, off)
         if not a.no_imu:
             row.update(imu_metrics(si, I, wi, it, fw, span))
+        if smooth:
+            row.update(imu_metrics(ss, S, ws, it, fw, span, prefix="smooth_"))
         res["logs"][it.name] = row
         print(it.name, json.dumps(row), flush=True)
         (out / "results.json").write_text(json.dumps(res, indent=2, default=float) + "\n")
