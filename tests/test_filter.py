@@ -308,10 +308,15 @@ def test_replay_filter_json_lines_through_the_cli(tmp_path):
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(main, ["replay", str(cap), "--layout", LAYOUT, "--truth", str(truth), "--filter", "ekf",
                                   "--no-filter-hit-timing", "--filter-motion", "fixed", "--filter-psd-rot", "1e-8", "--filter-psd-pos", "3e-9",
-                                  "--json-lines", "--json"])
+                                  "--json-lines", "--json", "--report", str(tmp_path / "new" / "report")])
     assert r.exit_code == 0, r.output
     recs = [json.loads(ln) for ln in r.stdout.splitlines() if ln.startswith('{"t"')]
     assert len(recs) >= 0.99 * 6 * 120
+    # --report into a folder that does not exist yet: the filter's pose table is written there too
+    # (it was opened before the report folder was made), one row per JSON line
+    from layoutkit.io.poses import read_poses
+
+    assert len(read_poses(tmp_path / "new" / "report" / "filter_poses.csv").t) == len(recs)
     for k in ("t", "status", "rotvec", "translation", "cov_pos_m", "cov_rot_deg"):
         assert k in recs[0]
     assert all(len(x["cov_pos_m"]) == 3 and len(x["cov_rot_deg"]) == 3 for x in recs)

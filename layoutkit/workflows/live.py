@@ -124,6 +124,8 @@ def open_session(setup: RunSetup, *, truth=None, json_out=None, poses_path=None,
     from ..live.session import calibrated_setup
 
     tr = _track(truth) if isinstance(truth, (str, Path)) else truth
+    if poses_path is not None:  # the report folder, before any sink opens its file in it
+        Path(poses_path).parent.mkdir(parents=True, exist_ok=True)
     sink = None
     if setup.config.filter is not None:  # the per-sweep EKF beside the frames
         from ..lighthouse import Station
