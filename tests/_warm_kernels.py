@@ -123,6 +123,14 @@ def _warm_imu_kernels(stations) -> None:
     K.zero_velocity(R, p, v, ba, bg, P, 1e-6)
     K.body_cov(R, P, np.zeros(3), np.empty((12, 12)))
     K.matrix_to_quat(R, np.empty(4))
+    # the IMU integration between sweeps, and the offline smoother's recorder and backward pass
+    T = np.array([0.0, 0.01])
+    K.propagate_span(R, p, v, ba, bg, g, P, T, gyro, acc, 0.0, 0.005, False, 900.0, 0.1, 0.0, 1e-4, 1e-6, 1e-8,
+                     np.eye(15), True, np.inf, 0.02)
+    Rk, xk, Pk = np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 12)), np.tile(P, (2, 1, 1))
+    K.record_state(R, p, v, ba, bg, P, Rk[0], xk[0], Pk[0])
+    K.rts_backward(Rk, xk, Pk, Rk, xk, Pk, np.tile(np.eye(15), (2, 1, 1)), 2, Rk.copy(), xk.copy(), Pk.copy())
+    K.body_outputs(Rk, xk, Pk, 2, np.zeros(3), np.empty((2, 12, 12)), np.empty((2, 4)), np.empty((2, 3)))
 
 
 if __name__ == "__main__":

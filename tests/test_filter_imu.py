@@ -81,3 +81,51 @@ def test_imu_filter_follows_fast_motion(rng):
 def test_imu_filter_config_is_validated():
     with pytest.raises(ValueError, match="gyro_noise"):
         ImuFilterConfig(gyro_noise=-1.0)
+
+
+def test_compiled_propagation_span_is_the_midpoint_rule_and_stops_for_gap_poses(rng):
+    """layoutkit.filter._imu_numba.propagate_span (the IMU integration between two sweeps, one compiled
+    call) against an independent loop: the stretches between sample times, each propagated with the
+    samples interpolated at its midpoint (np.interp) and the motion-dependent accelerometer noise; with
+    ``record`` it stops at the first sample time ``gap_dt`` after ``gap_from`` with the stretches'
+    transitions multiplied up."""
+    from layoutkit.filter import _imu_numba as K
+
+    T = np.cumsum(rng.uniform(0.005, 0.015, 40))
+    gyro, acc = rng.normal(0, 1.0, (40, 3)), rng.normal([0, 0, 9.8], 2.0, (40, 3))
+    g = np.array([0.0, 0.0, -9.80665])
+    R0, p0, v0 = rotvec_to_matrix(rng.normal(0, 1, 3)), rng.normal(0, 1, 3), rng.normal(0, 1, 3)
+    ba0, bg0 = rng.normal(0, 0.05, 3), rng.normal(0, 0.01, 3)
+    P0 = np.eye(15) * 1e-4
+    q = (0.02, 0.05, 1e-4, 1e-6, 1e-8)  # acc_noise, acc_noise_per_acc, qg, qba, qbg
+
+    def state():
+        return [np.array(x, float) for x in (R0, p0, v0, ba0, bg0)] + [g.copy(), P0.copy()]
+
+    def reference(a, t, stop=np.inf):
+        R, p, v, ba, bg, gg, P = state()
+        Fc = np.eye(15)
+        edges = [a] + [x for x in T if a < x < t] + [t]
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = 0.5 * (lo + hi)
+            w = np.array([np.interp(m, T, gyro[:, i]) for i in range(3)])
+            f = np.array([np.interp(m, T, acc[:, i]) for i in range(3)])
+            qa = (q[0] + q[1] * np.linalg.norm(R @ (f - ba) + gg)) ** 2
+            K.transition(R, ba, bg, f, w, hi - lo, Fc)
+            K.propagate(R, p, v, ba, bg, gg, P, f, w, hi - lo, qa, *q[2:])
+            if hi < t and hi - stop >= 0.03:
+                return hi, (R, p, v, P, Fc)
+        return t, (R, p, v, P, Fc)
+
+    a, t = T[3] + 0.002, T[30] - 0.001
+    for stop in (np.inf, a + 0.01):
+        R, p, v, ba, bg, gg, P = state()
+        Fc = np.eye(15)
+        got = K.propagate_span(R, p, v, ba, bg, gg, P, T, gyro, acc, a, t, False, 900.0, q[0], q[1], *q[2:], Fc,
+                               np.isfinite(stop), stop, 0.03)
+        want, (Rr, pr, vr, Pr, Fr) = reference(a, t, stop)
+        assert got == want and (got < t) == np.isfinite(stop)
+        for x, y in ((R, Rr), (p, pr), (v, vr), (P, Pr)):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-15)
+        if np.isfinite(stop):
+            np.testing.assert_allclose(Fc, Fr, rtol=1e-12, atol=1e-15)

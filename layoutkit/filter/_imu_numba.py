@@ -95,6 +95,63 @@ def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
 
 
 @numba.njit(**_JIT)
+def _sample_at(T, gyro, acc, t, w, f):
+    """``w``, ``f`` (3,) <- gyro, acc linearly interpolated at ``t`` (held beyond the ends), as
+    :meth:`layoutkit.filter.imu_tracker.ImuSweepTracker._sample`."""
+    N = T.shape[0]
+    j = np.searchsorted(T, t, side="right") - 1
+    if j < 0:
+        for i in range(3):
+            w[i], f[i] = gyro[0, i], acc[0, i]
+        return
+    if j >= N - 1:
+        for i in range(3):
+            w[i], f[i] = gyro[N - 1, i], acc[N - 1, i]
+        return
+    u = (t - T[j]) / (T[j + 1] - T[j]) if T[j + 1] > T[j] else 0.0
+    for i in range(3):
+        w[i] = gyro[j, i] + u * (gyro[j + 1, i] - gyro[j, i])
+        f[i] = acc[j, i] + u * (acc[j + 1, i] - acc[j, i])
+
+
+@numba.njit(**_JIT)
+def propagate_span(R, p, v, ba, bg, g, P, T, gyro, acc, a, t, gap, q_sat, acc_noise, acc_noise_per_acc, qg, qba,
+                   qbg, Fc, record, gap_from, gap_dt):
+    """Integrate the IMU samples ``T (N,)`` s, ``gyro``, ``acc (N, 3)`` from ``a`` to ``t`` s: each stretch
+    between sample times with its midpoint's interpolated sample (:func:`_sample_at`), the accelerometer
+    noise ``(acc_noise + acc_noise_per_acc |R (f - ba) + g|)²`` (``q_sat`` when ``gap``: no IMU data there),
+    :func:`propagate`. ``record``: each stretch's error transition accumulated into ``Fc``
+    (:func:`transition`), and the integration stops early at a sample time ``b < t`` with
+    ``b - gap_from >= gap_dt`` (the smoother's pose inside a gap between sweeps). Returns the time
+    reached (``t``, or that sample time)."""
+    w = np.empty(3)
+    f = np.empty(3)
+    N = T.shape[0]
+    j = np.searchsorted(T, a, side="right")
+    while True:
+        b = min(t, T[j]) if j < N else t
+        if b > a:
+            _sample_at(T, gyro, acc, 0.5 * (a + b), w, f)
+            if gap:
+                qa = q_sat
+            else:  # the accelerometer's error grows with the motion (scale, axes, timing, filtering)
+                s = 0.0
+                for i in range(3):
+                    ad = R[i, 0] * (f[0] - ba[0]) + R[i, 1] * (f[1] - ba[1]) + R[i, 2] * (f[2] - ba[2]) + g[i]
+                    s += ad * ad
+                qa = (acc_noise + acc_noise_per_acc * math.sqrt(s)) ** 2
+            if record:
+                transition(R, ba, bg, f, w, b - a, Fc)
+            propagate(R, p, v, ba, bg, g, P, f, w, b - a, qa, qg, qba, qbg)
+            a = b
+            if record and b < t and b - gap_from >= gap_dt:
+                return b
+        if a >= t:
+            return a
+        j += 1
+
+
+@numba.njit(**_JIT)
 def update(R, p, v, ba, bg, P, pb, idx, z, Rs, ts, lh2, axis, c, corrected, sigma2, q1, qm, out):
     """One sweep: angles ``z (m,)`` rad of the sensors ``idx`` at ``pb (n, 3)`` (IMU frame) on ``axis`` of
     the station ``Rs, ts`` (kind flag ``lh2``, calibration ``c (7,)``, ``corrected``); angle noise

@@ -198,8 +198,8 @@ class ImuSweepTracker:
 
         self.fc = replace(self.ic.imu, sigma_theta=config.sigma_theta)
         self.imu_t = np.asarray(imu_t, float) - self.ic.imu_delay_s
-        self.gyro = np.asarray(gyro, float)
-        self.acc = np.asarray(acc, float)
+        self.gyro = np.ascontiguousarray(gyro, float)
+        self.acc = np.ascontiguousarray(acc, float)
         if self.imu_t.size < 2:
             raise ValueError("IMU-aided filter: fewer than two IMU samples")
         self.rest = rest_flags(self.imu_t, self.gyro, self.acc, self.ic.zupt_window_s, self.ic.zupt_rate,
@@ -253,7 +253,8 @@ class ImuSweepTracker:
 
     def _propagate(self, t: float) -> None:
         """Integrate the IMU from the filter's time to ``t`` (each stretch between sample times at its
-        midpoint's interpolated sample)."""
+        midpoint's interpolated sample: :func:`layoutkit.filter._imu_numba.propagate_span`); with the
+        smoother's recorder, its poses inside gaps between sweeps on the way."""
         if t <= self.t:
             return
         T = self.imu_t
@@ -262,30 +263,18 @@ class ImuSweepTracker:
             self.counters.imu_gap_sweeps += 1
         from . import _imu_numba as K
 
-        rec = self.recorder
+        e, rec, fc = self.eskf, self.recorder, self.fc
         a = self.t
-        j = int(np.searchsorted(T, a, side="right"))
         while True:
-            b = min(t, float(T[j])) if j < T.size else t
-            if b > a:
-                w, f = self._sample(0.5 * (a + b))
-                e = self.eskf
-                if gap:
-                    qa = self.fc.saturated_acc_noise ** 2
-                else:  # the accelerometer's error grows with the motion (scale, axes, timing, filtering)
-                    ad = e.R @ (f - e.ba) + e.g
-                    qa = (self.fc.acc_noise + self.ic.acc_noise_per_acc * math.sqrt(ad @ ad)) ** 2
-                if rec is not None:
-                    K.transition(e.R, e.ba, e.bg, f, w, b - a, self._Fc)
-                K.propagate(e.R, e.p, e.v, e.ba, e.bg, e.g, e.P, f, w, b - a, qa, self._qg, self._qba, self._qbg)
-                a = b
-                if rec is not None and b < t and rec.gap_due(b):
-                    # a pose inside a gap between sweeps (at an IMU sample's time): a step without update
-                    rec.gap_step(b, self)
-                    self._Fc = np.eye(15)
+            a = K.propagate_span(e.R, e.p, e.v, e.ba, e.bg, e.g, e.P, T, self.gyro, self.acc, a, t, gap,
+                                 fc.saturated_acc_noise ** 2, fc.acc_noise, self.ic.acc_noise_per_acc, self._qg,
+                                 self._qba, self._qbg, self._Fc, rec is not None,
+                                 math.inf if rec is None else rec.gap_from(), 0.0 if rec is None else rec.sc.gap_dt_s)
             if a >= t:
                 break
-            j += 1
+            # a pose inside a gap between sweeps (at an IMU sample's time): a step without update
+            rec.gap_step(a, self)
+            self._Fc = np.eye(15)
         self.t = t
 
     # ------------------------------------------------------------------ start

@@ -186,8 +186,10 @@ class SmoothedImuTracker:
         self.last_causal = None  # the tracker's own (causal) output of the latest sweep
 
     # ------------------------------------------------------------------ recorder (called by the tracker)
-    def gap_due(self, t: float) -> bool:
-        return len(self.buf.meta) > 0 and t - self._last_t >= self.sc.gap_dt_s
+    def gap_from(self) -> float:
+        """s, the time the next pose inside a gap is counted from (``gap_dt_s`` after it): the latest
+        step's; infinite while the buffer is empty."""
+        return self._last_t if len(self.buf.meta) > 0 else math.inf
 
     def predicted(self, e) -> None:
         from . import _imu_numba as K
