@@ -3,6 +3,10 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# pytest with bytecode caching on even where the environment turns it off (PYTHONDONTWRITEBYTECODE, common in
+# CI images): every xdist worker otherwise re-runs the assertion rewriting of all test modules (collection
+# 7.0 -> 2.7 s per process here) and every `python -m layoutkit` a test starts recompiles the package
+PYTEST := PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
 
 .PHONY: venv demo test test-fast test-install durations bench clean
 
@@ -19,19 +23,19 @@ demo: $(STAMP)
 
 # the whole suite, slow tests included (what CI runs; ~5 min on 2 idle cores, +1 min in a fresh checkout)
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q
+	$(PYTEST) -n 2 -q
 
 # the development loop: slow tests deselected, by mark or by tests/durations.json (< 1 min on 2 idle cores)
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "not slow and not install"
+	$(PYTEST) -n 2 -q -m "not slow and not install"
 
 # re-measure tests/durations.json (which tests test-fast leaves out; the order files run in): the whole suite
 durations: $(STAMP)
-	LAYOUTKIT_TEST_DURATIONS=tests/durations.json $(BIN)/python -m pytest -n 2 -q
+	LAYOUTKIT_TEST_DURATIONS=tests/durations.json $(PYTEST) -n 2 -q
 
 # the wheel installed with every dependency into a fresh venv, then `layoutkit demo` (minutes)
 test-install: $(STAMP)
-	$(BIN)/python -m pytest -q -m install tests/test_install.py
+	$(PYTEST) -q -m install tests/test_install.py
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
