@@ -32,8 +32,9 @@ def pytest_configure(config):
 
 #: tests/durations.json: seconds per test id, measured by a whole run of the suite with
 #: ``LAYOUTKIT_TEST_DURATIONS=tests/durations.json`` (``make durations``); a test recorded at SLOW_S or
-#: more is marked ``slow`` (``make test-fast`` leaves it out), and files run longest first, so the two
-#: workers do not end on one long file. A test not in the file yet is not marked.
+#: more is marked ``slow`` (``make test-fast`` leaves it out), and files run longest first, so the
+#: workers (handed one test at a time: the Makefile's XDIST) do not end on one long file. A test not in the
+#: file yet is not marked.
 DURATIONS = Path(__file__).with_name("durations.json")
 SLOW_S = 0.5
 _measured: dict = {}
