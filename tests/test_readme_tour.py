@@ -5,7 +5,9 @@ fresh temporary folder (``models/`` linked in), with only run lengths shortened 
 listed in SHORTEN and applied by exact text replacement, so a line that changes in the README and
 no longer matches fails this test instead of being skipped. The pty pair (``fake-fpga ... &``,
 then ``live --port /dev/pts/N``) runs for real: the device path the simulator prints is put in
-place of ``/dev/pts/N``. Each line must exit 0 and print no traceback.
+place of ``/dev/pts/N``. Each line must exit 0 and print no traceback. The simulator and ``live`` run as
+processes; the other lines run through click's test runner in this process (the same command; the
+package imported once instead of per line).
 """
 from __future__ import annotations
 
@@ -105,14 +107,35 @@ def _run_lines(lines, tmp_path):
             device = (first.split(": ", 1)[1], p)
             continue
         t0 = time.monotonic()
-        r = subprocess.run(EXE + args[1:], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-        assert r.returncode == 0 and "Traceback" not in r.stderr, (cmd, r.returncode, r.stdout[-800:], r.stderr[-1500:])
+        if args[1] == "live":  # beside the simulator's process, with its signals and threads: a process too
+            r = subprocess.run(EXE + args[1:], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+            assert r.returncode == 0 and "Traceback" not in r.stderr, (cmd, r.returncode, r.stdout[-800:],
+                                                                       r.stderr[-1500:])
+        else:  # in this process (the same click command; no interpreter start and kernel loading per line)
+            _invoke(args[1:], tmp_path, cmd)
         if args[1] == "live":
             _, err = device[1].communicate(timeout=60)
             assert device[1].returncode == 0, err
             assert (tmp_path / "out" / "cap.lkcap").stat().st_size > 0
             assert (tmp_path / "out" / "val-live" / "report.json").is_file()
         print(f"{time.monotonic() - t0:6.1f} s  {cmd}")
+
+
+def _invoke(args, cwd, cmd):
+    """``layoutkit ARGS`` run by click's test runner in ``cwd``: exit 0, no exception."""
+    from click.testing import CliRunner
+
+    from layoutkit.cli import main
+
+    old = os.getcwd()
+    os.chdir(cwd)
+    try:
+        r = CliRunner().invoke(main, args)
+    finally:
+        os.chdir(old)
+    exc = None if isinstance(r.exception, SystemExit) else r.exception
+    assert r.exit_code == 0 and exc is None and "Traceback" not in r.output, (cmd, r.exit_code, repr(exc),
+                                                                               r.output[-1500:])
 
 
 def test_every_shortening_applies():

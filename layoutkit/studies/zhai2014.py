@@ -307,7 +307,7 @@ def _plot_case(case, res, errs, path):
     ax[0].set_ylim(-lim, lim)
     ax[0].legend(loc="upper right", ncol=5, fontsize=8)
     ax[0].set_title(f"Zhai (2014) {case} analogue: rotation about {CASES[case]['axis'].upper()}, "
-                    f"θ = {CASES[case]['theta0_deg']} + 0.1 t deg, 3 m face at 100 m, f = 8 mm, 1292×964")
+                    f"θ = {CASES[case]['theta0_deg']} + 0.1 t deg\n3 m face at 100 m, f = 8 mm, 1292×964 px", fontsize=10)
     for m, (c, lw) in styles.items():
         ax[1].semilogy(t, np.maximum(errs[m]["attitude_err_deg"], 1e-4), color=c, lw=lw, label=m)
     ax[1].set_ylabel("total attitude error (deg)")

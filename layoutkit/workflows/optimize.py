@@ -239,6 +239,7 @@ def write_report(report_dir, problem, res, summary, render=True, echo=print):
             a.plot(y, np.arange(1, len(y) + 1) / len(y))
             a.set_xlabel(lab)
             a.set_ylabel("fraction of poses")
+            a.xaxis.set_major_locator(MaxNLocator(nbins=5))  # five-digit DOPs (a tilted layout's) overlapped at 8
             a.grid(alpha=0.3)
         fig.suptitle("Cumulative distribution of ADOP and PDOP over the envelope")
         p = d / "dop_cdf.png"
