@@ -55,20 +55,13 @@ def _correct(R, p, v, ba, bg, P, Pn, dx):
 
 
 @numba.njit(**_JIT)
-def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
-    """Advance by ``dt`` s with specific force ``f`` (m/s²) and rate ``w`` (rad/s), IMU frame;
-    ``qa, qg, qba, qbg``: the noise densities squared (acc, gyro, acc bias walk, gyro bias walk)."""
-    if dt <= 0.0:
-        return
-    fa = np.empty(3)
-    a = np.empty(3)
+def _error_transition(R, ba, bg, f, w, dt, fa, E, F):
+    """The error transition of one IMU step (Solà 2017 eqs. 269-270) into ``F`` (15, 15), given as the
+    identity: ``fa (3,) <- f - ba``, ``E (3, 3) <- exp([(w - bg) dt]x)``, and F's blocks ``dp/dv = I dt``,
+    ``dv/dtheta = -R [fa]x dt``, ``dv/dba = -R dt``, ``dtheta/dtheta = E^T``, ``dtheta/dbg = -I dt``."""
     for i in range(3):
         fa[i] = f[i] - ba[i]
-    for i in range(3):
-        a[i] = R[i, 0] * fa[0] + R[i, 1] * fa[1] + R[i, 2] * fa[2] + g[i]
-    E = np.empty((3, 3))
     _expm((w[0] - bg[0]) * dt, (w[1] - bg[1]) * dt, (w[2] - bg[2]) * dt, E)
-    F = np.eye(15)
     for i in range(3):
         F[i, 3 + i] = dt
         F[6 + i, 12 + i] = -dt
@@ -80,6 +73,21 @@ def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
     for i in range(3):
         for j in range(3):
             F[3 + i, 6 + j] = -(R[i, 0] * S[0, j] + R[i, 1] * S[1, j] + R[i, 2] * S[2, j]) * dt
+
+
+@numba.njit(**_JIT)
+def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
+    """Advance by ``dt`` s with specific force ``f`` (m/s²) and rate ``w`` (rad/s), IMU frame;
+    ``qa, qg, qba, qbg``: the noise densities squared (acc, gyro, acc bias walk, gyro bias walk)."""
+    if dt <= 0.0:
+        return
+    fa = np.empty(3)
+    a = np.empty(3)
+    E = np.empty((3, 3))
+    F = np.eye(15)
+    _error_transition(R, ba, bg, f, w, dt, fa, E, F)
+    for i in range(3):
+        a[i] = R[i, 0] * fa[0] + R[i, 1] * fa[1] + R[i, 2] * fa[2] + g[i]
     FP = F @ P
     P[:, :] = FP @ F.T
     for i in range(3):
@@ -292,22 +300,8 @@ def transition(R, ba, bg, f, w, dt, Fc):
     accumulated in place: ``Fc <- F Fc`` (the smoother's transition between two recorded steps)."""
     if dt <= 0.0:
         return
-    fa = np.empty(3)
-    for i in range(3):
-        fa[i] = f[i] - ba[i]
-    E = np.empty((3, 3))
-    _expm((w[0] - bg[0]) * dt, (w[1] - bg[1]) * dt, (w[2] - bg[2]) * dt, E)
     F = np.eye(15)
-    for i in range(3):
-        F[i, 3 + i] = dt
-        F[6 + i, 12 + i] = -dt
-        for j in range(3):
-            F[3 + i, 9 + j] = -R[i, j] * dt
-            F[6 + i, 6 + j] = E[j, i]
-    S = np.array([[0.0, -fa[2], fa[1]], [fa[2], 0.0, -fa[0]], [-fa[1], fa[0], 0.0]])
-    for i in range(3):
-        for j in range(3):
-            F[3 + i, 6 + j] = -(R[i, 0] * S[0, j] + R[i, 1] * S[1, j] + R[i, 2] * S[2, j]) * dt
+    _error_transition(R, ba, bg, f, w, dt, np.empty(3), np.empty((3, 3)), F)
     Fn = F @ Fc
     Fc[:, :] = Fn
 

@@ -301,6 +301,34 @@ def _f(v, nd=1):
     return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
 
 
+def _err_cell(r, k):
+    """'RMS / median / max' mm of the ``k`` series' error vs motion capture, or a dash."""
+    return ("–" if r.get(f"{k}_rms_mm") is None else
+            f"{_f(r[f'{k}_rms_mm'])} / {_f(r[f'{k}_median_mm'])} / {_f(r[f'{k}_max_mm'], 0)}")
+
+
+def _honest_cell(x):
+    """'n, RMS / p95 mm, err/sigma' of a group of ok outputs (``ok_errors_by_interval_stations``), or a dash."""
+    return "–" if not x or x.get("rms_mm") is None else (
+        f"{x['n']}, {_f(x['rms_mm'])} / {_f(x['p95_mm'])}, {_f(x.get('err_over_sigma_rms'))}")
+
+
+def _cause_table(logs: dict, k: str, what: str) -> list:
+    """Markdown lines: why ``what`` 100 ms intervals are not ok (``{k}_interval_causes`` of each log)."""
+    L = ["", f"### Why {what} 100 ms intervals are not ok", "",
+         "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / "
+         "lost | not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
+    for name, r in logs.items():
+        c = r.get(f"{k}_interval_causes")
+        if not c:
+            continue
+        L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
+                 f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
+                 f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
+                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
+    return L
+
+
 def imu_tables(logs: dict) -> list:
     """The IMU-aided filter beside the lighthouse-only one (``replay ... --filter ekf --imu`` vs
     ``--no-imu``): markdown lines."""
@@ -327,13 +355,6 @@ def imu_tables(logs: dict) -> list:
           "IMU ok outputs in 1-station intervals: n, RMS / p95 mm, err/σ | IMU restarts | IMU gate rejections, "
           "mean NIS/dof | gravity |", "|---|---|---|---|---|---|---|---|---|"]
 
-    def e(r, k):
-        return ("–" if r.get(f"{k}_rms_mm") is None else
-                f"{_f(r[f'{k}_rms_mm'])} / {_f(r[f'{k}_median_mm'])} / {_f(r[f'{k}_max_mm'], 0)}")
-
-    def hon(x):
-        return "–" if not x or x.get("rms_mm") is None else (
-            f"{x['n']}, {_f(x['rms_mm'])} / {_f(x['p95_mm'])}, {_f(x.get('err_over_sigma_rms'))}")
     for name, r in logs.items():
         if r["scenario"] == "jitter":
             continue
@@ -341,21 +362,11 @@ def imu_tables(logs: dict) -> list:
         g = (r.get("imu_gravity") or {}).get("from", "–")
         one = (r.get("imu_filter_ok_errors_by_interval_stations") or {}).get("1_station")
         rej = h.get("share_rejected")
-        L.append(f"| {name} | {e(r, 'filter')} | {e(r, 'imu_filter')} | {_f(r.get('filter_coverage_100ms'), 3)} / "
+        L.append(f"| {name} | {_err_cell(r, 'filter')} | {_err_cell(r, 'imu_filter')} | {_f(r.get('filter_coverage_100ms'), 3)} / "
                  f"{_f(r.get('imu_filter_coverage_100ms'), 3)} | {_f(r.get('filter_error_over_sigma_rms'))} / "
-                 f"{_f(r.get('imu_filter_error_over_sigma_rms'))} | {hon(one)} | {h.get('restarts', '–')} | "
+                 f"{_f(r.get('imu_filter_error_over_sigma_rms'))} | {_honest_cell(one)} | {h.get('restarts', '–')} | "
                  f"{'–' if rej is None else f'{100 * rej:.1f} %'}, {_f(h.get('mean_nis_per_dof'), 2)} | {g} |")
-    L += ["", "### Why the IMU filter's 100 ms intervals are not ok", "",
-          "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / "
-          "lost | not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
-    for name, r in logs.items():
-        c = r.get("imu_filter_interval_causes")
-        if not c:
-            continue
-        L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
-                 f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
-                 f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
-                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
+    L += _cause_table(logs, "imu_filter", "the IMU filter's")
     L += ["", "### Speed (stream seconds per filter CPU second, this run's shared machine; the IMU filter includes "
           "the lighthouse-only tracker it runs until its first start and after a hard restart)", "", "| log | lighthouse filter × real time | IMU filter × real time | "
           "IMU replay wall s (end to end) |", "|---|---|---|---|"]
@@ -381,13 +392,6 @@ def smooth_tables(logs: dict) -> list:
          "| ok outputs in 1-station intervals, causal: n, RMS / p95 mm, err/σ | smoothed | gap poses: ok / all |",
          "|---|---|---|---|---|---|---|---|"]
 
-    def e(r, k):
-        return ("–" if r.get(f"{k}_rms_mm") is None else
-                f"{_f(r[f'{k}_rms_mm'])} / {_f(r[f'{k}_median_mm'])} / {_f(r[f'{k}_max_mm'], 0)}")
-
-    def hon(x):
-        return "–" if not x or x.get("rms_mm") is None else (
-            f"{x['n']}, {_f(x['rms_mm'])} / {_f(x['p95_mm'])}, {_f(x.get('err_over_sigma_rms'))}")
     for name, r in logs.items():
         if "smooth_filter_coverage_100ms" not in r and "smooth_error" not in r:
             continue
@@ -395,20 +399,10 @@ def smooth_tables(logs: dict) -> list:
         one_c = (r.get("imu_filter_ok_errors_by_interval_stations") or {}).get("1_station")
         one_s = (r.get("smooth_filter_ok_errors_by_interval_stations") or {}).get("1_station")
         L.append(f"| {name} | {_f(r.get('imu_filter_coverage_100ms'), 3)} / {_f(r.get('smooth_filter_coverage_100ms'), 3)} "
-                 f"| {e(r, 'imu_filter')} | {e(r, 'smooth_filter')} | {_f(r.get('imu_filter_error_over_sigma_rms'))} / "
-                 f"{_f(r.get('smooth_filter_error_over_sigma_rms'))} | {hon(one_c)} | {hon(one_s)} | "
+                 f"| {_err_cell(r, 'imu_filter')} | {_err_cell(r, 'smooth_filter')} | {_f(r.get('imu_filter_error_over_sigma_rms'))} / "
+                 f"{_f(r.get('smooth_filter_error_over_sigma_rms'))} | {_honest_cell(one_c)} | {_honest_cell(one_s)} | "
                  f"{sm.get('gap_ok', '–')} / {sm.get('gap_poses', '–')} |")
-    L += ["", "### Why the smoothed 100 ms intervals are not ok", "",
-          "| log | intervals | ok all / with sweeps | sweeps of 2 stations / 1 / none | not ok, 1 station: uncertain / "
-          "lost | not ok, 2 stations: uncertain / lost |", "|---|---|---|---|---|---|"]
-    for name, r in logs.items():
-        c = r.get("smooth_filter_interval_causes")
-        if not c:
-            continue
-        L.append(f"| {name} | {c['intervals']} | {c['coverage_all']:.3f} / {c['coverage_with_sweeps']:.3f} | "
-                 f"{c['with_sweeps_2_stations']} / {c['with_sweeps_1_station']} / {c['without_sweeps']} | "
-                 f"{c['not_ok_1_station_uncertain']} / {c['not_ok_1_station_lost']} | "
-                 f"{c['not_ok_2_stations_uncertain']} / {c['not_ok_2_stations_lost']} |")
+    L += _cause_table(logs, "smooth_filter", "the smoothed")
     L += ["", "### Speed of the same run (stream seconds per filter CPU second; replay wall seconds end to end, "
           "decode and joint solve included; shared machine, load in results.json)", "",
           "| log | filter × real time: causal / smoothed | replay wall s: causal / smoothed | smoother: steps, blocks, "
