@@ -272,3 +272,21 @@ def test_ctrl_c_in_a_terminal_ends_a_localcluster_sweep_without_tracebacks(tmp_p
         _kill(p)
     assert "interrupted:" in se and "Traceback" not in se, se
     assert 1 <= len(_cells(out)) < 6
+
+
+def test_ctrl_c_during_a_blocking_dask_call_is_delivered_right_after_it():
+    """parallel.scheduler._sigint_deferred (around distributed's blocking Client.sync calls): a real
+    SIGINT raised inside runs no handler there (the call finishes), then reaches the process's own
+    handler (here Python's KeyboardInterrupt) as soon as the block ends; the handler is restored."""
+    from layoutkit.parallel.scheduler import _sigint_deferred
+
+    before = signal.getsignal(signal.SIGINT)
+    ran = []
+    with pytest.raises(KeyboardInterrupt):
+        with _sigint_deferred():
+            signal.raise_signal(signal.SIGINT)
+            ran.append("the blocking call went on")
+    assert ran == ["the blocking call went on"] and signal.getsignal(signal.SIGINT) is before
+    with _sigint_deferred():  # no signal: nothing delivered
+        ran.append("quiet")
+    assert ran[-1] == "quiet"
