@@ -271,7 +271,7 @@ def test_a_chain_that_ends_lost_is_smoothed_up_to_its_last_ok_output():
     """Proof kind: simulator truth, structure. Station 1's angles 0.02 rad off for 0.3 s make the
     filter lose itself (a soft restart): the outputs stay one per causal output and in time order,
     the chain ending lost is emitted smoothed up to its last causal ok output and as the causal filter
-    gave it after that (none of those ok), the next chain starts smoothed again; the smoothed ok
+    gave it after that (none of those ok), a later chain is smoothed again; the smoothed ok
     outputs before the fault are within a few millimetres of the simulated motion."""
     from layoutkit.filter.consistency import Sweep
 
@@ -290,7 +290,9 @@ def test_a_chain_that_ends_lost_is_smoothed_up_to_its_last_ok_output():
     tail = out[k_ok + 1:k_lost + 1]
     assert tail and all(not o.smoothed and o.status != "ok" for o in tail)
     assert all(a is b for a, b in zip(tail, causal[k_ok + 1:k_lost + 1]))  # the causal outputs themselves
-    assert out[k_lost + 1].smoothed
+    # the chain of the soft restart has no ok output (the faulty station's axis refused: not confirmed) and
+    # ends lost too: emitted as the causal filter gave it; the chain after the fault is smoothed again
+    assert any(o.smoothed and o.status == "ok" for o in out[k_lost + 1:])
     before = [o for o in out if o.status == "ok" and o.t < 2.3]
     _, e, _ = _errors(before, motion)
     assert np.max(np.linalg.norm(e[:, 3:], axis=1)) < 6e-3
@@ -353,3 +355,25 @@ def test_recorded_transition_is_the_propagation_jacobian():
     g1, g2 = gap(1.0), gap(0.5)
     assert g1 < 10.5 * 0.017 ** 2, g1           # |f| dt² over the two steps
     assert 3.0 < g1 / g2 < 5.0, (g1, g2)
+
+
+@pytest.mark.slow
+def test_a_faulty_station_pulling_a_soft_restart_is_never_ok():
+    """Proof kind: simulator truth. Station 1's angles 0.02 rad off for 0.3 s: the filter's soft
+    restart let them in and the state settled ~13 cm off, where they agree with station 0 (the bias
+    moves the deck along station 0's range) and with one axis of station 1, the other axis refused
+    every time; it was reported ok there for 0.22 s. A (re)start is confirmed only once every station
+    axis that sent sweeps since has had one accepted: no ok output of the causal filter or of the
+    smoother is more than 2 cm off, and both are ok again after the fault."""
+    from layoutkit.filter.consistency import Sweep
+
+    lay, stations, motion, imu, sweeps = _simulate(np.random.default_rng(5))
+    bad = [Sweep(m.t, m.station, m.axis, m.angles + (0.02 if m.station == 1 and 2.3 <= m.t < 2.6 else 0.0),
+                 m.kind) for m in sweeps]
+    causal, out, _ = _run((lay, stations, motion, imu, bad), lag_s=0.6)
+    for outs in (causal, out):
+        ok = [o for o in outs if o.status == "ok"]
+        t, e, _ = _errors(ok, motion)
+        err = np.linalg.norm(e[:, 3:], axis=1)
+        assert err.max() < 0.02, (t[err.argmax()], err.max())
+        assert (t > 3.2).sum() > 50  # tracking ok again after the fault

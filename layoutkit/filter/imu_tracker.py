@@ -23,7 +23,8 @@ Life cycle (docs/filter.md, "IMU-aided"):
    geometry, calibration) is larger than the paper's sigma and the data say by how much. While the
    IMU says the body is at rest (:func:`rest_flags`: rate and specific force steady over 0.2 s) each
    sweep is followed by a zero-velocity update (1-sigma ``zupt_sigma``).
-3. *status*: "ok" when ``confirm_sweeps`` sweeps were accepted since the start, fewer than two in a
+3. *status*: "ok" when ``confirm_sweeps`` sweeps were accepted since the start and no station axis that
+   sent sweeps since then has had all of them refused, fewer than two in a
    row were rejected (overall and of each station), fewer than half of the last ``health_window`` sweeps were rejected (the gate is
    not starving the filter), and the 1-sigma attitude / position / speed are within the lighthouse-only
    filter's limits (:class:`EkfConfig` ``max_sigma_rot_deg``, ``max_sigma_pos_m``, ``max_sigma_speed``
@@ -216,6 +217,9 @@ class ImuSweepTracker:
         self._bad_run = 0
         self._bad_by_station = {}
         self._confirm = 0
+        # since the latest (re)start: the (station, axis) whose sweeps were accepted, and those that sent
+        # sweeps none of which was accepted yet (a start is confirmed only when the second set is empty)
+        self._beams_ok, self._beams_refused = set(), set()
         self._recent = deque(maxlen=self.ic.health_window)
         self._one = (-math.inf, math.inf)
         self._keep_bias = None
@@ -324,6 +328,7 @@ class ImuSweepTracker:
         self._bad_run = 0
         self._bad_by_station = {}
         self._confirm = self.ic.confirm_sweeps
+        self._beams_ok, self._beams_refused = set(), set()
         self._recent.clear()
         self._one = (-math.inf, math.inf)
         self.counters.inits += 1
@@ -368,6 +373,7 @@ class ImuSweepTracker:
         self._bad_run = 0
         self._bad_by_station = {}
         self._confirm = self.ic.confirm_sweeps
+        self._beams_ok, self._beams_refused = set(), set()
         self._recent.clear()
         self.counters.restarts += 1
 
@@ -473,10 +479,14 @@ class ImuSweepTracker:
                 self._bad_run = 0
                 self._bad_by_station[s] = 0
                 self._confirm -= 1
+                self._beams_ok.add((s, axis))
+                self._beams_refused.discard((s, axis))
             else:
                 self.counters.rejected += 1
                 self._bad_run += 1
                 self._bad_by_station[s] = self._bad_by_station.get(s, 0) + 1
+                if (s, axis) not in self._beams_ok:
+                    self._beams_refused.add((s, axis))
         elif idx.size:
             self.counters.too_few_lit += 1
         j = int(np.searchsorted(self.imu_t, self.t, side="right")) - 1
@@ -554,9 +564,13 @@ class ImuSweepTracker:
 
     def _health(self) -> str:
         """Why the filter's state is not to be trusted now, its sigma aside ("" when it is): a start not
-        yet confirmed, sweeps rejected in a row (overall or of one station), the gate starving."""
+        yet confirmed (fewer than ``confirm_sweeps`` sweeps accepted, or a station's axis that has sent
+        sweeps since the (re)start without one accepted: after a soft restart the state can settle where
+        one station's faulty angles put it, consistent with the other station's and with one axis of the
+        faulty one, the other axis refused every time), sweeps rejected in a row (overall or of one
+        station), the gate starving.""" 
         bad = max(self._bad_run, max(self._bad_by_station.values(), default=0))
         starving = len(self._recent) >= self._recent.maxlen // 2 and \
             sum(1 for x in self._recent if not x) > len(self._recent) // 2
-        return ("confirming a start" if self._confirm > 0 else "sweeps rejected" if bad >= 2 else
+        return ("confirming a start" if self._confirm > 0 or self._beams_refused else "sweeps rejected" if bad >= 2 else
                 "gate starving" if starving else "")
