@@ -127,6 +127,7 @@ def _warm_imu_kernels(stations) -> None:
     T = np.array([0.0, 0.01])
     K.propagate_span(R, p, v, ba, bg, g, P, T, gyro, acc, 0.0, 0.005, False, 900.0, 0.1, 0.0, 1e-4, 1e-6, 1e-8,
                      np.eye(15), True, np.inf, 0.02)
+    K.sample_at(T, gyro, acc, 0.005, np.empty(3), np.empty(3))  # (a late sweep's IMU sample)
     Rk, xk, Pk = np.tile(np.eye(3), (2, 1, 1)), np.zeros((2, 12)), np.tile(P, (2, 1, 1))
     K.record_state(R, p, v, ba, bg, P, Rk[0], xk[0], Pk[0])
     K.rts_backward(Rk, xk, Pk, Rk, xk, Pk, np.tile(np.eye(15), (2, 1, 1)), 2, Rk.copy(), xk.copy(), Pk.copy())

@@ -103,9 +103,9 @@ def propagate(R, p, v, ba, bg, g, P, f, w, dt, qa, qg, qba, qbg):
 
 
 @numba.njit(**_JIT)
-def _sample_at(T, gyro, acc, t, w, f):
+def sample_at(T, gyro, acc, t, w, f):
     """``w``, ``f`` (3,) <- gyro, acc linearly interpolated at ``t`` (held beyond the ends), as
-    :meth:`layoutkit.filter.imu_tracker.ImuSweepTracker._sample`."""
+    the IMU filter's one interpolation (its propagation and its late sweeps)."""
     N = T.shape[0]
     j = np.searchsorted(T, t, side="right") - 1
     if j < 0:
@@ -126,7 +126,7 @@ def _sample_at(T, gyro, acc, t, w, f):
 def propagate_span(R, p, v, ba, bg, g, P, T, gyro, acc, a, t, gap, q_sat, acc_noise, acc_noise_per_acc, qg, qba,
                    qbg, Fc, record, gap_from, gap_dt):
     """Integrate the IMU samples ``T (N,)`` s, ``gyro``, ``acc (N, 3)`` from ``a`` to ``t`` s: each stretch
-    between sample times with its midpoint's interpolated sample (:func:`_sample_at`), the accelerometer
+    between sample times with its midpoint's interpolated sample (:func:`sample_at`), the accelerometer
     noise ``(acc_noise + acc_noise_per_acc |R (f - ba) + g|)²`` (``q_sat`` when ``gap``: no IMU data there),
     :func:`propagate`. ``record``: each stretch's error transition accumulated into ``Fc``
     (:func:`transition`), and the integration stops early at a sample time ``b < t`` with
@@ -139,7 +139,7 @@ def propagate_span(R, p, v, ba, bg, g, P, T, gyro, acc, a, t, gap, q_sat, acc_no
     while True:
         b = min(t, T[j]) if j < N else t
         if b > a:
-            _sample_at(T, gyro, acc, 0.5 * (a + b), w, f)
+            sample_at(T, gyro, acc, 0.5 * (a + b), w, f)
             if gap:
                 qa = q_sat
             else:  # the accelerometer's error grows with the motion (scale, axes, timing, filtering)

@@ -245,15 +245,13 @@ class ImuSweepTracker:
 
     # ------------------------------------------------------------------ IMU
     def _sample(self, t: float):
-        """(gyro, acc) linearly interpolated at ``t`` (held beyond the ends)."""
-        T = self.imu_t
-        j = int(np.searchsorted(T, t, side="right")) - 1
-        if j < 0:
-            return self.gyro[0], self.acc[0]
-        if j >= T.size - 1:
-            return self.gyro[-1], self.acc[-1]
-        u = (t - T[j]) / (T[j + 1] - T[j]) if T[j + 1] > T[j] else 0.0
-        return self.gyro[j] + u * (self.gyro[j + 1] - self.gyro[j]), self.acc[j] + u * (self.acc[j + 1] - self.acc[j])
+        """(gyro, acc) (3,) linearly interpolated at ``t`` (held beyond the ends):
+        :func:`layoutkit.filter._imu_numba.sample_at`, the propagation's own interpolation."""
+        from . import _imu_numba as K
+
+        w, f = np.empty(3), np.empty(3)
+        K.sample_at(self.imu_t, self.gyro, self.acc, t, w, f)
+        return w, f
 
     def _propagate(self, t: float) -> None:
         """Integrate the IMU from the filter's time to ``t`` (each stretch between sample times at its
@@ -325,11 +323,7 @@ class ImuSweepTracker:
             setattr(f, k, np.ascontiguousarray(getattr(f, k), float).copy())
         self.eskf = f
         self.t = float(o.t)
-        self._bad_run = 0
-        self._bad_by_station = {}
-        self._confirm = self.ic.confirm_sweeps
-        self._beams_ok, self._beams_refused = set(), set()
-        self._recent.clear()
+        self._reset_health()
         self._one = (-math.inf, math.inf)
         self.counters.inits += 1
         if self._started_once:
@@ -370,11 +364,7 @@ class ImuSweepTracker:
         P[0:3, 0:3] = np.eye(3) * sp ** 2
         P[3:6, 3:6] = np.eye(3) * sv ** 2
         P[6:9, 6:9] = np.eye(3) * sr ** 2
-        self._bad_run = 0
-        self._bad_by_station = {}
-        self._confirm = self.ic.confirm_sweeps
-        self._beams_ok, self._beams_refused = set(), set()
-        self._recent.clear()
+        self._reset_health()
         self.counters.restarts += 1
 
     # ------------------------------------------------------------------ update
@@ -499,15 +489,22 @@ class ImuSweepTracker:
             self.counters.zupts += 1
         return self._output(self.t, s, axis, upd, "")  # the state's time: the sweep's mean hit time
 
+    def one_station_sigma(self, R, p) -> float:
+        """m, the best single station's position 1-sigma at the body pose ``R (3, 3)``, ``p (3,)`` m (world)
+        (:func:`layoutkit.filter.ekf.single_station_sigma`, with the lighthouse tracker's compiled station
+        Jacobians when it had them); the causal filter's limit and the smoother's."""
+        jac = self._jac
+        return single_station_sigma(self.points_body, R, p, self.stations, self.config.rho, self.config.sigma_theta,
+                                    None if jac is None else jac(R, p))
+
     def _one_station_limit(self, t: float, R, p) -> float:
+        """:meth:`one_station_sigma`, re-evaluated after 0.1 s of stream time or a (re)start."""
         t0, lim = self._one
         if abs(t - t0) <= 0.1:
             return lim
         if self.starter is not None:
             self._jac = getattr(self.starter.ekf, "station_jacobians", None)
-        jac = self._jac
-        lim = single_station_sigma(self.points_body, R, p, self.stations, self.config.rho, self.config.sigma_theta,
-                                   None if jac is None else jac(R, p))
+        lim = self.one_station_sigma(R, p)
         self._one = (t, lim)
         return lim
 
@@ -530,7 +527,7 @@ class ImuSweepTracker:
         big_pos = math.sqrt(max(d[6], d[7], d[8])) / c.max_sigma_pos_m
         # one station's sweeps refused again and again while the other's are taken: the state is wrong
         # for that station (the lighthouse-only tracker's rule too)
-        bad = max(self._bad_run, max(self._bad_by_station.values(), default=0))
+        bad = self._worst_run()
         lost = bad >= c.lost_after or big_pos > c.lost_factor
         health = ""
         if lost:
@@ -562,6 +559,19 @@ class ImuSweepTracker:
             self._lose()
         return o
 
+    def _reset_health(self) -> None:
+        """A (re)start: no rejections counted, ``confirm_sweeps`` accepted sweeps and every station axis
+        that sends sweeps to be confirmed again."""
+        self._bad_run = 0
+        self._bad_by_station = {}
+        self._confirm = self.ic.confirm_sweeps
+        self._beams_ok, self._beams_refused = set(), set()
+        self._recent.clear()
+
+    def _worst_run(self) -> int:
+        """The longest current run of rejected sweeps, overall or of one station."""
+        return max(self._bad_run, max(self._bad_by_station.values(), default=0))
+
     def _health(self) -> str:
         """Why the filter's state is not to be trusted now, its sigma aside ("" when it is): a start not
         yet confirmed (fewer than ``confirm_sweeps`` sweeps accepted, or a station's axis that has sent
@@ -569,7 +579,7 @@ class ImuSweepTracker:
         one station's faulty angles put it, consistent with the other station's and with one axis of the
         faulty one, the other axis refused every time), sweeps rejected in a row (overall or of one
         station), the gate starving.""" 
-        bad = max(self._bad_run, max(self._bad_by_station.values(), default=0))
+        bad = self._worst_run()
         starving = len(self._recent) >= self._recent.maxlen // 2 and \
             sum(1 for x in self._recent if not x) > len(self._recent) // 2
         return ("confirming a start" if self._confirm > 0 or self._beams_refused else "sweeps rejected" if bad >= 2 else

@@ -42,7 +42,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ekf import single_station_sigma
 from .imu_tracker import ImuSweepTracker, sigma_why
 from .tracker import FilterOutput
 
@@ -146,13 +145,8 @@ class StepBuffer:
 
     def smooth(self, n: int | None = None):
         """:func:`rts_smooth` over the first ``n`` buffered steps (default all)."""
-        from . import _imu_numba as K
-
         n = self.n if n is None else n
-        Rs, xs, Ps = np.empty((n, 3, 3)), np.empty((n, 12)), np.empty((n, 15, 15))
-        if n:
-            K.rts_backward(self.Rf, self.xf, self.Pf, self.Rp, self.xp, self.Pp, self.F, n, Rs, xs, Ps)
-        return Rs, xs, Ps
+        return rts_smooth(*(getattr(self, k)[:n] for k, _ in self._FIELDS))
 
     def drop(self, k: int) -> None:
         """Forget the first ``k`` steps."""
@@ -293,10 +287,7 @@ class SmoothedImuTracker:
         t0, lim = self._one
         if abs(t - t0) <= 0.1:
             return lim
-        trk = self.tracker
-        jac = trk._jac
-        lim = single_station_sigma(trk.points_body, R, p, trk.stations, trk.config.rho, trk.config.sigma_theta,
-                                   None if jac is None else jac(R, p))
+        lim = self.tracker.one_station_sigma(R, p)
         self._one = (t, lim)
         return lim
 
