@@ -8,6 +8,7 @@ The simulated scenarios and benchmarks are in :mod:`layoutkit.studies.filter_sce
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -73,22 +74,32 @@ class FilterSink:
 
     def feed(self, sweeps) -> list:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
-
-        t0, c0 = time.perf_counter(), time.process_time()
-        outs = []
-        push = self.tracker.push
-        for m in sweeps:
-            self.sweeps += 1
-            try:
-                o = push(m)
-            except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
-                continue
-            if o is not None:
-                outs.append(o)
-        self.seconds += time.perf_counter() - t0
-        self.cpu_seconds += time.process_time() - c0
+        with self._timed():
+            outs = []
+            push = self._push
+            for m in sweeps:
+                self.sweeps += 1
+                try:
+                    outs.extend(push(m))
+                except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
+                    continue
         self._emit(outs)
         return outs
+
+    def _push(self, m) -> list | tuple:
+        """The outputs one sweep makes final (the tracker's, when it has one)."""
+        o = self.tracker.push(m)
+        return () if o is None else (o,)
+
+    @contextlib.contextmanager
+    def _timed(self):
+        """The filter's wall and CPU seconds, accumulated."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.seconds += time.perf_counter() - t0
+            self.cpu_seconds += time.process_time() - c0
 
     def _emit(self, outs) -> None:
         """The outputs to the JSON lines, the truth statistics and the pose table."""
@@ -282,29 +293,13 @@ class ImuFilterSink(FilterSink):
 
             self.smoother = SmoothedImuTracker(self.tracker, smooth)
 
-    def feed(self, sweeps) -> list:
-        if self.smoother is None:
-            return super().feed(sweeps)
-        t0, c0 = time.perf_counter(), time.process_time()
-        outs = []
-        push = self.smoother.push
-        for m in sweeps:
-            self.sweeps += 1
-            try:
-                outs.extend(push(m))
-            except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
-                continue
-        self.seconds += time.perf_counter() - t0
-        self.cpu_seconds += time.process_time() - c0
-        self._emit(outs)
-        return outs
+    def _push(self, m):
+        return super()._push(m) if self.smoother is None else self.smoother.push(m)
 
     def close(self) -> None:
         if self.smoother is not None:  # the rest of the smoothed outputs, before the pose table closes
-            t0, c0 = time.perf_counter(), time.process_time()
-            outs = self.smoother.finish()
-            self.seconds += time.perf_counter() - t0
-            self.cpu_seconds += time.process_time() - c0
+            with self._timed():
+                outs = self.smoother.finish()
             self._emit(outs)
         super().close()
 
