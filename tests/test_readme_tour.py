@@ -11,6 +11,7 @@ package imported once instead of per line).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shlex
@@ -111,13 +112,12 @@ def _run_lines(lines, tmp_path):
             r = subprocess.run(EXE + args[1:], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
             assert r.returncode == 0 and "Traceback" not in r.stderr, (cmd, r.returncode, r.stdout[-800:],
                                                                        r.stderr[-1500:])
-        else:  # in this process (the same click command; no interpreter start and kernel loading per line)
-            _invoke(args[1:], tmp_path, cmd)
-        if args[1] == "live":
             _, err = device[1].communicate(timeout=60)
             assert device[1].returncode == 0, err
             assert (tmp_path / "out" / "cap.lkcap").stat().st_size > 0
             assert (tmp_path / "out" / "val-live" / "report.json").is_file()
+        else:  # in this process (the same click command; no interpreter start and kernel loading per line)
+            _invoke(args[1:], tmp_path, cmd)
         print(f"{time.monotonic() - t0:6.1f} s  {cmd}")
 
 
@@ -127,12 +127,8 @@ def _invoke(args, cwd, cmd):
 
     from layoutkit.cli import main
 
-    old = os.getcwd()
-    os.chdir(cwd)
-    try:
+    with contextlib.chdir(cwd):
         r = CliRunner().invoke(main, args)
-    finally:
-        os.chdir(old)
     exc = None if isinstance(r.exception, SystemExit) else r.exception
     assert r.exit_code == 0 and exc is None and "Traceback" not in r.output, (cmd, r.exit_code, repr(exc),
                                                                                r.output[-1500:])
