@@ -26,7 +26,7 @@ demo: $(STAMP)
 # pace over ptys, Dask clusters starting), which a third worker fills (4:05 -> 3:44 measured). Tests are
 # handed out one at a time (--maxschedchunk 1), longest files first (tests/conftest.py): xdist's default
 # first hands each worker a block of a quarter of its share, which put all the long files on one worker.
-XDIST := -n 3 --maxschedchunk 1
+XDIST := -n 3 --dist loadgroup --no-loadscope-reorder
 test: $(STAMP)
 	$(PYTEST) $(XDIST) -q
 

@@ -58,6 +58,43 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda it: (-per_file[it.nodeid.split("::")[0]], order[it.nodeid]))
 
 
+@pytest.hookimpl(optionalhook=True)  # without pytest-xdist (-p no:xdist) there is no such hook
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadgroup`` (the Makefile's): tests handed out one at a time, except that the tests of
+    a module defining a module- or class-scoped fixture go to one worker together. Handed out singly,
+    such a module's tests landed on every worker and each built the fixture again (the camera bench
+    rendered on three workers). xdist's own loadgroup reads ``xdist_group`` marks through a node
+    attribute pytest 9 no longer has, so it silently spread the groups; this scheduler groups by
+    module path, known in the controller from the test files themselves."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    grouped = _modules_with_shared_fixtures(Path(__file__).parent)
+
+    class ModuleFixtureScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid):
+            module = nodeid.split("::", 1)[0]
+            return module if module in grouped else nodeid
+
+    return ModuleFixtureScheduling(config, log)
+
+
+def _modules_with_shared_fixtures(folder: Path) -> set:
+    """``tests/test_X.py`` paths of the modules that define a ``@pytest.fixture(scope="module"|"class")``."""
+    import ast
+
+    out = set()
+    for path in sorted(folder.glob("test_*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            for dec in getattr(node, "decorator_list", ()):
+                if isinstance(dec, ast.Call) and any(
+                        k.arg == "scope" and isinstance(k.value, ast.Constant) and k.value.value in ("module", "class")
+                        for k in dec.keywords):
+                    out.add(f"{folder.name}/{path.name}")
+    return out
+
+
 def pytest_runtest_logreport(report):
     if os.environ.get("LAYOUTKIT_TEST_DURATIONS"):
         _measured[report.nodeid] = _measured.get(report.nodeid, 0.0) + report.duration

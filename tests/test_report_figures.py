@@ -157,3 +157,49 @@ def test_save_figure_refuses_untitled_figure(tmp_path):
     with pytest.raises(ValueError, match="no title"):
         save_figure(fig, tmp_path / "f.png", caption="a line")
     assert not (tmp_path / "f.png").exists()
+
+
+def test_saved_box_is_matplotlibs_tight_box_and_overlaps_are_still_found(tmp_path):
+    """save_figure saves the box it computed while placing the caption (no extra drawing pass):
+    the PNG has the size matplotlib's own ``bbox_inches="tight"`` gives the same figure (within a
+    pixel of rounding), with the caption inside it; and the overlap check, which reuses that layout
+    instead of drawing again, still finds overlapping text — placed before the caption, or added after
+    it (the figure is stale again and is laid out anew)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.image import imread
+
+    from layoutkit.io.figures import _place_caption, save_figure
+
+    def fig_with(text_at=None):
+        fig, axs = plt.subplots(1, 2, figsize=(7, 3), layout="constrained")
+        for a in axs:
+            a.plot([0, 1], [0, 2], label="line")
+            a.set_title("t")
+            a.set_xlabel("x (m)")
+            a.set_ylabel("y (m)")
+            a.legend()
+        if text_at is not None:
+            axs[0].text(*text_at, "a long note across the title", transform=axs[0].transAxes, fontsize=14)
+        return fig
+
+    caption = "What the panels show, long enough to be wrapped over the drawn width of the two panels. " * 2
+    save_figure(fig_with(), tmp_path / "ours.png", caption=caption, dpi=110)
+    ref = fig_with()
+    ref.set_dpi(110)
+    _place_caption(ref, caption)  # as save_figure, then matplotlib's own tight box
+    ref.set_layout_engine("none")
+    ref.savefig(tmp_path / "tight.png", dpi=110, bbox_inches="tight", pad_inches=0.08)
+    plt.close(ref)
+    ours, tight = imread(tmp_path / "ours.png").shape[:2], imread(tmp_path / "tight.png").shape[:2]
+    assert abs(ours[0] - tight[0]) <= 1 and abs(ours[1] - tight[1]) <= 1, (ours, tight)
+
+    fig = fig_with(text_at=(0.0, 1.02))  # over the left panel's title
+    _place_caption(fig, caption)
+    assert any("overlaps" in p for p in layout_problems(fig))
+    plt.close(fig)
+    fig = fig_with()
+    _place_caption(fig, caption)
+    assert not layout_problems(fig)
+    fig.axes[1].text(0.0, 1.02, "a long note across the title", transform=fig.axes[1].transAxes, fontsize=14)
+    assert any("overlaps" in p for p in layout_problems(fig))  # added after the caption: laid out again
+    plt.close(fig)

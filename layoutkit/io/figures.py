@@ -71,7 +71,8 @@ def layout_problems(fig, *, pad_px: float = 0.5) -> list[str]:
     another (a colour bar over a panel). Draws the figure first. (Nothing is cut by the edge: report
     figures are saved with a tight bounding box.)
     Tick labels of the two axes of one axes meeting at its corner are not counted."""
-    fig.canvas.draw()
+    if fig.stale:  # layout and tick positions (not the pixels), unless known since the last change
+        fig.draw_without_rendering()
     r = fig.canvas.get_renderer()
     boxes = [(n, t, t.get_window_extent(r).expanded(1.0, 1.0)) for n, t in _texts(fig)]
     problems = []
@@ -115,15 +116,23 @@ def _wrapped(caption: str, width_pt: float, fontsize: float) -> str:
     return "\n".join(textwrap.wrap(caption, chars)) or caption
 
 
-def _place_caption(fig, caption: str, fontsize: float = 7.0):
+def _place_caption(fig, caption: str, fontsize: float = 7.0, pad_in: float = 0.08):
     """The caption line(s) under everything the figure draws: wrapped to the drawn width and put
-    below the lowest artist (saved with a tight bounding box, so nothing is moved or cut)."""
-    fig.canvas.draw()
-    box = fig.get_tightbbox(fig.canvas.get_renderer())  # inches
+    below the lowest artist. Returns the box to save (inches): everything drawn, the caption included,
+    padded by ``pad_in`` — what ``bbox_inches="tight"`` would find, without the extra drawing pass
+    savefig makes to find it (nothing is moved or cut)."""
+    from matplotlib.transforms import Bbox
+
+    fig.draw_without_rendering()  # the layout and tick positions, not the pixels
+    r = fig.canvas.get_renderer()
+    box = fig.get_tightbbox(r)  # inches
     y = (box.y0 * fig.dpi - 4.0) / fig.bbox.height
     x = max(box.x0 * fig.dpi, 0.0) / fig.bbox.width
-    return fig.text(x, y, _wrapped(caption, box.width * 72.0, fontsize), fontsize=fontsize, ha="left", va="top",
-                    color="0.25", gid=CAPTION_GID)
+    t = fig.text(x, y, _wrapped(caption, box.width * 72.0, fontsize), fontsize=fontsize, ha="left", va="top",
+                 color="0.25", gid=CAPTION_GID)
+    cap = t.get_window_extent(r).transformed(fig.dpi_scale_trans.inverted())
+    fig.stale = False  # laid out: the caption's box comes from the renderer, nothing else moved since
+    return Bbox.union([box, cap]).padded(pad_in)
 
 
 def _reserve_caption(fig, caption: str, fontsize: float):
@@ -138,6 +147,7 @@ def _reserve_caption(fig, caption: str, fontsize: float):
         engine.set(rect=(0.0, frac, 1.0, 1.0 - frac))
     else:  # colour bars made without a layout engine cannot join one later: move the panels up
         fig.subplots_adjust(bottom=max(fig.subplotpars.bottom, frac + 0.02))
+    fig.stale = True  # the layout moved (a layout engine's new rect does not say so itself)
     return t
 
 
@@ -155,8 +165,10 @@ def save_figure(fig, path, *, caption: str, dpi: int = 110, close: bool = True,
     path = Path(path)
     if size_px is not None:
         _reserve_caption(fig, caption, fontsize)
-    else:
-        _place_caption(fig, caption, fontsize)
+        box = None
+    else:  # laid out at the dpi it is saved at: text extents (hinted glyphs) depend on it
+        fig.set_dpi(dpi)
+        box = _place_caption(fig, caption, fontsize)
     problems = figure_problems(fig)
     if problems:
         import matplotlib.pyplot as plt
@@ -165,7 +177,7 @@ def save_figure(fig, path, *, caption: str, dpi: int = 110, close: bool = True,
         raise ValueError(f"{path}: report figure is missing: {', '.join(problems)}")
     if size_px is None and fig.get_layout_engine() is not None:  # placed: the layout must not move it now
         fig.set_layout_engine("none")
-    tight = {} if size_px is not None else {"bbox_inches": "tight", "pad_inches": 0.08}
+    tight = {} if box is None else {"bbox_inches": box}
     with atomic_write(path, "wb") as fh:
         fig.savefig(fh, format=path.suffix.lstrip(".") or "png", dpi=dpi, **tight)
     if close:
