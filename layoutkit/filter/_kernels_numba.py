@@ -135,7 +135,12 @@ def sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows):
     their rows ``(m, 6)`` of d angle / d (left world rotation, world position) at the body pose
     ``R (3, 3), p (3,)``; station ``Rs`` (station → world), ``ts`` (3,), ``lh2`` kind flag,
     calibration ``c`` (7,) of that axis, ``corrected`` gib argument (filter.models + lighthouse)."""
-    g = np.empty(3)
+    _sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows, np.empty(3))
+
+
+@numba.njit(**_JIT)
+def _sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows, g):
+    """:func:`sweep_rows` with the caller's scratch ``g`` (3,)."""
     for r in range(idx.shape[0]):
         i = idx[r]
         lx = R[0, 0] * pb[i, 0] + R[0, 1] * pb[i, 1] + R[0, 2] * pb[i, 2]
@@ -208,27 +213,29 @@ def quat_left_error(qa, qb, e):
 
 
 @numba.njit(**_JIT)
-def cv_predict(q, w, p, v, P, dt, qrot, qpos, T):
+def cv_predict(q, w, p, v, P, dt, qrot, qpos, T, dq, Ph):
     """Constant-velocity prediction of one model over ``dt`` s (ErrorStateEKF.predict): nominal
     ``q <- exp(w dt) q``, ``p <- p + v dt``; ``P <- F P F^T + Q`` with the error-state transition
     ``F`` (identity but the attitude block ``Phi = exp([w dt]x)`` and the dt couplings attitude/rate,
     position/velocity) and the white-acceleration Q of PSDs ``qrot``, ``qpos`` (Bar-Shalom et al.
-    2001 eq. 6.2.2-12). ``T`` (12, 12) scratch."""
+    2001 eq. 6.2.2-12). ``T`` (12, 12), ``dq`` (4,), ``Ph`` (3, 3) scratch."""
     if dt <= 0.0:
         return
     phi0, phi1, phi2 = w[0] * dt, w[1] * dt, w[2] * dt
-    dq = np.empty(4)
     dq[0], dq[1], dq[2], dq[3] = 0.0, 0.0, 0.0, 1.0
     quat_left_mul_rotvec(phi0, phi1, phi2, dq)
     quat_left_mul_rotvec(phi0, phi1, phi2, q)
     for k in range(3):
         p[k] += v[k] * dt
-    Ph = np.empty((3, 3))
     quat_to_matrix(dq, Ph)
     # T = F P: rows 0-2 = Phi P[0:3] + dt P[3:6]; rows 6-8 = P[6:9] + dt P[9:12]; others as P
-    for j in range(12):
-        for i in range(3):
-            T[i, j] = Ph[i, 0] * P[0, j] + Ph[i, 1] * P[1, j] + Ph[i, 2] * P[2, j] + dt * P[3 + i, j]
+    # (row by row: the inner loop runs along contiguous rows)
+    for i in range(3):
+        h0, h1, h2 = Ph[i, 0], Ph[i, 1], Ph[i, 2]
+        for j in range(12):
+            T[i, j] = h0 * P[0, j] + h1 * P[1, j] + h2 * P[2, j] + dt * P[3 + i, j]
+    for i in range(3):
+        for j in range(12):
             T[3 + i, j] = P[3 + i, j]
             T[6 + i, j] = P[6 + i, j] + dt * P[9 + i, j]
             T[9 + i, j] = P[9 + i, j]
@@ -253,16 +260,16 @@ def cv_predict(q, w, p, v, P, dt, qrot, qpos, T):
 
 @numba.njit(**_JIT)
 def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected, dl, sigma2, rho, y, H, HP, S,
-                     zp, rows, qrot=0.0, qpos=0.0):
+                     zp, rows, qrot, qpos, R, g):
     """Innovations ``y (m,)``, rows ``H (m, 12)``, ``HP = H P (m, 12)`` and the innovation covariance
     ``S (m, m)`` of one sweep for one model (ErrorStateEKF.update_sweep before the gates): each
     angle predicted at its own hit time ``dl`` s after the state time (first order in the
     velocity), ``S`` with the model's process noise over those offsets
-    (:func:`hit_time_noise`; ``qrot`` rad²/s³, ``qpos`` m²/s³). ``zp (m,)``, ``rows (m, 6)`` scratch."""
+    (:func:`hit_time_noise`; ``qrot`` rad²/s³, ``qpos`` m²/s³). ``zp (m,)``, ``rows (m, 6)``, ``R (3, 3)``,
+    ``g (3,)`` scratch."""
     m = idx.shape[0]
-    R = np.empty((3, 3))
     quat_to_matrix(q, R)
-    sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, zp, rows)
+    _sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, zp, rows, g)
     for r in range(m):
         jw = rows[r, 0] * w[0] + rows[r, 1] * w[1] + rows[r, 2] * w[2]
         jv = rows[r, 3] * v[0] + rows[r, 4] * v[1] + rows[r, 5] * v[2]
@@ -273,12 +280,14 @@ def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected,
             H[r, 3 + k] = rows[r, k] * dl[r]
             H[r, 6 + k] = rows[r, 3 + k]
             H[r, 9 + k] = rows[r, 3 + k] * dl[r]
+    # HP[r, j] = sum_k H[r, k] P[k, j], summed over k in order (0.0 + ...), a row of P at a time
     for r in range(m):
         for j in range(12):
-            s = 0.0
-            for k in range(12):
-                s += H[r, k] * P[k, j]
-            HP[r, j] = s
+            HP[r, j] = 0.0
+        for k in range(12):
+            h = H[r, k]
+            for j in range(12):
+                HP[r, j] += h * P[k, j]
     for a in range(m):
         for b in range(a + 1):
             s = 0.0
@@ -312,16 +321,9 @@ def hit_time_noise(da, db):
 
 
 @numba.njit(**_JIT)
-def _chol_solve(keep, y, HP, S, L, X):
-    """Cholesky ``L`` of ``S`` over the kept angles and ``X = S^-1 [y, HP]`` (k, 13) of them.
+def _chol_solve(ix, k, y, HP, S, L, X):
+    """Cholesky ``L`` of ``S`` over the kept angles ``ix[:k]`` and ``X = S^-1 [y, HP]`` (k, 13) of them.
     Returns ``(k, nis, log det S)``; ``k = -1`` when S is not positive definite."""
-    m = keep.shape[0]
-    ix = np.empty(m, np.int64)
-    k = 0
-    for a in range(m):
-        if keep[a]:
-            ix[k] = a
-            k += 1
     for a in range(k):
         for b in range(a + 1):
             s = S[ix[a], ix[b]]
@@ -333,19 +335,28 @@ def _chol_solve(keep, y, HP, S, L, X):
                 L[a, a] = math.sqrt(s)
             else:
                 L[a, b] = s / L[b, b]
-    for col in range(13):
-        # forward: L u = rhs
-        for a in range(k):
-            s = y[ix[a]] if col == 0 else HP[ix[a], col - 1]
-            for c in range(a):
-                s -= L[a, c] * X[c, col]
-            X[a, col] = s / L[a, a]
-        # back: L^T x = u
-        for a in range(k - 1, -1, -1):
-            s = X[a, col]
-            for c in range(a + 1, k):
-                s -= L[c, a] * X[c, col]
-            X[a, col] = s / L[a, a]
+    # the 13 right-hand sides together (row by row; each element's terms subtracted in the same order)
+    # forward: L u = rhs
+    for a in range(k):
+        X[a, 0] = y[ix[a]]
+        for col in range(1, 13):
+            X[a, col] = HP[ix[a], col - 1]
+        for c in range(a):
+            l = L[a, c]
+            for col in range(13):
+                X[a, col] -= l * X[c, col]
+        d = L[a, a]
+        for col in range(13):
+            X[a, col] = X[a, col] / d
+    # back: L^T x = u
+    for a in range(k - 1, -1, -1):
+        for c in range(a + 1, k):
+            l = L[c, a]
+            for col in range(13):
+                X[a, col] -= l * X[c, col]
+        d = L[a, a]
+        for col in range(13):
+            X[a, col] = X[a, col] / d
     nis = 0.0
     logdet = 0.0
     for a in range(k):
@@ -355,26 +366,24 @@ def _chol_solve(keep, y, HP, S, L, X):
 
 
 @numba.njit(**_JIT)
-def _apply(keep, HP, X, q, w, p, v, P, dx):
-    """``dx = (HP)^T S^-1 y``, ``P -= (HP)^T S^-1 HP`` over the kept angles, injected into the nominal."""
-    m = keep.shape[0]
-    ix = np.empty(m, np.int64)
-    k = 0
-    for a in range(m):
-        if keep[a]:
-            ix[k] = a
-            k += 1
+def _apply(ix, k, HP, X, q, w, p, v, P, dx, acc):
+    """``dx = (HP)^T S^-1 y``, ``P -= (HP)^T S^-1 HP`` over the kept angles ``ix[:k]``, injected into the
+    nominal. acc (12,) scratch."""
     for i in range(12):
         s = 0.0
         for a in range(k):
             s += HP[ix[a], i] * X[a, 0]
         dx[i] = s
     for i in range(12):
+        # acc[j] = sum_a HP[ix[a], i] X[a, 1 + j], summed over a in order (0.0 + ...), j <= i together
         for j in range(i + 1):
-            s = 0.0
-            for a in range(k):
-                s += HP[ix[a], i] * X[a, 1 + j]
-            P[i, j] -= s
+            acc[j] = 0.0
+        for a in range(k):
+            h = HP[ix[a], i]
+            for j in range(i + 1):
+                acc[j] += h * X[a, 1 + j]
+        for j in range(i + 1):
+            P[i, j] -= acc[j]
             if i != j:
                 P[j, i] = P[i, j]
     quat_left_mul_rotvec(dx[0], dx[1], dx[2], q)
@@ -407,8 +416,10 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
     if mix and r > 1:
         _imm_mix(Q, W, Pn, V, P, mu, Pi)
     T = np.empty((12, 12))
+    dq = np.empty(4)
+    Ph = np.empty((3, 3))
     for j in range(r):
-        cv_predict(Q[j], W[j], Pn[j], V[j], P[j], t - t_state, qrot[j], qpos[j], T)
+        cv_predict(Q[j], W[j], Pn[j], V[j], P[j], t - t_state, qrot[j], qpos[j], T, dq, Ph)
     for a in range(10):
         out[a] = 0.0
     out[3] = np.nan
@@ -442,10 +453,12 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
     zp = np.empty(m)
     rows = np.empty((m, 6))
     keep = np.zeros(m, np.bool_)
+    R3 = np.empty((3, 3))
+    g3 = np.empty(3)
     for j in range(r):
         sweep_innovation(pb, idx, z, Q[j], W[j], Pn[j], V[j], P[j], Rs, ts, lh2, axis, c, corrected, dl, sigma2,
                          rho, Y[j], H[j], HP[j], S[j], zp, rows, qrot[j] if hit_noise else 0.0,
-                         qpos[j] if hit_noise else 0.0)
+                         qpos[j] if hit_noise else 0.0, R3, g3)
         for a in range(m):
             if Y[j, a] * Y[j, a] <= q1 * S[j, a, a]:
                 keep[a] = True
@@ -457,13 +470,19 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
     if k == 0:
         out[2] = 1.0
         return
+    ix = np.empty(k, np.int64)
+    k = 0
+    for a in range(m):
+        if keep[a]:
+            ix[k] = a
+            k += 1
     L = np.empty((k, k))
     X = np.empty((r, k, 13))
     nis = np.full(r, np.inf)
     logdet = np.zeros(r)
     any_ok = False
     for j in range(r):
-        kk, nis[j], logdet[j] = _chol_solve(keep, Y[j], HP[j], S[j], L, X[j])
+        kk, nis[j], logdet[j] = _chol_solve(ix, k, Y[j], HP[j], S[j], L, X[j])
         if kk < 0:
             nis[j] = np.inf
         elif nis[j] <= qm[k]:
@@ -477,9 +496,10 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
         out[2] = 1.0
         return
     dx = np.empty(12)
+    acc = np.empty(12)
     for j in range(r):
         if np.isfinite(nis[j]):
-            _apply(keep, HP[j], X[j], Q[j], W[j], Pn[j], V[j], P[j], dx)
+            _apply(ix, k, HP[j], X[j], Q[j], W[j], Pn[j], V[j], P[j], dx, acc)
     if r > 1 and not freeze:
         # mode probabilities: mu_j ∝ mu_j Λ_j, Λ_j = N(y_j; 0, S_j) over the kept angles
         lmax = -np.inf
@@ -550,14 +570,18 @@ def _moment_match(Q, W, Pn, V, P, wt, ref, skip_zero, e, er, use, mean, C):
         i = use[u]
         for a in range(12):
             mean[a] += wt[i] * e[i, a]
+    # C[a, b] = sum_u wt_i (P_i[a, b] + d_i[a] d_i[b]), summed over u in order (0.0 + ...), b <= a together
     for a in range(12):
         for b in range(a + 1):
-            s = 0.0
-            for u in range(nu):
-                i = use[u]
-                s += wt[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
-            C[a, b] = s
-            C[b, a] = s
+            C[a, b] = 0.0
+        for u in range(nu):
+            i = use[u]
+            wi = wt[i]
+            da = e[i, a] - mean[a]
+            for b in range(a + 1):
+                C[a, b] += wi * (P[i, a, b] + da * (e[i, b] - mean[b]))
+        for b in range(a):
+            C[b, a] = C[a, b]
 
 
 @numba.njit(**_JIT)
