@@ -76,13 +76,24 @@ class FilterSink:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
         with self._timed():
             outs = []
-            push = self._push
-            for m in sweeps:
-                self.sweeps += 1
-                try:
-                    outs.extend(push(m))
-                except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
-                    continue
+            if type(self)._push is FilterSink._push:  # one output or None per sweep: the tracker's push
+                push, append = self.tracker.push, outs.append
+                for m in sweeps:
+                    self.sweeps += 1
+                    try:
+                        o = push(m)
+                    except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
+                        continue
+                    if o is not None:
+                        append(o)
+            else:
+                push = self._push
+                for m in sweeps:
+                    self.sweeps += 1
+                    try:
+                        outs.extend(push(m))
+                    except ValueError:
+                        continue
         self._emit(outs)
         return outs
 
