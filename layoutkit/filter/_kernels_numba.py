@@ -1,7 +1,7 @@
 """numba kernels of the tracking filter (:mod:`layoutkit.filter.imm`; imported on first use only:
 importing numba and compiling is not work for the package's import time).
 
-Why one module of ~700 lines: the forward model, the predict/update, the gates and the IMM mixing
+Why one module of ~790 lines: the forward model, the predict/update, the gates and the IMM mixing
 run inside one compiled call per sweep and share its argument layout (``PAR_*``, ``OUT_*``). Every function works on one sweep
 with scalars and small arrays in registers; the numpy references they are tested against are
 :func:`layoutkit.lighthouse.measure_jacobian` (forward model) and
