@@ -115,7 +115,7 @@ class FilterSink:
     def _emit(self, outs) -> None:
         """The outputs to the JSON lines, the truth statistics and the pose table."""
         if outs and self.json_out is not None:
-            self.json_out.write("".join(json_line(o) + "\n" for o in outs))
+            self.json_out.write("\n".join(map(json_line, outs)) + "\n")
             self.json_out.flush()
         if outs and self.truth is not None:
             self._compare(outs)
