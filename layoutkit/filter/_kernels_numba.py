@@ -1,7 +1,7 @@
 """numba kernels of the tracking filter (:mod:`layoutkit.filter.imm`; imported on first use only:
 importing numba and compiling is not work for the package's import time).
 
-Why one module of ~610 lines: the forward model, the predict/update, the gates and the IMM mixing
+Why one module of ~790 lines: the forward model, the predict/update, the gates and the IMM mixing
 run inside one compiled call per sweep and share its argument layout (``PAR_*``, ``OUT_*``). Every function works on one sweep
 with scalars and small arrays in registers; the numpy references they are tested against are
 :func:`layoutkit.lighthouse.measure_jacobian` (forward model) and
@@ -135,7 +135,12 @@ def sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows):
     their rows ``(m, 6)`` of d angle / d (left world rotation, world position) at the body pose
     ``R (3, 3), p (3,)``; station ``Rs`` (station → world), ``ts`` (3,), ``lh2`` kind flag,
     calibration ``c`` (7,) of that axis, ``corrected`` gib argument (filter.models + lighthouse)."""
-    g = np.empty(3)
+    _sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows, np.empty(3))
+
+
+@numba.njit(**_JIT)
+def _sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, z_pred, rows, g):
+    """:func:`sweep_rows` with the caller's scratch ``g`` (3,)."""
     for r in range(idx.shape[0]):
         i = idx[r]
         lx = R[0, 0] * pb[i, 0] + R[0, 1] * pb[i, 1] + R[0, 2] * pb[i, 2]
@@ -208,27 +213,29 @@ def quat_left_error(qa, qb, e):
 
 
 @numba.njit(**_JIT)
-def cv_predict(q, w, p, v, P, dt, qrot, qpos, T):
+def cv_predict(q, w, p, v, P, dt, qrot, qpos, T, dq, Ph):
     """Constant-velocity prediction of one model over ``dt`` s (ErrorStateEKF.predict): nominal
     ``q <- exp(w dt) q``, ``p <- p + v dt``; ``P <- F P F^T + Q`` with the error-state transition
     ``F`` (identity but the attitude block ``Phi = exp([w dt]x)`` and the dt couplings attitude/rate,
     position/velocity) and the white-acceleration Q of PSDs ``qrot``, ``qpos`` (Bar-Shalom et al.
-    2001 eq. 6.2.2-12). ``T`` (12, 12) scratch."""
+    2001 eq. 6.2.2-12). ``T`` (12, 12), ``dq`` (4,), ``Ph`` (3, 3) scratch."""
     if dt <= 0.0:
         return
     phi0, phi1, phi2 = w[0] * dt, w[1] * dt, w[2] * dt
-    dq = np.empty(4)
     dq[0], dq[1], dq[2], dq[3] = 0.0, 0.0, 0.0, 1.0
     quat_left_mul_rotvec(phi0, phi1, phi2, dq)
     quat_left_mul_rotvec(phi0, phi1, phi2, q)
     for k in range(3):
         p[k] += v[k] * dt
-    Ph = np.empty((3, 3))
     quat_to_matrix(dq, Ph)
     # T = F P: rows 0-2 = Phi P[0:3] + dt P[3:6]; rows 6-8 = P[6:9] + dt P[9:12]; others as P
-    for j in range(12):
-        for i in range(3):
-            T[i, j] = Ph[i, 0] * P[0, j] + Ph[i, 1] * P[1, j] + Ph[i, 2] * P[2, j] + dt * P[3 + i, j]
+    # (row by row: the inner loop runs along contiguous rows)
+    for i in range(3):
+        h0, h1, h2 = Ph[i, 0], Ph[i, 1], Ph[i, 2]
+        for j in range(12):
+            T[i, j] = h0 * P[0, j] + h1 * P[1, j] + h2 * P[2, j] + dt * P[3 + i, j]
+    for i in range(3):
+        for j in range(12):
             T[3 + i, j] = P[3 + i, j]
             T[6 + i, j] = P[6 + i, j] + dt * P[9 + i, j]
             T[9 + i, j] = P[9 + i, j]
@@ -253,16 +260,16 @@ def cv_predict(q, w, p, v, P, dt, qrot, qpos, T):
 
 @numba.njit(**_JIT)
 def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected, dl, sigma2, rho, y, H, HP, S,
-                     zp, rows, qrot=0.0, qpos=0.0):
+                     zp, rows, qrot, qpos, R, g):
     """Innovations ``y (m,)``, rows ``H (m, 12)``, ``HP = H P (m, 12)`` and the innovation covariance
     ``S (m, m)`` of one sweep for one model (ErrorStateEKF.update_sweep before the gates): each
     angle predicted at its own hit time ``dl`` s after the state time (first order in the
     velocity), ``S`` with the model's process noise over those offsets
-    (:func:`hit_time_noise`; ``qrot`` rad²/s³, ``qpos`` m²/s³). ``zp (m,)``, ``rows (m, 6)`` scratch."""
+    (:func:`hit_time_noise`; ``qrot`` rad²/s³, ``qpos`` m²/s³). ``zp (m,)``, ``rows (m, 6)``, ``R (3, 3)``,
+    ``g (3,)`` scratch."""
     m = idx.shape[0]
-    R = np.empty((3, 3))
     quat_to_matrix(q, R)
-    sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, zp, rows)
+    _sweep_rows(pb, idx, R, p, Rs, ts, lh2, axis, c, corrected, zp, rows, g)
     for r in range(m):
         jw = rows[r, 0] * w[0] + rows[r, 1] * w[1] + rows[r, 2] * w[2]
         jv = rows[r, 3] * v[0] + rows[r, 4] * v[1] + rows[r, 5] * v[2]
@@ -273,12 +280,14 @@ def sweep_innovation(pb, idx, z, q, w, p, v, P, Rs, ts, lh2, axis, c, corrected,
             H[r, 3 + k] = rows[r, k] * dl[r]
             H[r, 6 + k] = rows[r, 3 + k]
             H[r, 9 + k] = rows[r, 3 + k] * dl[r]
+    # HP[r, j] = sum_k H[r, k] P[k, j], summed over k in order (0.0 + ...), a row of P at a time
     for r in range(m):
         for j in range(12):
-            s = 0.0
-            for k in range(12):
-                s += H[r, k] * P[k, j]
-            HP[r, j] = s
+            HP[r, j] = 0.0
+        for k in range(12):
+            h = H[r, k]
+            for j in range(12):
+                HP[r, j] += h * P[k, j]
     for a in range(m):
         for b in range(a + 1):
             s = 0.0
@@ -312,16 +321,9 @@ def hit_time_noise(da, db):
 
 
 @numba.njit(**_JIT)
-def _chol_solve(keep, y, HP, S, L, X):
-    """Cholesky ``L`` of ``S`` over the kept angles and ``X = S^-1 [y, HP]`` (k, 13) of them.
+def _chol_solve(ix, k, y, HP, S, L, X):
+    """Cholesky ``L`` of ``S`` over the kept angles ``ix[:k]`` and ``X = S^-1 [y, HP]`` (k, 13) of them.
     Returns ``(k, nis, log det S)``; ``k = -1`` when S is not positive definite."""
-    m = keep.shape[0]
-    ix = np.empty(m, np.int64)
-    k = 0
-    for a in range(m):
-        if keep[a]:
-            ix[k] = a
-            k += 1
     for a in range(k):
         for b in range(a + 1):
             s = S[ix[a], ix[b]]
@@ -333,19 +335,28 @@ def _chol_solve(keep, y, HP, S, L, X):
                 L[a, a] = math.sqrt(s)
             else:
                 L[a, b] = s / L[b, b]
-    for col in range(13):
-        # forward: L u = rhs
-        for a in range(k):
-            s = y[ix[a]] if col == 0 else HP[ix[a], col - 1]
-            for c in range(a):
-                s -= L[a, c] * X[c, col]
-            X[a, col] = s / L[a, a]
-        # back: L^T x = u
-        for a in range(k - 1, -1, -1):
-            s = X[a, col]
-            for c in range(a + 1, k):
-                s -= L[c, a] * X[c, col]
-            X[a, col] = s / L[a, a]
+    # the 13 right-hand sides together (row by row; each element's terms subtracted in the same order)
+    # forward: L u = rhs
+    for a in range(k):
+        X[a, 0] = y[ix[a]]
+        for col in range(1, 13):
+            X[a, col] = HP[ix[a], col - 1]
+        for c in range(a):
+            l = L[a, c]
+            for col in range(13):
+                X[a, col] -= l * X[c, col]
+        d = L[a, a]
+        for col in range(13):
+            X[a, col] = X[a, col] / d
+    # back: L^T x = u
+    for a in range(k - 1, -1, -1):
+        for c in range(a + 1, k):
+            l = L[c, a]
+            for col in range(13):
+                X[a, col] -= l * X[c, col]
+        d = L[a, a]
+        for col in range(13):
+            X[a, col] = X[a, col] / d
     nis = 0.0
     logdet = 0.0
     for a in range(k):
@@ -355,26 +366,24 @@ def _chol_solve(keep, y, HP, S, L, X):
 
 
 @numba.njit(**_JIT)
-def _apply(keep, HP, X, q, w, p, v, P, dx):
-    """``dx = (HP)^T S^-1 y``, ``P -= (HP)^T S^-1 HP`` over the kept angles, injected into the nominal."""
-    m = keep.shape[0]
-    ix = np.empty(m, np.int64)
-    k = 0
-    for a in range(m):
-        if keep[a]:
-            ix[k] = a
-            k += 1
+def _apply(ix, k, HP, X, q, w, p, v, P, dx, acc):
+    """``dx = (HP)^T S^-1 y``, ``P -= (HP)^T S^-1 HP`` over the kept angles ``ix[:k]``, injected into the
+    nominal. acc (12,) scratch."""
     for i in range(12):
         s = 0.0
         for a in range(k):
             s += HP[ix[a], i] * X[a, 0]
         dx[i] = s
     for i in range(12):
+        # acc[j] = sum_a HP[ix[a], i] X[a, 1 + j], summed over a in order (0.0 + ...), j <= i together
         for j in range(i + 1):
-            s = 0.0
-            for a in range(k):
-                s += HP[ix[a], i] * X[a, 1 + j]
-            P[i, j] -= s
+            acc[j] = 0.0
+        for a in range(k):
+            h = HP[ix[a], i]
+            for j in range(i + 1):
+                acc[j] += h * X[a, 1 + j]
+        for j in range(i + 1):
+            P[i, j] -= acc[j]
             if i != j:
                 P[j, i] = P[i, j]
     quat_left_mul_rotvec(dx[0], dx[1], dx[2], q)
@@ -386,7 +395,7 @@ def _apply(keep, HP, X, q, w, p, v, P, dx):
 
 @numba.njit(**_JIT)
 def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
-              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt=0.0, freeze=False, hit_noise=True):
+              omega, sigma2, rho, q1, qm, mix, out, qc, wc, pc, vc, Pc, sweep_dt, freeze, hit_noise, ws, iw):
     """One sweep through an interacting-multiple-model bank of ``r`` constant-velocity filters
     (Blom & Bar-Shalom 1988): mix (when ``mix``), predict each model to ``t`` with its own PSDs,
     gate, update every model with the kept angles, re-weight ``mu`` by the likelihoods, and write
@@ -399,25 +408,34 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
     the sweep's own time minus ``t`` (<= 0: a sweep that arrives slightly out of time order is
     applied at ``t`` with its hit times moved back by that much). freeze : keep ``mu`` (a body the
     static detector says is at rest stays in the mode it was put in). hit_noise : each model's
-    white acceleration over the angles' hit-time offsets in ``S`` (:func:`hit_time_noise`)."""
+    white acceleration over the angles' hit-time offsets in ``S`` (:func:`hit_time_noise`). ws : float
+    scratch of :func:`_scratch_size` (r, m) and iw : int64 scratch of max(r, m) (their contents are not
+    read: every piece is written before use)."""
     r = Q.shape[0]
     m = idx.shape[0]
-    q_prev = qc.copy()
-    p_prev = pc.copy()
+    q_prev = ws[0:4]
+    p_prev = ws[4:7]
+    er = ws[7:10]
+    dq = ws[10:14]
+    Ph = ws[14:23].reshape(3, 3)
+    T = ws[23:167].reshape(12, 12)
+    rest = ws[167:]  # the mixing, update and combination scratch (used one after the other)
+    for a in range(4):
+        q_prev[a] = qc[a]
+    for a in range(3):
+        p_prev[a] = pc[a]
     if mix and r > 1:
-        _imm_mix(Q, W, Pn, V, P, mu, Pi)
-    T = np.empty((12, 12))
+        _imm_mix_ws(Q, W, Pn, V, P, mu, Pi, rest, iw)
     for j in range(r):
-        cv_predict(Q[j], W[j], Pn[j], V[j], P[j], t - t_state, qrot[j], qpos[j], T)
+        cv_predict(Q[j], W[j], Pn[j], V[j], P[j], t - t_state, qrot[j], qpos[j], T, dq, Ph)
     for a in range(10):
         out[a] = 0.0
     out[3] = np.nan
     if m > 0:
         _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
-                    sweep_dt, freeze, qrot, qpos, hit_noise)
-    imm_combine(Q, W, Pn, V, P, mu, qc, wc, pc, vc, Pc)
+                    sweep_dt, freeze, qrot, qpos, hit_noise, rest, iw)
+    _imm_combine_ws(Q, W, Pn, V, P, mu, qc, wc, pc, vc, Pc, rest, iw)
     if out[0] > 0:
-        er = np.empty(3)
         quat_left_error(qc, q_prev, er)
         for a in range(3):
             out[4 + a] = er[a]
@@ -426,26 +444,48 @@ def imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, t_state, t, pb, idx, z, Rs, ts
 
 @numba.njit(**_JIT)
 def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected, omega, sigma2, rho, q1, qm, out,
-                sweep_dt, freeze, qrot, qpos, hit_noise):
+                sweep_dt, freeze, qrot, qpos, hit_noise, ws, iw):
     r = Q.shape[0]
     m = idx.shape[0]
-    dl = np.empty(m)
+    o = 0
+    dl = ws[o:o + m]
+    o += m
+    Y = ws[o:o + r * m].reshape(r, m)
+    o += r * m
+    H = ws[o:o + r * m * 12].reshape(r, m, 12)
+    o += r * m * 12
+    HP = ws[o:o + r * m * 12].reshape(r, m, 12)
+    o += r * m * 12
+    S = ws[o:o + r * m * m].reshape(r, m, m)
+    o += r * m * m
+    zp = ws[o:o + m]
+    o += m
+    rows = ws[o:o + 6 * m].reshape(m, 6)
+    o += 6 * m
+    R3 = ws[o:o + 9].reshape(3, 3)
+    o += 9
+    g3 = ws[o:o + 3]
+    o += 3
+    nis = ws[o:o + r]
+    o += r
+    logdet = ws[o:o + r]
+    o += r
+    ll = ws[o:o + r]
+    o += r
+    dx = ws[o:o + 12]
+    o += 12
+    acc = ws[o:o + 12]
+    o += 12
     for a in range(m):
         if lh2:
             dl[a] = (z[a] + math.pi + (-math.pi / 3.0 if axis == 0 else math.pi / 3.0)) / omega + sweep_dt
         else:
             dl[a] = z[a] / omega + sweep_dt
-    Y = np.empty((r, m))
-    H = np.empty((r, m, 12))
-    HP = np.empty((r, m, 12))
-    S = np.empty((r, m, m))
-    zp = np.empty(m)
-    rows = np.empty((m, 6))
     keep = np.zeros(m, np.bool_)
     for j in range(r):
         sweep_innovation(pb, idx, z, Q[j], W[j], Pn[j], V[j], P[j], Rs, ts, lh2, axis, c, corrected, dl, sigma2,
                          rho, Y[j], H[j], HP[j], S[j], zp, rows, qrot[j] if hit_noise else 0.0,
-                         qpos[j] if hit_noise else 0.0)
+                         qpos[j] if hit_noise else 0.0, R3, g3)
         for a in range(m):
             if Y[j, a] * Y[j, a] <= q1 * S[j, a, a]:
                 keep[a] = True
@@ -457,13 +497,22 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
     if k == 0:
         out[2] = 1.0
         return
-    L = np.empty((k, k))
-    X = np.empty((r, k, 13))
-    nis = np.full(r, np.inf)
-    logdet = np.zeros(r)
+    ix = iw[0:k]
+    k = 0
+    for a in range(m):
+        if keep[a]:
+            ix[k] = a
+            k += 1
+    L = ws[o:o + k * k].reshape(k, k)
+    o += k * k
+    X = ws[o:o + r * k * 13].reshape(r, k, 13)
+    o += r * k * 13
+    for j in range(r):
+        nis[j] = np.inf
+        logdet[j] = 0.0
     any_ok = False
     for j in range(r):
-        kk, nis[j], logdet[j] = _chol_solve(keep, Y[j], HP[j], S[j], L, X[j])
+        kk, nis[j], logdet[j] = _chol_solve(ix, k, Y[j], HP[j], S[j], L, X[j])
         if kk < 0:
             nis[j] = np.inf
         elif nis[j] <= qm[k]:
@@ -476,14 +525,12 @@ def _imm_update(Q, W, Pn, V, P, mu, pb, idx, z, Rs, ts, lh2, axis, c, corrected,
     if not any_ok:
         out[2] = 1.0
         return
-    dx = np.empty(12)
     for j in range(r):
         if np.isfinite(nis[j]):
-            _apply(keep, HP[j], X[j], Q[j], W[j], Pn[j], V[j], P[j], dx)
+            _apply(ix, k, HP[j], X[j], Q[j], W[j], Pn[j], V[j], P[j], dx, acc)
     if r > 1 and not freeze:
         # mode probabilities: mu_j ∝ mu_j Λ_j, Λ_j = N(y_j; 0, S_j) over the kept angles
         lmax = -np.inf
-        ll = np.empty(r)
         for j in range(r):
             ll[j] = -0.5 * (nis[j] + logdet[j]) if np.isfinite(nis[j]) else -np.inf
             if ll[j] > lmax:
@@ -550,14 +597,18 @@ def _moment_match(Q, W, Pn, V, P, wt, ref, skip_zero, e, er, use, mean, C):
         i = use[u]
         for a in range(12):
             mean[a] += wt[i] * e[i, a]
+    # C[a, b] = sum_u wt_i (P_i[a, b] + d_i[a] d_i[b]), summed over u in order (0.0 + ...), b <= a together
     for a in range(12):
         for b in range(a + 1):
-            s = 0.0
-            for u in range(nu):
-                i = use[u]
-                s += wt[i] * (P[i, a, b] + (e[i, a] - mean[a]) * (e[i, b] - mean[b]))
-            C[a, b] = s
-            C[b, a] = s
+            C[a, b] = 0.0
+        for u in range(nu):
+            i = use[u]
+            wi = wt[i]
+            da = e[i, a] - mean[a]
+            for b in range(a + 1):
+                C[a, b] += wi * (P[i, a, b] + da * (e[i, b] - mean[b]))
+        for b in range(a):
+            C[b, a] = C[a, b]
 
 
 @numba.njit(**_JIT)
@@ -565,16 +616,43 @@ def _imm_mix(Q, W, Pn, V, P, mu, Pi):
     """IMM mixing step in the error state: model j starts from the mixture of all models with
     weights ``mu_{i|j} ∝ Pi[i, j] mu_i``, attitudes mixed as left errors about model j's own."""
     r = Q.shape[0]
-    cbar = np.zeros(r)
+    _imm_mix_ws(Q, W, Pn, V, P, mu, Pi, np.empty(_scratch_size(r, 0)), np.empty(r, np.int64))
+
+
+@numba.njit(**_JIT)
+def _imm_mix_ws(Q, W, Pn, V, P, mu, Pi, ws, use):
+    """:func:`_imm_mix` with the caller's scratch: ws >= 171 r + 15 floats, use (r,) int64."""
+    r = Q.shape[0]
+    o = 0
+    cbar = ws[o:o + r]
+    o += r
+    Q0 = ws[o:o + 4 * r].reshape(r, 4)
+    o += 4 * r
+    W0 = ws[o:o + 3 * r].reshape(r, 3)
+    o += 3 * r
+    Pn0 = ws[o:o + 3 * r].reshape(r, 3)
+    o += 3 * r
+    V0 = ws[o:o + 3 * r].reshape(r, 3)
+    o += 3 * r
+    P0 = ws[o:o + 144 * r].reshape(r, 12, 12)
+    o += 144 * r
+    e = ws[o:o + 12 * r].reshape(r, 12)
+    o += 12 * r
+    wij = ws[o:o + r]
+    o += r
+    er = ws[o:o + 3]
+    o += 3
+    mean = ws[o:o + 12]
+    for j in range(r):
+        cbar[j] = 0.0
     for j in range(r):
         for i in range(r):
             cbar[j] += Pi[i, j] * mu[i]
-    Q0, W0, Pn0, V0, P0 = Q.copy(), W.copy(), Pn.copy(), V.copy(), P.copy()
-    e = np.empty((r, 12))
-    er = np.empty(3)
-    wij = np.empty(r)
-    use = np.empty(r, np.int64)
-    mean = np.empty(12)
+    Q0[:] = Q
+    W0[:] = W
+    Pn0[:] = Pn
+    V0[:] = V
+    P0[:] = P
     skip_zero = _bounded(Q0, W0, Pn0, V0, P0)
     for j in range(r):
         for i in range(r):
@@ -595,13 +673,21 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
     """The bank's output: the ``mu``-weighted mixture of the models (attitude about the most
     probable model's), into ``q`` (4,), ``w``, ``p``, ``v`` (3,), ``Pc`` (12, 12)."""
     r = Q.shape[0]
+    _imm_combine_ws(Q, W, Pn, V, P, mu, q, w, p, v, Pc, np.empty(_scratch_size(r, 0)), np.empty(r, np.int64))
+
+
+@numba.njit(**_JIT)
+def _imm_combine_ws(Q, W, Pn, V, P, mu, q, w, p, v, Pc, ws, use):
+    """:func:`imm_combine` with the caller's scratch: ws >= 12 r + 15 floats, use (r,) int64."""
+    r = Q.shape[0]
     jm = 0
     for j in range(r):
         if mu[j] > mu[jm]:
             jm = j
-    mean = np.empty(12)
-    _moment_match(Q, W, Pn, V, P, mu, jm, _bounded(Q, W, Pn, V, P), np.empty((r, 12)), np.empty(3),
-                  np.empty(r, np.int64), mean, Pc)
+    mean = ws[0:12]
+    er = ws[12:15]
+    e = ws[15:15 + 12 * r].reshape(r, 12)
+    _moment_match(Q, W, Pn, V, P, mu, jm, _bounded(Q, W, Pn, V, P), e, er, use, mean, Pc)
     for a in range(4):
         q[a] = Q[jm, a]
     quat_left_mul_rotvec(mean[0], mean[1], mean[2], q)
@@ -609,6 +695,14 @@ def imm_combine(Q, W, Pn, V, P, mu, q, w, p, v, Pc):
         w[a] = W[jm, a] + mean[3 + a]
         p[a] = Pn[jm, a] + mean[6 + a]
         v[a] = V[jm, a] + mean[9 + a]
+
+
+@numba.njit(**_JIT)
+def _scratch_size(r, m):
+    """Floats of scratch for :func:`imm_sweep` after its own 167: the larger of the mixing's
+    (171 r + 15), the combination's (12 r + 15) and the update's with ``m`` angles (at most ``m`` kept)."""
+    upd = m * (8 + r * (38 + m)) + m * m + 3 * r + 36
+    return max(171 * r + 15, 12 * r + 15, upd)
 
 
 #: layout of the per-call parameter vector of :func:`imm_step`
@@ -633,25 +727,47 @@ def imm_step(X, P, M, Pi, pb, idx, z, par, qm, out):
         x = out[OUT_P + 13 * (k if k < 3 else k + 3)]
         out[OUT_SIG + k] = math.sqrt(x if (x >= 0.0 or x != x) else 0.0)
     r = X.shape[0]
-    Q = np.ascontiguousarray(X[:, 0:4])
-    W = np.ascontiguousarray(X[:, 4:7])
-    Pn = np.ascontiguousarray(X[:, 7:10])
-    V = np.ascontiguousarray(X[:, 10:13])
-    mu = np.ascontiguousarray(M[:, 0])
-    qrot = np.ascontiguousarray(M[:, 1])
-    qpos = np.ascontiguousarray(M[:, 2])
-    c = par[PAR_CAL:PAR_CAL + 7].copy()
-    Rs = par[PAR_RS:PAR_RS + 9].copy().reshape(3, 3)
-    ts = par[PAR_TS:PAR_TS + 3].copy()
-    qc = out[OUT_STATE:OUT_STATE + 4].copy()
-    wc = np.empty(3)
-    pc = out[OUT_STATE + 7:OUT_STATE + 10].copy()
-    vc = np.empty(3)
-    Pc = np.empty((12, 12))
+    m = idx.shape[0]
+    # one scratch allocation per call: the per-model copies and every work array are pieces of it
+    ws = np.empty(16 * r + 176 + 167 + _scratch_size(r, m))
+    iw = np.empty(max(r, m, 1), np.int64)
+    Q = ws[0:4 * r].reshape(r, 4)
+    W = ws[4 * r:7 * r].reshape(r, 3)
+    Pn = ws[7 * r:10 * r].reshape(r, 3)
+    V = ws[10 * r:13 * r].reshape(r, 3)
+    mu = ws[13 * r:14 * r]
+    qrot = ws[14 * r:15 * r]
+    qpos = ws[15 * r:16 * r]
+    o = 16 * r
+    for j in range(r):
+        for a in range(4):
+            Q[j, a] = X[j, a]
+        for a in range(3):
+            W[j, a] = X[j, 4 + a]
+            Pn[j, a] = X[j, 7 + a]
+            V[j, a] = X[j, 10 + a]
+        mu[j], qrot[j], qpos[j] = M[j, 0], M[j, 1], M[j, 2]
+    c = ws[o:o + 7]
+    Rs = ws[o + 7:o + 16].reshape(3, 3)
+    ts = ws[o + 16:o + 19]
+    qc = ws[o + 19:o + 23]
+    wc = ws[o + 23:o + 26]
+    pc = ws[o + 26:o + 29]
+    vc = ws[o + 29:o + 32]
+    Pc = ws[o + 32:o + 176].reshape(12, 12)
+    for a in range(7):
+        c[a] = par[PAR_CAL + a]
+    for a in range(3):
+        for b in range(3):
+            Rs[a, b] = par[PAR_RS + 3 * a + b]
+        ts[a] = par[PAR_TS + a]
+        pc[a] = out[OUT_STATE + 7 + a]
+    for a in range(4):
+        qc[a] = out[OUT_STATE + a]
     imm_sweep(Q, W, Pn, V, P, mu, qrot, qpos, Pi, par[PAR_T_STATE], par[PAR_T], pb, idx, z, Rs, ts,
               par[PAR_LH2] > 0.5, int(par[PAR_AXIS]), c, par[PAR_CORRECTED] > 0.5, par[PAR_OMEGA], par[PAR_SIGMA2],
               par[PAR_RHO], par[PAR_Q1], qm, par[PAR_MIX] > 0.5, out, qc, wc, pc, vc, Pc, par[PAR_SWEEP_DT],
-              par[PAR_FREEZE] > 0.5, par[PAR_HIT_NOISE] > 0.5)
+              par[PAR_FREEZE] > 0.5, par[PAR_HIT_NOISE] > 0.5, ws[o + 176:], iw)
     for j in range(r):
         for a in range(4):
             X[j, a] = Q[j, a]

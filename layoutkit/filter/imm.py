@@ -106,16 +106,34 @@ class ImmFilter(PoseStateView):
         self._frozen = False  # mirrors PAR_FREEZE of every parameter vector (hold_static)
         self.noise_scale = 1.0
         self._adapt = c.motion == "adaptive" and c.noise_scale_max > 1.0 and c.noise_scale_rate > 0.0
+        # per-sweep constants (read once per sweep: looked up here, not through config / the kernel module)
+        self._sigma2 = c.sigma_theta ** 2
+        self._rate, self._scale_max = c.noise_scale_rate, c.noise_scale_max
+        self._sl_q = slice(K.OUT_STATE, K.OUT_STATE + 4)
+        self._sl_p = slice(K.OUT_STATE + 7, K.OUT_STATE + 10)
+        self._sl_P = slice(K.OUT_P, K.OUT_P + 144)
+        self._sl_sig = slice(K.OUT_SIG, K.OUT_SIG + 6)
+        self._i_dt = K.PAR_SWEEP_DT
+        self._step = K.imm_step
         self._view()
 
     def _view(self) -> None:
-        """The combined state as arrays (views of the last output vector; a new vector per sweep)."""
-        o, K = self._out, self._k
-        self.q = o[K.OUT_STATE:K.OUT_STATE + 4]
-        self.w = o[K.OUT_STATE + 4:K.OUT_STATE + 7]
-        self.p = o[K.OUT_STATE + 7:K.OUT_STATE + 10]
-        self.v = o[K.OUT_STATE + 10:K.OUT_STATE + 13]
-        self.P = o[K.OUT_P:K.OUT_P + 144].reshape(12, 12)
+        """The combined state as arrays (views of the last output vector; a new vector per sweep):
+        ``q``, ``p``, ``P`` here (read every sweep), ``w``, ``v`` when asked for."""
+        o = self._out
+        self.q = o[self._sl_q]
+        self.p = o[self._sl_p]
+        self.P = o[self._sl_P].reshape(12, 12)
+
+    @property
+    def w(self) -> np.ndarray:
+        """(3,) rad/s, the combined angular rate (a view of the last output vector)."""
+        return self._out[self._k.OUT_STATE + 4:self._k.OUT_STATE + 7]
+
+    @property
+    def v(self) -> np.ndarray:
+        """(3,) m/s, the combined velocity (a view of the last output vector)."""
+        return self._out[self._k.OUT_STATE + 10:self._k.OUT_STATE + 13]
 
     # ----------------------------------------------------------------------------- state (rotation,
     # rotvec, pose_sigma, pose_covariance, sigma_deg_m of the combined state: PoseStateView)
@@ -156,19 +174,26 @@ class ImmFilter(PoseStateView):
         update, re-weight, combine (:func:`layoutkit.filter._kernels_numba.imm_step`). ``hit_offsets``
         is ignored (the kernel derives each angle's hit time from the station's rotor rate);
         ``sweep_offset`` (s, <= 0): the sweep's time minus the filter's (a sweep slightly out of order)."""
-        o = self._sweep(station, axis, sensors, angles, sweep_offset)
-        sig0 = o[self._k.OUT_SIG:self._k.OUT_SIG + 6]  # the pose 1-sigma before the step (the kernel's)
+        o = self._sweep(station, axis, np.asarray(sensors, np.int64), np.asarray(angles, float), sweep_offset)
+        sig0 = o[self._sl_sig]  # the pose 1-sigma before the step (the kernel's)
         used, rejected, swr, nis = o[:4].tolist()
-        used, rejected, swr = int(used), int(rejected), bool(swr)
-        if self._adapt:
-            self._match_noise(used or len(sensors), nis, swr)
+        used, rejected = int(used), int(rejected)
+        if self._adapt:  # _match_noise, inline (every sweep)
+            if math.isfinite(nis):
+                dof = used or len(sensors)
+                r = min(nis / (dof if dof > 1 else 1), 10.0)
+            else:
+                r = 10.0 if swr else None
+            if r is not None:
+                self._set_noise(min(max(self.noise_scale * (1.0 + self._rate * (r - 1.0)), 1.0), self._scale_max))
         if swr or used == 0:
             return SweepUpdate(0, rejected, True, nis, 0, np.zeros(6), sig0)
         return SweepUpdate(used, rejected, False, nis, used, o[4:10], sig0)
 
     def _match_noise(self, dof: int, nis: float, rejected: bool) -> None:
         """The angle-noise scale follows the innovations (EkfConfig ``noise_scale_*``): a sweep whose
-        every angle the gates refused counts with the cap (evidence the noise is too small)."""
+        every angle the gates refused counts with the cap (evidence the noise is too small).
+        (:meth:`update_sweep` runs this inline.)"""
         c = self.config
         r = 10.0 if (rejected and not math.isfinite(nis)) else min(nis / max(dof, 1), 10.0) if math.isfinite(nis) else None
         if r is None:
@@ -178,20 +203,24 @@ class ImmFilter(PoseStateView):
     def _set_noise(self, s: float) -> None:
         if s != self.noise_scale:
             self.noise_scale = s
+            v = s * self._sigma2
+            i = self._k.PAR_SIGMA2
             for par in self._par:
-                par[:, self._k.PAR_SIGMA2] = s * self.config.sigma_theta ** 2
+                par[0, i] = par[1, i] = v
 
     def _sweep(self, station, axis, idx, z, sweep_offset=0.0):
-        """mix + predict to ``self.t`` + update with ``z`` + combine, in one compiled call."""
-        K = self._k
+        """mix + predict to ``self.t`` + update with ``z`` (idx int64, z float arrays) + combine, in one
+        compiled call."""
         par = self._par[station][axis]
-        par[0], par[1] = self._t_model, self.t
-        par[K.PAR_SWEEP_DT] = sweep_offset
+        par[0] = self._t_model
+        par[1] = self.t
+        par[self._i_dt] = sweep_offset
         out = self._out.copy()
-        K.imm_step(self.X, self.Pm, self.M, self.Pi, self.points_body, np.asarray(idx, np.int64),
-                   np.asarray(z, float), par, self._qm, out)
+        self._step(self.X, self.Pm, self.M, self.Pi, self.points_body, idx, z, par, self._qm, out)
         self._out = out
-        self._view()
+        self.q = out[self._sl_q]
+        self.p = out[self._sl_p]
+        self.P = out[self._sl_P].reshape(12, 12)
         self._t_model = self.t
         return out
 

@@ -28,6 +28,8 @@ _LINE = ('{"t": %r, "status": %s, "rotvec": [%r, %r, %r], "translation": [%r, %r
          '"rejected": %d, "nis": %s, "dof": %d, "static": %s, "event": %s}')
 #: the same with the smoother's mark (``FilterOutput.smoothed``)
 _LINE_SMOOTHED = _LINE[:-1] + ', "smoothed": true}'
+#: json's spelling of the usual status and event strings (others through the encoder's own escape)
+_QUOTED = {k: _esc(k) for k in ("ok", "uncertain", "lost", "", "init")}
 
 
 def json_line(o) -> str:
@@ -54,5 +56,7 @@ def json_line(o) -> str:
     nis_s = float.__repr__(nis) if math.isfinite(nis) else "null"
     # %r of a Python float is float.__repr__ (json's spelling of a finite float); t may be a numpy
     # float (json writes float.__repr__ of it too): float() keeps its value
-    return (_LINE_SMOOTHED if o.smoothed is True else _LINE) % (float(fl[0]), _esc(o.status), *fl[1:], station, axis, used, rejected, nis_s, dof,
-                    "true" if o.static else "false", _esc(o.event))
+    status, event = o.status, o.event
+    return (_LINE_SMOOTHED if o.smoothed is True else _LINE) % (
+        float(fl[0]), _QUOTED.get(status) or _esc(status), *fl[1:], station, axis, used, rejected, nis_s, dof,
+        "true" if o.static else "false", _QUOTED.get(event) or _esc(event))

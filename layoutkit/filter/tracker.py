@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from statistics import median
 from dataclasses import dataclass
 
 import numpy as np
@@ -233,6 +232,9 @@ class SweepTracker:
         self._hold = hasattr(self.ekf, "hold_static") and self.config.motion == "adaptive"
         self._own_offsets = hasattr(self.ekf, "propagate")  # the compiled bank: hit times from its rotor rate
         self._one_station = (-math.inf, math.inf)  # (t evaluated, m): ok_beats_one_station's limit
+        c = self.config  # per-sweep constants, looked up once (the adaptive static rule's 2 sigma², rho = 0)
+        self._static_on, self._static_den = bool(c.zupt or self._hold), 1.0 * 2.0 * c.sigma_theta ** 2
+        self._one_station_check = bool(c.ok_beats_one_station and len(self.stations) >= 2)
 
     # --------------------------------------------------------------------------- helpers
     def _station(self, s: int) -> Station:
@@ -421,21 +423,22 @@ class SweepTracker:
         m = d.size
         if m == 0:
             return
-        if c.motion == "fixed":
+        fixed = c.motion == "fixed"
+        if fixed:
             rho, s = c.rho, d.sum()
             T = (float(d @ d) - rho / (1.0 - rho + m * rho) * s * s) / ((1.0 - rho) * 2.0 * c.sigma_theta ** 2)
         else:  # adaptive: rho = 0 (a real rotor's correlation is not the paper's; 2 sigma² per difference holds)
-            T = float(d @ d) / (1.0 * 2.0 * c.sigma_theta ** 2)  # the rho term is exactly +0 here
+            T = float(d @ d) / self._static_den  # the rho term is exactly +0 here
         self._static_T.append(T)
         self._static_m.append(m)
-        self._static_per.append(T / m)
-        if c.motion != "fixed" and len(self._static_per) >= self.static_window:
+        (per := self._static_per).append(T / m)
+        if not fixed and len(per) >= self.static_window:
             # robust form for the adaptive bank: at rest the median per-dof statistic of the window is
             # ~1 (up to 4 allows sigma_theta half the real noise), a single decoding glitch does not
             # move the median, and three consecutive large pairs (a motion starting) end rest at once
-            per = self._static_per
-            # statistics.median: numpy's definition, without numpy's per-call overhead (every sweep)
-            self.static = bool(median(per) <= 4.0 and not (per[-1] > 9.0 and per[-2] > 9.0 and per[-3] > 9.0))
+            srt, i = sorted(per), len(per) // 2  # statistics.median (numpy's definition), inline: every sweep
+            med = srt[i] if len(srt) % 2 == 1 else (srt[i - 1] + srt[i]) / 2
+            self.static = bool(med <= 4.0 and not (per[-1] > 9.0 and per[-2] > 9.0 and per[-3] > 9.0))
             return
         if len(self._static_T) < c.zupt_window:
             self.static = False
@@ -453,35 +456,34 @@ class SweepTracker:
         a sweep more than ``reorder_s`` older than the filter: dropped, ``counters.sweeps_late``)."""
         c = self.config
         self.counters.sweeps += 1
-        s = int(sweep.station)
-        st = self._station(s)
+        s, stations = int(sweep.station), self.stations
+        st = stations[s] if 0 <= s < len(stations) else self._station(s)  # (_station raises)
         axis = int(sweep.axis)
         t = float(sweep.t)
         ang = np.asarray(sweep.angles, float)
         if ang.shape != (self.n,):
             raise ValueError(f"sweep angles: expected shape ({self.n},), got {ang.shape}")
-        ekf = self.ekf
-        late = 0.0
-        if ekf.initialized and t < ekf.t and ekf.t - t <= self.reorder_s:
-            # sweeps of different stations reach the decoder slightly out of time order (a rotation's
-            # time is its zero, the sweep is complete only when the plane has passed): applied at the
-            # filter's time with their hit times moved back
-            late, t = t - ekf.t, ekf.t
+        ekf, late = self.ekf, 0.0
         if ekf.initialized and t < ekf.t:
-            # too old to apply (the decoder holds a lone light plane until the channel's next block,
-            # up to ~1 s): dropped; lost_after such sweeps in a row are a device reset: start over
-            self._late_run += 1
-            if self._late_run < c.lost_after:
-                self.counters.sweeps_late += 1
-                return None
+            if ekf.t - t <= self.reorder_s:
+                # sweeps of different stations reach the decoder slightly out of time order (a rotation's
+                # time is its zero, the sweep is complete only when the plane has passed): applied at the
+                # filter's time with their hit times moved back
+                late, t = t - ekf.t, ekf.t
+            else:  # too old to apply (the decoder holds a lone light plane until the channel's next block,
+                # up to ~1 s): dropped; lost_after such sweeps in a row are a device reset: start over
+                self._late_run += 1
+                if self._late_run < c.lost_after:
+                    self.counters.sweeps_late += 1
+                    return None
+                self._late_run = 0
+                self._declare_lost()
+                ekf.initialized = False
+                self._first = None
+                for kept in (self._recent, self._last_same, self._static_T, self._static_m, self._static_per):
+                    kept.clear()
         self._late_run = 0
-        if ekf.initialized and t < ekf.t:
-            self._declare_lost()
-            ekf.initialized = False
-            self._first = None
-            for kept in (self._recent, self._last_same, self._static_T, self._static_m, self._static_per):
-                kept.clear()
-        if c.zupt or self._hold:
+        if self._static_on:
             self._static_test((s, axis), t, ang)
         event = ""
         if not ekf.initialized or self._lost:
@@ -586,8 +588,7 @@ class SweepTracker:
             status = "ok" if big <= 1.0 and slow_known and self._bad_run < 2 and self._confirm <= 0 else "uncertain"
             if status == "ok" and self._amb is not None:
                 status = "uncertain"  # a planar two-fold start not yet told apart
-            if status == "ok" and c.ok_beats_one_station and len(self.stations) >= 2 \
-                    and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t):
+            if status == "ok" and self._one_station_check and math.sqrt(d[6] + d[7] + d[8]) > self._one_station_limit(t):
                 status = "uncertain"
         cnt = self.counters
         cnt.outputs += 1

@@ -248,7 +248,9 @@ class SweepPairer:
         if not (0.0 <= gap <= self.max_gap.get(m.kind, self.max_gap["lh1"])) or m.kind != x.kind:
             self.unpaired += 2  # both sweeps are lost
             return None
-        raw = np.stack([np.asarray(x.angles, float), ang], -1)
+        raw = np.empty((self.n_sensors, 2))  # np.stack([x.angles, ang], -1) without its per-call overhead
+        raw[:, 0] = x.angles
+        raw[:, 1] = ang
         angles = to_sweep_angles(raw, m.kind)
         self.paired += 1
         if m.kind == "lh2":

@@ -76,13 +76,24 @@ class FilterSink:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
         with self._timed():
             outs = []
-            push = self._push
-            for m in sweeps:
-                self.sweeps += 1
-                try:
-                    outs.extend(push(m))
-                except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
-                    continue
+            if type(self)._push is FilterSink._push:  # one output or None per sweep: the tracker's push
+                push, append = self.tracker.push, outs.append
+                for m in sweeps:
+                    self.sweeps += 1
+                    try:
+                        o = push(m)
+                    except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
+                        continue
+                    if o is not None:
+                        append(o)
+            else:
+                push = self._push
+                for m in sweeps:
+                    self.sweeps += 1
+                    try:
+                        outs.extend(push(m))
+                    except ValueError:
+                        continue
         self._emit(outs)
         return outs
 
@@ -104,7 +115,7 @@ class FilterSink:
     def _emit(self, outs) -> None:
         """The outputs to the JSON lines, the truth statistics and the pose table."""
         if outs and self.json_out is not None:
-            self.json_out.write("".join(json_line(o) + "\n" for o in outs))
+            self.json_out.write("\n".join(map(json_line, outs)) + "\n")
             self.json_out.flush()
         if outs and self.truth is not None:
             self._compare(outs)
