@@ -21,18 +21,19 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/python -m layoutkit demo --out-dir out/demo
 
-# the whole suite, slow tests included (what CI runs; ~3 min 45 s on 2 idle cores, +1 min in a fresh checkout).
-# Three workers on two cores: ~40 s of each worker's time is spent waiting (streams at a real device's
-# pace over ptys, Dask clusters starting), which a third worker fills (4:05 -> 3:44 measured). Tests are
-# handed out one at a time (--maxschedchunk 1), longest files first (tests/conftest.py): xdist's default
-# first hands each worker a block of a quarter of its share, which put all the long files on one worker.
+# the whole suite, slow tests included (what CI runs). Three workers on two cores: ~40 s of each worker's
+# time is spent waiting (streams at a real device's pace over ptys, Dask clusters starting), which a third
+# worker fills. --dist loadgroup is tests/conftest.py's scheduler: tests handed out one at a time, longest
+# files first, except that a module with a module-scoped fixture stays on one worker (built once, not
+# once per worker). conftest also pins OpenBLAS to one thread per process: its second thread has no
+# core to run on here and spins.
 XDIST := -n 3 --dist loadgroup --no-loadscope-reorder
 test: $(STAMP)
 	$(PYTEST) $(XDIST) -q
 
 # the development loop: slow tests deselected, by mark or by tests/durations.json (< 1 min on 2 idle cores)
 test-fast: $(STAMP)
-	$(PYTEST) -n 2 -q -m "not slow and not install"
+	$(PYTEST) -n 2 --dist loadgroup --no-loadscope-reorder -q -m "not slow and not install"
 
 # re-measure tests/durations.json (which tests test-fast leaves out; the order files run in): the whole suite
 durations: $(STAMP)
