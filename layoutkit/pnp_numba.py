@@ -43,11 +43,15 @@ OK, TOO_FEW, DEGENERATE, NOT_CONVERGED, BEHIND, AMBIGUOUS, NO_START = 0, 1, 2, 3
 _JIT, _LEAF = JIT, LEAF
 _RTOL, _ATOL = 1e-6, 1e-26  # the LM's tolerances: those of the reference, pnp_lh1._RTOL and _ATOL
 _VEC = dict(_LEAF, fastmath={"contract", "arcp", "nsz", "reassoc"})
-# The per-frame call chain (_solve_frame -> _consider -> _refine -> LM core -> _pass, _depth) is
-# inlined at numba's IR level (inline="always"; same flags, so the same arithmetic, bit for bit):
+# The per-frame call chain (_frames -> _solve_frame -> _consider -> _refine -> LM core -> _pass, _depth)
+# is inlined at numba's IR level (inline="always"; same flags, so the same arithmetic, bit for bit):
 # as separate functions each call passed every array as ~7 words (-9 to -14 % per frame at n = 12,
-# interleaved A/B on one core). _pass_series and _posit stay calls: their reassociating flags
-# (vectorised sums) must not spread to the LM's arithmetic.
+# interleaved A/B on one core; _solve_frame into the frame loop and the sensor arrays as the rows of
+# one array down the chain, another -15 to -19 %). _pass_series and _posit stay calls: their
+# reassociating flags (vectorised sums) must not spread to the LM's arithmetic.
+# Timing note: the same kernel freshly compiled and loaded from numba's disk cache (what every run
+# after the first executes) measured up to 14 % apart (same instructions; code / data placement):
+# changes here were judged on the cached kernel, in-process A/B against the previous one.
 # Inlined code takes its caller's runtime: these functions (and _views) are for the kernel's own
 # functions compiled without reference counting (_LEAF) only — inlined into a function with it, the
 # views _views hands out would be released without having been held (heap corruption, seen in a test
