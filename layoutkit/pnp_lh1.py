@@ -874,6 +874,17 @@ def _with_redundancy(r: PnPResult, n_angles) -> PnPResult:
     return replace(r, status=st, success=st == STATUS_OK)
 
 
+def _compiled_outputs(F: int) -> tuple:
+    """The arrays :func:`solve_pnp_compiled` writes: rotation (F, 3, 3), translation (F, 3), status (F,)
+    int64, residual_rms (F,), iterations (F,) int64, alt_rotation (F, 3, 3), alt_translation (F, 3),
+    alt_residual_rms (F,) (uninitialised; every frame is written)."""
+    return (np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F, np.int64), np.empty(F), np.empty(F, np.int64),
+            np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F))
+
+
+_COMPILED_FIELDS = ("rotation", "translation", "status", "residual_rms", "iterations", "alt_rotation",
+                    "alt_translation", "alt_residual_rms")
+
 #: Frames from which the compiled solver spreads a chunk over threads (below, one thread: the
 #: thread pool's start-up costs more than it saves), and frames per thread task.
 PARALLEL_MIN_FRAMES = 256
@@ -881,11 +892,14 @@ PARALLEL_BLOCK = 32
 
 
 def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: int = 20, sigma: float | None = None,
-                       rho: float = RHO_PAPER) -> PnPResult:
+                       rho: float = RHO_PAPER, out=None) -> PnPResult:
     """:func:`solve_pnp_lm` compiled: the same algorithm per frame in one numba kernel
     (:mod:`layoutkit.pnp_numba`; shapes as :class:`PnPSolver`). Same statuses and poses as the numpy
     reference to rounding (``tests/test_pnp_compiled.py``); chunks of at least
-    :data:`PARALLEL_MIN_FRAMES` frames run on numba's threads. Compiled on first use, cached on disk."""
+    :data:`PARALLEL_MIN_FRAMES` frames run on numba's threads. Compiled on first use, cached on disk.
+
+    out: optional arrays the kernel writes into (:func:`_compiled_outputs`, F frames each, e.g. one
+    chunk's slices of the whole batch's outputs); the result holds them. Allocated when None."""
     from . import pnp_numba
 
     P = np.asarray(points_body, float)
@@ -914,8 +928,8 @@ def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: i
             R0[idx], t0[idx] = Rs, ti[idx]
     consts = np.array([MIN_ANGLES, MIN_SENSORS, MIN_START_SENSORS, PLANARITY_THRESHOLD, COPLANAR_THRESHOLD,
                        COLLINEAR_THRESHOLD, RETRY_RESIDUAL, np.cos(DISTINCT_ANGLE), AMBIGUITY_LR], float)
-    out = (np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F, np.int64), np.empty(F), np.empty(F, np.int64),
-           np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F))
+    if out is None:
+        out = _compiled_outputs(F)
     args = (np.ascontiguousarray(P[None] if P.ndim == 2 else P), P.ndim == 2, cot, lit, R0, t0, has,
             int(max_iterations), np.nan if sigma is None else float(sigma), float(rho), consts)
     if F >= PARALLEL_MIN_FRAMES:
@@ -975,16 +989,19 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
     solver = PNP_SOLVERS[method]
     chunk = max(int(chunk_size), 1)
     parts = []
+    # the compiled solver over several chunks writes each chunk into its slice of the whole batch's
+    # outputs: no concatenation afterwards (a copy of every output, ~5 % of a compiled solve at n = 12)
+    full = _compiled_outputs(F) if solver is solve_pnp_compiled and F > chunk else None
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for s in range(0, F, chunk):
             e = min(F, s + chunk)
             a = ang[s:e]
             p = P if P.ndim == 2 else P[s:e]
-            # every angle seen and in (0, pi) (NaN compares False): the usual batch, all lit, nothing
-            # invalid — one test instead of the seven elementwise passes below (~4 % of a compiled solve)
-            inr = (a > 0) & (a < np.pi) if visible is None and P.ndim == 2 else None
-            if inr is not None and inr.all():
-                lit, invalid = inr, None
+            # every angle seen and in (0, pi) (a NaN makes min / max NaN, which compares False): the usual
+            # batch, all lit, nothing invalid — two reductions instead of the seven elementwise passes
+            # below (~4 % of a compiled solve) or of two comparisons, their and, and all (~2 %)
+            if visible is None and P.ndim == 2 and a.size and a.min() > 0 and a.max() < np.pi:
+                lit, invalid = np.ones(a.shape, bool), None
             else:
                 v = vis[s:e] & ~np.isnan(a)  # NaN = not seen
                 good = np.isfinite(a) & (a > 0) & (a < np.pi)
@@ -995,8 +1012,21 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
                     lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
             n_angles = np.full(e - s, lit[0].size) if lit.all() else lit.sum((1, 2))
-            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), n_angles)
+            if full is None:
+                r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), n_angles)
+                if invalid is not None:
+                    r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
+                parts.append(r)
+                continue
+            o = tuple(x[s:e] for x in full)
+            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho, out=o), n_angles)
             if invalid is not None:
                 r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
-            parts.append(r)
+            for dst, f in zip(o, _COMPILED_FIELDS):  # fields a status rule replaced: back into the slice
+                src = getattr(r, f)
+                if src is not dst:
+                    dst[...] = src
+    if full is not None:
+        R, t, st, res, it, aR, at, ares = full
+        return PnPResult(R, t, st == STATUS_OK, st, res, it, aR, at, ares)
     return concat_results(parts)

@@ -43,11 +43,15 @@ OK, TOO_FEW, DEGENERATE, NOT_CONVERGED, BEHIND, AMBIGUOUS, NO_START = 0, 1, 2, 3
 _JIT, _LEAF = JIT, LEAF
 _RTOL, _ATOL = 1e-6, 1e-26  # the LM's tolerances: those of the reference, pnp_lh1._RTOL and _ATOL
 _VEC = dict(_LEAF, fastmath={"contract", "arcp", "nsz", "reassoc"})
-# The per-frame call chain (_solve_frame -> _consider -> _refine -> LM core -> _pass, _depth) is
-# inlined at numba's IR level (inline="always"; same flags, so the same arithmetic, bit for bit):
+# The per-frame call chain (_frames -> _solve_frame -> _consider -> _refine -> LM core -> _pass, _depth)
+# is inlined at numba's IR level (inline="always"; same flags, so the same arithmetic, bit for bit):
 # as separate functions each call passed every array as ~7 words (-9 to -14 % per frame at n = 12,
-# interleaved A/B on one core). _pass_series and _posit stay calls: their reassociating flags
-# (vectorised sums) must not spread to the LM's arithmetic.
+# interleaved A/B on one core; _solve_frame into the frame loop and the sensor arrays as the rows of
+# one array down the chain, another -15 to -19 %). _pass_series and _posit stay calls: their
+# reassociating flags (vectorised sums) must not spread to the LM's arithmetic.
+# Timing note: the same kernel freshly compiled and loaded from numba's disk cache (what every run
+# after the first executes) measured up to 14 % apart (same instructions; code / data placement):
+# changes here were judged on the cached kernel, in-process A/B against the previous one.
 # Inlined code takes its caller's runtime: these functions (and _views) are for the kernel's own
 # functions compiled without reference counting (_LEAF) only — inlined into a function with it, the
 # views _views hands out would be released without having been held (heap corruption, seen in a test
@@ -114,12 +118,13 @@ def _eval(Px, Py, Pz, ux, uy, wx, wy, n, r, t, rx, ry, zz):
 
 
 @numba.njit(**_VEC)
-def _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
+def _pass_series(SA, n, r, t, mode, A, g):
     """:func:`_pass_exact` without branches, for poses where every seen angle's residual is in the
     series' range (den > 0, |num / den| < 0.05: atan by its odd series to q^13, truncation below
     2e-21): returns (cost, in_range); when not in_range nothing is written and the caller runs the
     exact pass. Branch-free with reassociated sums so that LLVM vectorises it over the sensors;
     the sums' order differs from the exact pass by rounding only."""
+    Px, Py, Pz, ux, uy, wx, wy = SA[0], SA[1], SA[2], SA[3], SA[4], SA[5], SA[6]
     r0, r1, r2, r3, r4, r5, r6, r7, r8 = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
     t0, t1, t2 = t[0], t[1], t[2]
     g0 = g1 = g2 = g3 = g4 = g5 = 0.0
@@ -201,12 +206,12 @@ def _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
 
 
 @numba.njit(inline="always", **_LEAF)
-def _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g):
+def _pass(SA, n, r, t, mode, A, g):
     """One pass over the sensors at the pose (see :func:`_pass_exact`): the vectorised series pass
     when every seen residual is in its range, else the exact one."""
-    cost, ok = _pass_series(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
+    cost, ok = _pass_series(SA, n, r, t, mode, A, g)
     if not ok:
-        return _pass_exact(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
+        return _pass_exact(SA[0], SA[1], SA[2], SA[3], SA[4], SA[5], SA[6], n, r, t, mode, A, g)
     return cost
 
 
@@ -303,12 +308,12 @@ def _pnp_pass(ctx, r, t, mode, A, g, pose):
     """:func:`_pass` as the LM core's model (:func:`layoutkit.lm_numba.make_refine`): ctx = the frame's
     sensor arrays and their count; the by-product is the evaluated pose, pose (12,) = (r, t), whose
     depths :func:`_refine` computes once, for the last accepted one."""
-    Px, Py, Pz, ux, uy, wx, wy, n = ctx
+    SA, n = ctx
     for k in range(9):
         pose[k] = r[k]
     for k in range(3):
         pose[9 + k] = t[k]
-    return _pass(Px, Py, Pz, ux, uy, wx, wy, n, r, t, mode, A, g)
+    return _pass(SA, n, r, t, mode, A, g)
 
 
 _lm_refine = make_refine(_pnp_pass, "pnp")
@@ -317,7 +322,7 @@ _lm_refine = make_refine(_pnp_pass, "pnp")
 # ------------------------------------------------------------------------------ refinement
 
 @numba.njit(inline="always", **_LEAF)
-def _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out):
+def _refine(SA, n, na, r, t, max_iterations, wk, out):
     """Levenberg–Marquardt from (r (9,), t (3,)), updated in place: the shared core
     :func:`layoutkit.lm_numba.make_refine` (the per-frame form of :func:`layoutkit.pnp_lh1._refine`: the same
     steps, tolerances and factor reuse) with each pose's residuals, gradient (and Gram matrix) from one
@@ -325,9 +330,9 @@ def _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out):
     evaluated pose, as the reference)."""
     sc = _views(wk)
     pose, pose2 = sc.dep, sc.dep2
-    _lm_refine((Px, Py, Pz, ux, uy, wx, wy, n), r, t, na, _RTOL, _ATOL, max_iterations, wk.M6, wk.LB,
+    _lm_refine((SA, n), r, t, na, _RTOL, _ATOL, max_iterations, wk.M6, wk.LB,
                pose, pose2, out)
-    _depth(Px, Py, Pz, wx, wy, n, pose, out[4:6])
+    _depth(SA[0], SA[1], SA[2], SA[5], SA[6], n, pose, out[4:6])
 
 
 # ------------------------------------------------------------------------------ starts
@@ -393,9 +398,10 @@ def _unit3(a, b, c):
 
 
 @numba.njit(**_VEC)
-def _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, r, t, wk, have_geo):
+def _posit(SA, n, nl, c, S, r, t, wk, have_geo):
     """POSIT in the virtual camera (pnp_lh1._posit, two iterations) → r (9,), t (3,). have_geo: the
     centred points and the inverse scatter in ``wk`` are this geometry's (computed here otherwise)."""
+    Px, Py, Pz, ux, uy, w = SA[0], SA[1], SA[2], SA[3], SA[4], SA[7]
     sc = _views(wk)
     vxs, vys = sc.rx2, sc.ry2
     Qx, Qy, Qz, Si = sc.px, sc.py, sc.pz, sc.si
@@ -687,7 +693,7 @@ def _noise_quadratic(rx, ry, wx, wy, n, sigma, rho):
 
 
 @numba.njit(inline="always", **_LEAF)
-def _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, r0, t0, max_iterations, track_alt, cos_d, wk, bs):
+def _consider(SA, n, na, size, r0, t0, max_iterations, track_alt, cos_d, wk, bs):
     """Refine the start (r0, t0) and keep it as the best or the runner-up (pnp_lh1's consider)."""
     sc = _views(wk)
     r, t, out = sc.rc, sc.tc, sc.out
@@ -695,7 +701,7 @@ def _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, r0, t0, max_iterations, t
         r[k] = r0[k]
     for k in range(3):
         t[k] = t0[k]
-    _refine(Px, Py, Pz, ux, uy, wx, wy, n, na, r, t, max_iterations, wk, out)
+    _refine(SA, n, na, r, t, max_iterations, wk, out)
     cost, it, conv, ok, zmin, zmax = out[0], out[1], out[2] > 0.5, out[3] > 0.5, out[4], out[5]
     ok = ok and math.isfinite(cost) and zmax <= 1e5 * size
     if not ok:
@@ -742,13 +748,17 @@ def _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, r0, t0, max_iterations, t
             best_v[2] = cost
 
 
-@numba.njit(**_LEAF)
-def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_iterations, sigma, rho,
+@numba.njit(inline="always", **_LEAF)
+def _solve_frame(SA, n, R0, t0, has_init, max_iterations, sigma, rho,
                  consts, wk, bs, res, same):
-    """One frame (pnp_lh1.solve_pnp_lm). res[:] = status, residual, iterations, alt residual.
+    """One frame (pnp_lh1.solve_pnp_lm). SA (9, n): the frame's sensor arrays Px, Py, Pz, ux, uy, wx, wy, w,
+    wany as rows (one array through the inlined chain down to the calls of :func:`_pass_series` and
+    :func:`_posit`: passed as 7 or 6 arrays, ~45 words of arguments were pushed per call).
+    res[:] = status, residual, iterations, alt residual.
     same: the points and lit pattern are those of the previous frame solved with ``wk``, whose
     geometry (counts, centroid, scatter, planarity, collinearity, size, POSIT's centred points and
     inverse scatter) is reused — the same values, computed once per run of such frames."""
+    Px, Py, Pz, ux, uy, wx, wy, w, wany = SA[0], SA[1], SA[2], SA[3], SA[4], SA[5], SA[6], SA[7], SA[8]
     sc = _views(wk)
     min_angles, min_sensors, min_start, planar_thr, coplanar_thr, collinear_thr, retry_res, cos_d, amb_lr = (
         consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6], consts[7], consts[8])
@@ -793,7 +803,7 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
         cold = True
         tried_initial = False
         if has_init:
-            _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, R0, t0, max_iterations, track_alt, cos_d, wk, bs)
+            _consider(SA, n, na, size, R0, t0, max_iterations, track_alt, cos_d, wk, bs)
             tried_initial = True
             rms = math.sqrt(bv[0] / (na if na > 1.0 else 1.0))
             if bv[3] == OK and rms <= retry_res:
@@ -803,18 +813,18 @@ def _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, n, R0, t0, has_init, max_i
                 bv[3] = NO_START
             cold = False
         if cold and planarity > coplanar_thr:
-            _posit(Px, Py, Pz, ux, uy, w, n, nl, c, S, sc.r0, sc.t0, wk, geo[6] > 0.5)
+            _posit(SA, n, nl, c, S, sc.r0, sc.t0, wk, geo[6] > 0.5)
             geo[6] = 1.0
-            _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, sc.r0, sc.t0, max_iterations, track_alt, cos_d, wk, bs)
+            _consider(SA, n, na, size, sc.r0, sc.t0, max_iterations, track_alt, cos_d, wk, bs)
         if cold:
             retry = retry_res if not (sigma == sigma and sigma != 0.0) else min(retry_res, 5.0 * sigma)
             rms = math.sqrt(bv[0] / (na if na > 1.0 else 1.0))
             poor = bv[3] != OK or not (rms <= retry)
             if planarity < planar_thr or poor:
                 _ippe_pair(Px, Py, Pz, ux, uy, w, n, nl, c, sc.r0, sc.t0, sc.r1, sc.t1, wk)
-                _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, sc.r0, sc.t0, max_iterations, track_alt, cos_d,
+                _consider(SA, n, na, size, sc.r0, sc.t0, max_iterations, track_alt, cos_d,
                           wk, bs)
-                _consider(Px, Py, Pz, ux, uy, wx, wy, n, na, size, sc.r1, sc.t1, max_iterations, track_alt, cos_d,
+                _consider(SA, n, na, size, sc.r1, sc.t1, max_iterations, track_alt, cos_d,
                           wk, bs)
         status = int(bv[3])
     nam = na if na > 1.0 else 1.0
@@ -853,8 +863,19 @@ Work = namedtuple("Work", ["V", "M6", "A8", "S3", "B", "LB"])
 
 
 @numba.njit(**_JIT)
+def _aligned_rows(k, n):
+    """Zeros (k, n) whose data starts on a 64-byte boundary (a cache line, one AVX-512 vector). numba's
+    arrays are aligned to less: with rows of a multiple of 8 doubles starting anywhere, every vector load of
+    the sensor loops split two cache lines or not by chance of the allocator (a kernel 0.77-0.84 us per
+    frame at n = 12 by what the process had allocated before)."""
+    buf = np.zeros(k * n + 8)
+    off = ((-buf.ctypes.data) % 64) // 8
+    return buf[off:off + k * n].reshape((k, n))
+
+
+@numba.njit(**_JIT)
 def _scratch(n):
-    return Work(np.zeros((12, n)), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((28, 12)),
+    return Work(_aligned_rows(12, n), np.zeros((2, 6, 6)), np.zeros((8, 8)), np.zeros((3, 3)), np.zeros((28, 12)),
                 np.zeros((8, 9)))
 
 
@@ -871,7 +892,8 @@ def _views(wk):
 @numba.njit(**_JIT)
 def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
                  R_out, t_out, status, resid, iters, altR, altt, altres):
-    """Frames lo..hi-1 with one set of scratch arrays (see :func:`solve_batch`)."""
+    """Frames lo..hi-1 with one set of scratch arrays (see :func:`solve_batch`): allocates them (this
+    function keeps numba's reference counting) and runs :func:`_frames` (compiled without it)."""
     n = cot.shape[1]
     # above 6 sensors the sensor arrays are padded with unseen sensors to a multiple of 8 (weights 0:
     # they add exact zeros everywhere), so that the vectorised pass (8 doubles per AVX-512 vector) has
@@ -879,11 +901,21 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
     m = (n + 7) // 8 * 8 if n > 6 else n
     wk = _scratch(m)
     bs = Best(np.empty(9), np.empty(3), np.empty(9), np.empty(3), np.empty(4))
-    Px, Py, Pz = np.zeros(m), np.zeros(m), np.zeros(m)
-    ux, uy = np.zeros(m), np.zeros(m)
-    wx, wy, w, wany = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
+    S = _aligned_rows(9, m)  # Px, Py, Pz, ux, uy, wx, wy, w, wany
     r0, tt0 = np.zeros(9), np.zeros(3)
     res = np.empty(4)
+    _frames(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+            R_out, t_out, status, resid, iters, altR, altt, altres, m, wk, bs, S, r0, tt0, res)
+
+
+@numba.njit(**_LEAF)
+def _frames(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, sigma, rho, consts,
+            R_out, t_out, status, resid, iters, altR, altt, altres, m, wk, bs, S, r0, tt0, res):
+    """The frame loop of :func:`_solve_range` with :func:`_solve_frame` inlined (one call per range: as a
+    call per frame, its ~170 words of array arguments were copied every frame). S (9, m): the frame's
+    sensor arrays Px, Py, Pz, ux, uy, wx, wy, w, wany (zeros past n)."""
+    n = cot.shape[1]
+    Px, Py, Pz, ux, uy, wx, wy, w, wany = S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7], S[8]
     if shared:  # the body's points, once for all frames
         for i in range(n):
             Px[i], Py[i], Pz[i] = P[0, i, 0], P[0, i, 1], P[0, i, 2]
@@ -920,7 +952,7 @@ def _solve_range(lo, hi, P, shared, cot, lit, R0, t0, has_init, max_iterations, 
                 for c in range(3):
                     r0[3 * a + c] = R0[f, a, c]
                 tt0[a] = t0[f, a]
-        amb = _solve_frame(Px, Py, Pz, ux, uy, wx, wy, w, wany, m, r0, tt0, hi_, max_iterations, sigma, rho,
+        amb = _solve_frame(S, m, r0, tt0, hi_, max_iterations, sigma, rho,
                            consts, wk, bs, res, same)
         status[f] = int(res[0])
         resid[f] = res[1]

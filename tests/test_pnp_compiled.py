@@ -191,3 +191,26 @@ def test_runs_of_one_lit_pattern(rng, F):
             _same(x, y)
     finally:
         numba.set_num_threads(threads)
+
+
+def test_chunks_write_into_the_whole_batch(rng):
+    """Over several chunks the compiled solver writes each chunk into its slice of the batch's outputs
+    (no concatenation); the result is the one-chunk result in every field, every frame: all-lit chunks,
+    chunks with invalid angles (STATUS_INVALID_ANGLE set after the solve), a frame without a start, the
+    4-sensor top face (an ambiguous frame with its runner-up)."""
+    R, t = _poses(60, rng)
+    ang = _angles(R, t, rng)
+    ang[13, 4, 0] = 3.5             # out of (0, pi): invalid, in the second chunk of 7
+    ang[40, 2, 1] = -np.inf         # invalid, sixth chunk
+    ang[22, :9] = np.nan            # 3 sensors seen: no start
+    ang[50:57, 4:] = np.nan         # the top face only (a whole chunk of 7): coplanar, IPPE, ambiguity
+    one = solve_pnp(P12, ang, chunk_size=60)
+    assert set(one.status.tolist()) == {0, 5, 6, 7} and np.isnan(one.rotation[13]).all()
+    for chunk in (7, 16, 59):
+        many = solve_pnp(P12, ang, chunk_size=chunk)
+        for field in ("rotation", "translation", "success", "status", "residual_rms", "iterations",
+                      "alt_rotation", "alt_translation", "alt_residual_rms"):
+            np.testing.assert_array_equal(getattr(many, field), getattr(one, field), err_msg=field)
+    # all lit, no invalid angle: the fast path of every chunk
+    ok = np.delete(np.arange(60), [13, 22, 40] + list(range(50, 57)))
+    np.testing.assert_array_equal(solve_pnp(P12, ang[ok], chunk_size=8).rotation, solve_pnp(P12, ang[ok]).rotation)
