@@ -20,6 +20,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+from devices import mesh_path  # noqa: E402
 from run import FRESH, _scores  # noqa: E402
 
 from layoutkit.envelope import load_envelope  # noqa: E402
@@ -40,7 +41,7 @@ def main():
     rows = {}
     for name in ["shipped"] + a.layouts:
         path = folder / ("shipped.json" if name == "shipped" else f"{name}.layout.json")
-        sc = _scores(path, str(folder / "hull.stl"), env, sets=sets)
+        sc = _scores(path, str(mesh_path(folder)), env, sets=sets)
         rows[name] = {lab: sc[lab]["worst_adop"] for lab, _, _ in sets}
         rows[name]["_covered"] = {lab: sc[lab]["covered_fraction"] for lab, _, _ in sets}
         print(name, {k: round(v) if math.isfinite(v) else v for k, v in rows[name].items() if k[0] != "_"}, flush=True)

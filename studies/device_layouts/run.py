@@ -40,7 +40,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import DEVICES, front_envelope, load_device  # noqa: E402
+from devices import DEVICES, HOUSINGS, front_envelope, load_device, mesh_path, with_housing  # noqa: E402
 
 RHO, M = 0.8717, 4
 FRESH = [("fresh seed+100", 2000, 100), ("fresh seed+101", 2000, 101), ("fresh seed+102", 2000, 102),
@@ -56,13 +56,14 @@ def _toml(env) -> str:
                       f"half_angle_deg = {a['half_angle_deg']}"]) + "\n"
 
 
-def prepare(dev, folder: Path):
-    """hull.stl, env.toml and shipped.json of a device in its folder."""
+def prepare(dev, folder: Path, housing="hull"):
+    """The mesh (hull.stl, or housing.stl for the tangent-cell housing), env.toml and shipped.json of a device in
+    its folder."""
     from layoutkit.layout import save_layout
     from layoutkit.mesh import save_mesh
 
     folder.mkdir(parents=True, exist_ok=True)
-    save_mesh(dev.hull, folder / "hull.stl")
+    save_mesh(dev.hull, folder / ("hull.stl" if housing == "hull" else "housing.stl"))
     save_layout(dev.layout, folder / "shipped.json")
     env = front_envelope(dev)
     (folder / "env.toml").write_text(_toml(env))
@@ -92,7 +93,7 @@ def _commit() -> str:
 def stage_newcomer(dev, folder: Path):
     """The plain CLI call, as a subprocess."""
     t0 = time.perf_counter()
-    cmd = [str(Path(sys.executable).parent / "layoutkit"), "optimize", str(folder / "hull.stl"), "--envelope",
+    cmd = [str(Path(sys.executable).parent / "layoutkit"), "optimize", str(mesh_path(folder)), "--envelope",
            str(folder / "env.toml"), "--sensors", str(dev.layout.n), "--out", str(folder / "newcomer.layout.json"),
            "--json"]
     p = subprocess.run(cmd, capture_output=True, text=True)
@@ -116,16 +117,17 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
                         time_limit_s=args.time_limit_s, method=args.method, dense=dense,
                         max_tilt_deg=args.max_tilt_deg if tilt else 0.0,
                         tilt_toward=(None if args.tilt_toward == "azimuths" else args.tilt_toward) if tilt else None,
-                        tilt_directions=args.tilt_directions)
+                        tilt_directions=args.tilt_directions, half_angle_deg=args.half_angle_deg)
     spacing = (args.spacing_frac * float(np.max(dev.hull.extents)) if args.spacing_frac
                else args.spacing_mm * 1e-3)
-    problem = DesignProblem.for_spec(str(folder / "hull.stl"), str(folder / "env.toml"), spec, spacing=spacing)
+    problem = DesignProblem.for_spec(str(mesh_path(folder)), str(folder / "env.toml"), spec, spacing=spacing)
     t0 = time.perf_counter()
     s = run_optimize(problem, spec, out=folder / f"{name}.layout.json", render=False, tilt_check=False,
                      echo=lambda m: print(m, flush=True))
     keep = ("candidates", "value", "design_value", "bound", "gap", "certified_by", "value_refers_to", "gap_refers_to",
             "status", "message", "heldout", "certificate", "tilted_sensors")
-    return {"spec": spec.to_dict(), "wall_s": time.perf_counter() - t0, **{k: s.get(k) for k in keep},
+    return {"spec": spec.to_dict(), "design_half_angle_deg": args.half_angle_deg, "scored_half_angle_deg": 60.0,
+            "wall_s": time.perf_counter() - t0, "loadavg_end": os.getloadavg(), **{k: s.get(k) for k in keep},
             "rounds": [{k: v for k, v in r.items() if k not in ("selected", "added")}
                        for r in s["envelope_sets"]["dense"]["rounds"]], "layout": str(folder / f"{name}.layout.json")}
 
@@ -179,7 +181,7 @@ def recording_envelope(dev, env):
 
 
 def stage_score(dev, folder: Path, env, layouts):
-    mesh = str(folder / "hull.stl")
+    mesh = str(mesh_path(folder))
     out = {"self_occlusion": {}, "no_occlusion": {}, "recording_setup": {}}
     rec_env = recording_envelope(dev, env)
     for name, path in layouts.items():
@@ -216,6 +218,13 @@ def main():
     ap.add_argument("--tilt-toward", default="station", choices=("station", "azimuths"),
                     help="tilt stage: meridional (towards/away from the station) or --tilt-directions azimuths")
     ap.add_argument("--tilt-directions", type=int, default=4)
+    ap.add_argument("--half-angle-deg", type=float, default=60.0,
+                    help="DESIGN acceptance half-angle of the optimiser (a margin below the physical 60°: a held-out "
+                         "pose near a design pose then lights a superset of its design lit set); every layout is "
+                         "still scored at 60°, and the run's own reported value/held-out estimate is at this angle")
+    ap.add_argument("--housing", default="hull", choices=HOUSINGS,
+                    help="the mesh standing in for the housing: the hull of the shipped positions, or the tangent-cell "
+                         "housing (housing.py); the latter's rows live in OUT/<device>_tangent/")
     ap.add_argument("--method", default="pipeline")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(HERE / "results"))
@@ -225,10 +234,11 @@ def main():
     res.update(load={"loadavg_start": os.getloadavg(), "cpus": os.cpu_count()})
     for name in args.devices:
         label, rec, dn = next(d for d in DEVICES if d[2] == name or d[0].startswith(name))
-        dev = load_device(label, rec, dn)
-        folder = out / dn.lower()
-        env = prepare(dev, folder)
-        row = res["devices"].setdefault(label, {"recording": rec, "device": dn, "sensors": dev.layout.n})
+        dev = with_housing(load_device(label, rec, dn), args.housing)
+        folder = out / (dn.lower() + ("" if args.housing == "hull" else f"_{args.housing}"))
+        env = prepare(dev, folder, args.housing)
+        row = res["devices"].setdefault(dev.label, {"recording": rec, "device": dn, "sensors": dev.layout.n})
+        row["mesh"] = {"housing": args.housing, "file": str(mesh_path(folder).relative_to(out))}
         row["envelope"] = env.to_dict()
         if "newcomer" in args.stage:
             row["newcomer"] = _cached(folder / "newcomer.json", "newcomer" in args.force,
@@ -293,7 +303,7 @@ def _figures(dev, folder: Path, sc, layouts):
     ax.set_title(f"{dev.label}: shipped vs optimised layouts")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    save_figure(fig, folder.parent / f"cdf_{dev.name.lower()}.png",
+    save_figure(fig, folder.parent / f"cdf_{folder.name}.png",
                 caption="Cumulative distribution of ADOP over 20,000 poses no optimiser saw (seed + 200); "
                         "an untracked pose (< 4 lit) never reaches the curve.")
     fig = plt.figure(figsize=(4.2 * len(layouts), 4.4))
@@ -310,7 +320,7 @@ def _figures(dev, folder: Path, sc, layouts):
         a3.view_init(elev=25, azim=-60)
         a3.set_axis_off()
     fig.suptitle(f"{dev.label}: sensor layouts on the hull (red: tilted from the surface normal; arrows: axes)")
-    save_figure(fig, folder.parent / f"layouts_{dev.name.lower()}.png",
+    save_figure(fig, folder.parent / f"layouts_{folder.name}.png",
                 caption="The shipped layout (Valve/HTC, the device's CONFIG) and the optimised ones, body frame.")
 
 

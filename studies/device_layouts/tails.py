@@ -21,6 +21,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+from devices import mesh_path  # noqa: E402
 from run import M, RHO  # noqa: E402
 
 from layoutkit.envelope import envelope_set, load_envelope  # noqa: E402
@@ -43,7 +44,7 @@ def diagnose(folder: Path, layout: str, seeds, top: int):
 
     env = load_envelope(folder / "env.toml")
     lay = load_layout(folder / ("shipped.json" if layout == "shipped" else f"{layout}.layout.json"))
-    mesh = load_mesh(folder / "hull.stl", "m")
+    mesh = load_mesh(mesh_path(folder), "m")
     st = env.stations[0]
     from layoutkit.geometry import rotvec_to_matrix
 
