@@ -196,6 +196,32 @@ def main():
             v = layout_visibility(m, P, N, R, t, env.stations, 60.0)
             print(f"  shipped on 2,000 poses, {lab}: covered {(v.sum((1, 2)) >= 4).mean():.4f}, "
                   f"lit pairs lost to the mesh {(v0 & ~v).sum() / v0.sum():.4f}")
+        _figure(dev, mesh, here / "results" / f"housing_{dn.lower()}.png")
+
+
+def _figure(dev, mesh, path):
+    """The hull and the tangent-cell housing side by side with the shipped sensors and their normals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from layoutkit.io.figures import save_figure
+
+    P, N = dev.layout.positions, dev.layout.normals
+    fig = plt.figure(figsize=(10, 4.6))
+    for j, (title, m) in enumerate((("convex hull of the positions", dev.hull), ("tangent-cell housing", mesh))):
+        ax = fig.add_subplot(1, 2, j + 1, projection="3d")
+        v = m.vertices
+        ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=m.faces, color="0.8", alpha=0.45, linewidth=0.2,
+                        edgecolor="0.5")
+        ax.scatter(*P.T, c="tab:red", s=12, depthshade=False)
+        ax.quiver(*P.T, *(0.015 * N.T), color="tab:red", linewidth=0.8)
+        ax.set_title(f"{dev.name}: {title} ({m.volume * 1e6:.0f} cm³)", fontsize=9)
+        ax.view_init(elev=30, azim=-60)
+        ax.set_axis_off()
+    save_figure(fig, path, caption="Red: the shipped sensors and their normals (15 mm). Right: each sensor's Voronoi "
+                                   "cell of the hull cut by its tangent plane (housing.py).")
 
 
 if __name__ == "__main__":
