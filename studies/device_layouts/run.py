@@ -43,6 +43,8 @@ sys.path.insert(0, str(HERE))
 from devices import DEVICES, HOUSINGS, front_envelope, load_device, mesh_path, with_housing  # noqa: E402
 
 RHO, M = 0.8717, 4
+#: the physical acceptance half-angle every layout is scored at (a row's design half-angle may be smaller)
+SCORE_HALF_ANGLE_DEG = 60.0
 FRESH = [("fresh seed+100", 2000, 100), ("fresh seed+101", 2000, 101), ("fresh seed+102", 2000, 102),
          ("fresh seed+103", 2000, 103), ("fresh seed+104", 2000, 104), ("fresh 20k seed+200", 20000, 200)]
 
@@ -126,7 +128,8 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
                      echo=lambda m: print(m, flush=True))
     keep = ("candidates", "value", "design_value", "bound", "gap", "certified_by", "value_refers_to", "gap_refers_to",
             "status", "message", "heldout", "certificate", "tilted_sensors")
-    return {"spec": spec.to_dict(), "design_half_angle_deg": args.half_angle_deg, "scored_half_angle_deg": 60.0,
+    return {"spec": spec.to_dict(), "design_half_angle_deg": args.half_angle_deg,
+            "scored_half_angle_deg": SCORE_HALF_ANGLE_DEG,
             "wall_s": time.perf_counter() - t0, "loadavg_end": os.getloadavg(), **{k: s.get(k) for k in keep},
             "rounds": [{k: v for k, v in r.items() if k not in ("selected", "added")}
                        for r in s["envelope_sets"]["dense"]["rounds"]], "layout": str(folder / f"{name}.layout.json")}
@@ -141,7 +144,7 @@ def _scores(layout_path, mesh, env, stations=None, sets=FRESH):
 
     lay = load_layout(layout_path)
     env_st = env if stations is None else __import__("dataclasses").replace(env, stations=tuple(stations))
-    pb = DesignProblem.load(mesh, None, candidates=lay, stations=env_st.stations)
+    pb = DesignProblem.load(mesh, None, candidates=lay, stations=env_st.stations, half_angle_deg=SCORE_HALF_ANGLE_DEG)
     out = {}
     for lab, n, dseed in sets:
         _, R, t = envelope_set(env_st, count=n, seed=env.seed + dseed)
