@@ -241,14 +241,17 @@ def main():
         folder = out / (dn.lower() + ("" if args.housing == "hull" else f"_{args.housing}"))
         env = prepare(dev, folder, args.housing)
         row = res["devices"].setdefault(dev.label, {"recording": rec, "device": dn, "sensors": dev.layout.n})
+        set_here = {"mesh", "envelope", "recording", "device", "sensors"}
         row["mesh"] = {"housing": args.housing, "file": str(mesh_path(folder).relative_to(out))}
         row["envelope"] = env.to_dict()
         if "newcomer" in args.stage:
+            set_here.add("newcomer")
             row["newcomer"] = _cached(folder / "newcomer.json", "newcomer" in args.force,
                                       lambda: stage_newcomer(dev, folder))
         for stage, tilt in (("normals", False), ("tilt", True)):
             if stage in args.stage:
                 name = stage + args.tag
+                set_here.add(name)
                 row[name] = _cached(folder / f"{name}.json", stage in args.force,
                                     lambda: stage_optimise(dev, folder, name, args, tilt))
         if "score" in args.stage:
@@ -262,9 +265,18 @@ def main():
                         v.pop("_adop", None)
             row["scores"] = sc
             row["must_show"] = must_show(row)
+            set_here.update(("scores", "must_show"))
         from layoutkit.io.atomic import atomic_write_text
         from layoutkit.io.jsonfile import to_jsonable
 
+        # merge into the file as it is now (another run of this script may have written it since we read it):
+        # only this device's keys this run set
+        if (out / "results.json").exists():
+            disk = _revive(json.loads((out / "results.json").read_text()))
+            disk_row = disk["devices"].setdefault(dev.label, {})
+            disk_row.update({k: row[k] for k in row if k in set_here or k not in disk_row})
+            disk["load"] = res["load"]
+            res = disk
         atomic_write_text(out / "results.json", json.dumps(to_jsonable(res), indent=1) + "\n")
     _markdown(res, out)
 
