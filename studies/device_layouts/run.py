@@ -20,6 +20,10 @@ reruns):
   worst, p99 and median ADOP, worst and median PDOP, coverage;
 - figures: held-out ADOP CDFs and the layouts side by side on the hull.
 
+``--housing tangent`` replaces the hull by the tangent-cell housing (``housing.py``; rows in
+``OUT/<device>_tangent/``); ``--half-angle-deg`` sets the optimiser's (design) acceptance half-angle only — every
+layout is scored at ``SCORE_HALF_ANGLE_DEG`` (60°).
+
 Writes ``OUT/results.json``, ``OUT/results.md`` and the figures (default OUT: ``results/`` beside this file;
 README.md beside this file says what each row is and which must-show lines hold). The hulls,
 envelopes and layouts it optimised are in ``OUT/<device>/`` (derived from MIT-licensed recordings).
