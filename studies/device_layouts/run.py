@@ -309,6 +309,7 @@ def _figures(dev, folder: Path, sc, layouts):
     from layoutkit.layout import load_layout
 
     fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    ax.set_prop_cycle(color=plt.cm.tab20.colors)  # more rows than the default cycle's 10 colours
     for name, rows in sc["self_occlusion"].items():
         a = rows["fresh 20k seed+200"]["_adop"]
         x = np.sort(a)
