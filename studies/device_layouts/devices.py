@@ -115,3 +115,28 @@ def front_envelope(dev: Device, count=200, seed=13, half_angle_deg=90.0, range_m
         "range_m": list(range_m), "boresight_cone_deg": float(cone_deg),
         "attitude": {"kind": "cone", "nominal_rotvec_deg": list(_nominal_rotvec_deg(dev.front)),
                      "half_angle_deg": float(half_angle_deg)}})
+
+
+#: housing stand-ins: the convex hull of the positions (the study's first mesh) or the tangent-cell housing
+#: (``housing.py``: each sensor's Voronoi cell of the hull cut by its tangent plane)
+HOUSINGS = ("hull", "tangent")
+
+
+def with_housing(dev: Device, housing: str) -> Device:
+    """``dev`` with its mesh replaced by the ``housing`` stand-in (``hull``: unchanged)."""
+    import dataclasses
+
+    if housing == "hull":
+        return dev
+    if housing != "tangent":
+        raise ValueError(f"housing: expected one of {HOUSINGS}, got {housing!r}")
+    from housing import tangent_cell_housing
+
+    mesh, _ = tangent_cell_housing(dev.layout.positions, dev.layout.normals)
+    return dataclasses.replace(dev, hull=mesh, label=f"{dev.label}, tangent-cell housing")
+
+
+def mesh_path(folder: Path) -> Path:
+    """The mesh of a device folder: ``housing.stl`` (the tangent-cell housing) if present, else ``hull.stl``."""
+    folder = Path(folder)
+    return folder / "housing.stl" if (folder / "housing.stl").exists() else folder / "hull.stl"
