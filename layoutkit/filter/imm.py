@@ -178,27 +178,19 @@ class ImmFilter(PoseStateView):
         sig0 = o[self._sl_sig]  # the pose 1-sigma before the step (the kernel's)
         used, rejected, swr, nis = o[:4].tolist()
         used, rejected = int(used), int(rejected)
-        if self._adapt:  # _match_noise, inline (every sweep)
-            if math.isfinite(nis):
-                dof = used or len(sensors)
-                r = min(nis / (dof if dof > 1 else 1), 10.0)
-            else:
-                r = 10.0 if swr else None
-            if r is not None:
-                self._set_noise(min(max(self.noise_scale * (1.0 + self._rate * (r - 1.0)), 1.0), self._scale_max))
+        if self._adapt:
+            self._match_noise(used or len(sensors), nis, swr)
         if swr or used == 0:
             return SweepUpdate(0, rejected, True, nis, 0, np.zeros(6), sig0)
         return SweepUpdate(used, rejected, False, nis, used, o[4:10], sig0)
 
     def _match_noise(self, dof: int, nis: float, rejected: bool) -> None:
         """The angle-noise scale follows the innovations (EkfConfig ``noise_scale_*``): a sweep whose
-        every angle the gates refused counts with the cap (evidence the noise is too small).
-        (:meth:`update_sweep` runs this inline.)"""
-        c = self.config
+        every angle the gates refused counts with the cap (evidence the noise is too small)."""
         r = 10.0 if (rejected and not math.isfinite(nis)) else min(nis / max(dof, 1), 10.0) if math.isfinite(nis) else None
         if r is None:
             return
-        self._set_noise(min(max(self.noise_scale * (1.0 + c.noise_scale_rate * (r - 1.0)), 1.0), c.noise_scale_max))
+        self._set_noise(min(max(self.noise_scale * (1.0 + self._rate * (r - 1.0)), 1.0), self._scale_max))
 
     def _set_noise(self, s: float) -> None:
         if s != self.noise_scale:
@@ -218,9 +210,7 @@ class ImmFilter(PoseStateView):
         out = self._out.copy()
         self._step(self.X, self.Pm, self.M, self.Pi, self.points_body, idx, z, par, self._qm, out)
         self._out = out
-        self.q = out[self._sl_q]
-        self.p = out[self._sl_p]
-        self.P = out[self._sl_P].reshape(12, 12)
+        self._view()
         self._t_model = self.t
         return out
 

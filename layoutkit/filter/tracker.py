@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from statistics import median
 
 import numpy as np
 
@@ -436,9 +437,8 @@ class SweepTracker:
             # robust form for the adaptive bank: at rest the median per-dof statistic of the window is
             # ~1 (up to 4 allows sigma_theta half the real noise), a single decoding glitch does not
             # move the median, and three consecutive large pairs (a motion starting) end rest at once
-            srt, i = sorted(per), len(per) // 2  # statistics.median (numpy's definition), inline: every sweep
-            med = srt[i] if len(srt) % 2 == 1 else (srt[i - 1] + srt[i]) / 2
-            self.static = bool(med <= 4.0 and not (per[-1] > 9.0 and per[-2] > 9.0 and per[-3] > 9.0))
+            # statistics.median: numpy's definition, without numpy's per-call overhead (every sweep)
+            self.static = bool(median(per) <= 4.0 and not (per[-1] > 9.0 and per[-2] > 9.0 and per[-3] > 9.0))
             return
         if len(self._static_T) < c.zupt_window:
             self.static = False

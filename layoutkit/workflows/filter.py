@@ -76,31 +76,23 @@ class FilterSink:
         """Run the filter over ``sweeps`` (decoded :class:`SweepMeasurement`); returns the outputs."""
         with self._timed():
             outs = []
-            if type(self)._push is FilterSink._push:  # one output or None per sweep: the tracker's push
-                push, append = self.tracker.push, outs.append
-                for m in sweeps:
-                    self.sweeps += 1
-                    try:
-                        o = push(m)
-                    except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
-                        continue
-                    if o is not None:
-                        append(o)
-            else:
-                push = self._push
-                for m in sweeps:
-                    self.sweeps += 1
-                    try:
-                        outs.extend(push(m))
-                    except ValueError:
-                        continue
+            push, append, extend = self._push, outs.append, outs.extend
+            for m in sweeps:
+                self.sweeps += 1
+                try:
+                    o = push(m)
+                except ValueError:  # a sweep of a station the set-up does not have, or of the wrong size
+                    continue
+                if type(o) is list:
+                    extend(o)
+                elif o is not None:
+                    append(o)
         self._emit(outs)
         return outs
 
-    def _push(self, m) -> list | tuple:
-        """The outputs one sweep makes final (the tracker's, when it has one)."""
-        o = self.tracker.push(m)
-        return () if o is None else (o,)
+    def _push(self, m):
+        """What one sweep makes final: an output, None, or a list of outputs (the smoother's)."""
+        return self.tracker.push(m)
 
     @contextlib.contextmanager
     def _timed(self):
