@@ -882,6 +882,12 @@ def _compiled_outputs(F: int) -> tuple:
             np.empty((F, 3, 3)), np.empty((F, 3)), np.empty(F))
 
 
+def _compiled_result(out: tuple) -> PnPResult:
+    """The :class:`PnPResult` over the arrays of :func:`_compiled_outputs` (as the kernel wrote them)."""
+    R, t, st, res, it, aR, at, ares = out
+    return PnPResult(R, t, st == STATUS_OK, st, res, it, aR, at, ares)
+
+
 _COMPILED_FIELDS = ("rotation", "translation", "status", "residual_rms", "iterations", "alt_rotation",
                     "alt_translation", "alt_residual_rms")
 
@@ -936,8 +942,7 @@ def solve_pnp_compiled(points_body, angles, lit, initial=None, max_iterations: i
         pnp_numba.solve_batch_parallel(*args, PARALLEL_BLOCK, *out)
     else:
         pnp_numba.solve_batch(*args, *out)
-    R, t, st, res, it, aR, at, ares = out  # runner-ups: NaN except ambiguous frames (as solve_pnp_lm)
-    return PnPResult(R, t, st == STATUS_OK, st, res, it, aR, at, ares)
+    return _compiled_result(out)  # runner-ups: NaN except ambiguous frames (as solve_pnp_lm)
 
 
 #: Registry of batched PnP solvers (the names the CLI offers): ``lm`` the compiled kernel,
@@ -1012,21 +1017,16 @@ def solve_pnp_lh1(points_body, angles, visible=None, *, initial=None, max_iterat
                     lit &= np.all(np.isfinite(p), -1)[..., None]
             ini = None if R0 is None else (R0[s:e], t0[s:e])
             n_angles = np.full(e - s, lit[0].size) if lit.all() else lit.sum((1, 2))
-            if full is None:
-                r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho), n_angles)
-                if invalid is not None:
-                    r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
-                parts.append(r)
-                continue
-            o = tuple(x[s:e] for x in full)
-            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho, out=o), n_angles)
+            o = None if full is None else tuple(x[s:e] for x in full)
+            r = _with_redundancy(solver(p, a, lit, ini, max_iterations, sigma=sigma, rho=rho,
+                                        **({} if o is None else {"out": o})), n_angles)
             if invalid is not None:
                 r = _with_status(r, invalid, STATUS_INVALID_ANGLE)
+            if o is None:
+                parts.append(r)
+                continue
             for dst, f in zip(o, _COMPILED_FIELDS):  # fields a status rule replaced: back into the slice
                 src = getattr(r, f)
                 if src is not dst:
                     dst[...] = src
-    if full is not None:
-        R, t, st, res, it, aR, at, ares = full
-        return PnPResult(R, t, st == STATUS_OK, st, res, it, aR, at, ares)
-    return concat_results(parts)
+    return concat_results(parts) if full is None else _compiled_result(full)
