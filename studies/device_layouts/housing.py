@@ -9,8 +9,11 @@ The rule used here is fixed by the layout alone (positions p_i and normals n_i, 
     housing = ⋃_i ( hull ∩ Vor_i ∩ {x : n_i·(x − p_i) ≤ 0} )
 
 — each sensor owns the part of the hull nearer to it than to any other sensor (its Voronoi cell Vor_i), cut by
-its tangent plane. Every sensor then sits on a face whose outward normal is its own normal, so nothing of its own
-cell is in front of it; where the layout is convex (every sensor behind every other sensor's tangent plane) the
+its tangent plane. Nothing of a sensor's own cell is then in front of it. Where the tangent plane cuts the cell,
+the sensor sits on a face whose outward normal is its own normal; where it only touches the cell at the sensor (the
+hull around the sensor already lies behind it: 12 of the Vive tracker's 22 sensors, 16 of the headset's 32), the
+sensor stays on a vertex of the hull whose normal cone holds its normal, with no face of its own (the tracker's:
+9–41° from the nearest face there); where the layout is convex (every sensor behind every other sensor's tangent plane) the
 housing is ⋂_i of the tangent half-spaces with the hull, the brief's convex rule, and no sensor is occluded at all
 within a cone of less than 90°. Where neighbouring tangent planes disagree (a ridge with sensors on its flanks)
 the cells meet in steps, and a sensor beside a taller neighbour cell may still be occluded by it — real geometry of

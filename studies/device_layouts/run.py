@@ -21,7 +21,9 @@ reruns):
 - figures: held-out ADOP CDFs and the layouts side by side on the hull.
 
 ``--housing tangent`` replaces the hull by the tangent-cell housing (``housing.py``; rows in
-``OUT/<device>_tangent/``); ``--half-angle-deg`` sets the optimiser's (design) acceptance half-angle only — every
+``OUT/<device>_tangent/``); ``--facet-sites`` adds a candidate site on each of the device's own mounting facets (the
+shipped positions with the shipped normals, :func:`facet_candidates`) to the sites sampled on the mesh;
+``--half-angle-deg`` sets the optimiser's (design) acceptance half-angle only — every
 layout is scored at ``SCORE_HALF_ANGLE_DEG`` (60°).
 
 Writes ``OUT/results.json``, ``OUT/results.md`` and the figures (default OUT: ``results/`` beside this file;
@@ -126,17 +128,36 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
                         tilt_directions=args.tilt_directions, half_angle_deg=args.half_angle_deg)
     spacing = (args.spacing_frac * float(np.max(dev.hull.extents)) if args.spacing_frac
                else args.spacing_mm * 1e-3)
-    problem = DesignProblem.for_spec(str(mesh_path(folder)), str(folder / "env.toml"), spec, spacing=spacing)
+    cands = facet_candidates(dev, folder, spacing, args.seed) if args.facet_sites else None
+    problem = DesignProblem.for_spec(str(mesh_path(folder)), str(folder / "env.toml"), spec, spacing=spacing,
+                                     candidates=cands)
     t0 = time.perf_counter()
     s = run_optimize(problem, spec, out=folder / f"{name}.layout.json", render=False, tilt_check=False,
                      echo=lambda m: print(m, flush=True))
     keep = ("candidates", "value", "design_value", "bound", "gap", "certified_by", "value_refers_to", "gap_refers_to",
             "status", "message", "heldout", "certificate", "tilted_sensors")
-    return {"spec": spec.to_dict(), "design_half_angle_deg": args.half_angle_deg,
+    return {"spec": spec.to_dict(), "design_half_angle_deg": args.half_angle_deg, "facet_sites": args.facet_sites,
             "scored_half_angle_deg": SCORE_HALF_ANGLE_DEG,
             "wall_s": time.perf_counter() - t0, "loadavg_end": os.getloadavg(), **{k: s.get(k) for k in keep},
             "rounds": [{k: v for k, v in r.items() if k not in ("selected", "added")}
                        for r in s["envelope_sets"]["dense"]["rounds"]], "layout": str(folder / f"{name}.layout.json")}
+
+
+def facet_candidates(dev, folder: Path, spacing, seed):
+    """Candidate sites: the housing's sites sampled ``spacing`` (m) apart (as without ``--facet-sites``) plus one
+    site on each of the device's own mounting facets — the shipped sensors' positions with the shipped normals,
+    ids ``facet<i>`` — so that the shipped layout is one of the candidate layouts (tilt then applies to every
+    site about its own normal). A stand-in housing built from positions has no such facets: on the tracker's
+    tangent-cell housing 12 of the 22 shipped normals have no face of their own and are 9–41° off the nearest
+    face, so ``tilt ≤ 25°`` in four azimuths does not reach them (README, "facet sites")."""
+    from layoutkit.candidates import sample_candidates
+    from layoutkit.layout import Layout
+    from layoutkit.mesh import load_mesh
+
+    base = sample_candidates(load_mesh(str(mesh_path(folder))), spacing=spacing, rng=seed)
+    ship = dev.layout
+    return Layout(np.vstack([base.positions, ship.positions]), np.vstack([base.normals, ship.normals]),
+                  tuple(base.ids) + tuple(f"facet{i}" for i in range(ship.n)))
 
 
 def _scores(layout_path, mesh, env, stations=None, sets=FRESH):
@@ -232,6 +253,9 @@ def main():
     ap.add_argument("--housing", default="hull", choices=HOUSINGS,
                     help="the mesh standing in for the housing: the hull of the shipped positions, or the tangent-cell "
                          "housing (housing.py); the latter's rows live in OUT/<device>_tangent/")
+    ap.add_argument("--facet-sites", action="store_true",
+                    help="add a candidate site on each of the device's own mounting facets (the shipped positions "
+                         "with the shipped normals) to the housing's sampled sites")
     ap.add_argument("--method", default="pipeline")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(HERE / "results"))
