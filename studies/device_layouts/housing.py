@@ -199,7 +199,30 @@ def main():
             v = layout_visibility(m, P, N, R, t, env.stations, 60.0)
             print(f"  shipped on 2,000 poses, {lab}: covered {(v.sum((1, 2)) >= 4).mean():.4f}, "
                   f"lit pairs lost to the mesh {(v0 & ~v).sum() / v0.sum():.4f}")
+        own, off = own_faces(P, N)
+        print(f"  sensors on a face of their own normal: {int(own.sum())} of {len(P)}; the others' normals are "
+              f"{off[~own].min():.0f}–{off[~own].max():.0f}° from the nearest hull face at the sensor")
         _figure(dev, mesh, here / "results" / f"housing_{dn.lower()}.png")
+
+
+def own_faces(positions, normals):
+    """Which sensors get a face of their own normal in the tangent-cell housing (their tangent plane cuts their
+    cell with a positive area), (n,) bool, and each sensor's angle to the nearest hull facet through it, (n,) deg."""
+    from scipy.spatial import ConvexHull
+
+    P = np.asarray(positions, float)
+    N = np.asarray(normals, float)
+    N = N / np.linalg.norm(N, axis=1, keepdims=True)
+    eq = ConvexHull(P).equations
+    own, off = np.zeros(len(P), bool), np.full(len(P), np.nan)
+    for i in range(len(P)):
+        rows, _ = cell_halfspaces(P, N, i, eq)
+        V = cell_vertices(rows)
+        own[i] = V is not None and _facet_polygon(V, rows[-1]) is not None
+        through = np.abs(eq[:, :3] @ P[i] + eq[:, 3]) < 1e-7
+        if through.any():
+            off[i] = np.degrees(np.arccos(np.clip(eq[through, :3] @ N[i], -1, 1))).min()
+    return own, off
 
 
 def _figure(dev, mesh, path):
