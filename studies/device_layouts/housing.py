@@ -165,7 +165,9 @@ def tangent_cell_housing(positions, normals):
     mesh = trimesh.Trimesh(np.vstack(verts), np.asarray(faces), process=True)
     mesh.merge_vertices()
     record = [{"sensor": i, "piece": c[2] is not None,
-               "piece_volume_m3": float(trimesh.convex.convex_hull(c[2]).volume) if c[2] is not None else 0.0}
+               "piece_volume_m3": float(trimesh.convex.convex_hull(c[2]).volume) if c[2] is not None else 0.0,
+               # the tangent plane (the piece's last row) cuts a face of positive area: the sensor's own face
+               "own_face": c[2] is not None and _facet_polygon(c[2], c[0][-1]) is not None}
               for i, c in enumerate(cells)]
     return mesh, record
 
@@ -199,30 +201,28 @@ def main():
             v = layout_visibility(m, P, N, R, t, env.stations, 60.0)
             print(f"  shipped on 2,000 poses, {lab}: covered {(v.sum((1, 2)) >= 4).mean():.4f}, "
                   f"lit pairs lost to the mesh {(v0 & ~v).sum() / v0.sum():.4f}")
-        own, off = own_faces(P, N)
+        own = np.array([r["own_face"] for r in rec_])
+        off = hull_face_angles(P, N)
         print(f"  sensors on a face of their own normal: {int(own.sum())} of {len(P)}; the others' normals are "
               f"{off[~own].min():.0f}–{off[~own].max():.0f}° from the nearest hull face at the sensor")
         _figure(dev, mesh, here / "results" / f"housing_{dn.lower()}.png")
 
 
-def own_faces(positions, normals):
-    """Which sensors get a face of their own normal in the tangent-cell housing (their tangent plane cuts their
-    cell with a positive area), (n,) bool, and each sensor's angle to the nearest hull facet through it, (n,) deg."""
+def hull_face_angles(positions, normals):
+    """Each sensor's angle (deg, (n,)) between its normal and the nearest facet of the hull of ``positions``
+    through it (NaN if no facet passes through it)."""
     from scipy.spatial import ConvexHull
 
     P = np.asarray(positions, float)
     N = np.asarray(normals, float)
     N = N / np.linalg.norm(N, axis=1, keepdims=True)
     eq = ConvexHull(P).equations
-    own, off = np.zeros(len(P), bool), np.full(len(P), np.nan)
+    off = np.full(len(P), np.nan)
     for i in range(len(P)):
-        rows, _ = cell_halfspaces(P, N, i, eq)
-        V = cell_vertices(rows)
-        own[i] = V is not None and _facet_polygon(V, rows[-1]) is not None
         through = np.abs(eq[:, :3] @ P[i] + eq[:, 3]) < 1e-7
         if through.any():
             off[i] = np.degrees(np.arccos(np.clip(eq[through, :3] @ N[i], -1, 1))).min()
-    return own, off
+    return off
 
 
 def _figure(dev, mesh, path):
