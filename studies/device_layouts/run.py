@@ -120,7 +120,8 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
     from layoutkit.workflows.optimize import run_optimize
 
     dense = DenseSpec(poses=args.dense_poses, coverage_poses=args.coverage_poses, seed_poses=args.seed_poses,
-                      coverage_dop=args.coverage_dop, spare_lit=args.spare_lit)
+                      coverage_dop=args.coverage_dop, spare_lit=args.spare_lit, patience=args.patience,
+                      later_patience=args.later_patience, later_two_swap=args.later_two_swap, rounds=args.rounds)
     spec = OptimizeSpec(k=dev.layout.n, rho=RHO, min_visible=M, seed=args.seed,
                         time_limit_s=args.time_limit_s, method=args.method, dense=dense,
                         max_tilt_deg=args.max_tilt_deg if tilt else 0.0,
@@ -143,18 +144,21 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
                        for r in s["envelope_sets"]["dense"]["rounds"]], "layout": str(folder / f"{name}.layout.json")}
 
 
-def facet_candidates(dev, folder: Path, spacing, seed):
+def facet_candidates(dev, folder: Path, spacing, seed, facets=True):
     """Candidate sites: the housing's sites sampled ``spacing`` (m) apart (as without ``--facet-sites``) plus one
     site on each of the device's own mounting facets — the shipped sensors' positions with the shipped normals,
     ids ``facet<i>`` — so that the shipped layout is one of the candidate layouts (tilt then applies to every
     site about its own normal). A stand-in housing built from positions has no such facets: on the tracker's
     tangent-cell housing 12 of the 22 shipped normals have no face of their own and are 9–41° off the nearest
-    face, so ``tilt ≤ 25°`` in four azimuths does not reach them (README, "facet sites")."""
+    face, so ``tilt ≤ 25°`` in four azimuths does not reach them (README, "facet sites"). ``facets=False``: the
+    sampled sites only (the sites of a row without ``--facet-sites``, as ``DesignProblem`` samples them)."""
     from layoutkit.candidates import sample_candidates
     from layoutkit.layout import Layout
     from layoutkit.mesh import load_mesh
 
     base = sample_candidates(load_mesh(str(mesh_path(folder))), spacing=spacing, rng=seed)
+    if not facets:
+        return base
     ship = dev.layout
     return Layout(np.vstack([base.positions, ship.positions]), np.vstack([base.normals, ship.normals]),
                   tuple(base.ids) + tuple(f"facet{i}" for i in range(ship.n)))
@@ -239,6 +243,11 @@ def main():
     ap.add_argument("--coverage-poses", type=int, default=None)
     ap.add_argument("--seed-poses", default="all", type=lambda v: v if v == "all" else int(v))
     ap.add_argument("--coverage-dop", action="store_true")
+    ap.add_argument("--patience", type=int, default=8,
+                    help="dense loop: rounds without a better dense worst case before it stops (DenseSpec.patience)")
+    ap.add_argument("--later-patience", type=int, default=2, help="dense loop: DenseSpec.later_patience")
+    ap.add_argument("--later-two-swap", action="store_true", help="dense loop: DenseSpec.later_two_swap")
+    ap.add_argument("--rounds", type=int, default=40, help="dense loop: at most this many rounds (DenseSpec.rounds)")
     ap.add_argument("--spare-lit", type=int, default=0,
                     help="lit sensors the dense loop requires beyond 4 (a margin; scoring still counts 4)")
     ap.add_argument("--tag", default="", help="suffix of the stage names (normals<tag>, tilt<tag>): variants")

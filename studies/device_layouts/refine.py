@@ -1,0 +1,247 @@
+"""Issue 27: refine a study row's layout by local search over sites and finer mounting angles on a large pose set.
+
+    .venv/bin/python studies/device_layouts/refine.py --device wm0_tangent --start tilt_facets_az4 \\
+        [--design-poses 50000] [--levels 3] [--azimuths 8] [--neighbours 6] [--time-limit-s 900] [--tag _r]
+
+The dense loop (``run.py``) chooses among five orientations per site (the surface normal and 25° towards four
+azimuths) on working sets of ~1,500 poses. This stage starts from one of its layouts and moves one sensor at a
+time: to any of its site's or the ``--neighbours`` nearest sites' orientations on a finer grid (tilt
+``max·j/levels``, j = 0 … levels, towards ``--azimuths`` azimuths, :func:`layoutkit.optimize.tilt.tilt_orientations`;
+every tilt stays ≤ ``--max-tilt-deg`` about the site's own normal), on ``--design-poses`` poses of the envelope
+(seed ``envelope seed + --design-seed``, disjoint from every set the study scores on). A move is kept when it
+lowers the objective: first the number of design poses with fewer than ``4 + --spare-lit`` lit sensors (lit at
+``--coverage-half-angle-deg``: a margin), then
+the L_p norm of ADOP over the design poses (``--p``, a smooth stand-in for the worst case that also pays for
+lowering the poses just below the worst), and in a last phase the worst case itself (ties by L_p). The sites
+are the row's own (the housing's sites sampled 8 mm apart, plus the device's mounting facets for a
+``run.py --facet-sites`` row).
+
+Exact visibility (ray-cast, :func:`layoutkit.optimize.design.layout_visibility`) of every (site, orientation)
+candidate at the design poses is computed once; a move costs one :func:`layoutkit.dop_batch.batch_dop` call.
+The run's own reported value is the worst ADOP on ``--check-poses`` poses of a further disjoint seed
+(``--check-seed``), at the physical 60° acceptance angle — chosen rows are chosen by it, never by the study's sets.
+
+Writes ``results/<device>/refine<tag>.layout.json`` and ``refine<tag>.json`` (spec, per-phase history, design
+and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from devices import DEVICES, load_device, mesh_path, with_housing  # noqa: E402
+from run import M, RHO, SCORE_HALF_ANGLE_DEG, _commit, facet_candidates  # noqa: E402
+
+
+def _pool(sites, max_tilt_deg, levels, azimuths):
+    """(site, orientation) candidates of ``sites`` (Layout): positions, axes (M, 3), site (M,), tilt_deg (M,)."""
+    from layoutkit.optimize.tilt import tilt_orientations
+
+    lev = tuple((j + 1) / levels for j in range(levels))
+    return tilt_orientations(sites.positions, sites.normals, max_tilt_deg, azimuths, levels=lev)
+
+
+def _objective(adop, n_lit, need, p):
+    """(uncovered design poses, L_p norm of ADOP over the others, worst ADOP over the others)."""
+    ok = (n_lit >= need) & np.isfinite(adop)
+    a = adop[ok]
+    if a.size == 0:
+        return (int((~ok).sum()), math.inf, math.inf)
+    w = float(a.max())
+    return (int((~ok).sum()), w * float(np.mean((a / w) ** p)) ** (1.0 / p), w)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="wm0_tangent", help="results folder of the device (hmd, wm0_tangent, ...)")
+    ap.add_argument("--start", required=True, help="row whose layout to start from (<start>.layout.json)")
+    ap.add_argument("--design-poses", type=int, default=50000)
+    ap.add_argument("--design-seed", type=int, default=5000, help="design poses: envelope seed + this")
+    ap.add_argument("--check-poses", type=int, default=20000)
+    ap.add_argument("--check-seed", type=int, default=6000, help="the run's own held-out check: envelope seed + this")
+    ap.add_argument("--max-tilt-deg", type=float, default=25.0)
+    ap.add_argument("--levels", type=int, default=3, help="tilt levels max·j/levels, j = 1 … levels (and 0)")
+    ap.add_argument("--azimuths", type=int, default=8)
+    ap.add_argument("--neighbours", type=int, default=0,
+                    help="a sensor may move to this many nearest sites (its own included); 0: to any free site")
+    ap.add_argument("--screen", type=int, default=2000,
+                    help="moves are screened on this many worst design poses (and every pose at the coverage limit)")
+    ap.add_argument("--verify", type=int, default=8, help="the best screened moves scored on every design pose")
+    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst"))
+    ap.add_argument("--half-angle-deg", type=float, default=SCORE_HALF_ANGLE_DEG, help="design acceptance half-angle")
+    ap.add_argument("--spare-lit", type=int, default=0, help="design poses must light 4 + this many sensors")
+    ap.add_argument("--coverage-half-angle-deg", type=float, default=None,
+                    help="acceptance half-angle at which the lit count of the coverage constraint is taken (a margin, "
+                         "as run.py's --half-angle-deg; default --half-angle-deg); ADOP is always at --half-angle-deg")
+    ap.add_argument("--p", type=float, default=32.0, help="exponent of the L_p objective")
+    ap.add_argument("--time-limit-s", type=float, default=900.0)
+    ap.add_argument("--seed", type=int, default=0, help="order in which sensors are visited")
+    ap.add_argument("--tag", default="")
+    a = ap.parse_args()
+
+    from layoutkit.dop_batch import batch_dop
+    from layoutkit.envelope import envelope_set, load_envelope
+    from layoutkit.io.atomic import atomic_write_text
+    from layoutkit.io.jsonfile import to_jsonable
+    from layoutkit.layout import Layout, load_layout, save_layout
+    from layoutkit.mesh import load_mesh
+    from layoutkit.optimize.design import layout_visibility
+
+    t_start = time.perf_counter()
+    folder = HERE / "results" / a.device
+    start_spec = json.loads((folder / f"{a.start}.json").read_text())
+    name = a.device.split("_")[0].upper()
+    housing = a.device.split("_")[1] if "_" in a.device else "hull"
+    label, rec, dn = next(d for d in DEVICES if d[2] == name)
+    dev = with_housing(load_device(label, rec, dn), housing)
+    env = load_envelope(folder / "env.toml")
+    mesh = load_mesh(str(mesh_path(folder)))
+    seed0 = start_spec.get("site_seed", start_spec["spec"]["seed"]) or 0  # a refine row: its start row's
+    spacing = 8e-3  # run.py's --spacing-mm default, as every facet row
+    sites = facet_candidates(dev, folder, spacing, seed0, facets=bool(start_spec.get("facet_sites")))
+    start = load_layout(folder / f"{a.start}.layout.json")
+    pos, axes, site, tilt = _pool(sites, a.max_tilt_deg, a.levels, a.azimuths)
+    # the start layout's own sensors are candidates too (their 25° azimuths need not be on this grid)
+    start_site = np.array([int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions])
+    start_tilt = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", start.normals, sites.normals[start_site]), -1, 1)))
+    if np.max(np.linalg.norm(sites.positions[start_site] - start.positions, axis=1)) > 1e-9:
+        raise SystemExit(f"{a.start}: its sensors are not at the row's candidate sites")
+    pos, axes = np.vstack([pos, start.positions]), np.vstack([axes, start.normals])
+    site, tilt = np.concatenate([site, start_site]), np.concatenate([tilt, start_tilt])
+    n_pool = len(pos)
+    sel = np.arange(n_pool - start.n, n_pool)
+
+    _, R, t = envelope_set(env, count=a.design_poses, seed=env.seed + a.design_seed)
+    print(f"{n_pool} candidates ({sites.n} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
+          f"{a.design_poses} design poses", flush=True)
+    def pool_visibility(half_angle):
+        return np.concatenate([layout_visibility(mesh, pos[i:i + 200], axes[i:i + 200], R, t, env.stations,
+                                                 half_angle) for i in range(0, n_pool, 200)], axis=2)  # (P, S, n_pool)
+
+    vis = pool_visibility(a.half_angle_deg)
+    cov_angle = a.half_angle_deg if a.coverage_half_angle_deg is None else a.coverage_half_angle_deg
+    vis_cov = vis if cov_angle == a.half_angle_deg else pool_visibility(cov_angle)
+    print(f"visibility: {time.perf_counter() - t_start:.0f} s", flush=True)
+    need = M + a.spare_lit
+    near = np.argsort(np.linalg.norm(sites.positions[:, None] - sites.positions[None], axis=2), axis=1)[:, :a.neighbours]
+    by_site = [np.flatnonzero(site == s) for s in range(sites.n)]
+
+    def evaluate(s, q=None):
+        """per-pose ADOP and lit count (coverage angle) of candidate subset ``s`` at the design poses (or at the
+        screening poses ``q = (index, vis[index], vis_cov[index])``)"""
+        if q is None:
+            d = batch_dop(pos[s], R, t, rho=RHO, visible=vis[:, :, s], stations=env.stations)
+            return d.adop, vis_cov[:, :, s].sum(axis=(1, 2))
+        idx, vq, vcq = q
+        d = batch_dop(pos[s], R[idx], t[idx], rho=RHO, visible=vq[:, :, s], stations=env.stations)
+        return d.adop, vcq[:, :, s].sum(axis=(1, 2))
+
+    def key(obj, phase):
+        return (obj[0], obj[1], obj[2]) if phase == "lp" else (obj[0], obj[2], obj[1])
+
+    def screening_set(adop, lit):
+        """the design poses a one-sensor move is screened on: the ``--screen`` worst (by ADOP) and every pose at
+        the coverage limit (losing one lit sensor there uncovers it)"""
+        a_ = np.where(np.isfinite(adop), adop, np.inf)
+        top = np.argsort(a_)[-a.screen:]
+        idx = np.union1d(top, np.flatnonzero(lit <= need))
+        return idx, vis[idx], vis_cov[idx]
+
+    def step(i, phase, cur, cur_adop, cur_lit):
+        """the best verified one-sensor move of sensor i, or None. Every candidate is first scored on the
+        screening poses: in the worst phase a move whose screened worst (a lower bound of its worst) is not below
+        the current worst, or that uncovers a screened pose, is rejected exactly; in the L_p phase the other poses
+        keep their current terms. The ``--verify`` best screened moves are then scored on every design pose."""
+        taken = set(site[sel].tolist()) - {int(site[sel[i]])}
+        sites_i = near[site[sel[i]]] if a.neighbours else range(sites.n)
+        cands = [c for s_ in sites_i if int(s_) not in taken for c in by_site[s_] if c != sel[i]]
+        q = screening_set(cur_adop, cur_lit)
+        ok_cur = (cur_lit >= need) & np.isfinite(cur_adop)
+        w = cur[2]
+        rest = np.ones(len(cur_adop), bool)
+        rest[q[0]] = False
+        rest_sum = float(np.sum(np.where(rest & ok_cur, (np.where(ok_cur, cur_adop, 0) / w) ** a.p, 0.0)))
+        scored = []
+        for c in cands:
+            trial = sel.copy()
+            trial[i] = c
+            ad, lit = evaluate(trial, q)
+            ok = (lit >= need) & np.isfinite(ad)
+            unc = int((~ok).sum())
+            if phase == "worst":
+                wq = float(ad[ok].max()) if ok.any() else math.inf
+                if unc or wq >= w:
+                    continue
+                scored.append(((0, wq), c))
+            else:
+                lp = w * ((rest_sum + float(np.sum((ad[ok] / w) ** a.p))) / len(cur_adop)) ** (1.0 / a.p)
+                scored.append(((unc, lp), c))
+        scored.sort(key=lambda x: x[0])
+        for _, c in scored[:a.verify]:
+            trial = sel.copy()
+            trial[i] = c
+            ad, lit = evaluate(trial)
+            obj = _objective(ad, lit, need, a.p)
+            if key(obj, phase) < key(cur, phase):
+                return c, obj, ad, lit
+        return None
+
+    rng = np.random.default_rng(a.seed)
+    cur_adop, cur_lit = evaluate(sel)
+    cur = _objective(cur_adop, cur_lit, need, a.p)
+    history = [{"phase": "start", "time_s": time.perf_counter() - t_start, "uncovered": cur[0], "lp": cur[1],
+                "worst": cur[2]}]
+    print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}", flush=True)
+    deadline = t_start + a.time_limit_s
+    for phase in a.phases:
+        improved = True
+        while improved and time.perf_counter() < deadline:
+            improved, moves = False, 0
+            for i in rng.permutation(len(sel)):
+                if time.perf_counter() >= deadline:
+                    break
+                found = step(i, phase, cur, cur_adop, cur_lit)
+                if found is not None:
+                    sel[i], cur, cur_adop, cur_lit = found
+                    improved, moves = True, moves + 1
+            history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
+                            "lp": cur[1], "worst": cur[2], "moves": moves})
+            print(f"{phase} sweep: {moves} moves, uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f} "
+                  f"({time.perf_counter() - t_start:.0f} s)", flush=True)
+
+    # the run's own held-out check: fresh poses, exact visibility at the physical angle
+    _, Rc, tc = envelope_set(env, count=a.check_poses, seed=env.seed + a.check_seed)
+    vc = layout_visibility(mesh, pos[sel], axes[sel], Rc, tc, env.stations, SCORE_HALF_ANGLE_DEG)
+    dc = batch_dop(pos[sel], Rc, tc, rho=RHO, visible=vc, stations=env.stations)
+    ok = (vc.sum(axis=(1, 2)) >= M) & np.isfinite(dc.adop)
+    check = {"poses": a.check_poses, "seed_offset": a.check_seed, "covered_fraction": float(ok.mean()),
+             "worst_adop": float(dc.adop[ok].max()) if ok.any() else math.inf}
+    status = "ok" if cur[0] == 0 and ok.all() else "incomplete"
+    lay = Layout(pos[sel], axes[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
+                 {"x-refined-from": a.start},
+                 tuple({"x-site": sites.ids[int(site[c])], "x-tilt-deg": float(tilt[c])} for c in sel))
+    out = folder / f"refine{a.tag}.layout.json"
+    save_layout(lay, out)
+    res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "candidates": n_pool, "status": status,
+           "value": check["worst_adop"], "value_refers_to": f"worst ADOP over {a.check_poses} fresh poses "
+           f"(envelope seed + {a.check_seed}), 60° acceptance, self-occlusion", "check": check,
+           "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2]}, "history": history,
+           "tilt_deg": [float(tilt[c]) for c in sel], "sites": [sites.ids[int(site[c])] for c in sel],
+           "wall_s": time.perf_counter() - t_start, "loadavg_end": os.getloadavg(), "layout": str(out),
+           "code_commit": _commit()}
+    atomic_write_text(folder / f"refine{a.tag}.json", json.dumps(to_jsonable(res), indent=1) + "\n")
+    print(f"{status}: check worst {check['worst_adop']:.0f} (covered {check['covered_fraction']:.4f}) -> {out}")
+
+
+if __name__ == "__main__":
+    main()
