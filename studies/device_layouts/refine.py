@@ -77,6 +77,8 @@ def main():
     ap.add_argument("--screen", type=int, default=2000,
                     help="moves are screened on this many worst design poses (and every pose at the coverage limit)")
     ap.add_argument("--verify", type=int, default=8, help="the best screened moves scored on every design pose")
+    ap.add_argument("--tol", type=float, default=1e-3,
+                    help="a move is kept when it lowers the phase's objective by more than this fraction")
     ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst"))
     ap.add_argument("--half-angle-deg", type=float, default=SCORE_HALF_ANGLE_DEG, help="design acceptance half-angle")
     ap.add_argument("--spare-lit", type=int, default=0, help="design poses must light 4 + this many sensors")
@@ -192,7 +194,8 @@ def main():
             trial[i] = c
             ad, lit = evaluate(trial)
             obj = _objective(ad, lit, need, a.p)
-            if key(obj, phase) < key(cur, phase):
+            k_new, k_cur = key(obj, phase), key(cur, phase)
+            if k_new[0] < k_cur[0] or (k_new[0] == k_cur[0] and k_new[1] < k_cur[1] * (1 - a.tol)):
                 return c, obj, ad, lit
         return None
 
