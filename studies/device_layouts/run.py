@@ -294,6 +294,10 @@ def main():
         if "score" in args.stage:
             layouts = {"shipped": folder / "shipped.json"}
             layouts.update({p.name.removesuffix(".layout.json"): p for p in sorted(folder.glob("*.layout.json"))})
+            for lname in layouts:  # rows made by other scripts (refine.py): their record, for the reported value
+                if lname != "shipped" and lname not in row and (folder / f"{lname}.json").exists():
+                    row[lname] = json.loads((folder / f"{lname}.json").read_text())
+                    set_here.add(lname)
             sc = stage_score(dev, folder, env, layouts)
             _figures(dev, folder, sc, layouts)
             for part in ("self_occlusion", "no_occlusion", "recording_setup"):
