@@ -151,12 +151,13 @@ def main():
     def key(obj, phase):
         return (obj[0], obj[1], obj[2]) if phase == "lp" else (obj[0], obj[2], obj[1])
 
-    def screening_set(adop, lit):
-        """the design poses a one-sensor move is screened on: the ``--screen`` worst (by ADOP) and every pose at
-        the coverage limit (losing one lit sensor there uncovers it)"""
+    def screening_set(adop, lit, i):
+        """the design poses a move of sensor i is screened on: the ``--screen`` worst (by ADOP) and every pose that
+        would be uncovered without sensor i (only there can the move uncover a pose; the new sensor only adds)"""
         a_ = np.where(np.isfinite(adop), adop, np.inf)
         top = np.argsort(a_)[-a.screen:]
-        idx = np.union1d(top, np.flatnonzero(lit <= need))
+        risk = lit - vis_cov[:, :, sel[i]].sum(axis=1) < need  # without sensor i's lit pairs
+        idx = np.union1d(top, np.flatnonzero(risk))
         return idx, vis[idx], vis_cov[idx]
 
     def step(i, phase, cur, cur_adop, cur_lit):
@@ -167,7 +168,7 @@ def main():
         taken = set(site[sel].tolist()) - {int(site[sel[i]])}
         sites_i = near[site[sel[i]]] if a.neighbours else range(sites.n)
         cands = [c for s_ in sites_i if int(s_) not in taken for c in by_site[s_] if c != sel[i]]
-        q = screening_set(cur_adop, cur_lit)
+        q = screening_set(cur_adop, cur_lit, i)
         ok_cur = (cur_lit >= need) & np.isfinite(cur_adop)
         w = cur[2]
         rest = np.ones(len(cur_adop), bool)
