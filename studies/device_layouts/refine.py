@@ -39,8 +39,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import DEVICES, load_device, mesh_path, with_housing  # noqa: E402
-from run import M, RHO, SCORE_HALF_ANGLE_DEG, _commit, facet_candidates  # noqa: E402
+from devices import DEVICES, load_device, mesh_path, with_housing
+from run import RHO, SCORE_HALF_ANGLE_DEG, M, _commit, facet_candidates
 
 
 def _pool(sites, max_tilt_deg, levels, azimuths):
