@@ -75,7 +75,8 @@ def main():
     ap.add_argument("--neighbours", type=int, default=0,
                     help="a sensor may move to this many nearest sites (its own included); 0: to any free site")
     ap.add_argument("--screen", type=int, default=2000,
-                    help="moves are screened on this many worst design poses (and every pose at the coverage limit)")
+                    help="moves of a sensor are screened on this many worst design poses (and every pose that would be "
+                         "uncovered without it)")
     ap.add_argument("--verify", type=int, default=8, help="the best screened moves scored on every design pose")
     ap.add_argument("--tol", type=float, default=1e-3,
                     help="a move is kept when it lowers the phase's objective by more than this fraction")
@@ -118,6 +119,9 @@ def main():
     start_tilt = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", start.normals, sites.normals[start_site]), -1, 1)))
     if np.max(np.linalg.norm(sites.positions[start_site] - start.positions, axis=1)) > 1e-9:
         raise SystemExit(f"{a.start}: its sensors are not at the row's candidate sites")
+    if np.max(start_tilt) > a.max_tilt_deg + 1e-6:
+        raise SystemExit(f"{a.start}: a sensor is tilted {np.max(start_tilt):.1f}° from its site's normal, over "
+                         f"--max-tilt-deg {a.max_tilt_deg:g}")
     pos, axes = np.vstack([pos, start.positions]), np.vstack([axes, start.normals])
     site, tilt = np.concatenate([site, start_site]), np.concatenate([tilt, start_tilt])
     n_pool = len(pos)
@@ -126,6 +130,7 @@ def main():
     _, R, t = envelope_set(env, count=a.design_poses, seed=env.seed + a.design_seed)
     print(f"{n_pool} candidates ({sites.n} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
           f"{a.design_poses} design poses", flush=True)
+
     def pool_visibility(half_angle):
         return np.concatenate([layout_visibility(mesh, pos[i:i + 200], axes[i:i + 200], R, t, env.stations,
                                                  half_angle) for i in range(0, n_pool, 200)], axis=2)  # (P, S, n_pool)
