@@ -64,7 +64,7 @@ def _objective(adop, n_lit, need, p):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="wm0_tangent", help="results folder of the device (hmd, wm0_tangent, ...)")
-    ap.add_argument("--start", required=True, help="row whose layout to start from (<start>.layout.json)")
+    ap.add_argument("--start", required=True, help="row whose layout to start from (<start>.layout.json; 'shipped': the device's own layout)")
     ap.add_argument("--design-poses", type=int, default=50000)
     ap.add_argument("--design-seed", type=int, default=5000, help="design poses: envelope seed + this")
     ap.add_argument("--check-poses", type=int, default=20000)
@@ -102,7 +102,9 @@ def main():
 
     t_start = time.perf_counter()
     folder = HERE / "results" / a.device
-    start_spec = json.loads((folder / f"{a.start}.json").read_text())
+    # "shipped": the device's own layout, which is the facet sites untilted (run.py --facet-sites, site seed 0)
+    start_spec = ({"facet_sites": True, "spec": {"seed": 0}} if a.start == "shipped"
+                  else json.loads((folder / f"{a.start}.json").read_text()))
     name = a.device.split("_")[0].upper()
     housing = a.device.split("_")[1] if "_" in a.device else "hull"
     label, rec, dn = next(d for d in DEVICES if d[2] == name)
@@ -112,7 +114,7 @@ def main():
     seed0 = start_spec.get("site_seed", start_spec["spec"]["seed"]) or 0  # a refine row: its start row's
     spacing = 8e-3  # run.py's --spacing-mm default, as every facet row
     sites = facet_candidates(dev, folder, spacing, seed0, facets=bool(start_spec.get("facet_sites")))
-    start = load_layout(folder / f"{a.start}.layout.json")
+    start = load_layout(folder / ("shipped.json" if a.start == "shipped" else f"{a.start}.layout.json"))
     pos, axes, site, tilt = _pool(sites, a.max_tilt_deg, a.levels, a.azimuths)
     # the start layout's own sensors are candidates too (their 25° azimuths need not be on this grid)
     start_site = np.array([int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions])
