@@ -140,3 +140,19 @@ def mesh_path(folder: Path) -> Path:
     """The mesh of a device folder: ``housing.stl`` (the tangent-cell housing) if present, else ``hull.stl``."""
     folder = Path(folder)
     return folder / "housing.stl" if (folder / "housing.stl").exists() else folder / "hull.stl"
+
+
+def folder_name(device: str, housing: str = "hull") -> str:
+    """The results folder of a device (its CONFIG name, e.g. ``WM0``) on a housing: ``wm0``, ``wm0_tangent``."""
+    return device.lower() + ("" if housing == "hull" else f"_{housing}")
+
+
+def device_of_folder(folder: str) -> Device:
+    """The device (on its housing) whose results live in ``folder`` (a :func:`folder_name`)."""
+    name, _, housing = Path(folder).name.partition("_")
+    found = [d for d in DEVICES if d[2] == name.upper()]
+    if not found or (housing and housing not in HOUSINGS):
+        raise ValueError(f"{folder}: not a device folder (expected one of "
+                         f"{list(dict.fromkeys(folder_name(d[2], h) for d in DEVICES for h in HOUSINGS))})")
+    label, rec, dn = found[0]
+    return with_housing(load_device(label, rec, dn), housing or "hull")

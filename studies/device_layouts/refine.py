@@ -39,7 +39,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import DEVICES, load_device, mesh_path, with_housing
+from devices import device_of_folder, mesh_path
 from run import RHO, SCORE_HALF_ANGLE_DEG, M, _commit, _scores, facet_candidates
 
 
@@ -51,14 +51,21 @@ def _pool(sites, max_tilt_deg, levels, azimuths):
     return tilt_orientations(sites.positions, sites.normals, max_tilt_deg, azimuths, levels=lev)
 
 
-def _objective(adop, n_lit, need, p):
-    """(uncovered design poses, L_p norm of ADOP over the others, worst ADOP over the others)."""
+def _tail_mean(values, k):
+    """mean of the ``k`` largest of ``values`` (the conditional value at risk of the top ``k``)."""
+    k = min(k, values.size)
+    return float(np.mean(np.partition(values, values.size - k)[values.size - k:])) if k else math.inf
+
+
+def _objective(adop, n_lit, need, p, k_tail):
+    """(uncovered design poses, L_p norm of ADOP over the others, worst ADOP over the others, mean of their
+    ``k_tail`` worst)."""
     ok = (n_lit >= need) & np.isfinite(adop)
     a = adop[ok]
     if a.size == 0:
-        return (int((~ok).sum()), math.inf, math.inf)
+        return (int((~ok).sum()), math.inf, math.inf, math.inf)
     w = float(a.max())
-    return (int((~ok).sum()), w * float(np.mean((a / w) ** p)) ** (1.0 / p), w)
+    return (int((~ok).sum()), w * float(np.mean((a / w) ** p)) ** (1.0 / p), w, _tail_mean(a, k_tail))
 
 
 def main():
@@ -69,6 +76,9 @@ def main():
     ap.add_argument("--design-seed", type=int, default=5000, help="design poses: envelope seed + this")
     ap.add_argument("--check-poses", type=int, default=20000)
     ap.add_argument("--check-seed", type=int, default=6000, help="the run's own held-out check: envelope seed + this")
+    ap.add_argument("--spacing-mm", type=float, default=None,
+                    help="resample the housing's sites this far apart (site seed --seed; the start's own sites are kept); "
+                         "default: the start row's sites")
     ap.add_argument("--max-tilt-deg", type=float, default=25.0)
     ap.add_argument("--levels", type=int, default=3, help="tilt levels max·j/levels, j = 1 … levels (and 0)")
     ap.add_argument("--azimuths", type=int, default=8)
@@ -80,7 +90,11 @@ def main():
     ap.add_argument("--verify", type=int, default=8, help="the best screened moves scored on every design pose")
     ap.add_argument("--tol", type=float, default=1e-3,
                     help="a move is kept when it lowers the phase's objective by more than this fraction")
-    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst"))
+    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst", "tail"),
+                    help="objectives in turn, each to convergence: lp (L_p norm), worst (worst case), tail (mean of "
+                         "the --tail-fraction worst design poses: what the worst of a smaller fresh draw estimates)")
+    ap.add_argument("--tail-fraction", type=float, default=0.01,
+                    help="share of the design poses whose mean ADOP the tail phase lowers")
     ap.add_argument("--half-angle-deg", type=float, default=SCORE_HALF_ANGLE_DEG, help="design acceptance half-angle")
     ap.add_argument("--spare-lit", type=int, default=0, help="design poses must light 4 + this many sensors")
     ap.add_argument("--coverage-half-angle-deg", type=float, default=None,
@@ -105,16 +119,22 @@ def main():
     # "shipped": the device's own layout, which is the facet sites untilted (run.py --facet-sites, site seed 0)
     start_spec = ({"facet_sites": True, "spec": {"seed": 0}} if a.start == "shipped"
                   else json.loads((folder / f"{a.start}.json").read_text()))
-    name = a.device.split("_")[0].upper()
-    housing = a.device.split("_")[1] if "_" in a.device else "hull"
-    label, rec, dn = next(d for d in DEVICES if d[2] == name)
-    dev = with_housing(load_device(label, rec, dn), housing)
+    dev = device_of_folder(a.device)
     env = load_envelope(folder / "env.toml")
     mesh = load_mesh(str(mesh_path(folder)))
     seed0 = start_spec.get("site_seed", start_spec["spec"]["seed"]) or 0  # a refine row: its start row's
-    spacing = 8e-3  # run.py's --spacing-mm default, as every facet row
-    sites = facet_candidates(dev, folder, spacing, seed0, facets=bool(start_spec.get("facet_sites")))
+    # rows record their site spacing since session 10; every earlier row used run.py's default, 8 mm
+    spacing = start_spec.get("spacing_m", 8e-3)
+    facets = bool(start_spec.get("facet_sites"))
+    sites = facet_candidates(dev, folder, spacing, seed0, facets=facets)
     start = load_layout(folder / ("shipped.json" if a.start == "shipped" else f"{a.start}.layout.json"))
+    if a.spacing_mm is not None:  # resample the sites, keeping the ones the start's sensors sit on
+        on = sorted({int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions})
+        keep = [i for i in on if not sites.ids[i].startswith("facet") or not facets]
+        new = facet_candidates(dev, folder, a.spacing_mm * 1e-3, a.seed, facets=facets)
+        sites = Layout(np.vstack([new.positions, sites.positions[keep]]), np.vstack([new.normals, sites.normals[keep]]),
+                       tuple(new.ids) + tuple(f"start:{sites.ids[i]}" for i in keep))
+        spacing = a.spacing_mm * 1e-3
     pos, axes, site, tilt = _pool(sites, a.max_tilt_deg, a.levels, a.azimuths)
     # the start layout's own sensors are candidates too (their 25° azimuths need not be on this grid)
     start_site = np.array([int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions])
@@ -155,8 +175,13 @@ def main():
         d = batch_dop(pos[s], R[idx], t[idx], rho=RHO, visible=vq[:, :, s], stations=env.stations)
         return d.adop, vcq[:, :, s].sum(axis=(1, 2))
 
+    k_tail = max(1, round(a.tail_fraction * a.design_poses))
+    if k_tail > a.screen:
+        raise SystemExit(f"--tail-fraction {a.tail_fraction:g} is {k_tail} poses, more than --screen {a.screen}")
+
     def key(obj, phase):
-        return (obj[0], obj[1], obj[2]) if phase == "lp" else (obj[0], obj[2], obj[1])
+        return {"lp": (obj[0], obj[1], obj[2]), "worst": (obj[0], obj[2], obj[1]),
+                "tail": (obj[0], obj[3], obj[2])}[phase]
 
     def screening_set(adop, lit, i):
         """the design poses a move of sensor i is screened on: the ``--screen`` worst (by ADOP) and every pose that
@@ -193,6 +218,8 @@ def main():
                 if unc or wq >= w:
                     continue
                 scored.append(((0, wq), c))
+            elif phase == "tail":  # the screening set holds the current tail; the other poses keep their values
+                scored.append(((unc, _tail_mean(np.concatenate([ad[ok], cur_adop[rest]]), k_tail)), c))
             else:
                 lp = w * ((rest_sum + float(np.sum((ad[ok] / w) ** a.p))) / len(cur_adop)) ** (1.0 / a.p)
                 scored.append(((unc, lp), c))
@@ -201,7 +228,7 @@ def main():
             trial = sel.copy()
             trial[i] = c
             ad, lit = evaluate(trial)
-            obj = _objective(ad, lit, need, a.p)
+            obj = _objective(ad, lit, need, a.p, k_tail)
             k_new, k_cur = key(obj, phase), key(cur, phase)
             if k_new[0] < k_cur[0] or (k_new[0] == k_cur[0] and k_new[1] < k_cur[1] * (1 - a.tol)):
                 return c, obj, ad, lit
@@ -209,10 +236,10 @@ def main():
 
     rng = np.random.default_rng(a.seed)
     cur_adop, cur_lit = evaluate(sel)
-    cur = _objective(cur_adop, cur_lit, need, a.p)
+    cur = _objective(cur_adop, cur_lit, need, a.p, k_tail)
     history = [{"phase": "start", "time_s": time.perf_counter() - t_start, "uncovered": cur[0], "lp": cur[1],
-                "worst": cur[2]}]
-    print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}", flush=True)
+                "worst": cur[2], "tail_mean": cur[3]}]
+    print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, tail {cur[3]:.0f}", flush=True)
     deadline = t_start + a.time_limit_s
     for phase in a.phases:
         improved = True
@@ -226,8 +253,9 @@ def main():
                     sel[i], cur, cur_adop, cur_lit = found
                     improved, moves = True, moves + 1
             history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
-                            "lp": cur[1], "worst": cur[2], "moves": moves})
-            print(f"{phase} sweep: {moves} moves, uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f} "
+                            "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "moves": moves})
+            print(f"{phase} sweep: {moves} moves, uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, "
+                  f"tail {cur[3]:.0f} "
                   f"({time.perf_counter() - t_start:.0f} s)", flush=True)
 
     lay = Layout(pos[sel], axes[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
@@ -241,10 +269,11 @@ def main():
     check = {"poses": a.check_poses, "seed_offset": a.check_seed, "covered_fraction": sc["covered_fraction"],
              "worst_adop": sc["worst_adop_over_covered"]}
     status = "ok" if cur[0] == 0 and sc["covered_fraction"] == 1.0 else "incomplete"
-    res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "candidates": n_pool, "status": status,
+    res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "spacing_m": spacing,
+           "candidates": n_pool, "status": status,
            "value": check["worst_adop"], "value_refers_to": f"worst ADOP over {a.check_poses} fresh poses "
            f"(envelope seed + {a.check_seed}), 60° acceptance, self-occlusion", "check": check,
-           "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2]}, "history": history,
+           "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2], "tail_mean_adop": cur[3]}, "history": history,
            "tilt_deg": [float(tilt[c]) for c in sel], "sites": [sites.ids[int(site[c])] for c in sel],
            "wall_s": time.perf_counter() - t_start, "loadavg_end": os.getloadavg(), "layout": str(out),
            "code_commit": _commit()}

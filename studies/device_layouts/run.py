@@ -46,7 +46,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import DEVICES, HOUSINGS, front_envelope, load_device, mesh_path, with_housing  # noqa: E402
+from devices import DEVICES, HOUSINGS, folder_name, front_envelope, load_device, mesh_path, with_housing  # noqa: E402
 
 RHO, M = 0.8717, 4
 #: the physical acceptance half-angle every layout is scored at (a row's design half-angle may be smaller)
@@ -138,6 +138,7 @@ def stage_optimise(dev, folder: Path, name, args, tilt: bool):
     keep = ("candidates", "value", "design_value", "bound", "gap", "certified_by", "value_refers_to", "gap_refers_to",
             "status", "message", "heldout", "certificate", "tilted_sensors")
     return {"spec": spec.to_dict(), "design_half_angle_deg": args.half_angle_deg, "facet_sites": args.facet_sites,
+            "spacing_m": spacing,
             "scored_half_angle_deg": SCORE_HALF_ANGLE_DEG,
             "wall_s": time.perf_counter() - t0, "loadavg_end": os.getloadavg(), **{k: s.get(k) for k in keep},
             "rounds": [{k: v for k, v in r.items() if k not in ("selected", "added")}
@@ -275,7 +276,7 @@ def main():
     for name in args.devices:
         label, rec, dn = next(d for d in DEVICES if d[2] == name or d[0].startswith(name))
         dev = with_housing(load_device(label, rec, dn), args.housing)
-        folder = out / (dn.lower() + ("" if args.housing == "hull" else f"_{args.housing}"))
+        folder = out / folder_name(dn, args.housing)
         env = prepare(dev, folder, args.housing)
         row = res["devices"].setdefault(dev.label, {"recording": rec, "device": dn, "sensors": dev.layout.n})
         set_here = {"mesh", "envelope", "recording", "device", "sensors"}
