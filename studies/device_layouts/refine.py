@@ -127,14 +127,21 @@ def main():
     spacing = start_spec.get("spacing_m", 8e-3)
     facets = bool(start_spec.get("facet_sites"))
     sites = facet_candidates(dev, folder, spacing, seed0, facets=facets)
+    extra = start_spec.get("extra_sites") or []  # a --spacing-mm row's kept sites
+    if extra:
+        sites = Layout(np.vstack([sites.positions, [e["position"] for e in extra]]),
+                       np.vstack([sites.normals, [e["normal"] for e in extra]]),
+                       tuple(sites.ids) + tuple(e["id"] for e in extra))
     start = load_layout(folder / ("shipped.json" if a.start == "shipped" else f"{a.start}.layout.json"))
     if a.spacing_mm is not None:  # resample the sites, keeping the ones the start's sensors sit on
         on = sorted({int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions})
         keep = [i for i in on if not sites.ids[i].startswith("facet") or not facets]
+        extra = [{"id": sites.ids[i] if sites.ids[i].startswith("start:") else f"start:{sites.ids[i]}",
+                  "position": sites.positions[i].tolist(), "normal": sites.normals[i].tolist()} for i in keep]
         new = facet_candidates(dev, folder, a.spacing_mm * 1e-3, a.seed, facets=facets)
         sites = Layout(np.vstack([new.positions, sites.positions[keep]]), np.vstack([new.normals, sites.normals[keep]]),
-                       tuple(new.ids) + tuple(f"start:{sites.ids[i]}" for i in keep))
-        spacing = a.spacing_mm * 1e-3
+                       tuple(new.ids) + tuple(e["id"] for e in extra))
+        spacing, seed0 = a.spacing_mm * 1e-3, a.seed
     pos, axes, site, tilt = _pool(sites, a.max_tilt_deg, a.levels, a.azimuths)
     # the start layout's own sensors are candidates too (their 25° azimuths need not be on this grid)
     start_site = np.array([int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions])
@@ -270,6 +277,7 @@ def main():
              "worst_adop": sc["worst_adop_over_covered"]}
     status = "ok" if cur[0] == 0 and sc["covered_fraction"] == 1.0 else "incomplete"
     res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "spacing_m": spacing,
+           "extra_sites": extra,
            "candidates": n_pool, "status": status,
            "value": check["worst_adop"], "value_refers_to": f"worst ADOP over {a.check_poses} fresh poses "
            f"(envelope seed + {a.check_seed}), 60° acceptance, self-occlusion", "check": check,
