@@ -22,7 +22,8 @@ The run's own reported value is the worst ADOP on ``--check-poses`` poses of a f
 (``--check-seed``), at the physical 60° acceptance angle — chosen rows are chosen by it, never by the study's sets.
 
 Writes ``results/<device>/refine<tag>.layout.json`` and ``refine<tag>.json`` (spec, per-phase history, design
-and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row.
+and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row. An ablation
+(``--view-angle-deg``: design for one region of the envelope) writes to ``results/<device>/ablations/`` instead.
 """
 from __future__ import annotations
 
@@ -57,15 +58,21 @@ def _tail_mean(values, k):
     return float(np.mean(np.partition(values, values.size - k)[values.size - k:])) if k else math.inf
 
 
-def _objective(adop, n_lit, need, p, k_tail):
+def _excess(values, target):
+    """sum of squared relative excesses of ``values`` over ``target`` (0 when every value is under it)."""
+    return float(np.sum(np.maximum(values / target - 1.0, 0.0) ** 2)) if target else math.inf
+
+
+def _objective(adop, n_lit, need, p, k_tail, target):
     """(uncovered design poses, L_p norm of ADOP over the others, worst ADOP over the others, mean of their
-    ``k_tail`` worst)."""
+    ``k_tail`` worst, their excess over ``target``)."""
     ok = (n_lit >= need) & np.isfinite(adop)
     a = adop[ok]
     if a.size == 0:
-        return (int((~ok).sum()), math.inf, math.inf, math.inf)
+        return (int((~ok).sum()), math.inf, math.inf, math.inf, math.inf)
     w = float(a.max())
-    return (int((~ok).sum()), w * float(np.mean((a / w) ** p)) ** (1.0 / p), w, _tail_mean(a, k_tail))
+    return (int((~ok).sum()), w * float(np.mean((a / w) ** p)) ** (1.0 / p), w, _tail_mean(a, k_tail),
+            _excess(a, target))
 
 
 def main():
@@ -74,6 +81,8 @@ def main():
     ap.add_argument("--start", required=True, help="row whose layout to start from (<start>.layout.json; 'shipped': the device's own layout)")
     ap.add_argument("--design-poses", type=int, default=50000)
     ap.add_argument("--design-seed", type=int, default=5000, help="design poses: envelope seed + this")
+    ap.add_argument("--view-angle-deg", type=float, nargs=2, default=None, metavar=("LO", "HI"),
+                    help="an ablation: keep only the design poses whose view angle (regions.py) is in [LO, HI)")
     ap.add_argument("--check-poses", type=int, default=20000)
     ap.add_argument("--check-seed", type=int, default=6000, help="the run's own held-out check: envelope seed + this")
     ap.add_argument("--spacing-mm", type=float, default=None,
@@ -90,9 +99,12 @@ def main():
     ap.add_argument("--verify", type=int, default=8, help="the best screened moves scored on every design pose")
     ap.add_argument("--tol", type=float, default=1e-3,
                     help="a move is kept when it lowers the phase's objective by more than this fraction")
-    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst", "tail"),
+    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst", "tail", "excess"),
                     help="objectives in turn, each to convergence: lp (L_p norm), worst (worst case), tail (mean of "
-                         "the --tail-fraction worst design poses: what the worst of a smaller fresh draw estimates)")
+                         "the --tail-fraction worst design poses: what the worst of a smaller fresh draw estimates), excess (sum "
+                         "of squared relative excesses over --target: every region above it pays, so one move may lower "
+                         "one region while another still holds the worst)")
+    ap.add_argument("--target", type=float, default=None, help="ADOP the excess phase pushes every design pose under")
     ap.add_argument("--tail-fraction", type=float, default=0.01,
                     help="share of the design poses whose mean ADOP the tail phase lowers")
     ap.add_argument("--half-angle-deg", type=float, default=SCORE_HALF_ANGLE_DEG, help="design acceptance half-angle")
@@ -157,8 +169,14 @@ def main():
     sel = np.arange(n_pool - start.n, n_pool)
 
     _, R, t = envelope_set(env, count=a.design_poses, seed=env.seed + a.design_seed)
+    if a.view_angle_deg is not None:  # an ablation: design for one region of the envelope only
+        from regions import view_angle
+
+        va = view_angle(env, dev.front, R, t)
+        inside = np.flatnonzero((va >= a.view_angle_deg[0]) & (va < a.view_angle_deg[1]))
+        R, t = R[inside], t[inside]
     print(f"{n_pool} candidates ({sites.n} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
-          f"{a.design_poses} design poses", flush=True)
+          f"{len(R)} design poses", flush=True)
 
     def pool_visibility(half_angle):
         return np.concatenate([layout_visibility(mesh, pos[i:i + 200], axes[i:i + 200], R, t, env.stations,
@@ -182,13 +200,15 @@ def main():
         d = batch_dop(pos[s], R[idx], t[idx], rho=RHO, visible=vq[:, :, s], stations=env.stations)
         return d.adop, vcq[:, :, s].sum(axis=(1, 2))
 
-    k_tail = max(1, round(a.tail_fraction * a.design_poses))
+    k_tail = max(1, round(a.tail_fraction * len(R)))
+    if "excess" in a.phases and not a.target:
+        raise SystemExit("the excess phase needs --target (an ADOP, deg/rad)")
     if k_tail > a.screen:
         raise SystemExit(f"--tail-fraction {a.tail_fraction:g} is {k_tail} poses, more than --screen {a.screen}")
 
     def key(obj, phase):
         return {"lp": (obj[0], obj[1], obj[2]), "worst": (obj[0], obj[2], obj[1]),
-                "tail": (obj[0], obj[3], obj[2])}[phase]
+                "tail": (obj[0], obj[3], obj[2]), "excess": (obj[0], obj[4], obj[2])}[phase]
 
     def screening_set(adop, lit, i):
         """the design poses a move of sensor i is screened on: the ``--screen`` worst (by ADOP) and every pose that
@@ -225,6 +245,8 @@ def main():
                 if unc or wq >= w:
                     continue
                 scored.append(((0, wq), c))
+            elif phase == "excess":  # poses off the screening set are under the target unless the move lifts them
+                scored.append(((unc, _excess(ad[ok], a.target) + _excess(cur_adop[rest], a.target)), c))
             elif phase == "tail":  # the screening set holds the current tail; the other poses keep their values
                 scored.append(((unc, _tail_mean(np.concatenate([ad[ok], cur_adop[rest]]), k_tail)), c))
             else:
@@ -235,7 +257,7 @@ def main():
             trial = sel.copy()
             trial[i] = c
             ad, lit = evaluate(trial)
-            obj = _objective(ad, lit, need, a.p, k_tail)
+            obj = _objective(ad, lit, need, a.p, k_tail, a.target)
             k_new, k_cur = key(obj, phase), key(cur, phase)
             if k_new[0] < k_cur[0] or (k_new[0] == k_cur[0] and k_new[1] < k_cur[1] * (1 - a.tol)):
                 return c, obj, ad, lit
@@ -243,10 +265,10 @@ def main():
 
     rng = np.random.default_rng(a.seed)
     cur_adop, cur_lit = evaluate(sel)
-    cur = _objective(cur_adop, cur_lit, need, a.p, k_tail)
+    cur = _objective(cur_adop, cur_lit, need, a.p, k_tail, a.target)
     history = [{"phase": "start", "time_s": time.perf_counter() - t_start, "uncovered": cur[0], "lp": cur[1],
-                "worst": cur[2], "tail_mean": cur[3]}]
-    print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, tail {cur[3]:.0f}", flush=True)
+                "worst": cur[2], "tail_mean": cur[3], "excess": cur[4]}]
+    print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, tail {cur[3]:.0f}, excess {cur[4]:.3g}", flush=True)
     deadline = t_start + a.time_limit_s
     for phase in a.phases:
         improved = True
@@ -260,15 +282,18 @@ def main():
                     sel[i], cur, cur_adop, cur_lit = found
                     improved, moves = True, moves + 1
             history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
-                            "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "moves": moves})
+                            "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "excess": cur[4], "moves": moves})
             print(f"{phase} sweep: {moves} moves, uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, "
-                  f"tail {cur[3]:.0f} "
+                  f"tail {cur[3]:.0f}, excess {cur[4]:.3g} "
                   f"({time.perf_counter() - t_start:.0f} s)", flush=True)
 
     lay = Layout(pos[sel], axes[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
                  {"x-refined-from": a.start},
                  tuple({"x-site": sites.ids[int(site[c])], "x-tilt-deg": float(tilt[c])} for c in sel))
-    out = folder / f"refine{a.tag}.layout.json"
+    # an ablation covers part of the envelope only: its rows live apart, out of run.py's score stage
+    dest = folder / "ablations" if a.view_angle_deg is not None else folder
+    dest.mkdir(exist_ok=True)
+    out = dest / f"refine{a.tag}.layout.json"
     save_layout(lay, out)
     # the run's own held-out check: fresh poses, scored as the study scores every row (run._scores: 60°,
     # self-occlusion)
@@ -276,16 +301,24 @@ def main():
     check = {"poses": a.check_poses, "seed_offset": a.check_seed, "covered_fraction": sc["covered_fraction"],
              "worst_adop": sc["worst_adop_over_covered"]}
     status = "ok" if cur[0] == 0 and sc["covered_fraction"] == 1.0 else "incomplete"
+    region = ""
+    if a.view_angle_deg is not None:  # an ablation is checked on its own region of the check poses
+        _, Rc, tc = envelope_set(env, count=a.check_poses, seed=env.seed + a.check_seed)
+        va = view_angle(env, dev.front, Rc, tc)
+        x = sc["_adop"][(va >= a.view_angle_deg[0]) & (va < a.view_angle_deg[1])]
+        check.update(poses=int(x.size), covered_fraction=float(np.isfinite(x).mean()),
+                     worst_adop=float(np.max(x[np.isfinite(x)])))
+        status, region = "ablation", f" with view angle in [{a.view_angle_deg[0]:g}, {a.view_angle_deg[1]:g})°"
     res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "spacing_m": spacing,
            "extra_sites": extra,
            "candidates": n_pool, "status": status,
-           "value": check["worst_adop"], "value_refers_to": f"worst ADOP over {a.check_poses} fresh poses "
+           "value": check["worst_adop"], "value_refers_to": f"worst ADOP over the {check['poses']} fresh poses{region} "
            f"(envelope seed + {a.check_seed}), 60° acceptance, self-occlusion", "check": check,
-           "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2], "tail_mean_adop": cur[3]}, "history": history,
+           "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2], "tail_mean_adop": cur[3], "excess": cur[4]}, "history": history,
            "tilt_deg": [float(tilt[c]) for c in sel], "sites": [sites.ids[int(site[c])] for c in sel],
            "wall_s": time.perf_counter() - t_start, "loadavg_end": os.getloadavg(), "layout": str(out),
            "code_commit": _commit()}
-    atomic_write_text(folder / f"refine{a.tag}.json", json.dumps(to_jsonable(res), indent=1) + "\n")
+    atomic_write_text(dest / f"refine{a.tag}.json", json.dumps(to_jsonable(res), indent=1) + "\n")
     print(f"{status}: check worst {check['worst_adop']:.0f} (covered {check['covered_fraction']:.4f}) -> {out}")
 
 
