@@ -21,9 +21,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import device_of_folder, mesh_path  # noqa: E402
-from large_draws import LARGE  # noqa: E402
-from run import FRESH, _scores  # noqa: E402
+from devices import device_of_folder, mesh_path
+from large_draws import LARGE
+from run import FRESH, _scores
 
 BANDS = np.arange(0.0, 120.0 + 1e-9, 10.0)
 
@@ -91,8 +91,8 @@ def main():
     res["need"] = need
 
     names = list(res["layouts"])
-    lines = [f"View-angle bands of the {a.device} rows (regions.py): worst ADOP (p99.9) over the six 20,000-pose "
-             f"draws per band; the line the tracker's 2,000-pose draws ask for is {need:,.0f}.", "",
+    lines = [(f"View-angle bands of the {a.device} rows (regions.py): worst ADOP (p99.9) over the six 20,000-pose "
+             f"draws per band; the line the tracker's 2,000-pose draws ask for is {need:,.0f}."), "",
              "| view angle | poses | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
     for b in range(len(BANDS) - 1):
         cells = []
@@ -116,8 +116,14 @@ def main():
     fig, ax = plt.subplots(figsize=(7.5, 4.4))
     mid = 0.5 * (BANDS[1:] + BANDS[:-1])
     for nm in names:
-        w = [np.nan if r["worst"] is None else r["worst"] for r in res["layouts"][nm]["bands"]]
-        ax.plot(mid, w, marker="o", lw=2.2 if nm == "shipped" else 1.2, label=nm)
+        w = np.array([np.nan if r["worst"] is None else r["worst"] for r in res["layouts"][nm]["bands"]])
+        row = folder / f"{nm}.json"  # a row's record (the shipped layout has none)
+        region = (json.loads(row.read_text()).get("spec", {}).get("view_angle_deg")
+                  if nm != "shipped" and row.exists() else None)
+        if region:  # an ablation (refine.py --view-angle-deg) is drawn over its own region only
+            w[(mid < region[0]) | (mid > region[1])] = np.nan
+        ax.plot(mid, w, marker="s" if region else "o", ls=":" if region else "-",
+                lw=2.2 if nm == "shipped" else 1.2, label=nm + (" (designed for this region only)" if region else ""))
     ax.axhline(need, color="k", ls="--", lw=1, label=f"½ shipped's best 2,000-pose worst ({need:,.0f})")
     ax.set(xlabel="view angle: front axis to station (deg)", ylabel="worst ADOP over 120,000 poses (deg/rad)",
            title=f"{dev.label}: where the worst case lives", yscale="log")
