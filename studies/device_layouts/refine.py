@@ -41,7 +41,15 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from devices import device_of_folder, mesh_path
-from run import RHO, SCORE_HALF_ANGLE_DEG, M, _commit, _scores, facet_candidates
+from run import (
+    RHO,
+    SCORE_HALF_ANGLE_DEG,
+    M,
+    _commit,
+    _scores,
+    append_sites,
+    facet_candidates,
+)
 
 
 def _pool(sites, max_tilt_deg, levels, azimuths):
@@ -50,6 +58,11 @@ def _pool(sites, max_tilt_deg, levels, azimuths):
 
     lev = tuple((j + 1) / levels for j in range(levels))
     return tilt_orientations(sites.positions, sites.normals, max_tilt_deg, azimuths, levels=lev)
+
+
+def _nearest_site(sites, points):
+    """(n,) index of the site (Layout) nearest each of ``points`` (n, 3)."""
+    return np.argmin(np.linalg.norm(sites.positions[None] - np.asarray(points)[:, None], axis=2), axis=1)
 
 
 def _tail_mean(values, k):
@@ -117,6 +130,8 @@ def main():
     ap.add_argument("--seed", type=int, default=0, help="order in which sensors are visited")
     ap.add_argument("--tag", default="")
     a = ap.parse_args()
+    if "excess" in a.phases and not a.target:
+        ap.error("the excess phase needs --target (an ADOP, deg/rad)")
 
     from layoutkit.dop_batch import batch_dop
     from layoutkit.envelope import envelope_set, load_envelope
@@ -141,22 +156,20 @@ def main():
     sites = facet_candidates(dev, folder, spacing, seed0, facets=facets)
     extra = start_spec.get("extra_sites") or []  # a --spacing-mm row's kept sites
     if extra:
-        sites = Layout(np.vstack([sites.positions, [e["position"] for e in extra]]),
-                       np.vstack([sites.normals, [e["normal"] for e in extra]]),
-                       tuple(sites.ids) + tuple(e["id"] for e in extra))
+        sites = append_sites(sites, [e["position"] for e in extra], [e["normal"] for e in extra],
+                              [e["id"] for e in extra])
     start = load_layout(folder / ("shipped.json" if a.start == "shipped" else f"{a.start}.layout.json"))
     if a.spacing_mm is not None:  # resample the sites, keeping the ones the start's sensors sit on
-        on = sorted({int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions})
+        on = np.unique(_nearest_site(sites, start.positions)).tolist()
         keep = [i for i in on if not sites.ids[i].startswith("facet") or not facets]
         extra = [{"id": sites.ids[i] if sites.ids[i].startswith("start:") else f"start:{sites.ids[i]}",
                   "position": sites.positions[i].tolist(), "normal": sites.normals[i].tolist()} for i in keep]
         new = facet_candidates(dev, folder, a.spacing_mm * 1e-3, a.seed, facets=facets)
-        sites = Layout(np.vstack([new.positions, sites.positions[keep]]), np.vstack([new.normals, sites.normals[keep]]),
-                       tuple(new.ids) + tuple(e["id"] for e in extra))
+        sites = append_sites(new, sites.positions[keep], sites.normals[keep], [e["id"] for e in extra])
         spacing, seed0 = a.spacing_mm * 1e-3, a.seed
     pos, axes, site, tilt = _pool(sites, a.max_tilt_deg, a.levels, a.azimuths)
     # the start layout's own sensors are candidates too (their 25° azimuths need not be on this grid)
-    start_site = np.array([int(np.argmin(np.linalg.norm(sites.positions - p, axis=1))) for p in start.positions])
+    start_site = _nearest_site(sites, start.positions)
     start_tilt = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", start.normals, sites.normals[start_site]), -1, 1)))
     if np.max(np.linalg.norm(sites.positions[start_site] - start.positions, axis=1)) > 1e-9:
         raise SystemExit(f"{a.start}: its sensors are not at the row's candidate sites")
@@ -175,6 +188,9 @@ def main():
         va = view_angle(env, dev.front, R, t)
         inside = np.flatnonzero((va >= a.view_angle_deg[0]) & (va < a.view_angle_deg[1]))
         R, t = R[inside], t[inside]
+    k_tail = max(1, round(a.tail_fraction * len(R)))  # checked before the ray casting
+    if k_tail > a.screen:
+        raise SystemExit(f"--tail-fraction {a.tail_fraction:g} is {k_tail} poses, more than --screen {a.screen}")
     print(f"{n_pool} candidates ({sites.n} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
           f"{len(R)} design poses", flush=True)
 
@@ -199,12 +215,6 @@ def main():
         idx, vq, vcq = q
         d = batch_dop(pos[s], R[idx], t[idx], rho=RHO, visible=vq[:, :, s], stations=env.stations)
         return d.adop, vcq[:, :, s].sum(axis=(1, 2))
-
-    k_tail = max(1, round(a.tail_fraction * len(R)))
-    if "excess" in a.phases and not a.target:
-        raise SystemExit("the excess phase needs --target (an ADOP, deg/rad)")
-    if k_tail > a.screen:
-        raise SystemExit(f"--tail-fraction {a.tail_fraction:g} is {k_tail} poses, more than --screen {a.screen}")
 
     def key(obj, phase):
         return {"lp": (obj[0], obj[1], obj[2]), "worst": (obj[0], obj[2], obj[1]),

@@ -154,15 +154,21 @@ def facet_candidates(dev, folder: Path, spacing, seed, facets=True):
     face, so ``tilt ≤ 25°`` in four azimuths does not reach them (README, "facet sites"). ``facets=False``: the
     sampled sites only (the sites of a row without ``--facet-sites``, as ``DesignProblem`` samples them)."""
     from layoutkit.candidates import sample_candidates
-    from layoutkit.layout import Layout
     from layoutkit.mesh import load_mesh
 
     base = sample_candidates(load_mesh(str(mesh_path(folder))), spacing=spacing, rng=seed)
     if not facets:
         return base
     ship = dev.layout
-    return Layout(np.vstack([base.positions, ship.positions]), np.vstack([base.normals, ship.normals]),
-                  tuple(base.ids) + tuple(f"facet{i}" for i in range(ship.n)))
+    return append_sites(base, ship.positions, ship.normals, [f"facet{i}" for i in range(ship.n)])
+
+
+def append_sites(sites, positions, normals, ids):
+    """``sites`` (Layout) with more sites after its own: ``positions, normals`` (n, 3), ``ids`` (n,)."""
+    from layoutkit.layout import Layout
+
+    return Layout(np.vstack([sites.positions, positions]), np.vstack([sites.normals, normals]),
+                  tuple(sites.ids) + tuple(ids))
 
 
 def _scores(layout_path, mesh, env, stations=None, sets=FRESH):
