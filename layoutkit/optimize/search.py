@@ -14,6 +14,9 @@ per (r, p); adding j is a rank-2S update (Sherman–Morrison–Woodbury) with
 For the worst-case objective, moves are screened on the currently critical poses (a move can only
 improve the maximum if it improves every pose above the new value) and confirmed on all poses;
 poses that refute a move join the critical set, so the 1-swap local optimum found is exact.
+
+``local_search(..., cover=...)`` also keeps coverage-only poses covered (lit counts, no DOP): a
+search on a working set of a large pose set then cannot uncover the poses it does not score.
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from .problem import Problem, aggregate, feasible_counts, pose_values_from_info,
 
 __all__ = [
     "SearchState", "make_state", "repair", "greedy", "local_search", "exhaustive",
-    "evaluate_subsets", "one_swap_values",
+    "evaluate_subsets", "one_swap_values", "cover_one_swaps",
 ]
 
 _EPS = 1e-9  # relative improvement needed to accept a move
@@ -223,7 +226,34 @@ def _apply(problem: Problem, sel, remove, add):
     return np.array(sorted(s), int)
 
 
-def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline):
+def cover_one_swaps(cover, m, sel, adds):
+    """(k, M) bool: the 1-swaps sel[r] -> adds[j] keep ``m`` lit at every row of ``cover`` (Pc, N) counts."""
+    sel = np.asarray(sel, int)
+    lit_sel = cover[:, sel].astype(np.int32)  # (Pc, k)
+    short = m - (lit_sel.sum(axis=1)[:, None] - lit_sel)  # (Pc, k): what the added candidate must bring
+    ok = np.ones((len(sel), len(adds)), bool)
+    for r in range(len(sel)):
+        rows = np.flatnonzero(short[:, r] > 0)
+        if rows.size:
+            ok[r] = (cover[np.ix_(rows, adds)] >= short[rows, r][:, None]).all(axis=0)
+    return ok
+
+
+def _cover_two_swaps(cover, m, sel, out1, out2, in1, in2, chunk=1024):
+    """(L,) bool: the 2-swaps (out1, out2) -> (in1, in2) keep ``m`` lit at every row of ``cover``."""
+    n = cover[:, np.asarray(sel, int)].sum(axis=1, dtype=np.int32)
+    rows = np.flatnonzero(n - 2 * int(cover.max(initial=1)) < m)  # only these can drop below m
+    c = cover[rows].astype(np.int16)
+    n = n[rows].astype(np.int16)
+    ok = np.ones(len(out1), bool)
+    for s in range(0, len(out1) if rows.size else 0, chunk):
+        sl = slice(s, s + chunk)
+        n2 = n[None] - c[:, out1[sl]].T - c[:, out2[sl]].T + c[:, in1[sl]].T + c[:, in2[sl]].T
+        ok[sl] = (n2 >= m).all(axis=1)
+    return ok
+
+
+def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline, cover=None):
     """Best improving 1-swap, or None. Updates ``crit`` (critical pose set) in place."""
     P = problem.P
     notsel, _ = _allowed_adds(problem, st.sel)
@@ -231,6 +261,8 @@ def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline):
     if len(adds) == 0:
         return None
     feas = _swap_feasible(problem, st, adds)
+    if cover is not None:
+        feas &= cover_one_swaps(cover, problem.m, st.sel, adds)
     if not feas.any():
         return None
     worst = problem.objective.aggregate == "worst" and problem.n_cover >= P
@@ -272,7 +304,7 @@ def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline):
         crit.update(new)
 
 
-def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline, max_moves=60000):
+def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline, max_moves=60000, cover=None):
     """Best improving 2-swap with additions from ``pool``, or None (exact evaluation)."""
     sel = st.sel
     rem = [r for r in range(len(sel)) if sel[r] not in set(problem.fixed.tolist())]
@@ -305,6 +337,8 @@ def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline,
             rest = sel[(sel != out1[idx]) & (sel != out2[idx])]
             if cf[in1[idx], in2[idx]] or cf[in1[idx], rest].any() or cf[in2[idx], rest].any():
                 ok[idx] = False
+    if cover is not None:
+        ok &= _cover_two_swaps(cover, problem.m, sel, out1, out2, in1, in2)
     if not ok.any():
         return None
     ids = np.flatnonzero(ok)
@@ -352,19 +386,29 @@ def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline,
 
 
 def local_search(problem: Problem, sel, *, two_swap=True, pool_size=24, deadline=None, z=None,
-                 progress=None, max_one_swaps=None):
+                 progress=None, max_one_swaps=None, cover=None):
     """Swap local search from a feasible subset; returns ``(sel, value, n_moves)``.
 
     two_swap : also try 2-swaps among the ``pool_size`` most promising non-selected sites (ranked by
     their best 1-swap screening value and the relaxation ``z``). max_one_swaps : stop after this many
     1-swap moves (None: until a local optimum) — ``1``-swap sweeps of the reference method.
+    cover : optional (Pc, N) lit counts (bool or small ints) at further poses whose DOP is not scored
+    but where every move must keep ``problem.m`` sensors lit — the rest of a large pose set when the
+    problem holds only a working set of it (a pose costs ``N`` bytes here, ~60 N in the problem).
+    ``sel`` must already cover them.
     """
+    if cover is not None:
+        cover = np.asarray(cover)
+        if cover.ndim != 2 or cover.shape[1] != problem.N:
+            raise ValueError(f"cover: expected (poses, {problem.N}) lit counts, got shape {cover.shape}")
+        if (cover[:, np.asarray(sel, int)].sum(axis=1) < problem.m).any():
+            raise ValueError(f"cover: the start selection leaves some of its poses with fewer than {problem.m} lit")
     deadline = math.inf if deadline is None else deadline
     st = SearchState(problem, sel)
     crit = set(np.argsort(-st.v)[: min(8, problem.P)].tolist())
     moves = 0
     while time.perf_counter() < deadline:
-        mv = _best_one_swap(problem, st, crit, deadline)
+        mv = _best_one_swap(problem, st, crit, deadline, cover)
         if mv is not None:
             st = SearchState(problem, _apply(problem, st.sel, mv[0], mv[1]))
             moves += 1
@@ -376,7 +420,7 @@ def local_search(problem: Problem, sel, *, two_swap=True, pool_size=24, deadline
         if not two_swap:
             break
         pool = _promising(problem, st, crit, z, pool_size)
-        mv2 = _best_two_swap(problem, st, crit, pool, deadline)
+        mv2 = _best_two_swap(problem, st, crit, pool, deadline, cover=cover)
         if mv2 is None:
             break
         st = SearchState(problem, _apply(problem, st.sel, mv2[0], mv2[1]))
