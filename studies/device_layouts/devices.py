@@ -52,7 +52,6 @@ class Device:
 def load_device(label, recording, name, data=DATA) -> Device:
     """The shipped layout of device ``name`` in ``recording`` (its CONFIG line), its convex hull and axis."""
     import trimesh
-
     from layoutkit.importers.libsurvive import layout_of, read_recording
 
     path = Path(data) / recording

@@ -179,10 +179,10 @@ def main():
 
     here = Path(__file__).resolve().parent
     sys.path.insert(0, str(here))
-    from devices import DEVICES, front_envelope, load_device
-
     from layoutkit.envelope import envelope_set
     from layoutkit.optimize.design import layout_visibility
+
+    from devices import DEVICES, front_envelope, load_device
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--devices", nargs="*", default=["WM0", "HMD"])
@@ -231,7 +231,6 @@ def _figure(dev, mesh, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
     from layoutkit.io.figures import save_figure
 
     P, N = dev.layout.positions, dev.layout.normals

@@ -23,10 +23,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import mesh_path  # noqa: E402
-from run import FRESH, _scores  # noqa: E402
+from layoutkit.envelope import load_envelope
 
-from layoutkit.envelope import load_envelope  # noqa: E402
+from devices import mesh_path
+from run import FRESH, _scores
 
 LARGE = [(f"fresh 20k seed+{s}", 20000, s) for s in range(201, 206)]
 
@@ -72,7 +72,7 @@ def main():
     draws2k = {}
     for name in a.layouts:
         r = chunked["shipped"] / chunked[name]
-        draws2k[name] = {"draws": int(len(r)), "worst_adop_min_median_max": [float(np.min(chunked[name])),
+        draws2k[name] = {"draws": len(r), "worst_adop_min_median_max": [float(np.min(chunked[name])),
                        float(np.median(chunked[name])), float(np.max(chunked[name]))],
                        "x_shipped_min_median_max": [float(np.min(r)), float(np.median(r)), float(np.max(r))],
                        "draws_at_least_2x": int((r >= 2.0).sum()),

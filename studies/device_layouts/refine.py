@@ -12,7 +12,11 @@ every tilt stays ≤ ``--max-tilt-deg`` about the site's own normal), on ``--des
 lowers the objective: first the number of design poses with fewer than ``4 + --spare-lit`` lit sensors (lit at
 ``--coverage-half-angle-deg``: a margin), then
 the L_p norm of ADOP over the design poses (``--p``, a smooth stand-in for the worst case that also pays for
-lowering the poses just below the worst), and in a last phase the worst case itself (ties by L_p). The sites
+lowering the poses just below the worst), and in a last phase the worst case itself (ties by L_p). The ``swap``
+phase instead runs the package's exact 1- and 2-swap local search (:func:`layoutkit.optimize.search.local_search`)
+for the worst case on a working set of the hardest design poses, keeping every design pose covered (its ``cover``
+poses), and grows the working set by the design poses that refute its result; ``--kicks`` then restarts it from
+random 2–3-sensor perturbations of the incumbent (iterated local search). The sites
 are the row's own (the housing's sites sampled 8 mm apart, plus the device's mounting facets for a
 ``run.py --facet-sites`` row).
 
@@ -112,11 +116,25 @@ def main():
     ap.add_argument("--verify", type=int, default=8, help="the best screened moves scored on every design pose")
     ap.add_argument("--tol", type=float, default=1e-3,
                     help="a move is kept when it lowers the phase's objective by more than this fraction")
-    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst", "tail", "excess"),
+    ap.add_argument("--phases", nargs="+", default=["lp", "worst"], choices=("lp", "worst", "tail", "excess", "swap"),
                     help="objectives in turn, each to convergence: lp (L_p norm), worst (worst case), tail (mean of "
                          "the --tail-fraction worst design poses: what the worst of a smaller fresh draw estimates), excess (sum "
                          "of squared relative excesses over --target: every region above it pays, so one move may lower "
-                         "one region while another still holds the worst)")
+                         "one region while another still holds the worst), swap (worst case by the package's exact "
+                         "1- and 2-swap local search, layoutkit.optimize.search.local_search, on a working set of the "
+                         "hardest design poses that grows by the design poses refuting its result, every design pose "
+                         "kept covered: a 2-swap moves two sensors at once, where the one-sensor phases stall)")
+    ap.add_argument("--working-poses", type=int, default=2000,
+                    help="swap phase: the working set starts as this many worst design poses; it grows by at most "
+                         "this many refuting poses per round")
+    ap.add_argument("--max-working-poses", type=int, default=3000,
+                    help="swap phase: the working set's cap (memory ~60 · poses · candidates · 8 bytes); past it the "
+                         "poses easiest for the current layout leave")
+    ap.add_argument("--kicks", type=int, default=0,
+                    help="swap phase: after it converges, this many times replace 2-3 random sensors (random moves that "
+                         "keep every design pose covered) and search again from there; kept when the design worst drops")
+    ap.add_argument("--pool-size", type=int, default=24,
+                    help="swap phase: 2-swaps add two of this many most promising candidates")
     ap.add_argument("--target", type=float, default=None, help="ADOP the excess phase pushes every design pose under")
     ap.add_argument("--tail-fraction", type=float, default=0.01,
                     help="share of the design poses whose mean ADOP the tail phase lowers")
@@ -273,6 +291,73 @@ def main():
                 return c, obj, ad, lit
         return None
 
+    def kick(s_, cover, rng):
+        """``s_`` with 2-3 random sensors moved, one at a time, to random candidates keeping every design pose
+        covered (and one sensor per site)"""
+        from layoutkit.optimize.search import cover_one_swaps
+
+        s_ = np.array(s_)
+        for _ in range(int(rng.integers(2, 4))):
+            r = int(rng.integers(len(s_)))
+            taken = set(site[s_].tolist()) - {int(site[s_[r]])}
+            adds = np.array([c for c in range(n_pool) if int(site[c]) not in taken and c != s_[r]])
+            ok = cover_one_swaps(cover, need, s_, adds)[r]
+            if ok.any():
+                s_[r] = rng.choice(adds[ok])
+        return s_
+
+    def swap_rounds(s_, cur, cur_adop, cur_lit, deadline, cover, W=None):
+        """The swap phase (``--phases`` help): rounds of exact 1-/2-swap local search (worst ADOP) on a working
+        set W of design poses (default: the ``--working-poses`` worst), every design pose kept covered
+        (``cover``: (P, N) lit counts); each result is scored on every design pose and kept when it lowers the
+        worst over them (key 'worst'); the design poses above its working-set worst join W.
+        Returns the kept selection and state, the per-round history and the last W."""
+        from layoutkit.optimize.core import candidate_jacobians
+        from layoutkit.optimize.objectives import parse_objective
+        from layoutkit.optimize.problem import build_problem
+        from layoutkit.optimize.search import local_search
+
+        conflict = site[:, None] == site[None, :]  # one sensor per site (a site's orientations conflict)
+        np.fill_diagonal(conflict, False)
+        obj_w = parse_objective("worst-adop")
+        order = np.argsort(np.where(np.isfinite(cur_adop), cur_adop, np.inf))
+        W = np.union1d(order[-min(a.working_poses, a.max_working_poses):], [] if W is None else W).astype(int)
+        if W.size > a.max_working_poses:
+            W = np.sort(W[np.argsort(-cur_adop[W])][:a.max_working_poses])
+        rounds = []
+        while time.perf_counter() < deadline:
+            jac = candidate_jacobians(pos, R[W], t[W], env.stations)
+            prob = build_problem(jac, vis[W], RHO, len(s_), need, obj_w, conflict=conflict,
+                                 lit=vis_cov[W].sum(axis=1))
+            del jac
+            new, w_val, moves = local_search(prob, np.sort(s_), two_swap=True, pool_size=a.pool_size,
+                                             deadline=deadline, cover=cover)
+            del prob
+            ad, lit = evaluate(new)
+            obj = _objective(ad, lit, need, a.p, k_tail, a.target)
+            kept = obj[0] <= cur[0] and obj[2] < cur[2] * (1 - 1e-6)
+            bad = np.flatnonzero(~((lit >= need) & np.isfinite(ad)) | (ad > w_val * (1 + 1e-9)))
+            rounds.append({"working_poses": int(W.size), "moves": int(moves), "working_worst": float(w_val),
+                           "design_worst": obj[2], "uncovered": obj[0], "kept": bool(kept),
+                           "refuting_poses": int(bad.size), "time_s": time.perf_counter() - t_start})
+            print(f"swap round: W {W.size}, {moves} moves, W worst {w_val:.0f}, design worst {obj[2]:.0f} "
+                  f"(uncovered {obj[0]}), {bad.size} refuting, {'kept' if kept else 'not kept'} "
+                  f"({time.perf_counter() - t_start:.0f} s)", flush=True)
+            if kept:
+                s_, cur, cur_adop, cur_lit = np.asarray(new), obj, ad, lit
+            if bad.size == 0 or (moves == 0 and not kept):
+                break
+            add = bad[np.argsort(-np.where(np.isfinite(ad[bad]), ad[bad], np.inf))][:a.working_poses]
+            old = np.setdiff1d(W, add)
+            room = a.max_working_poses - add.size
+            if old.size > room:  # full: the old poses easiest for both the incumbent and this result leave
+                old = old[np.argsort(-np.maximum(cur_adop[old], ad[old]))][:max(room, 0)]
+            W_new = np.union1d(old, add)
+            if np.array_equal(W_new, W):
+                break
+            W = W_new
+        return s_, cur, cur_adop, cur_lit, rounds, W
+
     rng = np.random.default_rng(a.seed)
     cur_adop, cur_lit = evaluate(sel)
     cur = _objective(cur_adop, cur_lit, need, a.p, k_tail, a.target)
@@ -281,6 +366,29 @@ def main():
     print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, tail {cur[3]:.0f}, excess {cur[4]:.3g}", flush=True)
     deadline = t_start + a.time_limit_s
     for phase in a.phases:
+        if phase == "swap":
+            cover = vis_cov.sum(axis=1, dtype=np.uint8)  # (P, N): every move keeps every design pose covered
+            sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover)
+            kicks = []
+            for _ in range(a.kicks):
+                if time.perf_counter() >= deadline:
+                    break
+                ks = kick(sel, cover, rng)
+                k_adop, k_lit = evaluate(ks)
+                k_obj = _objective(k_adop, k_lit, need, a.p, k_tail, a.target)
+                s2, o2, ad2, lit2, r2, W2 = swap_rounds(ks, k_obj, k_adop, k_lit, deadline, cover, W)
+                better = o2[0] <= cur[0] and o2[2] < cur[2] * (1 - 1e-6)  # a lower worst, not rounding
+                kicks.append({"kicked_worst": k_obj[2], "searched_worst": o2[2], "kept": bool(better),
+                              "rounds": len(r2), "time_s": time.perf_counter() - t_start})
+                print(f"kick {len(kicks)}: {k_obj[2]:.0f} -> {o2[2]:.0f} ({'kept' if better else 'not kept'}; "
+                      f"incumbent {min(cur[2], o2[2]):.0f})", flush=True)
+                if better:
+                    sel, cur, cur_adop, cur_lit, W = s2, o2, ad2, lit2, W2
+            history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
+                            "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "excess": cur[4],
+                            "moves": sum(r["moves"] for r in rounds if r["kept"]), "rounds": rounds,
+                            "kicks": kicks})
+            continue
         improved = True
         while improved and time.perf_counter() < deadline:
             improved, moves = False, 0

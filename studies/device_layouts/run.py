@@ -46,7 +46,15 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import DEVICES, HOUSINGS, folder_name, front_envelope, load_device, mesh_path, with_housing  # noqa: E402
+from devices import (
+    DEVICES,
+    HOUSINGS,
+    folder_name,
+    front_envelope,
+    load_device,
+    mesh_path,
+    with_housing,
+)
 
 RHO, M = 0.8717, 4
 #: the physical acceptance half-angle every layout is scored at (a row's design half-angle may be smaller)
@@ -348,7 +356,6 @@ def _figures(dev, folder: Path, sc, layouts):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
     from layoutkit.io.figures import save_figure
     from layoutkit.layout import load_layout
 

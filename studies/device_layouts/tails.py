@@ -21,10 +21,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from devices import mesh_path  # noqa: E402
-from run import M, RHO  # noqa: E402
+from layoutkit.envelope import envelope_set, load_envelope
 
-from layoutkit.envelope import envelope_set, load_envelope  # noqa: E402
+from devices import mesh_path
+from run import RHO, M
 
 
 def pose_angles(lay, R, t, station):
@@ -39,8 +39,8 @@ def pose_angles(lay, R, t, station):
 def diagnose(folder: Path, layout: str, seeds, top: int):
     from layoutkit.dop_batch import batch_dop
     from layoutkit.layout import load_layout
-    from layoutkit.optimize.design import layout_visibility
     from layoutkit.mesh import load_mesh
+    from layoutkit.optimize.design import layout_visibility
 
     env = load_envelope(folder / "env.toml")
     lay = load_layout(folder / ("shipped.json" if layout == "shipped" else f"{layout}.layout.json"))
@@ -93,7 +93,7 @@ def main():
     rows = diagnose(folder, a.layout, a.seeds, a.top)
     res = HERE / "results"
     (res / f"tails_{a.layout}.json").write_text(json.dumps(rows, indent=1) + "\n")
-    f = lambda x: "∞" if not math.isfinite(x) else f"{x:,.0f}"  # noqa: E731
+    f = lambda x: "∞" if not math.isfinite(x) else f"{x:,.0f}"
     lines = [f"Worst poses of `{a.layout}` on 20,000-pose draws (self-occlusion by the hull, 60° cone; "
              f"`python studies/device_layouts/tails.py --layout {a.layout}`). Angles: each lit sensor's axis to the "
              "station, sorted. 'occl.': facing within 60° but hidden by the hull; '60–65°': just outside the cone; "
