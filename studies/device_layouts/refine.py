@@ -324,7 +324,7 @@ def main():
         W = np.union1d(order[-min(a.working_poses, a.max_working_poses):], [] if W is None else W).astype(int)
         if W.size > a.max_working_poses:
             W = np.sort(W[np.argsort(-cur_adop[W])][:a.max_working_poses])
-        rounds = []
+        rounds, seen = [], {W.tobytes()}
         while time.perf_counter() < deadline:
             jac = candidate_jacobians(pos, R[W], t[W], env.stations)
             prob = build_problem(jac, vis[W], RHO, len(s_), need, obj_w, conflict=conflict,
@@ -352,10 +352,10 @@ def main():
             room = a.max_working_poses - add.size
             if old.size > room:  # full: the old poses easiest for both the incumbent and this result leave
                 old = old[np.argsort(-np.maximum(cur_adop[old], ad[old]))][:max(room, 0)]
-            W_new = np.union1d(old, add)
-            if np.array_equal(W_new, W):
+            W = np.union1d(old, add)
+            if W.tobytes() in seen:  # the capped working set cycles: no result will hold on the design poses
                 break
-            W = W_new
+            seen.add(W.tobytes())
         return s_, cur, cur_adop, cur_lit, rounds, W
 
     rng = np.random.default_rng(a.seed)
@@ -367,6 +367,10 @@ def main():
     deadline = t_start + a.time_limit_s
     for phase in a.phases:
         if phase == "swap":
+            if cur[0]:  # the swap search keeps every design pose covered: it needs a start that covers them
+                print(f"swap phase skipped: {cur[0]} design poses have fewer than {need} lit", flush=True)
+                history.append({"phase": phase, "skipped": f"{cur[0]} design poses uncovered at the start"})
+                continue
             cover = vis_cov.sum(axis=1, dtype=np.uint8)  # (P, N): every move keeps every design pose covered
             sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover)
             kicks = []
