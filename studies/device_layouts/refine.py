@@ -310,7 +310,7 @@ def main():
         """The swap phase (``--phases`` help): rounds of exact 1-/2-swap local search (worst ADOP) on a working
         set W of design poses (default: the ``--working-poses`` worst), every design pose kept covered
         (``cover``: (P, N) lit counts); each result is scored on every design pose and kept when it lowers the
-        worst over them (key 'worst'); the design poses above its working-set worst join W.
+        worst over them (by more than rounding) without uncovering one; the design poses above its working-set worst join W.
         Returns the kept selection and state, the per-round history and the last W."""
         from layoutkit.optimize.core import candidate_jacobians
         from layoutkit.optimize.objectives import parse_objective
