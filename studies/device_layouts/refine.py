@@ -306,10 +306,10 @@ def main():
                 s_[r] = rng.choice(adds[ok])
         return s_
 
-    def swap_rounds(s_, cur, cur_adop, cur_lit, deadline, cover, W=None):
+    def swap_rounds(s_, cur, cur_adop, cur_lit, deadline, cover, conflict, W=None):
         """The swap phase (``--phases`` help): rounds of exact 1-/2-swap local search (worst ADOP) on a working
         set W of design poses (default: the ``--working-poses`` worst), every design pose kept covered
-        (``cover``: (P, N) lit counts); each result is scored on every design pose and kept when it lowers the
+        (``cover``: (P, N) lit counts; ``conflict``: (N, N) bool, one sensor per site); each result is scored on every design pose and kept when it lowers the
         worst over them (by more than rounding) without uncovering one; the design poses above its working-set worst join W.
         Returns the kept selection and state, the per-round history and the last W."""
         from layoutkit.optimize.core import candidate_jacobians
@@ -317,8 +317,6 @@ def main():
         from layoutkit.optimize.problem import build_problem
         from layoutkit.optimize.search import local_search
 
-        conflict = site[:, None] == site[None, :]  # one sensor per site (a site's orientations conflict)
-        np.fill_diagonal(conflict, False)
         obj_w = parse_objective("worst-adop")
         order = np.argsort(np.where(np.isfinite(cur_adop), cur_adop, np.inf))
         W = np.union1d(order[-min(a.working_poses, a.max_working_poses):], [] if W is None else W).astype(int)
@@ -372,7 +370,9 @@ def main():
                 history.append({"phase": phase, "skipped": f"{cur[0]} design poses uncovered at the start"})
                 continue
             cover = vis_cov.sum(axis=1, dtype=np.uint8)  # (P, N): every move keeps every design pose covered
-            sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover)
+            conflict = site[:, None] == site[None, :]  # one sensor per site (a site's orientations conflict)
+            np.fill_diagonal(conflict, False)
+            sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover, conflict)
             kicks = []
             for _ in range(a.kicks):
                 if time.perf_counter() >= deadline:
@@ -380,7 +380,7 @@ def main():
                 ks = kick(sel, cover, rng)
                 k_adop, k_lit = evaluate(ks)
                 k_obj = _objective(k_adop, k_lit, need, a.p, k_tail, a.target)
-                s2, o2, ad2, lit2, r2, W2 = swap_rounds(ks, k_obj, k_adop, k_lit, deadline, cover, W)
+                s2, o2, ad2, lit2, r2, W2 = swap_rounds(ks, k_obj, k_adop, k_lit, deadline, cover, conflict, W)
                 better = o2[0] <= cur[0] and o2[2] < cur[2] * (1 - 1e-6)  # a lower worst, not rounding
                 kicks.append({"kicked_worst": k_obj[2], "searched_worst": o2[2], "kept": bool(better),
                               "rounds": len(r2), "time_s": time.perf_counter() - t_start})
