@@ -252,6 +252,15 @@ def test_dask_is_imported_only_inside_the_commands():
     assert out == ""
 
 
+def _terminal_sigint():  # pragma: no cover - runs in the child between fork and exec
+    """A terminal's SIGINT state in the child: delivered and default-handled. Blocked and ignored
+    signals are inherited across fork and exec. In two full runs (session 11, after a new test file
+    changed the workers' test orders) neither this sweep nor a raise_signal in the worker itself saw
+    the SIGINT, which fits SIGINT blocked or ignored in that worker; each test passes alone."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 def test_ctrl_c_in_a_terminal_ends_a_localcluster_sweep_without_tracebacks(tmp_path, small_envelope):
     """Ctrl-C reaches the whole foreground process group, Dask's nanny and worker processes too:
@@ -263,7 +272,7 @@ def test_ctrl_c_in_a_terminal_ends_a_localcluster_sweep_without_tracebacks(tmp_p
     out = tmp_path / "out"
     p = subprocess.Popen([str(BIN / "layoutkit"), "sweep", str(tmp_path / "sweep.toml"), "--out", str(out),
                           "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True)
+                         start_new_session=True, preexec_fn=_terminal_sigint)
     try:
         _wait(lambda: (out / "cells").exists() and len(_cells(out)) >= 1, 120, "a first cell")
         os.killpg(p.pid, signal.SIGINT)  # what a terminal does on Ctrl-C
@@ -280,13 +289,20 @@ def test_ctrl_c_during_a_blocking_dask_call_is_delivered_right_after_it():
     handler (here Python's KeyboardInterrupt) as soon as the block ends; the handler is restored."""
     from layoutkit.parallel.scheduler import _sigint_deferred
 
-    before = signal.getsignal(signal.SIGINT)
-    ran = []
-    with pytest.raises(KeyboardInterrupt):
-        with _sigint_deferred():
-            signal.raise_signal(signal.SIGINT)
-            ran.append("the blocking call went on")
-    assert ran == ["the blocking call went on"] and signal.getsignal(signal.SIGINT) is before
-    with _sigint_deferred():  # no signal: nothing delivered
-        ran.append("quiet")
-    assert ran[-1] == "quiet"
+    # a terminal's state (see _terminal_sigint): SIGINT unblocked, Python's default handler
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    prev = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        before = signal.getsignal(signal.SIGINT)
+        ran = []
+        with pytest.raises(KeyboardInterrupt):
+            with _sigint_deferred():
+                signal.raise_signal(signal.SIGINT)
+                ran.append("the blocking call went on")
+        assert ran == ["the blocking call went on"] and signal.getsignal(signal.SIGINT) is before
+        with _sigint_deferred():  # no signal: nothing delivered
+            ran.append("quiet")
+        assert ran[-1] == "quiet"
+    finally:
+        signal.signal(signal.SIGINT, prev)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
