@@ -10,6 +10,7 @@ naming the file and key.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -252,13 +253,20 @@ def test_dask_is_imported_only_inside_the_commands():
     assert out == ""
 
 
-def _terminal_sigint():  # pragma: no cover - runs in the child between fork and exec
-    """A terminal's SIGINT state in the child: delivered and default-handled. Blocked and ignored
-    signals are inherited across fork and exec. In two full runs (session 11, after a new test file
-    changed the workers' test orders) neither this sweep nor a raise_signal in the worker itself saw
-    the SIGINT, which fits SIGINT blocked or ignored in that worker; each test passes alone."""
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+@contextlib.contextmanager
+def _terminal_sigint():
+    """A terminal's SIGINT state for this thread and the children it starts: delivered (unblocked) and
+    default-handled; restored after. Blocked and ignored signals are inherited across fork and exec. In
+    two full runs (session 11, after a new test file changed the workers' test orders) neither a
+    sweep started from the worker nor a raise_signal in the worker itself saw the SIGINT, which fits
+    SIGINT blocked or ignored in that worker; each test passes alone."""
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    prev = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, prev)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 @pytest.mark.slow
@@ -270,9 +278,10 @@ def test_ctrl_c_in_a_terminal_ends_a_localcluster_sweep_without_tracebacks(tmp_p
     sweep = _sweep_dir(tmp_path, small_envelope, axes=SLOW_AXES).read_text().replace("time_limit_s = 120", "time_limit_s = 3")
     (tmp_path / "sweep.toml").write_text(sweep)
     out = tmp_path / "out"
-    p = subprocess.Popen([str(BIN / "layoutkit"), "sweep", str(tmp_path / "sweep.toml"), "--out", str(out),
-                          "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True, preexec_fn=_terminal_sigint)
+    with _terminal_sigint():  # the child inherits it
+        p = subprocess.Popen([str(BIN / "layoutkit"), "sweep", str(tmp_path / "sweep.toml"), "--out", str(out),
+                              "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True)
     try:
         _wait(lambda: (out / "cells").exists() and len(_cells(out)) >= 1, 120, "a first cell")
         os.killpg(p.pid, signal.SIGINT)  # what a terminal does on Ctrl-C
@@ -289,10 +298,7 @@ def test_ctrl_c_during_a_blocking_dask_call_is_delivered_right_after_it():
     handler (here Python's KeyboardInterrupt) as soon as the block ends; the handler is restored."""
     from layoutkit.parallel.scheduler import _sigint_deferred
 
-    # a terminal's state (see _terminal_sigint): SIGINT unblocked, Python's default handler
-    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
-    prev = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
+    with _terminal_sigint():
         before = signal.getsignal(signal.SIGINT)
         ran = []
         with pytest.raises(KeyboardInterrupt):
@@ -303,6 +309,3 @@ def test_ctrl_c_during_a_blocking_dask_call_is_delivered_right_after_it():
         with _sigint_deferred():  # no signal: nothing delivered
             ran.append("quiet")
         assert ran[-1] == "quiet"
-    finally:
-        signal.signal(signal.SIGINT, prev)
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
