@@ -239,18 +239,24 @@ def cover_one_swaps(cover, m, sel, adds):
     return ok
 
 
+def _two_swap_covered(lit, n, m, out1, out2, in1, in2, chunk):
+    """(L,) rows of ``lit`` (R, N) counts with ``m`` lit after each 2-swap (out1, out2) -> (in1, in2);
+    ``n`` (R,): the counts before. Only rows a 2-swap can push below m are recounted."""
+    risk = np.flatnonzero(n - 2 * int(lit.max(initial=1)) < m)
+    lr = lit[risk].astype(np.int16)
+    nr = n[risk].astype(np.int16)
+    out = np.full(len(out1), len(n) - len(risk))
+    for s in range(0, len(out1) if risk.size else 0, chunk):
+        sl = slice(s, s + chunk)
+        n2 = nr[None] - lr[:, out1[sl]].T - lr[:, out2[sl]].T + lr[:, in1[sl]].T + lr[:, in2[sl]].T
+        out[sl] += (n2 >= m).sum(axis=-1)
+    return out
+
+
 def _cover_two_swaps(cover, m, sel, out1, out2, in1, in2, chunk=1024):
     """(L,) bool: the 2-swaps (out1, out2) -> (in1, in2) keep ``m`` lit at every row of ``cover``."""
     n = cover[:, np.asarray(sel, int)].sum(axis=1, dtype=np.int32)
-    rows = np.flatnonzero(n - 2 * int(cover.max(initial=1)) < m)  # only these can drop below m
-    c = cover[rows].astype(np.int16)
-    n = n[rows].astype(np.int16)
-    ok = np.ones(len(out1), bool)
-    for s in range(0, len(out1) if rows.size else 0, chunk):
-        sl = slice(s, s + chunk)
-        n2 = n[None] - c[:, out1[sl]].T - c[:, out2[sl]].T + c[:, in1[sl]].T + c[:, in2[sl]].T
-        ok[sl] = (n2 >= m).all(axis=1)
-    return ok
+    return _two_swap_covered(cover, n, m, out1, out2, in1, in2, chunk) >= len(cover)
 
 
 def _best_one_swap(problem: Problem, st: SearchState, crit: set, deadline, cover=None):
@@ -321,14 +327,7 @@ def _best_two_swap(problem: Problem, st: SearchState, crit: set, pool, deadline,
     in1, in2 = pool[J2[ji, 0]], pool[J2[ji, 1]]
     lit = problem.lit
     # coverage, chunked; only poses a 2-swap can push below m are counted (the others stay covered)
-    risk = np.flatnonzero(st.n - 2 * int(lit.max(initial=1)) < problem.m)
-    safe = problem.P - len(risk)
-    lr = lit[risk]
-    ok = np.empty(len(ri), bool)
-    for s in range(0, len(ri), 8192):
-        sl = slice(s, s + 8192)
-        n2 = (st.n[risk][None] - lr[:, out1[sl]].T - lr[:, out2[sl]].T + lr[:, in1[sl]].T + lr[:, in2[sl]].T)
-        ok[sl] = (n2 >= problem.m).sum(axis=-1) + safe >= problem.n_cover
+    ok = _two_swap_covered(lit, st.n, problem.m, out1, out2, in1, in2, 8192) >= problem.n_cover
     if problem.conflict is not None:
         cf = problem.conflict
         for idx in range(len(ri)):

@@ -247,14 +247,18 @@ def main():
         idx = np.union1d(top, np.flatnonzero(risk))
         return idx, vis[idx], vis_cov[idx]
 
+    def free_moves(s_, i, sites_i):
+        """the candidates sensor i of selection ``s_`` may move to: every orientation of ``sites_i`` that no
+        other sensor occupies, its own candidate excluded"""
+        taken = set(site[s_].tolist()) - {int(site[s_[i]])}
+        return [c for x in sites_i if int(x) not in taken for c in by_site[x] if c != s_[i]]
+
     def step(i, phase, cur, cur_adop, cur_lit):
         """the best verified one-sensor move of sensor i, or None. Every candidate is first scored on the
         screening poses: in the worst phase a move whose screened worst (a lower bound of its worst) is not below
         the current worst, or that uncovers a screened pose, is rejected exactly; in the L_p phase the other poses
         keep their current terms. The ``--verify`` best screened moves are then scored on every design pose."""
-        taken = set(site[sel].tolist()) - {int(site[sel[i]])}
-        sites_i = near[site[sel[i]]] if a.neighbours else range(sites.n)
-        cands = [c for s_ in sites_i if int(s_) not in taken for c in by_site[s_] if c != sel[i]]
+        cands = free_moves(sel, i, near[site[sel[i]]] if a.neighbours else range(sites.n))
         q = screening_set(cur_adop, cur_lit, i)
         ok_cur = (cur_lit >= need) & np.isfinite(cur_adop)
         w = cur[2]
@@ -299,8 +303,7 @@ def main():
         s_ = np.array(s_)
         for _ in range(int(rng.integers(2, 4))):
             r = int(rng.integers(len(s_)))
-            taken = set(site[s_].tolist()) - {int(site[s_[r]])}
-            adds = np.array([c for c in range(n_pool) if int(site[c]) not in taken and c != s_[r]])
+            adds = np.sort(free_moves(s_, r, range(sites.n)))  # in index order, as the seeded draw expects
             ok = cover_one_swaps(cover, need, s_, adds)[r]
             if ok.any():
                 s_[r] = rng.choice(adds[ok])
