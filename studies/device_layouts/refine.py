@@ -26,7 +26,9 @@ The run's own reported value is the worst ADOP on ``--check-poses`` poses of a f
 (``--check-seed``), at the physical 60° acceptance angle — chosen rows are chosen by it, never by the study's sets.
 
 Writes ``results/<device>/refine<tag>.layout.json`` and ``refine<tag>.json`` (spec, per-phase history, design
-and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row. An ablation
+and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row. Ctrl-C (or
+SIGTERM) ends the search after its current step, and the incumbent is checked and written like a finished run's
+(its history's last entry names the signal). An ablation
 (``--view-angle-deg``: design for one region of the envelope) writes to ``results/<device>/ablations/`` instead.
 """
 from __future__ import annotations
@@ -35,6 +37,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -326,7 +329,7 @@ def main():
         if W.size > a.max_working_poses:
             W = np.sort(W[np.argsort(-cur_adop[W])][:a.max_working_poses])
         rounds, seen = [], {W.tobytes()}
-        while time.perf_counter() < deadline:
+        while running():
             jac = candidate_jacobians(pos, R[W], t[W], env.stations)
             prob = build_problem(jac, vis[W], RHO, len(s_), need, obj_w, conflict=conflict,
                                  lit=vis_cov[W].sum(axis=1))
@@ -366,6 +369,18 @@ def main():
                 "worst": cur[2], "tail_mean": cur[3], "excess": cur[4]}]
     print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, tail {cur[3]:.0f}, excess {cur[4]:.3g}", flush=True)
     deadline = t_start + a.time_limit_s
+    stopped = []  # Ctrl-C / SIGTERM end the search: the incumbent is checked and written like a finished run's
+
+    def _stop(signum, _frame):
+        stopped.append(signal.Signals(signum).name)
+        print(f"{stopped[-1]}: ending the search after the current step; the incumbent is checked and written",
+              flush=True)
+
+    def running():
+        return not stopped and time.perf_counter() < deadline
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
     for phase in a.phases:
         if phase == "swap":
             if cur[0]:  # the swap search keeps every design pose covered: it needs a start that covers them
@@ -378,7 +393,7 @@ def main():
             sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover, conflict)
             kicks = []
             for _ in range(a.kicks):
-                if time.perf_counter() >= deadline:
+                if not running():
                     break
                 ks = kick(sel, cover, rng)
                 k_adop, k_lit = evaluate(ks)
@@ -397,10 +412,10 @@ def main():
                             "kicks": kicks})
             continue
         improved = True
-        while improved and time.perf_counter() < deadline:
+        while improved and running():
             improved, moves = False, 0
             for i in rng.permutation(len(sel)):
-                if time.perf_counter() >= deadline:
+                if not running():
                     break
                 found = step(i, phase, cur, cur_adop, cur_lit)
                 if found is not None:
@@ -426,6 +441,8 @@ def main():
     check = {"poses": a.check_poses, "seed_offset": a.check_seed, "covered_fraction": sc["covered_fraction"],
              "worst_adop": sc["worst_adop_over_covered"]}
     status = "ok" if cur[0] == 0 and sc["covered_fraction"] == 1.0 else "incomplete"
+    if stopped:  # the layout is still a valid row (its check is real); the history says where the search was cut
+        history.append({"phase": "stopped", "signal": stopped[0], "time_s": time.perf_counter() - t_start})
     region = ""
     if a.view_angle_deg is not None:  # an ablation is checked on its own region of the check poses
         _, Rc, tc = envelope_set(env, count=a.check_poses, seed=env.seed + a.check_seed)
@@ -444,7 +461,8 @@ def main():
            "wall_s": time.perf_counter() - t_start, "loadavg_end": os.getloadavg(), "layout": str(out),
            "code_commit": _commit()}
     atomic_write_text(dest / f"refine{a.tag}.json", json.dumps(to_jsonable(res), indent=1) + "\n")
-    print(f"{status}: check worst {check['worst_adop']:.0f} (covered {check['covered_fraction']:.4f}) -> {out}")
+    cut = f" (search cut by {stopped[0]})" if stopped else ""
+    print(f"{status}{cut}: check worst {check['worst_adop']:.0f} (covered {check['covered_fraction']:.4f}) -> {out}")
 
 
 if __name__ == "__main__":
