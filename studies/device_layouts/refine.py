@@ -387,7 +387,8 @@ def main():
                 print(f"swap phase skipped: {cur[0]} design poses have fewer than {need} lit", flush=True)
                 history.append({"phase": phase, "skipped": f"{cur[0]} design poses uncovered at the start"})
                 continue
-            cover = vis_cov.sum(axis=1, dtype=np.uint8)  # (P, N): every move keeps every design pose covered
+            # (P, N) lit counts: every move keeps every design pose covered (one station: a view, no copy)
+            cover = vis_cov[:, 0] if vis_cov.shape[1] == 1 else vis_cov.sum(axis=1, dtype=np.uint8)
             conflict = site[:, None] == site[None, :]  # one sensor per site (a site's orientations conflict)
             np.fill_diagonal(conflict, False)
             sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover, conflict)
