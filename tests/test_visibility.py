@@ -103,6 +103,20 @@ def test_chunking_does_not_change_the_answer(small_docking):
     assert a.any() and not a.all()
 
 
+def test_narrower_cone_is_the_wider_visibility_and_its_cone(small_docking):
+    """Occlusion does not depend on the acceptance angle: visibility at 55° equals visibility at 60° and-ed
+    with the cone-only test at 55° (what studies/device_layouts/refine.py uses instead of a second ray cast)."""
+    rng = np.random.default_rng(11)
+    pts, fi = trimesh.sample.sample_surface_even(small_docking, 80, radius=0.2, seed=rng)
+    N = small_docking.face_normals[fi]
+    R, t = _poses_in_front(rng, 60, 4.0, 9.0)
+    wide = visible_sensors(small_docking, pts, N, R, t, sensor_half_angle_deg=60.0)
+    narrow = visible_sensors(small_docking, pts, N, R, t, sensor_half_angle_deg=55.0)
+    cone = visible_sensors(small_docking, pts, N, R, t, sensor_half_angle_deg=55.0, occlusion=False)
+    np.testing.assert_array_equal(narrow, wide & cone)
+    assert (wide & ~narrow).any() and (cone & ~wide).any()  # both the cone and the occlusion cut pairs here
+
+
 def test_reference_classifies_hand_made_segments():
     """Single triangle z = 0 with vertices (0,0), (1,0), (0,1): through the inside, through a
     vertex (grazing), beside it, stopping short, starting on it."""

@@ -215,13 +215,23 @@ def main():
     print(f"{n_pool} candidates ({sites.n} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
           f"{len(R)} design poses", flush=True)
 
-    def pool_visibility(half_angle):
-        return np.concatenate([layout_visibility(mesh, pos[i:i + 200], axes[i:i + 200], R, t, env.stations,
-                                                 half_angle) for i in range(0, n_pool, 200)], axis=2)  # (P, S, n_pool)
+    def pool_visibility(half_angle, occluder=mesh, within=None):
+        """(P, S, n_pool) visibility of every candidate at the design poses; ``occluder=None``: acceptance cone
+        and field of view only, and-ed with ``within`` (P, S, n_pool) chunk by chunk"""
+        parts = []
+        for i in range(0, n_pool, 200):
+            v = layout_visibility(occluder, pos[i:i + 200], axes[i:i + 200], R, t, env.stations, half_angle)
+            parts.append(v if within is None else v & within[:, :, i:i + 200])
+        return np.concatenate(parts, axis=2)
 
     vis = pool_visibility(a.half_angle_deg)
     cov_angle = a.half_angle_deg if a.coverage_half_angle_deg is None else a.coverage_half_angle_deg
-    vis_cov = vis if cov_angle == a.half_angle_deg else pool_visibility(cov_angle)
+    if cov_angle == a.half_angle_deg:
+        vis_cov = vis
+    elif cov_angle < a.half_angle_deg:  # a narrower cone: occlusion does not depend on the angle, no second ray cast
+        vis_cov = pool_visibility(cov_angle, occluder=None, within=vis)
+    else:
+        vis_cov = pool_visibility(cov_angle)
     print(f"visibility: {time.perf_counter() - t_start:.0f} s", flush=True)
     need = M + a.spare_lit
     near = np.argsort(np.linalg.norm(sites.positions[:, None] - sites.positions[None], axis=2), axis=1)[:, :a.neighbours]
