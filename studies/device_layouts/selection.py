@@ -24,11 +24,11 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from layoutkit.envelope import load_envelope
-from layoutkit.io.atomic import atomic_write_text
-
 from devices import mesh_path
 from run import _scores
+
+from layoutkit.envelope import load_envelope
+from layoutkit.io.atomic import atomic_write_text
 
 
 def main():
@@ -58,8 +58,8 @@ def main():
     out = {"device": a.device, "poses": a.poses, "seed_offset": a.seed_offset, "rows": rows,
            "chosen_by_own_check": by_check, "chosen_by_selection_set": by_sel, "wall_s": time.time() - t0}
     atomic_write_text(folder.parent / f"selection_{a.device}.json", json.dumps(out, indent=1) + "\n")
-    md = [f"Selection set: {a.poses:,} fresh poses (envelope seed + {a.seed_offset}), 60° acceptance, self-occlusion "
-          f"(`python studies/device_layouts/selection.py --device {a.device} --layouts {' '.join(a.layouts)}`).", "",
+    md = [(f"Selection set: {a.poses:,} fresh poses (envelope seed + {a.seed_offset}), 60° acceptance, self-occlusion "
+          f"(`python studies/device_layouts/selection.py --device {a.device} --layouts {' '.join(a.layouts)}`)."), "",
           "| row | own check (20,000, seed + 6000) | selection set: untracked | worst | p99.9 | poses above 3,550 |",
           "|---|---|---|---|---|---|"]
     for k, r in rows.items():
