@@ -28,7 +28,8 @@ The run's own reported value is the worst ADOP on ``--check-poses`` poses of a f
 Writes ``results/<device>/refine<tag>.layout.json`` and ``refine<tag>.json`` (spec, per-phase history, design
 and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row. Ctrl-C (or
 SIGTERM) ends the search after its current step, and the incumbent is checked and written like a finished run's
-(its history's last entry names the signal). An ablation
+(its history's last entry names the signal); a second signal, or Ctrl-C before the search starts, ends the run at
+once without writing. An ablation
 (``--view-angle-deg``: design for one region of the envelope) writes to ``results/<device>/ablations/`` instead.
 """
 from __future__ import annotations
@@ -382,9 +383,11 @@ def main():
     stopped = []  # Ctrl-C / SIGTERM end the search: the incumbent is checked and written like a finished run's
 
     def _stop(signum, _frame):
+        if stopped:  # a second signal: end at once
+            raise SystemExit(f"{signal.Signals(signum).name} again: stopped at once, nothing written")
         stopped.append(signal.Signals(signum).name)
-        print(f"{stopped[-1]}: ending the search after the current step; the incumbent is checked and written",
-              flush=True)
+        print(f"{stopped[-1]}: ending the search after the current step; the incumbent is checked and written "
+              "(again: stop at once)", flush=True)
 
     def running():
         return not stopped and time.perf_counter() < deadline
@@ -477,4 +480,7 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:  # before the search starts (sites, ray casting) there is nothing to write
+        sys.exit("interrupted before the search started: nothing written")
