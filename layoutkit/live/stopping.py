@@ -10,7 +10,9 @@ the run can close its capture (fsync), solve what is pending, write the report a
 ``KeyboardInterrupt`` raised wherever the main thread happens to be. An exception raised in the
 middle of a step loses that step's work — in ``live`` the frames being solved between "written
 to the capture" and "written to poses.csv" (issue 29: the last 3 of 576 frames, in 1 run of 2).
-A second SIGINT raises ``KeyboardInterrupt`` (the usual "press again to force").
+A second SIGINT raises ``KeyboardInterrupt`` (the usual "press again to force"). ``on_request``
+(called with the signal's name on the first request) lets a run say at once that it heard the
+signal when its current step may take minutes.
 """
 from __future__ import annotations
 
@@ -26,8 +28,9 @@ STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasatt
 class StopRequest:
     """Set by a signal handler; ``signum`` is the first stop signal received (None: none)."""
 
-    def __init__(self):
+    def __init__(self, on_request=None):
         self.signum: int | None = None
+        self._on_request = on_request
 
     @property
     def requested(self) -> bool:
@@ -39,23 +42,26 @@ class StopRequest:
 
     def _handler(self, signum, frame):  # noqa: ARG002 - signal handler signature
         if self.signum is None:
-            self.signum = signum
+            self.request(signum)
         elif signum == signal.SIGINT:  # Ctrl-C again: the user insists
             raise KeyboardInterrupt
 
     def request(self, signum: int) -> None:
-        """Ask for a stop as if ``signum`` had arrived (the first request wins)."""
+        """Ask for a stop as if ``signum`` had arrived (the first request wins and calls ``on_request``)."""
         if self.signum is None:
             self.signum = int(signum)
+            if self._on_request is not None:
+                self._on_request(self.name)
 
 
 @contextlib.contextmanager
-def stop_on_signals(signals=STOP_SIGNALS, *, interrupt: bool = False):
+def stop_on_signals(signals=STOP_SIGNALS, *, interrupt: bool = False, on_request=None):
     """Context manager yielding a :class:`StopRequest`; previous handlers are restored at exit.
 
     interrupt : also catch SIGINT (Ctrl-C) as a stop request (a second one raises
-    ``KeyboardInterrupt``)."""
-    stop = StopRequest()
+    ``KeyboardInterrupt``). on_request : optional callable, called with the signal's name on the
+    first request (from the handler: keep it short, e.g. a print)."""
+    stop = StopRequest(on_request)
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return

@@ -28,8 +28,9 @@ The run's own reported value is the worst ADOP on ``--check-poses`` poses of a f
 Writes ``results/<device>/refine<tag>.layout.json`` and ``refine<tag>.json`` (spec, per-phase history, design
 and check values); ``run.py --stage score`` and ``large_draws.py`` then score it like every other row. Ctrl-C (or
 SIGTERM) ends the search after its current step, and the incumbent is checked and written like a finished run's
-(its history's last entry names the signal); a second signal, or Ctrl-C before the search starts, ends the run at
-once without writing. An ablation
+(its history's last entry names the signal) and the run exits 128 + the signal's number
+(:func:`layoutkit.live.stopping.stop_on_signals`); a second Ctrl-C, or Ctrl-C before the search starts, ends the run
+at once without writing. An ablation
 (``--view-angle-deg``: design for one region of the envelope) writes to ``results/<device>/ablations/`` instead.
 """
 from __future__ import annotations
@@ -38,7 +39,6 @@ import argparse
 import json
 import math
 import os
-import signal
 import sys
 import time
 from pathlib import Path
@@ -160,6 +160,7 @@ def main():
     from layoutkit.io.atomic import atomic_write_text
     from layoutkit.io.jsonfile import to_jsonable
     from layoutkit.layout import Layout, load_layout, save_layout
+    from layoutkit.live.stopping import stop_on_signals
     from layoutkit.mesh import load_mesh
     from layoutkit.optimize.design import layout_visibility
 
@@ -323,7 +324,7 @@ def main():
                 s_[r] = rng.choice(adds[ok])
         return s_
 
-    def swap_rounds(s_, cur, cur_adop, cur_lit, deadline, cover, conflict, W=None):
+    def swap_rounds(s_, cur, cur_adop, cur_lit, cover, conflict, W=None):
         """The swap phase (``--phases`` help): rounds of exact 1-/2-swap local search (worst ADOP) on a working
         set W of design poses (default: the ``--working-poses`` worst), every design pose kept covered
         (``cover``: (P, N) lit counts; ``conflict``: (N, N) bool, one sensor per site); each result is scored on every design pose and kept when it lowers the
@@ -380,107 +381,105 @@ def main():
                 "worst": cur[2], "tail_mean": cur[3], "excess": cur[4]}]
     print(f"start: uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, tail {cur[3]:.0f}, excess {cur[4]:.3g}", flush=True)
     deadline = t_start + a.time_limit_s
-    stopped = []  # Ctrl-C / SIGTERM end the search: the incumbent is checked and written like a finished run's
-
-    def _stop(signum, _frame):
-        if stopped:  # a second signal: end at once
-            raise SystemExit(f"{signal.Signals(signum).name} again: stopped at once, nothing written")
-        stopped.append(signal.Signals(signum).name)
-        print(f"{stopped[-1]}: ending the search after the current step; the incumbent is checked and written "
-              "(again: stop at once)", flush=True)
 
     def running():
-        return not stopped and time.perf_counter() < deadline
+        return not stop.requested and time.perf_counter() < deadline
 
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
-    for phase in a.phases:
-        if phase == "swap":
-            if cur[0]:  # the swap search keeps every design pose covered: it needs a start that covers them
-                print(f"swap phase skipped: {cur[0]} design poses have fewer than {need} lit", flush=True)
-                history.append({"phase": phase, "skipped": f"{cur[0]} design poses uncovered at the start"})
+    def heard(name):
+        print(f"{name}: ending the search after the current step; the incumbent is checked and written "
+              "(Ctrl-C again: stop at once)", flush=True)
+
+    # Ctrl-C / SIGTERM end the search between steps; the incumbent is still checked and written
+    with stop_on_signals(interrupt=True, on_request=heard) as stop:
+        for phase in a.phases:
+            if phase == "swap":
+                if cur[0]:  # the swap search keeps every design pose covered: it needs a start that covers them
+                    print(f"swap phase skipped: {cur[0]} design poses have fewer than {need} lit", flush=True)
+                    history.append({"phase": phase, "skipped": f"{cur[0]} design poses uncovered at the start"})
+                    continue
+                # (P, N) lit counts: every move keeps every design pose covered (one station: a view, no copy)
+                cover = vis_cov[:, 0] if vis_cov.shape[1] == 1 else vis_cov.sum(axis=1, dtype=np.uint8)
+                conflict = site[:, None] == site[None, :]  # one sensor per site (a site's orientations conflict)
+                np.fill_diagonal(conflict, False)
+                sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, cover, conflict)
+                kicks = []
+                for _ in range(a.kicks):
+                    if not running():
+                        break
+                    ks = kick(sel, cover, rng)
+                    k_adop, k_lit = evaluate(ks)
+                    k_obj = _objective(k_adop, k_lit, need, a.p, k_tail, a.target)
+                    s2, o2, ad2, lit2, r2, W2 = swap_rounds(ks, k_obj, k_adop, k_lit, cover, conflict, W)
+                    better = o2[0] <= cur[0] and o2[2] < cur[2] * (1 - 1e-6)  # a lower worst, not rounding
+                    kicks.append({"kicked_worst": k_obj[2], "searched_worst": o2[2], "kept": bool(better),
+                                  "rounds": len(r2), "time_s": time.perf_counter() - t_start})
+                    print(f"kick {len(kicks)}: {k_obj[2]:.0f} -> {o2[2]:.0f} ({'kept' if better else 'not kept'}; "
+                          f"incumbent {min(cur[2], o2[2]):.0f})", flush=True)
+                    if better:
+                        sel, cur, cur_adop, cur_lit, W = s2, o2, ad2, lit2, W2
+                history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
+                                "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "excess": cur[4],
+                                "moves": sum(r["moves"] for r in rounds if r["kept"]), "rounds": rounds,
+                                "kicks": kicks})
                 continue
-            # (P, N) lit counts: every move keeps every design pose covered (one station: a view, no copy)
-            cover = vis_cov[:, 0] if vis_cov.shape[1] == 1 else vis_cov.sum(axis=1, dtype=np.uint8)
-            conflict = site[:, None] == site[None, :]  # one sensor per site (a site's orientations conflict)
-            np.fill_diagonal(conflict, False)
-            sel, cur, cur_adop, cur_lit, rounds, W = swap_rounds(sel, cur, cur_adop, cur_lit, deadline, cover, conflict)
-            kicks = []
-            for _ in range(a.kicks):
-                if not running():
-                    break
-                ks = kick(sel, cover, rng)
-                k_adop, k_lit = evaluate(ks)
-                k_obj = _objective(k_adop, k_lit, need, a.p, k_tail, a.target)
-                s2, o2, ad2, lit2, r2, W2 = swap_rounds(ks, k_obj, k_adop, k_lit, deadline, cover, conflict, W)
-                better = o2[0] <= cur[0] and o2[2] < cur[2] * (1 - 1e-6)  # a lower worst, not rounding
-                kicks.append({"kicked_worst": k_obj[2], "searched_worst": o2[2], "kept": bool(better),
-                              "rounds": len(r2), "time_s": time.perf_counter() - t_start})
-                print(f"kick {len(kicks)}: {k_obj[2]:.0f} -> {o2[2]:.0f} ({'kept' if better else 'not kept'}; "
-                      f"incumbent {min(cur[2], o2[2]):.0f})", flush=True)
-                if better:
-                    sel, cur, cur_adop, cur_lit, W = s2, o2, ad2, lit2, W2
-            history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
-                            "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "excess": cur[4],
-                            "moves": sum(r["moves"] for r in rounds if r["kept"]), "rounds": rounds,
-                            "kicks": kicks})
-            continue
-        improved = True
-        while improved and running():
-            improved, moves = False, 0
-            for i in rng.permutation(len(sel)):
-                if not running():
-                    break
-                found = step(i, phase, cur, cur_adop, cur_lit)
-                if found is not None:
-                    sel[i], cur, cur_adop, cur_lit = found
-                    improved, moves = True, moves + 1
-            history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
-                            "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "excess": cur[4], "moves": moves})
-            print(f"{phase} sweep: {moves} moves, uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, "
-                  f"tail {cur[3]:.0f}, excess {cur[4]:.3g} "
-                  f"({time.perf_counter() - t_start:.0f} s)", flush=True)
+            improved = True
+            while improved and running():
+                improved, moves = False, 0
+                for i in rng.permutation(len(sel)):
+                    if not running():
+                        break
+                    found = step(i, phase, cur, cur_adop, cur_lit)
+                    if found is not None:
+                        sel[i], cur, cur_adop, cur_lit = found
+                        improved, moves = True, moves + 1
+                history.append({"phase": phase, "time_s": time.perf_counter() - t_start, "uncovered": cur[0],
+                                "lp": cur[1], "worst": cur[2], "tail_mean": cur[3], "excess": cur[4], "moves": moves})
+                print(f"{phase} sweep: {moves} moves, uncovered {cur[0]}, L{a.p:g} {cur[1]:.0f}, worst {cur[2]:.0f}, "
+                      f"tail {cur[3]:.0f}, excess {cur[4]:.3g} "
+                      f"({time.perf_counter() - t_start:.0f} s)", flush=True)
 
-    lay = Layout(pos[sel], axes[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
-                 {"x-refined-from": a.start},
-                 tuple({"x-site": sites.ids[int(site[c])], "x-tilt-deg": float(tilt[c])} for c in sel))
-    # an ablation covers part of the envelope only: its rows live apart, out of run.py's score stage
-    dest = folder / "ablations" if a.view_angle_deg is not None else folder
-    dest.mkdir(exist_ok=True)
-    out = dest / f"refine{a.tag}.layout.json"
-    save_layout(lay, out)
-    # the run's own held-out check: fresh poses, scored as the study scores every row (run._scores: 60°,
-    # self-occlusion)
-    sc = _scores(out, str(mesh_path(folder)), env, sets=[("check", a.check_poses, a.check_seed)])["check"]
-    check = {"poses": a.check_poses, "seed_offset": a.check_seed, "covered_fraction": sc["covered_fraction"],
-             "worst_adop": sc["worst_adop_over_covered"]}
-    status = "ok" if cur[0] == 0 and sc["covered_fraction"] == 1.0 else "incomplete"
-    if stopped:  # the layout is still a valid row (its check is real); the history says where the search was cut
-        history.append({"phase": "stopped", "signal": stopped[0], "time_s": time.perf_counter() - t_start})
-    region = ""
-    if a.view_angle_deg is not None:  # an ablation is checked on its own region of the check poses
-        _, Rc, tc = envelope_set(env, count=a.check_poses, seed=env.seed + a.check_seed)
-        va = view_angle(env, dev.front, Rc, tc)
-        x = sc["_adop"][(va >= a.view_angle_deg[0]) & (va < a.view_angle_deg[1])]
-        check.update(poses=int(x.size), covered_fraction=float(np.isfinite(x).mean()),
-                     worst_adop=float(np.max(x[np.isfinite(x)])))
-        status, region = "ablation", f" with view angle in [{a.view_angle_deg[0]:g}, {a.view_angle_deg[1]:g})°"
-    res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "spacing_m": spacing,
-           "extra_sites": extra,
-           "candidates": n_pool, "status": status,
-           "value": check["worst_adop"], "value_refers_to": f"worst ADOP over the {check['poses']} fresh poses{region} "
-           f"(envelope seed + {a.check_seed}), 60° acceptance, self-occlusion", "check": check,
-           "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2], "tail_mean_adop": cur[3], "excess": cur[4]}, "history": history,
-           "tilt_deg": [float(tilt[c]) for c in sel], "sites": [sites.ids[int(site[c])] for c in sel],
-           "wall_s": time.perf_counter() - t_start, "loadavg_end": os.getloadavg(), "layout": str(out),
-           "code_commit": _commit()}
-    atomic_write_text(dest / f"refine{a.tag}.json", json.dumps(to_jsonable(res), indent=1) + "\n")
-    cut = f" (search cut by {stopped[0]})" if stopped else ""
-    print(f"{status}{cut}: check worst {check['worst_adop']:.0f} (covered {check['covered_fraction']:.4f}) -> {out}")
+        lay = Layout(pos[sel], axes[sel], tuple(f"S{i + 1:02d}" for i in range(len(sel))),
+                     {"x-refined-from": a.start},
+                     tuple({"x-site": sites.ids[int(site[c])], "x-tilt-deg": float(tilt[c])} for c in sel))
+        # an ablation covers part of the envelope only: its rows live apart, out of run.py's score stage
+        dest = folder / "ablations" if a.view_angle_deg is not None else folder
+        dest.mkdir(exist_ok=True)
+        out = dest / f"refine{a.tag}.layout.json"
+        save_layout(lay, out)
+        # the run's own held-out check: fresh poses, scored as the study scores every row (run._scores: 60°,
+        # self-occlusion)
+        sc = _scores(out, str(mesh_path(folder)), env, sets=[("check", a.check_poses, a.check_seed)])["check"]
+        check = {"poses": a.check_poses, "seed_offset": a.check_seed, "covered_fraction": sc["covered_fraction"],
+                 "worst_adop": sc["worst_adop_over_covered"]}
+        status = "ok" if cur[0] == 0 and sc["covered_fraction"] == 1.0 else "incomplete"
+        if stop.requested:  # the layout is still a valid row (its check is real); the history says where it was cut
+            history.append({"phase": "stopped", "signal": stop.name, "time_s": time.perf_counter() - t_start})
+        region = ""
+        if a.view_angle_deg is not None:  # an ablation is checked on its own region of the check poses
+            _, Rc, tc = envelope_set(env, count=a.check_poses, seed=env.seed + a.check_seed)
+            va = view_angle(env, dev.front, Rc, tc)
+            x = sc["_adop"][(va >= a.view_angle_deg[0]) & (va < a.view_angle_deg[1])]
+            check.update(poses=int(x.size), covered_fraction=float(np.isfinite(x).mean()),
+                         worst_adop=float(np.max(x[np.isfinite(x)])))
+            status, region = "ablation", f" with view angle in [{a.view_angle_deg[0]:g}, {a.view_angle_deg[1]:g})°"
+        res = {"spec": vars(a), "start": a.start, "facet_sites": bool(start_spec.get("facet_sites")), "site_seed": seed0, "spacing_m": spacing,
+               "extra_sites": extra,
+               "candidates": n_pool, "status": status,
+               "value": check["worst_adop"], "value_refers_to": f"worst ADOP over the {check['poses']} fresh poses{region} "
+               f"(envelope seed + {a.check_seed}), 60° acceptance, self-occlusion", "check": check,
+               "design": {"uncovered": cur[0], "lp": cur[1], "worst_adop": cur[2], "tail_mean_adop": cur[3], "excess": cur[4]}, "history": history,
+               "tilt_deg": [float(tilt[c]) for c in sel], "sites": [sites.ids[int(site[c])] for c in sel],
+               "wall_s": time.perf_counter() - t_start, "loadavg_end": os.getloadavg(), "layout": str(out),
+               "code_commit": _commit()}
+        atomic_write_text(dest / f"refine{a.tag}.json", json.dumps(to_jsonable(res), indent=1) + "\n")
+        cut = f" (search cut by {stop.name})" if stop.requested else ""
+        print(f"{status}{cut}: check worst {check['worst_adop']:.0f} (covered {check['covered_fraction']:.4f}) -> {out}")
+    if stop.requested:  # the shell's convention for a run ended by a signal (its row is written)
+        sys.exit(128 + stop.signum)
 
 
 if __name__ == "__main__":
     try:
         main()
-    except KeyboardInterrupt:  # before the search starts (sites, ray casting) there is nothing to write
-        sys.exit("interrupted before the search started: nothing written")
+    except KeyboardInterrupt:  # before the search (sites, ray casting) or a second Ctrl-C: nothing is written
+        sys.exit("interrupted: nothing written")
