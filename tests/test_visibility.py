@@ -8,8 +8,12 @@ import trimesh
 from layoutkit.geometry import random_rotations, rotvec_to_matrix
 from layoutkit.lighthouse import Station, in_field_of_view
 from layoutkit.shapes import docking_target
-from layoutkit.visibility import (RAY_ENGINES, envelope_visibility, segment_occlusion_reference,
-                                  visible_sensors)
+from layoutkit.visibility import (
+    RAY_ENGINES,
+    envelope_visibility,
+    segment_occlusion_reference,
+    visible_sensors,
+)
 
 
 def _poses_in_front(rng, count, rmin, rmax, cone_deg=40.0):

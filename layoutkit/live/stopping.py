@@ -20,7 +20,7 @@ import contextlib
 import signal
 import threading
 
-__all__ = ["StopRequest", "stop_on_signals", "STOP_SIGNALS"]
+__all__ = ["STOP_SIGNALS", "StopRequest", "stop_on_signals"]
 
 STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n))
 
