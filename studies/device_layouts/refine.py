@@ -18,7 +18,8 @@ for the worst case on a working set of the hardest design poses, keeping every d
 poses), and grows the working set by the design poses that refute its result; ``--kicks`` then restarts it from
 random 2–3-sensor perturbations of the incumbent (iterated local search). The sites
 are the row's own (the housing's sites sampled 8 mm apart, plus the device's mounting facets for a
-``run.py --facet-sites`` row).
+``run.py --facet-sites`` row); ``--pool-radius-mm R`` keeps only the sites within R of the start's sensors (0: their
+own sites), a pool small enough for a finer orientation grid or a swap working set of thousands of poses.
 
 Exact visibility (ray-cast, :func:`layoutkit.optimize.design.layout_visibility`) of every (site, orientation)
 candidate at the design poses is computed once; a move costs one :func:`layoutkit.dop_batch.batch_dop` call.
@@ -112,6 +113,9 @@ def main():
     ap.add_argument("--max-tilt-deg", type=float, default=25.0)
     ap.add_argument("--levels", type=int, default=3, help="tilt levels max·j/levels, j = 1 … levels (and 0)")
     ap.add_argument("--azimuths", type=int, default=8)
+    ap.add_argument("--pool-radius-mm", type=float, default=None,
+                    help="keep only the candidates at sites within this distance of the start's sensors (0: their "
+                         "own sites): a small pool, so that a finer orientation grid or a large swap working set fits")
     ap.add_argument("--neighbours", type=int, default=0,
                     help="a sensor may move to this many nearest sites (its own included); 0: to any free site")
     ap.add_argument("--screen", type=int, default=2000,
@@ -191,6 +195,10 @@ def main():
         sites = append_sites(new, sites.positions[keep], sites.normals[keep], [e["id"] for e in extra])
         spacing, seed0 = a.spacing_mm * 1e-3, a.seed
     pos, axes, site, tilt = _pool(sites, a.max_tilt_deg, a.levels, a.azimuths)
+    if a.pool_radius_mm is not None:  # the sites near the start's sensors only (every orientation of each)
+        d = np.linalg.norm(sites.positions[:, None] - start.positions[None], axis=2).min(axis=1)
+        keep = np.flatnonzero(d[site] <= a.pool_radius_mm * 1e-3 + 1e-9)
+        pos, axes, site, tilt = pos[keep], axes[keep], site[keep], tilt[keep]
     # the start layout's own sensors are candidates too (their 25° azimuths need not be on this grid)
     start_site = _nearest_site(sites, start.positions)
     start_tilt = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", start.normals, sites.normals[start_site]), -1, 1)))
@@ -214,7 +222,7 @@ def main():
     k_tail = max(1, round(a.tail_fraction * len(R)))  # checked before the ray casting
     if k_tail > a.screen:
         raise SystemExit(f"--tail-fraction {a.tail_fraction:g} is {k_tail} poses, more than --screen {a.screen}")
-    print(f"{n_pool} candidates ({sites.n} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
+    print(f"{n_pool} candidates ({np.unique(site).size} sites x {1 + a.levels * a.azimuths} orientations + {start.n} start), "
           f"{len(R)} design poses", flush=True)
 
     def pool_visibility(half_angle, occluder=mesh, within=None):
