@@ -20,7 +20,7 @@ sys.path.insert(0, str(HERE))
 
 from devices import device_of_folder, mesh_path
 from regions import view_angle
-from run import RHO, SCORE_HALF_ANGLE_DEG
+from run import RHO, SCORE_HALF_ANGLE_DEG, M
 
 
 def main():
@@ -44,12 +44,14 @@ def main():
     _, R, t = envelope_set(env, count=a.poses, seed=env.seed + a.seed_offset)
     vis = layout_visibility(load_mesh(str(mesh_path(folder))), lay.positions, lay.normals, R, t, env.stations,
                             SCORE_HALF_ANGLE_DEG)
-    adop = batch_dop(lay.positions, R, t, rho=RHO, visible=vis, stations=env.stations).adop
-    lit, va = vis.sum(axis=(1, 2)), view_angle(env, dev.front, R, t)
+    d = batch_dop(lay.positions, R, t, rho=RHO, visible=vis, stations=env.stations)
+    lit, va = d.n_visible, view_angle(env, dev.front, R, t)
+    adop = np.where(lit >= M, d.adop, np.inf)  # the study's rule: a pose with fewer than M lit is untracked
     hi = np.isfinite(adop) & (adop > a.level)
     front = np.degrees(np.arccos(np.clip(lay.normals @ np.asarray(dev.front), -1, 1)))
-    print(f"{a.layout}: {a.poses} poses (seed + {a.seed_offset}), {hi.sum()} above {a.level:g}, "
-          f"worst {np.max(adop[np.isfinite(adop)]):.0f}; sensors within 60° of the front axis: {(front <= 60).sum()}, "
+    print(f"{a.layout}: {a.poses} poses (seed + {a.seed_offset}), {(~np.isfinite(adop)).sum()} untracked, "
+          f"{hi.sum()} above {a.level:g}, worst {np.max(adop[np.isfinite(adop)]):.0f} over the tracked; "
+          f"sensors within 60° of the front axis: {(front <= 60).sum()}, "
           f"beyond 90°: {(front > 90).sum()}")
     print("view angle | poses | above | lit count of the poses (4, 5, 6, ...)")
     for lo in range(0, 130, 10):
